@@ -1,0 +1,292 @@
+"""`mrrig bench paper`: the paper's simulation study (Table 6) reproduced, and beaten.
+
+Trains the forward network, the supervised inverse MLP and the RNN on data set A (spec
+section 4 A) by Levenberg-Marquardt, runs every controller in closed loop against the Bouc-Wen
+plant at 1 ms on the seven validation cases, and prints our Et beside the paper's, together with
+the forward model's Et, the training time and the inversion cost per sample of the paper's
+gradient method and of the default exact solve, measured in the same run.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import time
+from pathlib import Path
+
+import numpy as np
+
+from firmware_sim.plant import BoucWenParams
+from mrrig.controllers import (
+    RNN_INPUTS,
+    ContinuousState,
+    Controller,
+    Heaviside,
+    NetworkInversion,
+    RecurrentInverse,
+    SupervisedInverse,
+    rnn_features,
+)
+from mrrig.datasets import Series, dataset_a_training, dataset_a_validation
+from mrrig.inversion import ScalarInverter, exact_inversion, gradient_inversion
+from mrrig.metrics import error_norm
+from mrrig.model.mlp import MLP
+from mrrig.model.train import train_lm
+from mrrig.simulation import closed_loop
+
+log = logging.getLogger(__name__)
+
+DT_S = 1e-3
+VMAX_V = 12.0  # the training range of data set A
+N_TRAIN = 12771  # the paper's training and validation sizes
+N_VAL = 1419
+FEEDBACK_TAU_S = 0.002
+
+# spec/modeling.md section 6; columns in the order of dataset_a_validation()
+PAPER_TABLE_6 = {
+    "heaviside": [0.5622, 0.5622, 0.5622, 0.3936, 0.4372, 0.5075, 0.4523],
+    "continuous_state": [0.5588, 0.5588, 0.5588, 0.4067, 0.4790, 0.4790, 0.4912],
+    "rnn": [0.0118, 0.0113, 0.0118, 0.0095, 0.0118, 0.0108, 0.0113],
+    "supervised": [0.1951, 0.1951, 0.1951, 0.2124, 0.4225, 0.3728, 0.2475],
+    "network_inversion": [0.0394, 0.0394, 0.0394, 0.1335, 0.1217, 0.1954, 0.1321],
+}
+
+
+def _split(n: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """A random, disjoint 12771 / 1419 split of n samples, like the paper's."""
+    idx = np.random.default_rng(seed).permutation(n)
+    return idx[:N_TRAIN], idx[N_TRAIN : N_TRAIN + N_VAL]
+
+
+def _fit(name: str, X: np.ndarray, y: np.ndarray, inputs, units, out, out_unit, seed, epochs):
+    tr, va = _split(len(y), seed)
+    t0 = time.perf_counter()
+    model, report = train_lm(
+        X[tr],
+        y[tr],
+        input_names=list(inputs),
+        input_units=list(units),
+        output_name=out,
+        output_unit=out_unit,
+        validation=(X[va], y[va]),
+        max_epochs=epochs,
+        seed=seed,
+    )
+    seconds = time.perf_counter() - t0
+    held_out_et = error_norm(y[va], model.predict(X[va]))
+    log.info("%s: %d epochs in %.2f s, held-out Et %.4f", name, report.epochs, seconds, held_out_et)
+    return model, {"seconds": seconds, "epochs": report.epochs, "held_out_et": held_out_et}
+
+
+def train_models(train: Series, seed: int, epochs: int) -> tuple[dict[str, MLP], dict]:
+    """Forward network, supervised inverse and RNN, all trained by LM on data set A."""
+    x, xd, xdd, v, f = train.x, train.xd, train.xdd, train.current, train.force
+    units = ["m", "m/s", "m/s^2"]
+    models, info = {}, {}
+    models["forward"], info["forward"] = _fit(
+        "forward 4-30-1",
+        np.column_stack([x, xd, xdd, v]),
+        f,
+        ["x", "xd", "xdd", "current"],
+        units + ["V"],
+        "force",
+        "N",
+        seed,
+        epochs,
+    )
+    models["supervised"], info["supervised"] = _fit(
+        "supervised inverse",
+        np.column_stack([x, xd, xdd, f]),
+        v,
+        ["x", "xd", "xdd", "f_des"],
+        units + ["N"],
+        "current",
+        "V",
+        seed + 1,
+        epochs,
+    )
+    models["rnn"], info["rnn"] = _fit(
+        "RNN (eq. 40)",
+        rnn_features(f, x, v),
+        v[6:],
+        RNN_INPUTS,
+        ["N", "N", "m", "m"] + ["V"] * 6,
+        "current",
+        "V",
+        seed + 2,
+        epochs,
+    )
+    return models, info
+
+
+def controllers(models: dict[str, MLP]) -> dict[str, Controller]:
+    """Every controller of Table 6, plus our variants of network inversion."""
+    fwd = models["forward"]
+    return {
+        "heaviside": Heaviside(VMAX_V),
+        "continuous_state": ContinuousState(VMAX_V),
+        "rnn": RecurrentInverse(VMAX_V, models["rnn"]),
+        "supervised": SupervisedInverse(VMAX_V, models["supervised"]),
+        "network_inversion": NetworkInversion(VMAX_V, fwd, method="gradient", dt_s=DT_S),
+        "network_inversion_exact": NetworkInversion(VMAX_V, fwd, method="exact", dt_s=DT_S),
+        "network_inversion_feedback": NetworkInversion(
+            VMAX_V, fwd, method="exact", feedback_tau_s=FEEDBACK_TAU_S, dt_s=DT_S
+        ),
+    }
+
+
+def inversion_cost(model: MLP, cases: list[Series], n: int = 1000, seed: int = 0) -> dict:
+    """Per-sample cost of the gradient method and of the exact solve, same samples, same run."""
+    X = np.concatenate([np.column_stack([c.x, c.xd, c.xdd, c.current]) for c in cases])
+    f = np.concatenate([c.force for c in cases])
+    pick = np.random.default_rng(seed).choice(len(f), size=n, replace=False)
+    X, f = X[pick], f[pick]
+    i_true = X[:, 3].copy()
+    i_prev = np.zeros(n)
+    rng = np.random.default_rng(seed)
+
+    t0 = time.perf_counter()
+    i_grad = gradient_inversion(model, X, f, rate=1e-3, iterations=1000, rng=rng, i_max=VMAX_V)
+    grad_us = (time.perf_counter() - t0) / n * 1e6
+    t0 = time.perf_counter()
+    i_exact = exact_inversion(model, X, f, i_prev, VMAX_V)
+    exact_batch_us = (time.perf_counter() - t0) / n * 1e6
+    inv = ScalarInverter(model, VMAX_V)
+    rows = X[:, :3].tolist()
+    ff = f.tolist()
+    scalar_us = np.empty(n)
+    for k in range(n):
+        t0 = time.perf_counter()
+        inv.solve(rows[k], ff[k], 0.0)
+        scalar_us[k] = (time.perf_counter() - t0) * 1e6
+
+    def force_err(i):
+        Xi = X.copy()
+        Xi[:, 3] = i
+        return float(np.sqrt(np.mean((model.predict(Xi) - f) ** 2)))
+
+    return {
+        "samples": n,
+        "gradient_us_per_sample": grad_us,
+        "exact_batch_us_per_sample": exact_batch_us,
+        "exact_scalar_us_median": float(np.median(scalar_us)),
+        "exact_scalar_us_p99": float(np.percentile(scalar_us, 99)),
+        "speedup_batch": grad_us / exact_batch_us,
+        "speedup_scalar_median": grad_us / float(np.median(scalar_us)),
+        "gradient_model_force_rmse_n": force_err(i_grad),
+        "exact_model_force_rmse_n": force_err(i_exact),
+        "gradient_current_rmse_v": float(np.sqrt(np.mean((i_grad - i_true) ** 2))),
+        "exact_current_rmse_v": float(np.sqrt(np.mean((i_exact - i_true) ** 2))),
+    }
+
+
+def run(seed: int = 0, epochs: int = 1000) -> dict:
+    """The whole benchmark; returns every number it prints."""
+    params = BoucWenParams.preset("paper-volt")
+    t0 = time.perf_counter()
+    train = dataset_a_training()
+    cases = dataset_a_validation()
+    log.info(
+        "data set A: %d training samples, %d validation cases (%.1f s)",
+        len(train.t),
+        len(cases),
+        time.perf_counter() - t0,
+    )
+    models, training = train_models(train, seed, epochs)
+
+    fwd = models["forward"]
+    open_loop = [
+        error_norm(c.force, fwd.predict(np.column_stack([c.x, c.xd, c.xdd, c.current])))
+        for c in cases
+    ]
+    x = np.stack([c.x for c in cases])
+    xd = np.stack([c.xd for c in cases])
+    xdd = np.stack([c.xdd for c in cases])
+    fd = np.stack([c.force for c in cases])
+    table: dict[str, list[float]] = {}
+    seconds: dict[str, float] = {}
+    for name, ctrl in controllers(models).items():
+        t0 = time.perf_counter()
+        res = closed_loop(ctrl, params, DT_S, x, xd, xdd, fd)
+        seconds[name] = time.perf_counter() - t0
+        table[name] = [error_norm(res.f_des[b], res.f_act[b]) for b in range(len(cases))]
+        log.info(
+            "%s: Et %s (%.1f s)", name, " ".join(f"{e:.4f}" for e in table[name]), seconds[name]
+        )
+    return {
+        "cases": [c.name for c in cases],
+        "vmax_v": VMAX_V,
+        "dt_s": DT_S,
+        "seed": seed,
+        "table6": table,
+        "paper_table6": PAPER_TABLE_6,
+        "closed_loop_seconds": seconds,
+        "training": training,
+        "forward_open_loop_et": open_loop,
+        "inversion_cost": inversion_cost(fwd, cases, seed=seed),
+    }
+
+
+LABELS = {
+    "heaviside": "Heaviside",
+    "continuous_state": "Continuous state",
+    "rnn": "RNN (eq. 40)",
+    "supervised": "Supervised inverse MLP",
+    "network_inversion": "Network inversion (paper: gradient)",
+    "network_inversion_exact": "Network inversion, exact solve",
+    "network_inversion_feedback": "  + load-cell feedback (ours)",
+}
+
+
+def format_report(r: dict) -> str:
+    cases = r["cases"]
+    head = f"{'controller':<38}" + "".join(f"{c:>9}" for c in cases)
+    lines = [
+        f"Table 6: error norm Et, closed loop at {r['dt_s'] * 1e3:g} ms, Vmax = {r['vmax_v']:g} V",
+        head,
+        "-" * len(head),
+    ]
+    for name, ets in r["table6"].items():
+        lines.append(f"{LABELS[name]:<38}" + "".join(f"{e:>9.4f}" for e in ets))
+        paper = r["paper_table6"].get(name)
+        if paper:
+            lines.append(f"{'  paper':<38}" + "".join(f"{e:>9.4f}" for e in paper))
+    lines.append("")
+    lines.append(
+        "Forward model open-loop Et on the validation cases: "
+        + " ".join(f"{e:.4f}" for e in r["forward_open_loop_et"])
+    )
+    for name, t in r["training"].items():
+        lines.append(
+            f"LM training {name:<11} {t['epochs']:>5} epochs {t['seconds']:>7.2f} s"
+            f"  held-out Et {t['held_out_et']:.4f}  ({N_TRAIN} training samples)"
+        )
+    c = r["inversion_cost"]
+    lines += [
+        "",
+        f"Inversion cost per sample ({c['samples']} validation samples, same run):",
+        f"  gradient (eq. 14, rate 1e-3, 1000 it.)  {c['gradient_us_per_sample']:>10.1f} us"
+        f"   model-force RMSE {c['gradient_model_force_rmse_n']:.2f} N",
+        f"  exact, batch                            {c['exact_batch_us_per_sample']:>10.2f} us"
+        f"   model-force RMSE {c['exact_model_force_rmse_n']:.2f} N",
+        f"  exact, scalar (real-time path)  median  {c['exact_scalar_us_median']:>10.2f} us"
+        f"   p99 {c['exact_scalar_us_p99']:.2f} us",
+        f"  speed-up exact/gradient: batch {c['speedup_batch']:.0f}x,"
+        f" scalar median {c['speedup_scalar_median']:.0f}x",
+    ]
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(prog="mrrig bench paper", description=__doc__)
+    ap.add_argument("--json", type=Path, help="also write the numbers to this JSON file")
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--epochs", type=int, default=1000, help="LM epoch limit (default 1000)")
+    args = ap.parse_args(argv)
+    result = run(seed=args.seed, epochs=args.epochs)
+    print(format_report(result))
+    if args.json:
+        args.json.write_text(json.dumps(result, indent=2))
+        log.info("wrote %s", args.json)
+    return 0

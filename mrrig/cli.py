@@ -1,0 +1,76 @@
+"""`mrrig`: one entry point, one subcommand per job.
+
+Ordinary errors (a bad config, a missing model, no daemon answering) print one `error: ...`
+line and exit 2; `--debug` shows the traceback instead.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import logging
+import sys
+
+# subcommand -> (module with main(argv) -> int, one-line help)
+COMMANDS: dict[str, tuple[str, str]] = {
+    "demo": ("mrrig.demo", "simulator + daemon: a 20 s force-tracking run and its summary"),
+    "run": ("mrrig.daemon", "run the rig daemon (mrrig run --config configs/rig.toml)"),
+    "sim": ("firmware_sim.__main__", "run the simulated rig firmware"),
+    "bridge": ("mrrig.canbus.bridge", "serve a virtual CAN channel to other processes (127.0.0.1)"),
+    "status": ("mrrig.client_cli", "print the daemon's status (Zenoh)"),
+    "arm": ("mrrig.client_cli", "arm the daemon: commands become ACTIVE"),
+    "disarm": ("mrrig.client_cli", "disarm the daemon: commands become SAFE 0 A"),
+    "watch": ("mrrig.client_cli", "live numbers from the daemon's telemetry"),
+    "send-force": ("mrrig.client_cli", "stream a desired-force profile to the daemon"),
+    "control": ("mrrig.client_cli", "send one JSON control request and print the reply"),
+    "review": ("mrrig.review_cli", "print the metrics of a Rerun recording (.rrd)"),
+    "characterize": ("mrrig.characterize", "run the characterization test matrix on the rig"),
+    "train": ("mrrig.train_cli", "train the forward network from recorded data"),
+    "validate": ("mrrig.validate", "force-tracking validation of a model on the rig"),
+    "bench": ("mrrig.bench.cli", "benchmarks: paper, estimation, inversion, loop"),
+}
+
+
+class UsageError(Exception):
+    """An ordinary error of the user's input: printed as one line, exit code 2."""
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    ap = argparse.ArgumentParser(prog="mrrig", description=__doc__.splitlines()[0])
+    ap.add_argument("--debug", action="store_true", help="show tracebacks and debug logs")
+    ap.add_argument("-q", "--quiet", action="store_true", help="warnings and errors only")
+    sub = ap.add_subparsers(dest="command", metavar="COMMAND")
+    for name, (_, help_) in COMMANDS.items():
+        sub.add_parser(name, help=help_, add_help=False)
+    # split at the subcommand: everything after it belongs to the subcommand's own parser
+    head = []
+    while argv and argv[0].startswith("-"):
+        head.append(argv.pop(0))
+    if argv:
+        head.append(argv.pop(0))
+    args = ap.parse_args(head)
+    if args.command is None:
+        ap.print_help()
+        return 2
+    level = logging.DEBUG if args.debug else logging.WARNING if args.quiet else logging.INFO
+    logging.basicConfig(level=level, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    module_name, _ = COMMANDS[args.command]
+    try:
+        module = importlib.import_module(module_name)
+        if module_name == "mrrig.client_cli":
+            return int(module.main([args.command, *argv]) or 0)
+        return int(module.main(argv) or 0)
+    except KeyboardInterrupt:
+        logging.getLogger("mrrig").warning("interrupted")
+        return 130
+    except Exception as exc:  # noqa: BLE001 - the CLI's one-line error contract
+        if args.debug or not _is_ordinary(exc):
+            raise
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+
+
+def _is_ordinary(exc: BaseException) -> bool:
+    """User-facing errors (bad input): everything derived from ValueError, OSError, UsageError."""
+    return isinstance(exc, ValueError | OSError | UsageError | LookupError)

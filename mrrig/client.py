@@ -1,0 +1,185 @@
+"""Zenoh clients of a running daemon: control requests, live watch, force-reference streaming.
+
+Every function opens its own session from a checked config (a path or a `zenoh.Config`) and
+closes it before returning, also on errors and Ctrl-C.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import math
+import sys
+import time
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import Any, TextIO
+
+import numpy as np
+import zenoh
+
+from mrrig.samples import RigState
+from mrrig.sidecar import JSON, keys
+from mrrig.zenoh_config import load_zenoh_config
+
+ZenohConfigLike = str | Path | zenoh.Config
+ForceProfile = Callable[[float], float] | str | Path
+_WATCH_POLL_S = 0.01
+
+
+class ClientError(ConnectionError):
+    """No daemon answered, or it answered with a transport error."""
+
+
+@contextlib.contextmanager
+def open_session(zenoh_config: ZenohConfigLike) -> Iterator[zenoh.Session]:
+    """A session from a checked config, closed on exit."""
+    conf = (zenoh_config if isinstance(zenoh_config, zenoh.Config)
+            else load_zenoh_config(zenoh_config))
+    try:
+        session = zenoh.open(conf)
+    except zenoh.ZError as exc:
+        raise ClientError(f"cannot open a Zenoh session (is the daemon running?): "
+                          f"{str(exc).splitlines()[0]}") from exc
+    try:
+        yield session
+    finally:
+        session.close()
+
+
+def request(rig: str, payload: dict[str, Any], zenoh_config: ZenohConfigLike,
+            timeout_s: float = 2.0) -> dict[str, Any]:
+    """Send one control request (e.g. {"cmd": "status"}) and return the daemon's JSON reply.
+
+    Raises ClientError if no daemon answers within `timeout_s`.
+    """
+    key = keys(rig)["control"]
+    with open_session(zenoh_config) as session:
+        replies = session.get(key, payload=json.dumps(payload), encoding=JSON,
+                              timeout=timeout_s)
+        for reply in replies:
+            if reply.ok is not None:
+                return json.loads(reply.ok.payload.to_bytes())
+            raise ClientError(f"{key}: error reply: {reply.err.payload.to_string()}")
+    raise ClientError(f"no daemon answered on {key} within {timeout_s:g} s "
+                      f"(is `mrrig run` up for rig {rig!r}, with a matching Zenoh config?)")
+
+
+def status(rig: str, zenoh_config: ZenohConfigLike, timeout_s: float = 2.0) -> dict[str, Any]:
+    return request(rig, {"cmd": "status"}, zenoh_config, timeout_s)
+
+
+def arm(rig: str, zenoh_config: ZenohConfigLike, timeout_s: float = 2.0) -> dict[str, Any]:
+    return request(rig, {"cmd": "arm"}, zenoh_config, timeout_s)
+
+
+def disarm(rig: str, zenoh_config: ZenohConfigLike, timeout_s: float = 2.0) -> dict[str, Any]:
+    return request(rig, {"cmd": "disarm"}, zenoh_config, timeout_s)
+
+
+def _last(values: list[Any]) -> float:
+    v = values[-1] if values else None
+    return float("nan") if v is None else float(v)
+
+
+def format_watch_line(samples_per_s: float, fields: dict[str, list[Any]]) -> str:
+    """One line of `watch`: rate, latest f_des / f_meas / i_cmd, latency p99, state."""
+    latency = np.array([v for v in fields.get("latency_us", []) if v is not None], float)
+    p99 = float(np.percentile(latency, 99)) if latency.size else float("nan")
+    state = fields.get("state") or []
+    state_name = RigState(state[-1]).name if state else "?"
+    return (f"rate {samples_per_s:6.1f} Hz  f_des {_last(fields.get('f_des', [])):9.1f} N  "
+            f"f_meas {_last(fields.get('f_meas', [])):9.1f} N  "
+            f"i_cmd {_last(fields.get('i_cmd', [])):6.3f} A  "
+            f"latency p99 {p99:7.1f} us  state {state_name}")
+
+
+def watch(rig: str, zenoh_config: ZenohConfigLike, duration_s: float | None = None,
+          out: TextIO = sys.stdout) -> int:
+    """Print live numbers from `mrrig/<rig>/telemetry` once per second.
+
+    Runs for `duration_s` (None: until Ctrl-C); returns the number of samples received.
+    """
+    total = 0
+    with open_session(zenoh_config) as session:
+        sub = session.declare_subscriber(keys(rig)["telemetry"])
+        t0 = time.monotonic()
+        window_start = t0
+        window: dict[str, list[Any]] = {}
+        try:
+            while duration_s is None or time.monotonic() - t0 < duration_s:
+                sample = sub.try_recv()
+                if sample is None:
+                    time.sleep(_WATCH_POLL_S)
+                else:
+                    fields = json.loads(sample.payload.to_bytes())["fields"]
+                    for name, values in fields.items():
+                        window.setdefault(name, []).extend(values)
+                now = time.monotonic()
+                if now - window_start >= 1.0:
+                    n = len(window.get("t", []))
+                    total += n
+                    line = (format_watch_line(n / (now - window_start), window) if n
+                            else "no telemetry")
+                    print(line, file=out, flush=True)
+                    window, window_start = {}, now
+        except KeyboardInterrupt:
+            pass
+        finally:
+            sub.undeclare()
+        total += len(window.get("t", []))
+    return total
+
+
+def load_force_csv(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
+    """A force profile CSV: columns time (s) and force (N); non-numeric lines (a header) are
+    skipped. Returns (t_s, force_n) with t increasing."""
+    rows = []
+    for line in Path(path).read_text().splitlines():
+        cells = line.split(",")
+        try:
+            rows.append((float(cells[0]), float(cells[1])))
+        except (ValueError, IndexError):
+            continue
+    if len(rows) < 2:
+        raise ValueError(f"{path}: a force profile needs at least two numeric rows t_s,force_n")
+    data = np.array(rows)
+    if not np.all(np.diff(data[:, 0]) > 0):
+        raise ValueError(f"{path}: time column must be strictly increasing")
+    return data[:, 0], data[:, 1]
+
+
+def send_force(rig: str, zenoh_config: ZenohConfigLike, profile: ForceProfile,
+               rate_hz: float, duration_s: float | None = None) -> int:
+    """Stream {"force_n": profile(t)} to `mrrig/<rig>/force_ref` at `rate_hz`.
+
+    `profile` is a function of time since start (s) -> N, or a CSV path (linear
+    interpolation; `duration_s` defaults to the file's last time). Returns the puts sent.
+    """
+    if isinstance(profile, str | Path):
+        t_s, force_n = load_force_csv(profile)
+
+        def fn(t: float) -> float:
+            return float(np.interp(t, t_s, force_n))
+
+        duration_s = float(t_s[-1]) if duration_s is None else duration_s
+    else:
+        fn = profile
+    if duration_s is None:
+        raise ValueError("send_force: duration_s is needed for a function profile")
+    period_s = 1.0 / rate_hz
+    sent = 0
+    with open_session(zenoh_config) as session:
+        pub = session.declare_publisher(keys(rig)["force_ref"], encoding=JSON, express=True)
+        try:
+            t0 = time.monotonic()
+            for k in range(int(math.floor(duration_s * rate_hz)) + 1):
+                t = k * period_s
+                delay_s = t0 + t - time.monotonic()
+                if delay_s > 0:
+                    time.sleep(delay_s)  # absolute deadlines: no drift
+                pub.put(json.dumps({"force_n": fn(t)}))
+                sent += 1
+        finally:
+            pub.undeclare()
+    return sent

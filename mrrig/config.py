@@ -1,0 +1,189 @@
+"""The rig daemon's configuration: TOML parsed once into typed, validated objects.
+
+Relative paths are taken from the working directory (run `mrrig` from the project root).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field, fields, replace
+from pathlib import Path
+from typing import Any, Literal
+
+from mrrig.typed_config import ConfigError, load_toml, parse
+
+__all__ = ["ConfigError", "DaemonConfig", "load_config", "reference_from_table"]
+
+
+@dataclass(frozen=True)
+class RigSection:
+    name: str = "sim"
+
+    def check(self) -> None:
+        if not self.name or not all(c.isalnum() or c in "-_" for c in self.name):
+            raise ValueError("name: use letters, digits, '-' and '_' only (it is a Zenoh key)")
+
+
+@dataclass(frozen=True)
+class BusSection:
+    interface: str
+    channel: str
+    options: dict[str, Any] = field(default_factory=dict)  # other can.Bus keywords
+    send_timeout_s: float = 0.001
+
+    def check(self) -> None:
+        if self.interface == "udp_multicast":
+            raise ValueError("interface: udp_multicast sends off this machine; not allowed")
+        if not 0 < self.send_timeout_s <= 0.002:
+            raise ValueError("send_timeout_s: must be in (0, 0.002] s (one sensor period)")
+
+
+@dataclass(frozen=True)
+class LoopSection:
+    period_s: float = 0.002  # the firmware's RigSensors period
+    i_max_a: float = 2.0  # commands are clamped to [0, i_max_a]
+    timeout_periods: int = 3  # no sensor frame for this many periods -> FAULT + SAFE
+    bad_frame_budget: int = 3  # bad CRC / repeated counter frames tolerated per window
+    lost_frame_budget: int = 5  # lost frames (counter jumps) tolerated per window
+    budget_window_s: float = 1.0
+    x_range_m: tuple[float, float] = (-0.045, 0.045)
+    f_range_n: tuple[float, float] = (-6000.0, 6000.0)
+    realtime: bool = True  # SCHED_FIFO where permitted
+    cpu: int | None = None  # pin the loop to this CPU where permitted
+    arm_on_start: bool = False
+    duration_s: float | None = None  # stop by itself after this long (tests, demo)
+    telemetry_batch: int = 10  # samples per hand-off to the telemetry process
+
+    def check(self) -> None:
+        if not 0.0005 <= self.period_s <= 0.1:
+            raise ValueError("period_s: must be in [0.0005, 0.1] s")
+        if not 0 < self.i_max_a <= 5.0:
+            raise ValueError("i_max_a: must be in (0, 5] A")
+        if self.timeout_periods < 1:
+            raise ValueError("timeout_periods: must be at least 1")
+        if self.x_range_m[0] >= self.x_range_m[1]:
+            raise ValueError("x_range_m: lower bound must be below the upper bound")
+        if self.f_range_n[0] >= self.f_range_n[1]:
+            raise ValueError("f_range_n: lower bound must be below the upper bound")
+        if self.duration_s is not None and not self.duration_s > 0:
+            raise ValueError("duration_s: must be positive")
+        if not 1 <= self.telemetry_batch <= 40:
+            raise ValueError("telemetry_batch: must be in [1, 40]")
+
+
+@dataclass(frozen=True)
+class EstimatorSection:
+    q: float = 1.0  # Kalman process noise (white jerk), (m/s^2)^2 per s... see estimation.py
+    r0_m2: float = 4e-10  # Kalman measurement noise at rest, m^2 (eq. 24)
+
+    def check(self) -> None:
+        if not (self.q > 0 and self.r0_m2 > 0):
+            raise ValueError("q, r0_m2: must be positive")
+
+
+@dataclass(frozen=True)
+class ControllerSection:
+    name: Literal[
+        "network_inversion", "heaviside", "continuous_state", "supervised", "rnn", "constant"
+    ] = "network_inversion"
+    model: Path | None = None  # the forward model (network inversion) or the inverse MLP / RNN
+    method: Literal["exact", "gradient"] = "exact"
+    feedback_tau_s: float | None = None  # load-cell feedback correction; off when absent
+    current_a: float = 0.0  # for the constant controller
+
+    def check(self) -> None:
+        needs_model = self.name in ("network_inversion", "supervised", "rnn")
+        if needs_model and self.model is None:
+            raise ValueError(f"model: controller {self.name} needs a model file")
+        if self.feedback_tau_s is not None and not self.feedback_tau_s > 0:
+            raise ValueError("feedback_tau_s: must be positive")
+
+
+@dataclass(frozen=True)
+class ReferenceSection:
+    kind: Literal["constant", "sine", "noise", "csv", "bouc_wen", "zenoh"] = "constant"
+    offset_n: float = 0.0
+    amplitude_n: float = 0.0
+    freq_hz: float = 1.0
+    seed: int = 0
+    path: Path | None = None  # csv
+    timeout_s: float = 0.1  # zenoh: stale after this long
+    preset: str = "rig-current"  # bouc_wen
+    current_a: float = 0.5  # bouc_wen: the reference damper's current, A
+    current_amp_a: float = 0.0
+    current_freq_hz: float = 1.0
+
+    def check(self) -> None:
+        if self.kind == "csv" and self.path is None:
+            raise ValueError("path: a csv reference needs a path")
+        if not all(math.isfinite(v) for v in (self.offset_n, self.amplitude_n, self.freq_hz)):
+            raise ValueError("offset_n/amplitude_n/freq_hz: must be finite")
+        if self.freq_hz <= 0:
+            raise ValueError("freq_hz: must be positive")
+        if self.timeout_s <= 0:
+            raise ValueError("timeout_s: must be positive")
+
+
+@dataclass(frozen=True)
+class ActuatorSection:
+    waveform: Literal["stop", "sine", "random", "hold"] = "stop"
+    amplitude_m: float = 0.0
+    frequency_hz: float = 0.0
+
+    def check(self) -> None:
+        if not 0 <= self.amplitude_m <= 0.04:
+            raise ValueError("amplitude_m: must be in [0, 0.04] m")
+        if not 0 <= self.frequency_hz <= 20:
+            raise ValueError("frequency_hz: must be in [0, 20] Hz")
+
+
+@dataclass(frozen=True)
+class TelemetrySection:
+    enabled: bool = True
+    zenoh_config: Path = Path("configs/zenoh-daemon.json5")
+    rate_hz: float = 50.0
+
+    def check(self) -> None:
+        if not 1 <= self.rate_hz <= 500:
+            raise ValueError("rate_hz: must be in [1, 500]")
+
+
+@dataclass(frozen=True)
+class RecordingSection:
+    enabled: bool = True
+    directory: Path = Path("recordings")
+    live_url: str | None = None  # e.g. rerun+http://127.0.0.1:9876/proxy
+
+
+@dataclass(frozen=True)
+class DaemonConfig:
+    bus: BusSection
+    rig: RigSection = field(default_factory=RigSection)
+    loop: LoopSection = field(default_factory=LoopSection)
+    estimator: EstimatorSection = field(default_factory=EstimatorSection)
+    controller: ControllerSection = field(default_factory=ControllerSection)
+    reference: ReferenceSection = field(default_factory=ReferenceSection)
+    actuator: ActuatorSection = field(default_factory=ActuatorSection)
+    telemetry: TelemetrySection = field(default_factory=TelemetrySection)
+    recording: RecordingSection = field(default_factory=RecordingSection)
+    source: str = "<defaults>"  # the file it came from, for error messages
+
+
+def load_config(
+    path: str | Path, overrides: dict[str, dict[str, Any]] | None = None
+) -> DaemonConfig:
+    """Load and check a daemon config; `overrides` ({section: {field: value}}) win over the file."""
+    table = load_toml(path)
+    for section, values in (overrides or {}).items():
+        table.setdefault(section, {}).update(values)
+    table.pop("source", None)
+    cfg = parse(DaemonConfig, table, str(path))
+    return replace(cfg, source=str(path))
+
+
+def reference_from_table(table: dict[str, Any], source: str) -> ReferenceSection:
+    """A reference section from a control request (same checks as the file)."""
+    return parse(ReferenceSection, table, source, "reference")
+
+
+SECTION_NAMES = tuple(f.name for f in fields(DaemonConfig) if f.name != "source")

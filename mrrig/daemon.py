@@ -1,0 +1,520 @@
+"""The rig daemon: one DamperCommand per valid RigSensors frame.
+
+read -> check -> Kalman -> force reference -> controller -> clamp -> send, paced by the sensor
+frames, in one thread that never waits on telemetry: samples, events and status are handed to
+the sidecar process (Zenoh + Rerun) through a non-blocking pipe, and control requests come
+back the same way, polled between frames.
+
+`mrrig run --config configs/rig.toml`
+"""
+
+from __future__ import annotations
+
+import argparse
+import gc
+import json
+import logging
+import math
+import os
+import signal
+import time
+from dataclasses import replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from mrrig import reference as ref
+from mrrig.canbus.bus import open_bus
+from mrrig.canbus.codec import Codec
+from mrrig.config import DaemonConfig, ReferenceSection, load_config
+from mrrig.controllers import (
+    ConstantCurrent,
+    ContinuousState,
+    ControlInput,
+    Controller,
+    Heaviside,
+    NetworkInversion,
+    RecurrentInverse,
+    SupervisedInverse,
+)
+from mrrig.estimation import KalmanEstimator
+from mrrig.model.mlp import MLP, ModelError
+from mrrig.safety import Fault, Limits, Supervisor
+from mrrig.samples import SAMPLE_DTYPE, RigState
+from mrrig.summary import format_summary, summarize
+from mrrig.typed_config import ConfigError
+
+log = logging.getLogger(__name__)
+
+DESIRED_FORCE_LIMIT_N = 80000.0  # inside DamperCommand.DesiredForce's 24-bit range
+ACTUATOR_PERIOD_S = 0.1
+STATUS_PERIOD_S = 1.0
+WAVEFORMS = {"stop": "STOP", "sine": "SINE", "random": "RANDOM", "hold": "HOLD"}
+
+
+def build_controller(cfg: DaemonConfig, section=None) -> Controller:
+    """The configured controller; a model that does not fit stops here with one line."""
+    c = section or cfg.controller
+    i_max, dt = cfg.loop.i_max_a, cfg.loop.period_s
+    if c.name == "heaviside":
+        return Heaviside(i_max)
+    if c.name == "continuous_state":
+        return ContinuousState(i_max)
+    if c.name == "constant":
+        if not 0 <= c.current_a <= i_max:
+            raise ConfigError(f"{cfg.source}: controller.current_a: outside [0, {i_max}] A")
+        return ConstantCurrent(i_max, c.current_a)
+    model = load_model(c.model)
+    try:
+        if c.name == "network_inversion":
+            return NetworkInversion(
+                i_max, model, method=c.method, feedback_tau_s=c.feedback_tau_s, dt_s=dt
+            )
+        if c.name == "supervised":
+            return SupervisedInverse(i_max, model)
+        return RecurrentInverse(i_max, model)
+    except ValueError as exc:
+        raise ModelError(f"{c.model}: input_names: {exc}") from None
+
+
+def load_model(path: Path | None) -> MLP:
+    if path is None:
+        raise ModelError("controller.model: no model file given")
+    if not Path(path).is_file():
+        raise ModelError(f"{path}: model file not found (train one: mrrig train ...)")
+    return MLP.load(path)
+
+
+def build_reference(r: ReferenceSection, dt_s: float) -> ref.ForceReference:
+    if r.kind == "constant":
+        return ref.Constant(r.offset_n)
+    if r.kind == "sine":
+        return ref.Sine(r.offset_n, r.amplitude_n, r.freq_hz)
+    if r.kind == "noise":
+        return ref.Noise(r.offset_n, r.amplitude_n, r.freq_hz, r.seed, dt_s)
+    if r.kind == "csv":
+        return ref.CsvSeries(r.path)
+    if r.kind == "bouc_wen":
+        return ref.BoucWenReference(r.preset, r.current_a, r.current_amp_a, r.current_freq_hz, dt_s)
+    return ref.External(r.timeout_s)
+
+
+def _realtime(cfg: DaemonConfig) -> None:
+    """SCHED_FIFO and CPU affinity where permitted; a warning where not."""
+    if cfg.loop.cpu is not None:
+        try:
+            os.sched_setaffinity(0, {cfg.loop.cpu})
+        except (OSError, AttributeError) as exc:
+            log.warning("CPU affinity %d not set: %s", cfg.loop.cpu, exc)
+    if cfg.loop.realtime:
+        try:
+            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(50))
+            log.info("SCHED_FIFO priority 50")
+        except (OSError, AttributeError) as exc:
+            log.warning("SCHED_FIFO not permitted (%s): running with normal priority", exc)
+
+
+class Daemon:
+    """The loop and its state; `run()` until stopped, then a SAFE command and a summary."""
+
+    def __init__(self, cfg: DaemonConfig, record_path: Path | None = None) -> None:
+        self.cfg = cfg
+        self.period_s = cfg.loop.period_s
+        self.codec = Codec()
+        self.packer = self.codec.packer("DAEMON")
+        self.parser = self.codec.parser()
+        self.controller = build_controller(cfg)
+        self.reference = build_reference(cfg.reference, self.period_s)
+        self.kf = KalmanEstimator(self.period_s, q=cfg.estimator.q, r0=cfg.estimator.r0_m2)
+        self.supervisor = Supervisor(
+            Limits(
+                cfg.loop.x_range_m,
+                cfg.loop.f_range_n,
+                cfg.loop.bad_frame_budget,
+                cfg.loop.lost_frame_budget,
+                cfg.loop.budget_window_s,
+            )
+        )
+        self.actuator = cfg.actuator
+        self.record_path = record_path
+        self.stop_reason = ""
+        self._stop = False
+        self.bus = None
+        self.link = None  # ipc.LoopEnd to the sidecar, when telemetry or recording is on
+        self.sidecar = None
+        self.t0 = time.perf_counter()
+        self.counters = {
+            "frames_received": 0,
+            "sensor_frames_valid": 0,
+            "sensor_frames_invalid": 0,
+            "status_frames": 0,
+            "commands_sent": 0,
+            "commands_active": 0,
+            "safe_commands_unprompted": 0,
+            "send_failures": 0,
+            "lost_frames": 0,
+            "telemetry_dropped": 0,
+        }
+        self.events: list[dict] = []
+        self._chunks: list[np.ndarray] = []
+        self._buf = np.zeros(cfg.loop.telemetry_batch, dtype=SAMPLE_DTYPE)
+        self._n = 0
+        self._last_sensor_t = None
+        self._last_counter = 0
+        self._i_meas = 0.0
+        self.last_x = 0.0  # the latest displacement estimate, m
+        self._last_status_sent = -math.inf
+        self._last_actuator_sent = -math.inf
+        self._status_key = None
+
+    # ---- time and hand-off -------------------------------------------------------------
+    def now(self) -> float:
+        return time.perf_counter() - self.t0
+
+    def _emit(self, events: list[dict]) -> None:
+        for e in events:
+            self.events.append(e)
+            level = logging.WARNING if e["kind"] == "fault" else logging.INFO
+            log.log(level, "%s: %s", e["kind"], e["reason"])
+            if self.link is not None:
+                self.link.send_event(e)
+        if events:
+            self._send_status(force=True)
+
+    def status(self) -> dict[str, Any]:
+        s = self.supervisor
+        return {
+            "rig": self.cfg.rig.name,
+            "state": s.state.name,
+            "armed": s.active,
+            "controller": self.controller.name,
+            "reference": self.reference.kind,
+            "fault": s.fault.value if s.fault else None,
+            "fault_reason": s.reason,
+            "firmware_blocking": s.firmware_blocking,
+            "t": self.now(),
+            **self.counters,
+        }
+
+    def _send_status(self, force: bool = False) -> None:
+        t = self.now()
+        key = (self.supervisor.state, self.supervisor.reason, self.controller.name)
+        if force or key != self._status_key or t - self._last_status_sent >= STATUS_PERIOD_S:
+            self._status_key = key
+            self._last_status_sent = t
+            if self.link is not None:
+                self.link.send_status(self.status())
+
+    # ---- CAN ---------------------------------------------------------------------------
+    def _send(self, name: str, values: dict[str, Any]) -> bool:
+        msg = self.packer.message(name, values)
+        try:
+            self.bus.send(msg, timeout=self.cfg.bus.send_timeout_s)
+            return True
+        except Exception as exc:  # noqa: BLE001 - any bus failure is a BUS_ERROR fault
+            self.counters["send_failures"] += 1
+            self._emit(self.supervisor.trip(self.now(), Fault.BUS_ERROR, f"send {name}: {exc}"))
+            return False
+
+    def _send_command(self, active: bool, current_a: float, f_des: float, echo: int) -> None:
+        ok = self._send(
+            "DamperCommand",
+            {
+                "Mode": 1 if active else 0,
+                "CurrentSetpoint": current_a if active else 0.0,
+                "SensorCounterEcho": echo,
+                "ControllerId": self.controller.controller_id if active else 0,
+                "DesiredForce": f_des if active else 0.0,
+            },
+        )
+        if ok:
+            self.counters["commands_sent"] += 1
+            self.counters["commands_active"] += active
+
+    def _send_actuator(self) -> None:
+        a = self.actuator
+        self._send(
+            "ActuatorCommand",
+            {
+                "Waveform": WAVEFORMS[a.waveform],
+                "Amplitude": a.amplitude_m,
+                "Frequency": a.frequency_hz,
+            },
+        )
+        self._last_actuator_sent = self.now()
+
+    # ---- the cycle ---------------------------------------------------------------------
+    def cycle(self, values: dict[str, float], counter: int, t_rx: float) -> None:
+        """One valid RigSensors frame -> exactly one DamperCommand."""
+        sup = self.supervisor
+        t = t_rx - self.t0
+        x_meas, f_meas = values["Displacement"], values["Force"]
+        events = sup.sensors(t, values)
+        x, xd, xdd = self.kf.update(x_meas)
+        self.last_x = x
+        events += sup.finite(t, "the Kalman estimate", x, xd, xdd)
+        try:
+            f_des = float(self.reference.force(t, x, xd))
+        except ref.StaleReference as exc:
+            f_des = 0.0
+            if sup.active:
+                events += sup.trip(t, Fault.STALE_REFERENCE, f"stale force reference: {exc}")
+        f_des = min(max(f_des, -DESIRED_FORCE_LIMIT_N), DESIRED_FORCE_LIMIT_N)
+        i_cmd, f_model = 0.0, math.nan
+        if sup.active:
+            s = ControlInput(
+                np.array([x]),
+                np.array([xd]),
+                np.array([xdd]),
+                np.array([f_meas]),
+                np.array([f_des]),
+            )
+            i = float(self.controller.command(s)[0])
+            events += sup.finite(t, f"the {self.controller.name} controller's command", i)
+            if sup.active:
+                i_cmd = min(max(i, 0.0), self.cfg.loop.i_max_a)
+        active = sup.active
+        self._send_command(active, i_cmd, f_des, counter)
+        latency_us = (time.perf_counter() - t_rx) * 1e6
+        if active:
+            f_model = float(self.controller.model_force(s, np.array([i_cmd]))[0])
+        row = self._buf[self._n]
+        row["t"], row["counter"], row["x"], row["x_est"] = t, counter, x_meas, x
+        row["xd"], row["xdd"], row["f_meas"], row["f_des"] = xd, xdd, f_meas, f_des
+        row["f_model"], row["i_cmd"], row["i_meas"] = f_model, i_cmd, self._i_meas
+        row["latency_us"], row["state"] = latency_us, sup.state
+        self._n += 1
+        if self._n == len(self._buf):
+            self._flush_samples()
+        if events:
+            self._emit(events)
+
+    def _flush_samples(self) -> None:
+        batch = self._buf[: self._n].copy()
+        self._chunks.append(batch)
+        self._n = 0
+        if self.link is not None and not self.link.send_samples(batch):
+            self.counters["telemetry_dropped"] += len(batch)
+
+    def samples(self) -> np.ndarray:
+        if self._n:
+            self._flush_samples()
+        if not self._chunks:
+            return np.zeros(0, dtype=SAMPLE_DTYPE)
+        return np.concatenate(self._chunks)
+
+    # ---- frames ------------------------------------------------------------------------
+    def on_frame(self, msg, t_rx: float) -> None:
+        self.counters["frames_received"] += 1
+        p = self.parser.parse(msg.arbitration_id, msg.data, t_rx)
+        if p.name == "RigSensors":
+            if not p.ok:
+                self.counters["sensor_frames_invalid"] += 1
+                self._emit(self.supervisor.bad_frame(t_rx - self.t0, p.reason))
+                return
+            self.counters["sensor_frames_valid"] += 1
+            if p.lost_frames:
+                self.counters["lost_frames"] += p.lost_frames
+                self._emit(self.supervisor.lost_frames(t_rx - self.t0, p.lost_frames))
+            self._last_sensor_t = t_rx
+            self._last_counter = p.counter
+            self.cycle(p.values, p.counter, t_rx)
+        elif p.name == "RigStatus" and p.ok:
+            v = p.values
+            self.counters["status_frames"] += 1
+            self._i_meas = v["CoilCurrent"]
+            state = self.codec.choices("RigStatus", "State").get(int(v["State"]), "?")
+            code = int(v["FaultCode"])
+            label = self.codec.choices("RigStatus", "FaultCode").get(code, str(code))
+            self._emit(
+                self.supervisor.firmware_status(
+                    t_rx - self.t0, state, code, label, int(v["CommandTimeouts"])
+                )
+            )
+        elif not p.ok and p.name is None:
+            log.debug("ignored frame: %s", p.reason)
+
+    def check_timeout(self, now_abs: float) -> None:
+        """No sensor frame for timeout_periods: FAULT, and a SAFE command on its own."""
+        limit = self.cfg.loop.timeout_periods * self.period_s
+        if self._last_sensor_t is None or now_abs - self._last_sensor_t <= limit:
+            return
+        if self.supervisor.state is not RigState.FAULT:
+            self._emit(
+                self.supervisor.trip(
+                    now_abs - self.t0,
+                    Fault.SENSOR_TIMEOUT,
+                    f"no sensor frame for {(now_abs - self._last_sensor_t) * 1e3:.1f} ms",
+                )
+            )
+        self._send_command(False, 0.0, 0.0, self._last_counter)
+        self.counters["safe_commands_unprompted"] += 1
+        self._last_sensor_t = now_abs  # again after another timeout period
+
+    # ---- control requests (from Zenoh, through the sidecar) ----------------------------
+    def handle_request(self, req: dict[str, Any]) -> dict[str, Any]:
+        """One control request -> a JSON-able reply; an invalid one changes nothing."""
+        from mrrig.control import handle
+
+        return handle(self, req)
+
+    def on_force_ref(self, force_n: float, t_rx_mono: float) -> None:
+        if isinstance(self.reference, ref.External):
+            # the sidecar stamps with time.monotonic(); both clocks tick at the same rate
+            delay = time.monotonic() - t_rx_mono
+            self.reference.receive(force_n, self.now() - delay)
+
+    def _poll_link(self) -> None:
+        from mrrig.ipc import Msg
+
+        for mtype, payload in self.link.poll():
+            if mtype == Msg.REQUEST:
+                reply = self.handle_request(payload)
+                reply["id"] = payload.get("id")
+                self.link.send_reply(reply)
+            elif mtype == Msg.FORCE_REF:
+                self.on_force_ref(*payload)
+
+    # ---- run ---------------------------------------------------------------------------
+    def request_stop(self, reason: str) -> None:
+        self.stop_reason = reason
+        self._stop = True
+
+    def run(self) -> dict[str, Any]:
+        cfg = self.cfg
+        self.bus = open_bus(cfg.bus.interface, cfg.bus.channel, **cfg.bus.options)
+        try:
+            if cfg.telemetry.enabled or self.record_path is not None:
+                self._start_sidecar()
+            _realtime(cfg)
+            self.controller.reset(1)
+            self.t0 = time.perf_counter()
+            if cfg.loop.arm_on_start:
+                self._emit(self.supervisor.arm(0.0)[2])
+            gc.collect()
+            gc.freeze()
+            self._loop()
+        finally:
+            self._shutdown()
+        return self.summary
+
+    def _loop(self) -> None:
+        cfg = self.cfg
+        recv = self.bus.recv
+        timeout_s = cfg.loop.timeout_periods * self.period_s
+        end = None if cfg.loop.duration_s is None else self.t0 + cfg.loop.duration_s
+        self._send_actuator()
+        while not self._stop:
+            try:
+                msg = recv(timeout=timeout_s)
+            except Exception as exc:  # noqa: BLE001 - a dead bus stops the loop safely
+                self._emit(self.supervisor.trip(self.now(), Fault.BUS_ERROR, f"receive: {exc}"))
+                self.request_stop(f"bus error: {exc}")
+                break
+            t_rx = time.perf_counter()
+            if msg is not None:
+                self.on_frame(msg, t_rx)
+            self.check_timeout(t_rx)
+            t = t_rx - self.t0
+            if self.link is not None:
+                self._poll_link()
+            if t - self._last_actuator_sent >= ACTUATOR_PERIOD_S:
+                self._send_actuator()
+            self._send_status()
+            if end is not None and t_rx >= end:
+                self.request_stop(f"duration {cfg.loop.duration_s:g} s reached")
+
+    def _start_sidecar(self) -> None:
+        from mrrig.ipc import LoopEnd, make_channel
+        from mrrig.sidecar import start_sidecar
+
+        fds = make_channel()
+        self.sidecar = start_sidecar(
+            rig=self.cfg.rig.name,
+            zenoh_config=self.cfg.telemetry.zenoh_config if self.cfg.telemetry.enabled else None,
+            record=self.record_path,
+            fds=fds,
+            telemetry_hz=self.cfg.telemetry.rate_hz,
+            live_url=self.cfg.recording.live_url,
+        )
+        self.link = LoopEnd(*fds.loop_fds())
+
+    def _shutdown(self) -> None:
+        """SAFE first, then the actuator to rest, the summary, the sidecar, the bus."""
+        gc.unfreeze()
+        if self.bus is not None:
+            if self._last_sensor_t is not None:
+                self._send_command(False, 0.0, 0.0, self._last_counter)
+            self.actuator = replace(self.actuator, waveform="stop")
+            try:
+                self._send_actuator()
+            finally:
+                self.bus.shutdown()
+        samples = self.samples()
+        self.counters["telemetry_dropped"] += self.link.dropped if self.link else 0
+        self.summary = summarize(samples, self.events, dict(self.counters))
+        self.summary["stop_reason"] = self.stop_reason
+        if self.link is not None:
+            self.link.send_summary(_jsonable(self.summary))
+            self.link.send_stop()
+            self.link.close()
+        if self.sidecar is not None:
+            try:
+                self.sidecar.wait(timeout=15)
+            except Exception:  # noqa: BLE001
+                log.warning("telemetry process did not stop in 15 s; terminating it")
+                self.sidecar.terminate()
+
+
+def _jsonable(d: Any) -> Any:
+    if isinstance(d, dict):
+        return {k: _jsonable(v) for k, v in d.items()}
+    if isinstance(d, list | tuple):
+        return [_jsonable(v) for v in d]
+    if isinstance(d, np.generic):
+        return d.item()
+    if isinstance(d, float) and not math.isfinite(d):
+        return None
+    return d
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(prog="mrrig run", description="Run the rig daemon.")
+    ap.add_argument("--config", required=True, type=Path, help="daemon config (TOML)")
+    ap.add_argument("--duration", type=float, help="stop after this many seconds")
+    ap.add_argument("--arm", action="store_true", help="arm at start (commands ACTIVE)")
+    ap.add_argument(
+        "--record", type=Path, help="recording file (default: recordings/<rig>-<UTC>.rrd)"
+    )
+    ap.add_argument("--no-record", action="store_true", help="no Rerun recording")
+    ap.add_argument("--summary-json", type=Path, help="also write the summary to this file")
+    args = ap.parse_args(argv)
+    loop = {}
+    if args.duration is not None:
+        loop["duration_s"] = args.duration
+    if args.arm:
+        loop["arm_on_start"] = True
+    cfg = load_config(args.config, {"loop": loop} if loop else None)
+    record = None
+    if cfg.recording.enabled and not args.no_record:
+        from mrrig.recording import recording_path
+
+        record = args.record or recording_path(cfg.recording.directory, cfg.rig.name)
+    daemon = Daemon(cfg, record_path=record)
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda s, _f: daemon.request_stop(signal.Signals(s).name))
+    log.info(
+        "rig %s: %s on %s/%s",
+        cfg.rig.name,
+        daemon.controller.name,
+        cfg.bus.interface,
+        cfg.bus.channel,
+    )
+    summary = daemon.run()
+    print(format_summary(summary))
+    if record is not None:
+        print(f"recording: {record}")
+    if args.summary_json:
+        args.summary_json.write_text(json.dumps(_jsonable(summary), indent=2))
+    return 0

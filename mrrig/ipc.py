@@ -1,0 +1,277 @@
+"""Framed messages over two OS pipes between the control loop and the telemetry sidecar.
+
+The loop must never block on telemetry: its write end is non-blocking and every message is at
+most PIPE_BUF bytes, so POSIX makes each write all-or-nothing. A message that does not fit in
+the pipe is dropped and counted, never written in part. Frame: struct '<BH' (type, payload
+length) followed by the payload.
+
+Loop -> sidecar: SAMPLES (raw SAMPLE_DTYPE records), EVENT, STATUS, REPLY, SUMMARY (JSON
+objects), STOP (empty). Sidecar -> loop: REQUEST (JSON object with "id"), FORCE_REF (struct
+'<dd': force in N, sidecar receive time from time.monotonic()).
+"""
+
+from __future__ import annotations
+
+import enum
+import fcntl
+import json
+import logging
+import os
+import select
+import struct
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from mrrig.samples import SAMPLE_DTYPE
+
+log = logging.getLogger(__name__)
+
+PIPE_BUF = 4096  # POSIX guarantees atomic pipe writes up to this size (Linux: 4096)
+HEADER = struct.Struct("<BH")
+MAX_PAYLOAD = PIPE_BUF - HEADER.size
+SAMPLES_PER_MESSAGE = MAX_PAYLOAD // SAMPLE_DTYPE.itemsize
+FORCE_REF = struct.Struct("<dd")
+_F_SETPIPE_SZ = 1031  # Linux fcntl; a bigger pipe rides out longer sidecar stalls
+_READ_CHUNK = 1 << 16
+
+
+class Msg(enum.IntEnum):
+    """Message types; values are the first byte of a frame."""
+
+    SAMPLES = 1
+    EVENT = 2
+    STATUS = 3
+    REPLY = 4
+    SUMMARY = 5
+    STOP = 6
+    REQUEST = 16
+    FORCE_REF = 17
+
+
+@dataclass(frozen=True)
+class ChannelFds:
+    """The four pipe ends. The loop keeps loop_rx/loop_tx, the sidecar gets the other two."""
+
+    loop_rx: int  # loop reads REQUEST / FORCE_REF
+    loop_tx: int  # loop writes SAMPLES / EVENT / ...
+    sidecar_rx: int
+    sidecar_tx: int
+
+    def sidecar_fds(self) -> tuple[int, int]:
+        """The fds to hand to the sidecar process (`subprocess.Popen(pass_fds=...)`)."""
+        return (self.sidecar_rx, self.sidecar_tx)
+
+
+def make_channel(pipe_bytes: int | None = 1 << 20) -> ChannelFds:
+    """Create both pipes; try to enlarge them to `pipe_bytes` (None keeps the OS default).
+
+    The fds are not inheritable: pass the sidecar's pair with `pass_fds` (see
+    `mrrig.sidecar.start_sidecar`).
+    """
+    to_sidecar_r, to_sidecar_w = os.pipe()
+    to_loop_r, to_loop_w = os.pipe()
+    if pipe_bytes is not None:
+        for fd in (to_sidecar_w, to_loop_w):
+            try:
+                fcntl.fcntl(fd, _F_SETPIPE_SZ, pipe_bytes)
+            except OSError as exc:
+                log.warning("could not set pipe size to %d bytes (%s); using the default",
+                            pipe_bytes, exc)
+    return ChannelFds(loop_rx=to_loop_r, loop_tx=to_sidecar_w,
+                      sidecar_rx=to_sidecar_r, sidecar_tx=to_loop_w)
+
+
+def parse_frames(buf: bytearray) -> list[tuple[int, bytes]]:
+    """Remove every complete frame from the front of `buf`; a partial frame stays there."""
+    out: list[tuple[int, bytes]] = []
+    pos = 0
+    n = len(buf)
+    while n - pos >= HEADER.size:
+        mtype, length = HEADER.unpack_from(buf, pos)
+        end = pos + HEADER.size + length
+        if end > n:
+            break
+        out.append((mtype, bytes(buf[pos + HEADER.size:end])))
+        pos = end
+    if pos:
+        del buf[:pos]
+    return out
+
+
+def decode_samples(payload: bytes) -> np.ndarray:
+    """SAMPLES payload -> read-only SAMPLE_DTYPE array."""
+    return np.frombuffer(payload, dtype=SAMPLE_DTYPE)
+
+
+def decode_json(payload: bytes) -> dict[str, Any]:
+    """EVENT / STATUS / REPLY / SUMMARY / REQUEST payload -> dict."""
+    return json.loads(payload)
+
+
+def _encode_json(obj: dict[str, Any]) -> bytes:
+    return json.dumps(obj, separators=(",", ":")).encode()
+
+
+class _Writer:
+    """Non-blocking, all-or-nothing framed writes; drops and counts what does not fit."""
+
+    def __init__(self, fd: int) -> None:
+        os.set_blocking(fd, False)
+        self._fd = fd
+        self._frame = bytearray(PIPE_BUF)
+        self._view = memoryview(self._frame)
+        self.dropped = 0  # messages not written (pipe full, reader gone, too large)
+        self.peer_gone = False
+
+    def write(self, mtype: int, payload: bytes | memoryview) -> bool:
+        n = len(payload)
+        if n > MAX_PAYLOAD:
+            self.dropped += 1
+            log.warning("dropped a %s message of %d bytes (limit %d)", Msg(mtype).name, n,
+                        MAX_PAYLOAD)
+            return False
+        HEADER.pack_into(self._frame, 0, mtype, n)
+        self._frame[HEADER.size:HEADER.size + n] = payload
+        try:
+            os.write(self._fd, self._view[:HEADER.size + n])
+        except BlockingIOError:
+            self.dropped += 1
+            return False
+        except BrokenPipeError:
+            self.dropped += 1
+            self.peer_gone = True
+            return False
+        return True
+
+    def close(self) -> None:
+        os.close(self._fd)
+
+
+class LoopEnd:
+    """The loop's side: never blocks, never raises on a full pipe or a dead sidecar.
+
+    `dropped` counts messages lost (pipe full, sidecar gone, oversize JSON),
+    `dropped_samples` the samples in the dropped SAMPLES messages, `closed` turns True once
+    the sidecar is gone (EOF or broken pipe).
+    """
+
+    def __init__(self, rx_fd: int, tx_fd: int) -> None:
+        os.set_blocking(rx_fd, False)
+        self._rx = rx_fd
+        self._rx_buf = bytearray()
+        self._w = _Writer(tx_fd)
+        self.dropped_samples = 0
+        self._eof = False
+
+    @property
+    def dropped(self) -> int:
+        return self._w.dropped
+
+    @property
+    def closed(self) -> bool:
+        return self._eof or self._w.peer_gone
+
+    def send_samples(self, arr: np.ndarray) -> bool:
+        """Send a SAMPLE_DTYPE array, split into messages of at most PIPE_BUF bytes.
+
+        Returns False if any part was dropped.
+        """
+        if arr.dtype != SAMPLE_DTYPE:
+            raise TypeError(f"expected SAMPLE_DTYPE records, got {arr.dtype}")
+        raw = memoryview(np.ascontiguousarray(arr)).cast("B")
+        step = SAMPLES_PER_MESSAGE * SAMPLE_DTYPE.itemsize
+        ok = True
+        for start in range(0, len(raw), step):
+            part = raw[start:start + step]
+            if not self._w.write(Msg.SAMPLES, part):
+                self.dropped_samples += len(part) // SAMPLE_DTYPE.itemsize
+                ok = False
+        return ok
+
+    def send_event(self, event: dict[str, Any]) -> bool:
+        """An event: {"t": sensor time s, "level": "info"|"warning"|"error", "text": ..., ...}."""
+        return self._w.write(Msg.EVENT, _encode_json(event))
+
+    def send_status(self, status: dict[str, Any]) -> bool:
+        return self._w.write(Msg.STATUS, _encode_json(status))
+
+    def send_reply(self, reply: dict[str, Any]) -> bool:
+        """The answer to a REQUEST; must carry the request's "id"."""
+        return self._w.write(Msg.REPLY, _encode_json(reply))
+
+    def send_summary(self, summary: dict[str, Any]) -> bool:
+        return self._w.write(Msg.SUMMARY, _encode_json(summary))
+
+    def send_stop(self) -> bool:
+        return self._w.write(Msg.STOP, b"")
+
+    def poll(self) -> list[tuple[Msg, Any]]:
+        """Non-blocking: the messages that have arrived, decoded.
+
+        (Msg.REQUEST, dict) or (Msg.FORCE_REF, (force_n, t_rx_monotonic_s)).
+        """
+        try:
+            data = os.read(self._rx, _READ_CHUNK)
+        except BlockingIOError:
+            return []
+        if not data:
+            self._eof = True
+            return []
+        self._rx_buf += data
+        out: list[tuple[Msg, Any]] = []
+        for mtype, payload in parse_frames(self._rx_buf):
+            if mtype == Msg.FORCE_REF:
+                out.append((Msg.FORCE_REF, FORCE_REF.unpack(payload)))
+            elif mtype == Msg.REQUEST:
+                out.append((Msg.REQUEST, decode_json(payload)))
+            else:
+                log.warning("ignored unexpected message type %d from the sidecar", mtype)
+        return out
+
+    def close(self) -> None:
+        os.close(self._rx)
+        self._w.close()
+
+
+class SidecarEnd:
+    """The sidecar's side: reads block (or select on `fileno()`), writes never block."""
+
+    def __init__(self, rx_fd: int, tx_fd: int) -> None:
+        os.set_blocking(rx_fd, True)
+        self._rx = rx_fd
+        self._rx_buf = bytearray()
+        self._w = _Writer(tx_fd)
+        self.eof = False
+
+    @property
+    def dropped(self) -> int:
+        return self._w.dropped
+
+    def fileno(self) -> int:
+        return self._rx
+
+    def read_ready(self) -> list[tuple[int, bytes]]:
+        """One read (blocks if nothing is there); the complete frames, raw. Sets `eof`."""
+        data = os.read(self._rx, _READ_CHUNK)
+        if not data:
+            self.eof = True
+            return []
+        self._rx_buf += data
+        return parse_frames(self._rx_buf)
+
+    def read(self, timeout_s: float | None) -> list[tuple[int, bytes]]:
+        """Wait up to `timeout_s` for data; the complete frames that came, raw."""
+        readable, _, _ = select.select([self._rx], [], [], timeout_s)
+        return self.read_ready() if readable else []
+
+    def send_request(self, request: dict[str, Any]) -> bool:
+        return self._w.write(Msg.REQUEST, _encode_json(request))
+
+    def send_force_ref(self, force_n: float, t_rx_s: float) -> bool:
+        return self._w.write(Msg.FORCE_REF, FORCE_REF.pack(force_n, t_rx_s))
+
+    def close(self) -> None:
+        os.close(self._rx)
+        self._w.close()

@@ -1,0 +1,294 @@
+"""Levenberg-Marquardt training of the one-hidden-layer MLP, like MATLAB `trainlm` (float64).
+
+The paper trains its forward network with `trainlm` (adaptive damping mu, early stop after
+`max_fail` validation failures, at most 1000 epochs); this module follows that loop:
+
+    dw = (J^T J + mu I)^-1 J^T e        J = d f_net / d w, e = y - f_net (standardised units)
+
+accept the step and divide mu by 10 if the training MSE falls, otherwise multiply mu by 10 and
+solve again with the same J. The Jacobian is analytic (one hidden layer); J^T J is the cost of
+an epoch.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from mrrig.metrics import error_norm
+from mrrig.model.mlp import MLP, data_fingerprint
+
+log = logging.getLogger(__name__)
+
+ProgressFn = Callable[[int, float, float | None, float], None]
+
+
+@dataclass
+class TrainReport:
+    """Outcome of `train_lm`; MSEs are in physical units squared (N^2 for force)."""
+
+    epochs: int
+    best_epoch: int
+    seconds: float
+    train_mse: float
+    val_mse: float | None
+    mu: float
+    stop_reason: str  # max_epochs | validation | mu_max | min_grad | time_limit
+    n_train: int
+    n_val: int
+
+
+class MLPModule(torch.nn.Module):
+    """Torch twin of `MLP` (same weights, physical units in and out), for autograd."""
+
+    def __init__(self, model: MLP) -> None:
+        super().__init__()
+        t = lambda a: torch.as_tensor(np.asarray(a), dtype=torch.float64)  # noqa: E731
+        self.register_buffer("in_mean", t(model.in_mean))
+        self.register_buffer("in_std", t(model.in_std))
+        self.register_buffer("out_mean", t(model.out_mean))
+        self.register_buffer("out_std", t(model.out_std))
+        self.W1 = torch.nn.Parameter(t(model.W1).clone())
+        self.b1 = torch.nn.Parameter(t(model.b1).clone())
+        self.W2 = torch.nn.Parameter(t(model.W2).clone())
+        self.b2 = torch.nn.Parameter(t(model.b2).clone())
+
+    def forward(self, X: torch.Tensor) -> torch.Tensor:
+        z = (X - self.in_mean) / self.in_std
+        o = torch.tanh(z @ self.W1.T + self.b1)  # eqs 5, 7
+        return self.out_mean + self.out_std * (o @ self.W2 + self.b2)
+
+
+class _Net:
+    """Flat parameter vector w = [A.ravel(), W2, b2] with A = [W1 | b1] (H x (n+1))."""
+
+    def __init__(self, n_in: int, hidden: int) -> None:
+        self.n_in, self.hidden = n_in, hidden
+        self.n_a = hidden * (n_in + 1)
+        self.n_params = self.n_a + hidden + 1
+
+    def unpack(self, w: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        A = w[: self.n_a].view(self.hidden, self.n_in + 1)
+        return A, w[self.n_a : self.n_a + self.hidden], w[-1]
+
+    def forward(self, w: torch.Tensor, Z1: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """(f, o) for standardised inputs with a column of ones, Z1 (N x (n+1))."""
+        A, W2, b2 = self.unpack(w)
+        o = torch.tanh(Z1 @ A.T)
+        return o @ W2 + b2, o
+
+    def jacobian(self, w: torch.Tensor, Z1: torch.Tensor, o: torch.Tensor, J: torch.Tensor) -> None:
+        """Fill J (N x n_params) with d f / d w."""
+        N = Z1.shape[0]
+        _, W2, _ = self.unpack(w)
+        D = (1.0 - o * o) * W2  # d f / d pre-activation
+        torch.mul(D.unsqueeze(2), Z1.unsqueeze(1), out=J[:, : self.n_a].view(N, self.hidden, -1))
+        J[:, self.n_a : self.n_a + self.hidden] = o
+        J[:, -1] = 1.0
+
+    def init(self, gen: torch.Generator) -> torch.Tensor:
+        """Nguyen-Widrow hidden layer (as MATLAB's initnw) for inputs of about unit range."""
+        H, n = self.hidden, self.n_in
+        beta = 0.7 * H ** (1.0 / n)
+        W = torch.rand(H, n, generator=gen) * 2.0 - 1.0
+        W *= beta / W.norm(dim=1, keepdim=True)
+        b = (torch.rand(H, generator=gen) * 2.0 - 1.0) * beta
+        W2 = (torch.rand(H, generator=gen) * 2.0 - 1.0) / H**0.5
+        return torch.cat([torch.cat([W, b[:, None]], dim=1).ravel(), W2, torch.zeros(1)])
+
+
+def _standardise(a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    mean = a.mean(axis=0)
+    std = a.std(axis=0)
+    return mean, np.where(std > 0.0, std, 1.0)
+
+
+def train_lm(
+    X: np.ndarray,
+    y: np.ndarray,
+    input_names: Sequence[str],
+    input_units: Sequence[str],
+    output_name: str,
+    output_unit: str,
+    *,
+    hidden: int = 30,
+    max_epochs: int = 1000,
+    validation: tuple[np.ndarray, np.ndarray] | None = None,
+    validation_fraction: float = 0.1,
+    mu0: float = 1e-3,
+    mu_inc: float = 10.0,
+    mu_dec: float = 0.1,
+    mu_max: float = 1e10,
+    max_fail: int = 6,
+    min_grad: float = 1e-7,
+    seed: int = 0,
+    progress: ProgressFn | None = None,
+    time_limit_s: float | None = None,
+    description: str = "",
+) -> tuple[MLP, TrainReport]:
+    """Train an n_in-hidden-1 tanh MLP on (X (N x n_in), y (N,)) by Levenberg-Marquardt.
+
+    Validation: `validation=(Xv, yv)`, or else a random `validation_fraction` of X held out
+    (0: no early stop). Returns the best-validation weights (the last ones without
+    validation). `progress(epoch, train_mse, val_mse, mu)` is called after every epoch, MSEs
+    in physical units squared.
+    """
+    t_start = time.perf_counter()
+    X = np.asarray(X, dtype=np.float64)
+    y = np.asarray(y, dtype=np.float64).ravel()
+    if X.ndim != 2 or X.shape[0] != y.shape[0] or X.shape[1] != len(input_names):
+        raise ValueError(f"train_lm: X {X.shape} and y {y.shape} do not match {len(input_names)} inputs")
+    fingerprint_arrays = [X, y]
+    if validation is not None:
+        Xv, yv = (np.asarray(a, dtype=np.float64) for a in validation)
+        yv = yv.ravel()
+        fingerprint_arrays += [Xv, yv]
+        Xt, yt = X, y
+    else:
+        perm = np.random.default_rng(seed).permutation(X.shape[0])
+        n_val = int(round(validation_fraction * X.shape[0]))
+        Xv, yv = X[perm[:n_val]], y[perm[:n_val]]
+        Xt, yt = X[perm[n_val:]], y[perm[n_val:]]
+    has_val = Xv.shape[0] > 0
+
+    in_mean, in_std = _standardise(Xt)
+    out_mean, out_std = float(yt.mean()), float(yt.std()) or 1.0
+
+    def tensors(Xa: np.ndarray, ya: np.ndarray) -> tuple[torch.Tensor, torch.Tensor]:
+        Z1 = np.empty((Xa.shape[0], Xa.shape[1] + 1))
+        Z1[:, :-1] = (Xa - in_mean) / in_std
+        Z1[:, -1] = 1.0
+        return torch.from_numpy(Z1), torch.from_numpy((ya - out_mean) / out_std)
+
+    Z1, ys = tensors(Xt, yt)
+    Z1v, ysv = tensors(Xv, yv)
+    net = _Net(X.shape[1], hidden)
+    gen = torch.Generator().manual_seed(seed)
+    w = net.init(gen).to(torch.float64)
+    N, P = Z1.shape[0], net.n_params
+    J = torch.empty(N, P, dtype=torch.float64)
+    J_np = J.numpy()
+    eye = torch.eye(P, dtype=torch.float64)
+
+    def val_mse(w_: torch.Tensor) -> float:
+        return float(((ysv - net.forward(w_, Z1v)[0]) ** 2).mean()) if has_val else float("nan")
+
+    f, o = net.forward(w, Z1)
+    e = ys - f
+    perf = float(e @ e) / N
+    vperf = val_mse(w)
+    best_w, best_epoch, best_vperf, fails = w.clone(), 0, vperf, 0
+    mu = mu0
+    epoch = 0
+    stop = "max_epochs"
+    scale = out_std**2
+    while epoch < max_epochs:
+        net.jacobian(w, Z1, o, J)
+        # numpy turns J.T @ J into one BLAS syrk (half the flops of torch's gemm): the epoch's
+        # main cost, about 2x faster here.
+        JtJ = torch.from_numpy(J_np.T @ J_np)
+        g = J.T @ e
+        if 2.0 * float(g.norm()) / N < min_grad:
+            stop = "min_grad"
+            break
+        accepted = False
+        while mu <= mu_max:
+            L, info = torch.linalg.cholesky_ex(JtJ + mu * eye)
+            if int(info) == 0:
+                w_try = w + torch.cholesky_solve(g[:, None], L)[:, 0]
+                f_try, o_try = net.forward(w_try, Z1)
+                e_try = ys - f_try
+                perf_try = float(e_try @ e_try) / N
+                if perf_try < perf:
+                    w, o, e, perf = w_try, o_try, e_try, perf_try
+                    mu *= mu_dec
+                    accepted = True
+                    break
+            mu *= mu_inc
+        if not accepted:
+            stop = "mu_max"
+            break
+        epoch += 1
+        vperf = val_mse(w)
+        if not has_val or vperf < best_vperf:
+            best_w, best_epoch, best_vperf, fails = w.clone(), epoch, vperf, 0
+        elif vperf > best_vperf:
+            fails += 1
+        v_phys = vperf * scale if has_val else None
+        if progress is not None:
+            progress(epoch, perf * scale, v_phys, mu)
+        if epoch % 50 == 0:
+            log.info("LM epoch %d: train MSE %.6g, val MSE %s, mu %.3g", epoch, perf * scale,
+                     f"{v_phys:.6g}" if v_phys is not None else "-", mu)
+        if has_val and fails >= max_fail:
+            stop = "validation"
+            break
+        if time_limit_s is not None and time.perf_counter() - t_start > time_limit_s:
+            stop = "time_limit"
+            break
+
+    A, W2, b2 = (a.numpy().copy() for a in net.unpack(best_w))
+    f_best_t = net.forward(best_w, Z1)[0].numpy() * out_std + out_mean
+    train_mse = float(np.mean((yt - f_best_t) ** 2))
+    seconds = time.perf_counter() - t_start
+    metrics: dict[str, float | None] = {
+        "train_mse": train_mse,
+        "train_et": error_norm(yt, f_best_t),
+        "val_mse": None,
+        "val_et": None,
+    }
+    if has_val:
+        f_best_v = net.forward(best_w, Z1v)[0].numpy() * out_std + out_mean
+        metrics["val_mse"] = float(np.mean((yv - f_best_v) ** 2))
+        metrics["val_et"] = error_norm(yv, f_best_v)
+    report = TrainReport(
+        epochs=epoch,
+        best_epoch=best_epoch,
+        seconds=seconds,
+        train_mse=train_mse,
+        val_mse=metrics["val_mse"],
+        mu=mu,
+        stop_reason=stop,
+        n_train=int(Xt.shape[0]),
+        n_val=int(Xv.shape[0]),
+    )
+    model = MLP(
+        input_names=list(input_names),
+        input_units=list(input_units),
+        output_name=output_name,
+        output_unit=output_unit,
+        in_mean=in_mean,
+        in_std=in_std,
+        out_mean=out_mean,
+        out_std=out_std,
+        W1=A[:, :-1],
+        b1=A[:, -1],
+        W2=W2,
+        b2=float(b2),
+        fingerprint=data_fingerprint(*fingerprint_arrays),
+        metrics=metrics,
+        meta={
+            "trainer": "levenberg-marquardt",
+            "hidden": hidden,
+            "epochs": epoch,
+            "best_epoch": best_epoch,
+            "stop_reason": stop,
+            "seconds": seconds,
+            "mu_final": mu,
+            "mu0": mu0,
+            "max_fail": max_fail,
+            "seed": seed,
+            "n_train": int(Xt.shape[0]),
+            "n_val": int(Xv.shape[0]),
+            "data": description,
+            "torch": torch.__version__,
+        },
+    )
+    log.info("LM stopped (%s) after %d epochs in %.2f s: train MSE %.6g, val MSE %s",
+             stop, epoch, seconds, train_mse, metrics["val_mse"])
+    return model, report

@@ -1,0 +1,190 @@
+"""Desired-force sources: what the daemon asks the damper for at each instant.
+
+Pure numerics: a source maps (time, motion estimate) to a force in N. The Zenoh source (an
+upper-level controller sending `force_ref`) is fed from outside and goes stale after a timeout.
+"""
+
+from __future__ import annotations
+
+import abc
+import csv
+import math
+from pathlib import Path
+
+import numpy as np
+
+from firmware_sim.plant import BoucWenDamper, BoucWenParams
+from firmware_sim.signals import bandlimited_noise
+
+
+class ReferenceError(ValueError):
+    """A force reference that cannot be built (bad parameters, unreadable file)."""
+
+
+class StaleReference(Exception):
+    """The external force reference is older than its timeout."""
+
+
+class ForceReference(abc.ABC):
+    kind: str = ""
+
+    def reset(self, t_s: float, x_m: float) -> None:  # noqa: B027 - most sources are stateless
+        """Called when a run (or this source) starts at time t_s."""
+
+    @abc.abstractmethod
+    def force(self, t_s: float, x_m: float, xd_m_s: float) -> float:
+        """Desired force at t_s, N."""
+
+
+class Constant(ForceReference):
+    kind = "constant"
+
+    def __init__(self, offset_n: float) -> None:
+        self.offset_n = offset_n
+
+    def force(self, t_s: float, x_m: float, xd_m_s: float) -> float:
+        return self.offset_n
+
+
+class Sine(ForceReference):
+    kind = "sine"
+
+    def __init__(self, offset_n: float, amplitude_n: float, freq_hz: float) -> None:
+        if freq_hz <= 0:
+            raise ReferenceError(f"sine: freq_hz must be positive, got {freq_hz}")
+        self.offset_n, self.amplitude_n, self.w = offset_n, amplitude_n, 2 * math.pi * freq_hz
+
+    def force(self, t_s: float, x_m: float, xd_m_s: float) -> float:
+        return self.offset_n + self.amplitude_n * math.sin(self.w * t_s)
+
+
+class Noise(ForceReference):
+    """Band-limited Gaussian noise (0..freq_hz), periodic over `period_s`, seeded."""
+
+    kind = "noise"
+
+    def __init__(
+        self,
+        offset_n: float,
+        amplitude_n: float,
+        freq_hz: float,
+        seed: int,
+        dt_s: float,
+        period_s: float = 60.0,
+    ) -> None:
+        if freq_hz <= 0:
+            raise ReferenceError(f"noise: freq_hz must be positive, got {freq_hz}")
+        n = int(round(period_s / dt_s))
+        self._f, _, _ = bandlimited_noise(
+            n, dt_s, freq_hz, amplitude_n, np.random.default_rng(seed)
+        )
+        self._f = (self._f + offset_n).tolist()
+        self.dt_s = dt_s
+
+    def force(self, t_s: float, x_m: float, xd_m_s: float) -> float:
+        return self._f[int(t_s / self.dt_s) % len(self._f)]
+
+
+class CsvSeries(ForceReference):
+    """A time series from a CSV file (columns `t_s`, `force_n`), linearly interpolated.
+
+    Before the first time it gives the first force; after the last it holds the last one.
+    """
+
+    kind = "csv"
+
+    def __init__(self, path: Path, time_column: str = "t_s", force_column: str = "force_n"):
+        try:
+            with Path(path).open(newline="") as fh:
+                rows = list(csv.DictReader(fh))
+        except OSError as exc:
+            raise ReferenceError(f"{path}: cannot read force profile: {exc.strerror}") from None
+        if not rows:
+            raise ReferenceError(f"{path}: force profile is empty")
+        for col in (time_column, force_column):
+            if col not in rows[0]:
+                raise ReferenceError(f"{path}: column {col!r} missing (have {list(rows[0])})")
+        try:
+            t = np.array([float(r[time_column]) for r in rows])
+            f = np.array([float(r[force_column]) for r in rows])
+        except ValueError as exc:
+            raise ReferenceError(f"{path}: non-numeric value: {exc}") from None
+        if not (np.all(np.isfinite(t)) and np.all(np.isfinite(f))):
+            raise ReferenceError(f"{path}: non-finite value in {time_column} or {force_column}")
+        if np.any(np.diff(t) <= 0):
+            raise ReferenceError(f"{path}: {time_column} must increase strictly")
+        self.t, self.f = t, f
+        self._t0 = 0.0
+
+    def reset(self, t_s: float, x_m: float) -> None:
+        self._t0 = t_s
+
+    def force(self, t_s: float, x_m: float, xd_m_s: float) -> float:
+        return float(np.interp(t_s - self._t0, self.t, self.f))
+
+
+class BoucWenReference(ForceReference):
+    """The force a reference Bouc-Wen damper would give for the measured motion and a current.
+
+    This is the paper's validation protocol brought to the rig: the desired force is what a
+    damper with the given current profile (constant + sine) produces, so it is reachable.
+    """
+
+    kind = "bouc_wen"
+
+    def __init__(
+        self,
+        preset: str,
+        current_a: float,
+        current_amp_a: float,
+        current_freq_hz: float,
+        dt_s: float,
+    ) -> None:
+        try:
+            params = BoucWenParams.preset(preset)
+        except ValueError as exc:
+            raise ReferenceError(str(exc)) from None
+        self._damper = BoucWenDamper(params, substep_s=2.5e-4)
+        self.current_a, self.current_amp_a = current_a, current_amp_a
+        self.w = 2 * math.pi * current_freq_hz
+        self.dt_s = dt_s
+
+    def reset(self, t_s: float, x_m: float) -> None:
+        self._damper.reset(x_m, 0.0, self.current_a)
+
+    def force(self, t_s: float, x_m: float, xd_m_s: float) -> float:
+        i = max(0.0, self.current_a + self.current_amp_a * math.sin(self.w * t_s))
+        return self._damper.step(x_m, xd_m_s, i, self.dt_s)
+
+
+class External(ForceReference):
+    """The latest value sent on `mrrig/<rig>/force_ref`; stale after `timeout_s`."""
+
+    kind = "zenoh"
+
+    def __init__(self, timeout_s: float) -> None:
+        if timeout_s <= 0:
+            raise ReferenceError(f"zenoh: timeout_s must be positive, got {timeout_s}")
+        self.timeout_s = timeout_s
+        self._value: float | None = None
+        self._t_rx = -math.inf
+        self.now = 0.0  # the daemon's clock, set before force()
+
+    def reset(self, t_s: float, x_m: float) -> None:
+        self._value, self._t_rx = None, -math.inf
+
+    def receive(self, force_n: float, t_rx_s: float) -> None:
+        self._value, self._t_rx = force_n, t_rx_s
+
+    def force(self, t_s: float, x_m: float, xd_m_s: float) -> float:
+        if self._value is None:
+            raise StaleReference("no force_ref received yet")
+        age = t_s - self._t_rx
+        if age > self.timeout_s:
+            raise StaleReference(
+                f"force_ref is {age * 1e3:.0f} ms old (timeout {self.timeout_s * 1e3:.0f} ms)"
+            )
+        return self._value
+
+
+KINDS = ("constant", "sine", "noise", "csv", "bouc_wen", "zenoh")

@@ -1,0 +1,223 @@
+"""Reading a run's .rrd back: samples, events and summary; checking it; a PNG for people
+without a viewer.
+
+The layout read here is the one `mrrig.recording` writes (see its module docstring).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import logging
+import re
+import subprocess
+import sys
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pyarrow as pa
+import rerun as rr
+
+from mrrig.recording import (
+    EVENT_TIMELINE,
+    EVENTS_ENTITY,
+    FIELD_ENTITIES,
+    FRAME_TIMELINE,
+    SUMMARY_ENTITY,
+)
+from mrrig.samples import SAMPLE_DTYPE, RigState
+
+log = logging.getLogger(__name__)
+
+_DATASET = "run"
+
+
+class ReviewError(ValueError):
+    """A recording that cannot be read or checked; the message is one line naming the file."""
+
+
+@dataclasses.dataclass
+class Recording:
+    """A run read back from its .rrd file."""
+
+    path: Path
+    samples: np.ndarray  # SAMPLE_DTYPE, sorted by t
+    events: list[dict[str, Any]]  # t, level, text, plus the extra fields (kind, reason, ...)
+    summary: dict[str, Any] | None  # what `Recorder.add_summary` stored, or None
+
+
+def _scalar_column(table: pa.Table, name: str) -> tuple[np.ndarray, np.ndarray]:
+    """Values of a one-scalar-per-row list column, and the mask of rows that have one."""
+    col = table.column(name).combine_chunks()
+    present = np.asarray(col.is_valid().to_numpy(zero_copy_only=False), dtype=bool)
+    lengths = col.value_lengths().fill_null(0).to_numpy(zero_copy_only=False)
+    present &= lengths == 1
+    values = np.full(len(col), np.nan)
+    if lengths.sum() == present.sum():
+        values[present] = col.flatten().to_numpy(zero_copy_only=False)
+    else:
+        values[present] = [col[i].values[0].as_py() for i in np.flatnonzero(present)]
+    return values, present
+
+
+def _rebuild_samples(table: pa.Table, path: Path) -> np.ndarray:
+    columns = {}
+    complete = np.ones(table.num_rows, dtype=bool)
+    for field, entity in FIELD_ENTITIES.items():
+        name = f"/{entity}:Scalars:scalars"
+        if name not in table.column_names:
+            raise ReviewError(f"{path}: recording has no column {name}")
+        columns[field], present = _scalar_column(table, name)
+        complete &= present
+    if not complete.all():
+        log.warning("%s: %d frames with missing fields dropped", path, int((~complete).sum()))
+    samples = np.empty(int(complete.sum()), dtype=SAMPLE_DTYPE)
+    for field, values in columns.items():
+        samples[field] = values[complete].astype(SAMPLE_DTYPE[field])
+    return samples[np.argsort(samples["t"], kind="stable")]
+
+
+def _rebuild_events(table: pa.Table) -> list[dict[str, Any]]:
+    events = []
+    for row in table.select(
+        [
+            f"/{EVENTS_ENTITY}:t_s",
+            f"/{EVENTS_ENTITY}:TextLog:level",
+            f"/{EVENTS_ENTITY}:TextLog:text",
+            f"/{EVENTS_ENTITY}:fields",
+        ]
+    ).to_pylist():
+        t_s, level, text, fields = (v[0] if v else None for v in row.values())
+        events.append({"t": t_s, "level": level, "text": text, **json.loads(fields or "{}")})
+    return events
+
+
+def read_recording(path: str | Path) -> Recording:
+    """Read a recording written by `Recorder`.
+
+    A file without footer (writer killed before `close()`) still gives what reached the
+    disk; `rerun rrd optimize IN -o OUT` rewrites it with a footer. Serves the file with a local Rerun server on 127.0.0.1 (random port) for the query and
+    shuts it down before returning.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise ReviewError(f"{path}: no such file")
+    try:
+        server = rr.server.Server(host="127.0.0.1", datasets={_DATASET: [path]})
+    except Exception as e:
+        raise ReviewError(f"{path}: cannot serve the recording: {e}") from e
+    try:
+        dataset = server.client().get_dataset(_DATASET)
+        schema = dataset.schema()
+        indexes = {c.name for c in schema.index_columns()}
+        entities = set(schema.entity_paths())
+        if not entities:
+            raise ReviewError(
+                f"{path}: not a readable RRD (not an .rrd file, truncated, or without footer;"
+                " see `rerun rrd verify`)"
+            )
+        if FRAME_TIMELINE in indexes:
+            samples_table = (
+                dataset.filter_contents([f"/{e}" for e in FIELD_ENTITIES.values()])
+                .reader(index=FRAME_TIMELINE)
+                .to_arrow_table()
+            )
+            samples = _rebuild_samples(samples_table, path)
+        else:
+            samples = np.empty(0, dtype=SAMPLE_DTYPE)
+        events: list[dict[str, Any]] = []
+        if EVENT_TIMELINE in indexes:
+            events_table = (
+                dataset.filter_contents([f"/{EVENTS_ENTITY}"])
+                .reader(index=EVENT_TIMELINE)
+                .to_arrow_table()
+            )
+            events = _rebuild_events(events_table)
+        summary = None
+        if f"/{SUMMARY_ENTITY}" in entities:
+            static = (
+                dataset.filter_contents([f"/{SUMMARY_ENTITY}"]).reader(index=None).to_arrow_table()
+            )
+            summary = json.loads(static.column(f"/{SUMMARY_ENTITY}:TextDocument:text")[0][0].as_py())
+    except ReviewError:
+        raise
+    except Exception as e:
+        raise ReviewError(f"{path}: cannot read the recording: {e}") from e
+    finally:
+        server.shutdown()
+    return Recording(path=path, samples=samples, events=events, summary=summary)
+
+
+_VERIFIED_RE = re.compile(r"(\d+) files? verified without error")
+
+
+def verify_rrd(path: str | Path) -> None:
+    """Check a file with `rerun rrd verify`; raise ReviewError unless it reports it fine.
+
+    The CLI exits 0 on a non-RRD file ("0 files verified"), so its output is what counts.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise ReviewError(f"{path}: no such file")
+    rerun_cli = Path(sys.executable).parent / "rerun"
+    try:
+        proc = subprocess.run(
+            [str(rerun_cli), "rrd", "verify", str(path)],
+            capture_output=True,
+            text=True,
+            timeout=300,
+            check=False,
+        )
+    except (OSError, subprocess.TimeoutExpired) as e:
+        raise ReviewError(f"{path}: cannot run {rerun_cli}: {e}") from e
+    output = proc.stdout + proc.stderr
+    m = _VERIFIED_RE.search(output)
+    if proc.returncode != 0 or m is None or int(m.group(1)) != 1:
+        lines = [ln.strip() for ln in output.splitlines() if ln.strip()]
+        # the line naming the file says what is wrong; the last one only counts errors
+        reason = next((ln for ln in lines if path.name in ln), lines[-1] if lines else "")
+        raise ReviewError(f"{path}: rerun rrd verify failed: {reason}")
+
+
+def plot_recording(rec: Recording, out_png: str | Path) -> Path:
+    """A 2x2 PNG: forces vs time, currents vs time, F-v loop, latency histogram."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    s = rec.samples
+    out_png = Path(out_png)
+    fig, ax = plt.subplots(2, 2, figsize=(12, 8), layout="constrained")
+    ax_f, ax_i, ax_fv, ax_lat = ax.flat
+    t = s["t"]
+    ax_f.plot(t, s["f_meas"], lw=0.8, label="f_meas")
+    ax_f.plot(t, s["f_des"], lw=0.8, label="f_des")
+    ax_f.plot(t, s["f_model"], lw=0.8, ls="--", label="f_model")
+    ax_f.set(xlabel="sensor time (s)", ylabel="force (N)", title="Forces")
+    ax_f.legend(loc="upper right")
+    ax_i.plot(t, s["i_cmd"], lw=0.8, label="i_cmd")
+    ax_i.plot(t, s["i_meas"], lw=0.8, label="i_meas")
+    for ev in rec.events:
+        if ev.get("kind") == "fault" and ev["t"] is not None:
+            ax_f.axvline(ev["t"], color="red", lw=0.6, alpha=0.5)
+            ax_i.axvline(ev["t"], color="red", lw=0.6, alpha=0.5)
+    ax_i.set(xlabel="sensor time (s)", ylabel="current (A)", title="Damper current")
+    ax_i.legend(loc="upper right")
+    armed = s["state"] == RigState.ARMED
+    ax_fv.plot(s["xd"][~armed], s["f_meas"][~armed], ".", ms=1, color="0.7", label="not armed")
+    ax_fv.plot(s["xd"][armed], s["f_meas"][armed], ".", ms=1, label="armed")
+    ax_fv.set(xlabel="velocity (m/s)", ylabel="measured force (N)", title="Force-velocity")
+    ax_fv.legend(loc="upper left", markerscale=8)
+    lat = s["latency_us"][np.isfinite(s["latency_us"])]
+    ax_lat.hist(lat, bins=100, log=True)
+    if lat.size:
+        p99 = float(np.percentile(lat, 99))
+        ax_lat.axvline(p99, color="red", lw=0.8, label=f"p99 {p99:.0f} us")
+        ax_lat.legend(loc="upper right")
+    ax_lat.set(xlabel="cycle latency (us)", ylabel="frames", title="Latency receive -> send")
+    fig.suptitle(rec.path.name)
+    fig.savefig(out_png, dpi=100)
+    plt.close(fig)
+    return out_png

@@ -1,0 +1,42 @@
+"""The per-cycle telemetry sample: one record per valid sensor frame.
+
+The rig daemon fills one record per cycle into a preallocated numpy buffer and hands full
+batches off (never blocking) to the telemetry process, which publishes them on Zenoh and writes
+them to the Rerun recording. The same field names are the JSON keys on `mrrig/<rig>/telemetry`
+and the entity names in the recording.
+"""
+
+from __future__ import annotations
+
+import enum
+
+import numpy as np
+
+
+class RigState(enum.IntEnum):
+    """The daemon's safety states (spec/system.md, Safety)."""
+
+    IDLE = 0
+    ARMED = 1
+    FAULT = 2
+
+
+SAMPLE_DTYPE = np.dtype(
+    [
+        ("t", "f8"),  # sensor time, s since the daemon started (frame receive time)
+        ("counter", "u1"),  # E2E counter of the RigSensors frame this sample answers
+        ("x", "f8"),  # measured displacement, m
+        ("x_est", "f8"),  # Kalman-filtered displacement, m
+        ("xd", "f8"),  # estimated velocity, m/s
+        ("xdd", "f8"),  # estimated acceleration, m/s^2
+        ("f_meas", "f8"),  # load-cell force, N
+        ("f_des", "f8"),  # desired force, N
+        ("f_model", "f8"),  # forward-model force at the commanded current, N
+        ("i_cmd", "f8"),  # commanded current, A (0 when SAFE)
+        ("i_meas", "f8"),  # measured coil current (latest RigStatus), A
+        ("latency_us", "f8"),  # receive -> send of this cycle, microseconds
+        ("state", "u1"),  # RigState
+    ]
+)
+
+FIELDS: tuple[str, ...] = SAMPLE_DTYPE.names

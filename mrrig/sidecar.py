@@ -1,0 +1,412 @@
+"""The telemetry sidecar: every Zenoh (and Rerun) action of the daemon, in its own process.
+
+The control loop talks to it over the pipes of `mrrig.ipc` and never runs a Zenoh callback.
+The sidecar publishes `mrrig/<rig>/telemetry` (columnar JSON batches at `telemetry_hz`),
+`mrrig/<rig>/status` (on change and every second) and `mrrig/<rig>/events`, holds the
+liveliness token `mrrig/<rig>/alive`, forwards `mrrig/<rig>/control` queries to the loop as
+REQUESTs and `mrrig/<rig>/force_ref` puts as FORCE_REFs, and writes the recording.
+
+Zenoh callbacks only queue their item and wake the main thread through a pipe; all the work
+is done by the main thread, which also closes the session (close waits for callbacks).
+
+Run: python -m mrrig.sidecar --rig NAME --zenoh-config FILE --record PATH|'' --rx-fd N
+--tx-fd M [--telemetry-hz 50] [--live-url URL]; or `start_sidecar(...)` from the daemon.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import math
+import os
+import queue
+import select
+import signal
+import subprocess
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Protocol
+
+import numpy as np
+import zenoh
+
+from mrrig.ipc import ChannelFds, Msg, SidecarEnd, decode_json, decode_samples
+from mrrig.samples import FIELDS, SAMPLE_DTYPE
+from mrrig.zenoh_config import ZenohConfigError, load_zenoh_config
+
+log = logging.getLogger(__name__)
+
+JSON = zenoh.Encoding.APPLICATION_JSON
+CONTROL_TIMEOUT_S = 1.0
+STATUS_REPEAT_S = 1.0
+NO_ANSWER = {"ok": False, "error": "daemon did not answer"}
+_SHUTDOWN_READS = 64  # bounded final drain: a loop that keeps writing cannot hold us
+_FLOAT_FIELDS = tuple(f for f in FIELDS if SAMPLE_DTYPE[f].kind == "f")
+
+
+class SampleSink(Protocol):
+    """What the sidecar needs of `mrrig.recording.Recorder`."""
+
+    def add_samples(self, arr: np.ndarray) -> None: ...
+    def add_event(self, t_s: float, level: str, text: str, **fields: Any) -> None: ...
+    def add_summary(self, d: dict[str, Any]) -> None: ...
+    def close(self) -> None: ...
+
+
+def keys(rig: str) -> dict[str, str]:
+    """The rig's Zenoh key expressions (spec/system.md)."""
+    return {name: f"mrrig/{rig}/{name}"
+            for name in ("telemetry", "status", "events", "force_ref", "control", "alive")}
+
+
+def telemetry_json(rig: str, batch: np.ndarray) -> str:
+    """Columnar telemetry message: {"rig", "fields": {name: [values]}}.
+
+    Non-finite floats become null (JSON has no NaN/Infinity).
+    """
+    fields: dict[str, list[Any]] = {}
+    for name in FIELDS:
+        col = batch[name]
+        values = col.tolist()
+        if name in _FLOAT_FIELDS and not np.isfinite(col).all():
+            values = [v if math.isfinite(v) else None for v in values]
+        fields[name] = values
+    return json.dumps({"rig": rig, "fields": fields}, separators=(",", ":"))
+
+
+def parse_force_ref(payload: bytes) -> float:
+    """A force_ref payload (JSON number or {"force_n": x}) -> finite force in N.
+
+    Raises ValueError on anything else.
+    """
+    value = json.loads(payload)
+    if isinstance(value, dict):
+        value = value.get("force_n")
+    if isinstance(value, bool) or not isinstance(value, int | float):
+        raise ValueError("expected a JSON number or {\"force_n\": number}")
+    force_n = float(value)
+    if not math.isfinite(force_n):
+        raise ValueError("force is not finite")
+    return force_n
+
+
+@dataclass
+class _Pending:
+    query: zenoh.Query
+    deadline_s: float
+
+
+class Sidecar:
+    """The sidecar's state and main loop; owns nothing but uses the given session."""
+
+    def __init__(self, rig: str, session: zenoh.Session, end: SidecarEnd,
+                 recorder: SampleSink | None, telemetry_hz: float) -> None:
+        self.rig = rig
+        self._keys = keys(rig)
+        self._session = session
+        self._end = end
+        self._recorder = recorder
+        self._period_s = 1.0 / telemetry_hz
+        self._inbox: queue.SimpleQueue[tuple[str, Any, float]] = queue.SimpleQueue()
+        self._wake_r, self._wake_w = os.pipe()
+        os.set_blocking(self._wake_r, False)
+        os.set_blocking(self._wake_w, False)
+        self._stop = False
+        self._batches: list[np.ndarray] = []
+        self._last_t_s = 0.0
+        self._last_status: bytes | None = None
+        self._status_sent_s = 0.0
+        self._pending: dict[int, _Pending] = {}
+        self._next_id = 1
+        self._entities: list[Any] = []
+
+    # -- called from Zenoh threads or signal handlers: queue and wake only ------------------
+    def _wake(self) -> None:
+        try:
+            os.write(self._wake_w, b"\0")
+        except BlockingIOError:
+            pass  # already awake: the pipe holds unread wake bytes
+
+    def _on_query(self, query: zenoh.Query) -> None:
+        self._inbox.put(("query", query, time.monotonic()))
+        self._wake()
+
+    def _on_force_ref(self, sample: zenoh.Sample) -> None:
+        self._inbox.put(("force_ref", sample.payload.to_bytes(), time.monotonic()))
+        self._wake()
+
+    def request_stop(self, *_: Any) -> None:
+        """Signal-handler safe: ask the main loop to finish."""
+        self._stop = True
+        self._wake()
+
+    # -- main thread --------------------------------------------------------------------------
+    def run(self) -> None:
+        """Declare everything, serve until STOP / EOF / request_stop, then undeclare."""
+        s = self._session
+        self._pub_telemetry = s.declare_publisher(self._keys["telemetry"], encoding=JSON)
+        self._pub_status = s.declare_publisher(self._keys["status"], encoding=JSON)
+        self._pub_events = s.declare_publisher(self._keys["events"], encoding=JSON)
+        self._entities = [
+            self._pub_telemetry, self._pub_status, self._pub_events,
+            s.declare_queryable(self._keys["control"], self._on_query),
+            s.declare_subscriber(self._keys["force_ref"], self._on_force_ref),
+        ]
+        # last, so a token seen by others means the sidecar is ready
+        self._entities.append(s.liveliness().declare_token(self._keys["alive"]))
+        log.info("sidecar for rig %r serving on mrrig/%s/*", self.rig, self.rig)
+        try:
+            self._serve()
+        finally:
+            self._shutdown()
+
+    def _serve(self) -> None:
+        next_telemetry_s = time.monotonic() + self._period_s
+        while not self._stop:
+            now = time.monotonic()
+            wake_at = min((next_telemetry_s, *(p.deadline_s for p in self._pending.values())))
+            if self._last_status is not None:
+                wake_at = min(wake_at, self._status_sent_s + STATUS_REPEAT_S)
+            readable, _, _ = select.select([self._end, self._wake_r], [], [],
+                                           max(0.0, wake_at - now))
+            if self._wake_r in readable:
+                self._drain_wake()
+                self._handle_inbox()
+            if self._end in readable:
+                self._handle_loop_messages(self._end.read_ready())
+                if self._end.eof:
+                    log.info("loop pipe closed: stopping")
+                    self._stop = True
+            now = time.monotonic()
+            if now >= next_telemetry_s:
+                self._publish_telemetry()
+                next_telemetry_s = max(next_telemetry_s + self._period_s, now)
+            if self._last_status is not None and now >= self._status_sent_s + STATUS_REPEAT_S:
+                self._publish_status(self._last_status, now)
+            self._expire_queries(now)
+
+    def _drain_wake(self) -> None:
+        try:
+            while os.read(self._wake_r, 4096):
+                pass
+        except BlockingIOError:
+            pass
+
+    def _handle_inbox(self) -> None:
+        while True:
+            try:
+                kind, item, t_rx_s = self._inbox.get_nowait()
+            except queue.Empty:
+                return
+            if kind == "query":
+                self._handle_query(item)
+            else:
+                self._handle_force_ref(item, t_rx_s)
+
+    def _handle_query(self, query: zenoh.Query) -> None:
+        try:
+            request = json.loads(query.payload.to_bytes() if query.payload else b"")
+            if not isinstance(request, dict):
+                raise ValueError("a control request must be a JSON object")
+        except ValueError as exc:  # JSONDecodeError and UnicodeDecodeError are ValueErrors
+            self._reply(query, {"ok": False, "error": f"invalid request: {exc}"})
+            return
+        request_id = self._next_id
+        self._next_id += 1
+        if not self._end.send_request({**request, "id": request_id}):
+            self._reply(query, NO_ANSWER)
+            return
+        self._pending[request_id] = _Pending(query, time.monotonic() + CONTROL_TIMEOUT_S)
+
+    def _reply(self, query: zenoh.Query, reply: dict[str, Any]) -> None:
+        try:
+            query.reply(self._keys["control"], json.dumps(reply), encoding=JSON)
+        except zenoh.ZError as exc:
+            log.warning("could not reply to a control query: %s", exc)
+        query.drop()  # sends the final answer now instead of at garbage collection
+
+    def _expire_queries(self, now: float) -> None:
+        for request_id in [i for i, p in self._pending.items() if now >= p.deadline_s]:
+            log.warning("daemon did not answer control request %d", request_id)
+            self._reply(self._pending.pop(request_id).query, NO_ANSWER)
+
+    def _handle_force_ref(self, payload: bytes, t_rx_s: float) -> None:
+        try:
+            force_n = parse_force_ref(payload)
+        except ValueError as exc:
+            text = f"malformed force_ref ignored: {exc}"
+            log.warning("%s (payload %r)", text, payload[:80])
+            self._event({"t": self._last_t_s, "level": "warning", "text": text,
+                         "kind": "force_ref_malformed"})
+            return
+        if not self._end.send_force_ref(force_n, t_rx_s):
+            log.warning("force_ref dropped: the pipe to the loop is full")
+
+    def _handle_loop_messages(self, messages: list[tuple[int, bytes]]) -> None:
+        for mtype, payload in messages:
+            if mtype == Msg.SAMPLES:
+                batch = decode_samples(payload)
+                if batch.size:
+                    self._batches.append(batch)
+                    self._last_t_s = float(batch["t"][-1])
+                    self._record("add_samples", batch)
+            elif mtype == Msg.EVENT:
+                self._event(decode_json(payload), payload)
+            elif mtype == Msg.STATUS:
+                if payload != self._last_status:
+                    self._publish_status(payload, time.monotonic())
+                self._last_status = payload
+            elif mtype == Msg.REPLY:
+                self._handle_reply(decode_json(payload))
+            elif mtype == Msg.SUMMARY:
+                self._record("add_summary", decode_json(payload))
+            elif mtype == Msg.STOP:
+                log.info("STOP from the loop")
+                self._stop = True
+            else:
+                log.warning("ignored unknown message type %d from the loop", mtype)
+
+    def _handle_reply(self, reply: dict[str, Any]) -> None:
+        pending = self._pending.pop(reply.pop("id", None), None)
+        if pending is None:
+            log.warning("reply to an unknown or expired request: %s", reply)
+            return
+        self._reply(pending.query, reply)
+
+    def _event(self, event: dict[str, Any], raw: bytes | None = None) -> None:
+        self._pub_events.put(raw if raw is not None else json.dumps(event))
+        fields = {k: v for k, v in event.items() if k not in ("t", "level", "text")}
+        self._record("add_event", float(event.get("t", self._last_t_s)),
+                     str(event.get("level", "info")), str(event.get("text", "")), **fields)
+
+    def _publish_status(self, payload: bytes, now: float) -> None:
+        self._pub_status.put(payload)
+        self._status_sent_s = now
+
+    def _publish_telemetry(self) -> None:
+        if not self._batches:
+            return
+        batch = np.concatenate(self._batches)
+        self._batches = []
+        self._pub_telemetry.put(telemetry_json(self.rig, batch))
+
+    def _record(self, method: str, *args: Any, **kwargs: Any) -> None:
+        if self._recorder is None:
+            return
+        try:
+            getattr(self._recorder, method)(*args, **kwargs)
+        except Exception:
+            # keep telemetry alive; the recording is lost from here on, loudly
+            log.exception("recording failed; recording stopped")
+            self._close_recorder()
+            self._pub_events.put(json.dumps({"t": self._last_t_s, "level": "error",
+                                             "text": "recording failed; recording stopped",
+                                             "kind": "recording_failed"}))
+
+    def _close_recorder(self) -> None:
+        recorder, self._recorder = self._recorder, None
+        if recorder is not None:
+            try:
+                recorder.close()
+            except Exception:
+                log.exception("closing the recording failed")
+
+    def _shutdown(self) -> None:
+        # what the loop wrote just before stopping (summary, last samples) still counts
+        for _ in range(_SHUTDOWN_READS):
+            if self._end.eof or not select.select([self._end], [], [], 0)[0]:
+                break
+            self._handle_loop_messages(self._end.read_ready())
+        self._publish_telemetry()
+        for pending in self._pending.values():
+            self._reply(pending.query, {"ok": False, "error": "daemon stopping"})
+        self._pending.clear()
+        for entity in reversed(self._entities):
+            try:
+                entity.undeclare()
+            except zenoh.ZError as exc:
+                log.warning("undeclare failed: %s", exc)
+        self._entities = []
+        self._close_recorder()
+        os.close(self._wake_r)
+        os.close(self._wake_w)
+
+
+def run_sidecar(rig: str, zenoh_config: str | Path, record: str | Path | None, rx_fd: int,
+                tx_fd: int, telemetry_hz: float = 50.0, live_url: str | None = None) -> int:
+    """Run until STOP, EOF, SIGTERM or SIGINT; returns the exit status (0, or 2 for a bad
+    config)."""
+    try:
+        conf = load_zenoh_config(zenoh_config)
+    except ZenohConfigError as exc:
+        log.error("%s", exc)
+        return 2
+    stop_early: list[int] = []  # a signal before the Sidecar exists still stops it
+    for signum in (signal.SIGTERM, signal.SIGINT):
+        signal.signal(signum, lambda num, _frame: stop_early.append(num))
+    end = SidecarEnd(rx_fd, tx_fd)
+    recorder: SampleSink | None = None
+    if record:
+        from mrrig.recording import Recorder  # rerun is heavy: only when recording
+
+        recorder = Recorder(record, rig, flush_interval_s=0.5, live_url=live_url)
+    session = zenoh.open(conf)
+    try:
+        sidecar = Sidecar(rig, session, end, recorder, telemetry_hz)
+        for signum in (signal.SIGTERM, signal.SIGINT):
+            signal.signal(signum, sidecar.request_stop)
+        if stop_early:
+            sidecar.request_stop()
+        sidecar.run()
+    finally:
+        session.close()
+        if recorder is not None:
+            recorder.close()  # idempotent; covers a failure before run() took it over
+        end.close()
+    log.info("sidecar stopped")
+    return 0
+
+
+def start_sidecar(rig: str, zenoh_config: str | Path, fds: ChannelFds,
+                  record: str | Path | None = None, telemetry_hz: float = 50.0,
+                  live_url: str | None = None) -> subprocess.Popen[bytes]:
+    """Start the sidecar process on the sidecar's ends of `fds`, and close those ends here.
+
+    The child gets its own session (process group), so a Ctrl-C at the terminal reaches only
+    the daemon, which then sends its summary and STOP.
+    """
+    cmd = [sys.executable, "-m", "mrrig.sidecar", "--rig", rig,
+           "--zenoh-config", str(zenoh_config), "--record", str(record or ""),
+           "--rx-fd", str(fds.sidecar_rx), "--tx-fd", str(fds.sidecar_tx),
+           "--telemetry-hz", str(telemetry_hz)]
+    if live_url:
+        cmd += ["--live-url", live_url]
+    proc = subprocess.Popen(cmd, pass_fds=fds.sidecar_fds(), start_new_session=True)
+    # the loop must see EOF / EPIPE when the sidecar dies, so it holds no copy of these
+    os.close(fds.sidecar_rx)
+    os.close(fds.sidecar_tx)
+    return proc
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m mrrig.sidecar", description=__doc__)
+    parser.add_argument("--rig", required=True)
+    parser.add_argument("--zenoh-config", required=True)
+    parser.add_argument("--record", default="", help="recording path; '' records nothing")
+    parser.add_argument("--rx-fd", type=int, required=True)
+    parser.add_argument("--tx-fd", type=int, required=True)
+    parser.add_argument("--telemetry-hz", type=float, default=50.0)
+    parser.add_argument("--live-url", default=None, help="also stream to a Rerun viewer")
+    parser.add_argument("--log-level", default="INFO")
+    args = parser.parse_args(argv)
+    logging.basicConfig(level=args.log_level,
+                        format="%(asctime)s sidecar %(levelname)s %(name)s: %(message)s")
+    return run_sidecar(args.rig, args.zenoh_config, args.record or None, args.rx_fd,
+                       args.tx_fd, args.telemetry_hz, args.live_url)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,351 @@
+"""The sidecar as a real process with real Zenoh sessions on 127.0.0.1 (a port per test); the
+test plays the control loop on the other end of the pipes."""
+
+from __future__ import annotations
+
+import io
+import json
+import math
+import os
+import signal
+import socket
+import subprocess
+import threading
+import time
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+import zenoh
+
+from mrrig import client
+from mrrig.ipc import LoopEnd, Msg, make_channel
+from mrrig.samples import FIELDS, SAMPLE_DTYPE, RigState
+from mrrig.sidecar import keys, start_sidecar
+from mrrig.zenoh_config import ZenohConfigError, load_zenoh_config, local_config
+
+RIG = "testrig"
+CONFIGS = Path(__file__).resolve().parents[1] / "configs"
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def _collect(sub: zenoh.Subscriber, n: int, timeout_s: float = 10.0) -> list[Any]:
+    """The JSON payloads of the first `n` samples on `sub` (fewer on timeout)."""
+    got: list[Any] = []
+
+    def more() -> bool:
+        while (sample := sub.try_recv()) is not None:
+            got.append(json.loads(sample.payload.to_bytes()))
+        return len(got) >= n
+
+    _wait_for(more, timeout_s)
+    return got
+
+
+def _wait_for(pred: Callable[[], Any], timeout_s: float = 10.0, step_s: float = 0.01) -> Any:
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        value = pred()
+        if value:
+            return value
+        time.sleep(step_s)
+    return pred()
+
+
+@dataclass
+class Rig:
+    proc: subprocess.Popen[bytes]
+    loop: LoopEnd
+    observer: zenoh.Session
+    client_config: zenoh.Config
+
+    def alive_tokens(self) -> list[str]:
+        replies = self.observer.liveliness().get(keys(RIG)["alive"], timeout=1.0)
+        return [str(r.ok.key_expr) for r in replies if r.ok is not None]
+
+    def poll_until(self, mtype: Msg, timeout_s: float = 5.0) -> Any:
+        def got() -> Any:
+            return next((p for m, p in self.loop.poll() if m == mtype), None)
+        return _wait_for(got, timeout_s)
+
+
+@pytest.fixture
+def rig(tmp_path: Path) -> Iterator[Rig]:
+    port = _free_port()
+    conf_path = tmp_path / "zenoh-daemon.json5"
+    conf_path.write_text(
+        f'{{mode: "peer", listen: {{endpoints: ["tcp/127.0.0.1:{port}"]}},'
+        " scouting: {multicast: {enabled: false}}}"
+    )
+    fds = make_channel()
+    loop = LoopEnd(fds.loop_rx, fds.loop_tx)
+    proc = start_sidecar(RIG, conf_path, fds, record=None, telemetry_hz=50)
+    client_config = local_config("client", connect=[f"tcp/127.0.0.1:{port}"])
+    # the sidecar may still be opening its listener: retry until it accepts
+    observer = _wait_for(lambda: _try_open(local_config("client",
+                                                        connect=[f"tcp/127.0.0.1:{port}"])))
+    assert observer, "could not connect to the sidecar"
+    r = Rig(proc, loop, observer, client_config)
+    try:
+        assert _wait_for(r.alive_tokens), "sidecar never declared its liveliness token"
+        yield r
+    finally:
+        r.loop.send_stop()
+        try:
+            proc.wait(timeout=10)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()
+        observer.close()
+        r.loop.close()
+
+
+def _try_open(conf: zenoh.Config) -> zenoh.Session | None:
+    try:
+        return zenoh.open(conf)
+    except zenoh.ZError:
+        return None
+
+
+def _samples(n: int) -> np.ndarray:
+    rng = np.random.default_rng(1)
+    arr = np.zeros(n, SAMPLE_DTYPE)
+    for name in FIELDS:
+        arr[name] = rng.normal(size=n) * 1e3 if SAMPLE_DTYPE[name].kind == "f" else 0
+    arr["t"] = np.arange(n) * 0.002
+    arr["counter"] = np.arange(n) % 16
+    arr["state"] = RigState.ARMED
+    return arr
+
+
+def test_samples_arrive_as_json_telemetry_with_equal_values(rig: Rig):
+    sub = rig.observer.declare_subscriber(keys(RIG)["telemetry"])
+    time.sleep(0.2)  # let the subscription reach the sidecar
+    arr = _samples(200)
+    for start in range(0, arr.size, 25):  # 50 ms batches, as the loop sends them
+        assert rig.loop.send_samples(arr[start:start + 25])
+    got: dict[str, list[Any]] = {name: [] for name in FIELDS}
+    encodings = set()
+
+    def collect() -> bool:
+        sample = sub.try_recv()
+        if sample is not None:
+            encodings.add(str(sample.encoding))
+            msg = json.loads(sample.payload.to_bytes())
+            assert msg["rig"] == RIG
+            for name in FIELDS:
+                got[name] += msg["fields"][name]
+        return len(got["t"]) >= arr.size
+
+    assert _wait_for(collect, step_s=0.001)
+    sub.undeclare()
+    assert encodings == {"application/json"}
+    for name in FIELDS:
+        assert np.array_equal(np.array(got[name], dtype=SAMPLE_DTYPE[name]), arr[name]), name
+
+
+def test_non_finite_telemetry_values_are_sent_as_null(rig: Rig):
+    sub = rig.observer.declare_subscriber(keys(RIG)["telemetry"])
+    time.sleep(0.2)
+    arr = _samples(3)
+    arr["f_model"] = [1.5, math.nan, math.inf]
+    rig.loop.send_samples(arr)
+    sample = _wait_for(sub.try_recv)
+    sub.undeclare()
+    assert json.loads(sample.payload.to_bytes())["fields"]["f_model"] == [1.5, None, None]
+
+
+def _answer_one_request(loop: LoopEnd, seen: list[dict[str, Any]]) -> None:
+    def answer() -> bool:
+        for mtype, payload in loop.poll():
+            if mtype == Msg.REQUEST:
+                seen.append(payload)
+                loop.send_reply({"id": payload["id"], "ok": True, "state": "ARMED"})
+                return True
+        return False
+
+    _wait_for(answer, timeout_s=5.0, step_s=0.002)
+
+
+def test_control_query_is_forwarded_as_request_and_the_loops_reply_returned(rig: Rig):
+    seen: list[dict[str, Any]] = []
+    player = threading.Thread(target=_answer_one_request, args=(rig.loop, seen))
+    player.start()
+    reply = client.arm(RIG, rig.client_config)
+    player.join()
+    assert reply == {"ok": True, "state": "ARMED"}
+    assert seen[0]["cmd"] == "arm" and isinstance(seen[0]["id"], int)
+
+
+@pytest.mark.parametrize("payload", ["{not json", "[1, 2]", "\"arm\"", b"\xff\xfe"])
+def test_malformed_control_request_gets_an_error_reply_without_reaching_the_loop(rig: Rig,
+                                                                                 payload):
+    replies = list(rig.observer.get(keys(RIG)["control"], payload=payload, timeout=2.0))
+    assert len(replies) == 1 and replies[0].ok is not None
+    reply = json.loads(replies[0].ok.payload.to_bytes())
+    assert reply["ok"] is False and reply["error"]
+    time.sleep(0.1)
+    assert [m for m, _ in rig.loop.poll()] == []
+
+
+def test_unanswered_request_gets_daemon_did_not_answer(rig: Rig):
+    reply = client.status(RIG, rig.client_config, timeout_s=3.0)
+    assert reply == {"ok": False, "error": "daemon did not answer"}
+    assert rig.poll_until(Msg.REQUEST)["cmd"] == "status"  # it did reach the loop
+
+
+def test_force_ref_is_forwarded_with_its_receive_time(rig: Rig):
+    t_before = time.monotonic()
+    rig.observer.put(keys(RIG)["force_ref"], "123.5")
+    assert rig.poll_until(Msg.FORCE_REF)[0] == 123.5
+    rig.observer.put(keys(RIG)["force_ref"], json.dumps({"force_n": -7.25}))
+    force_n, t_rx_s = rig.poll_until(Msg.FORCE_REF)
+    assert force_n == -7.25
+    # the sidecar's time.monotonic() is the same clock as ours (CLOCK_MONOTONIC)
+    assert t_before <= t_rx_s <= time.monotonic()
+
+
+def test_malformed_force_ref_is_an_event_and_not_forwarded(rig: Rig):
+    events = rig.observer.declare_subscriber(keys(RIG)["events"])
+    time.sleep(0.2)
+    for bad in ["abc", '{"x": 1}', "true", "NaN"]:
+        rig.observer.put(keys(RIG)["force_ref"], bad)
+    got = _collect(events, 4)
+    events.undeclare()
+    assert [e["kind"] for e in got] == ["force_ref_malformed"] * 4
+    assert [m for m, _ in rig.loop.poll()] == []
+
+
+def test_events_are_published_one_message_each(rig: Rig):
+    sub = rig.observer.declare_subscriber(keys(RIG)["events"])
+    time.sleep(0.2)
+    sent = [{"t": 1.0, "level": "error", "text": "bad CRC", "kind": "fault"},
+            {"t": 1.5, "level": "info", "text": "re-armed", "kind": "state"}]
+    for event in sent:
+        rig.loop.send_event(event)
+    got = _collect(sub, 2)
+    sub.undeclare()
+    assert got == sent
+
+
+def test_status_is_published_on_change_and_repeated_every_second(rig: Rig):
+    sub = rig.observer.declare_subscriber(keys(RIG)["status"])
+    time.sleep(0.2)
+    status = {"state": "IDLE", "armed": False}
+    rig.loop.send_status(status)
+    rig.loop.send_status(status)  # unchanged: not published again at once
+    first = _wait_for(sub.try_recv)
+    t_first = time.monotonic()
+    assert json.loads(first.payload.to_bytes()) == status
+    repeat = _wait_for(sub.try_recv, timeout_s=3.0)
+    sub.undeclare()
+    assert json.loads(repeat.payload.to_bytes()) == status
+    assert time.monotonic() - t_first > 0.5  # the repeat, not the duplicate
+
+
+def test_liveliness_token_is_gone_after_stop(rig: Rig):
+    assert rig.alive_tokens() == [keys(RIG)["alive"]]
+    rig.loop.send_stop()
+    assert rig.proc.wait(timeout=10) == 0
+    assert _wait_for(lambda: not rig.alive_tokens(), timeout_s=5.0)
+
+
+@pytest.mark.parametrize("signum", [signal.SIGTERM, signal.SIGINT])
+def test_signal_stops_the_sidecar_with_exit_0(rig: Rig, signum):
+    rig.proc.send_signal(signum)
+    assert rig.proc.wait(timeout=10) == 0
+
+
+def test_eof_of_the_loop_pipe_stops_the_sidecar(rig: Rig):
+    rig.loop.close()
+    assert rig.proc.wait(timeout=10) == 0
+    dummy = make_channel(pipe_bytes=None)  # for the fixture's teardown
+    os.close(dummy.sidecar_rx)
+    os.close(dummy.sidecar_tx)
+    rig.loop = LoopEnd(dummy.loop_rx, dummy.loop_tx)
+
+
+def test_watch_prints_live_numbers(rig: Rig):
+    out = io.StringIO()
+    arr = _samples(500)
+
+    def feed() -> None:
+        for start in range(0, arr.size, 25):
+            rig.loop.send_samples(arr[start:start + 25])
+            time.sleep(0.05)
+
+    feeder = threading.Thread(target=feed)
+    feeder.start()
+    n = client.watch(RIG, rig.client_config, duration_s=1.3, out=out)
+    feeder.join()
+    assert n > 0
+    line = out.getvalue().splitlines()[0]
+    assert "f_des" in line and "latency p99" in line and "state ARMED" in line
+
+
+def test_send_force_streams_the_csv_profile(rig: Rig, tmp_path: Path):
+    csv = tmp_path / "profile.csv"
+    csv.write_text("t_s,force_n\n0,0\n0.1,100\n")
+    sent = client.send_force(RIG, rig.client_config, csv, rate_hz=50)
+    forces = []
+    _wait_for(lambda: forces.extend(p[0] for m, p in rig.loop.poll() if m == Msg.FORCE_REF)
+              or len(forces) >= sent, timeout_s=5.0)
+    assert sent == 6
+    assert forces == pytest.approx([0, 20, 40, 60, 80, 100])
+
+
+def test_request_without_a_daemon_is_a_clear_error(tmp_path: Path):
+    port = _free_port()
+    with pytest.raises(client.ClientError, match="daemon"):
+        client.request(RIG, {"cmd": "status"},
+                       local_config("client", connect=[f"tcp/127.0.0.1:{port}"]))
+    lonely = local_config("peer", listen=[f"tcp/127.0.0.1:{port}"])
+    with pytest.raises(client.ClientError, match="no daemon answered on mrrig/testrig/control"):
+        client.request(RIG, {"cmd": "status"}, lonely, timeout_s=0.3)
+
+
+def test_shipped_zenoh_configs_are_accepted():
+    assert json.loads(load_zenoh_config(CONFIGS / "zenoh-daemon.json5").get_json("mode")) == "peer"
+    load_zenoh_config(CONFIGS / "zenoh-client.json5")
+
+
+@pytest.mark.parametrize(
+    ("text", "key"),
+    [
+        ('{listen: {endpoints: ["tcp/127.0.0.1:7447"]}, scouting: {multicast: {enabled: true}}}',
+         "scouting/multicast/enabled"),
+        ('{listen: {endpoints: ["tcp/127.0.0.1:7447"]}}', "scouting/multicast/enabled"),
+        ('{listen: {endpoints: ["tcp/0.0.0.0:7447"]}, scouting: {multicast: {enabled: false}}}',
+         "listen/endpoints"),
+        ('{scouting: {multicast: {enabled: false}}}', "listen/endpoints"),  # default: [::]
+        ('{mode: "client", connect: {endpoints: ["tcp/10.0.0.5:7447"]},'
+         ' scouting: {multicast: {enabled: false}}}', "connect/endpoints"),
+    ],
+)
+def test_zenoh_config_leaving_localhost_is_refused_with_one_line(tmp_path: Path, text, key):
+    path = tmp_path / "z.json5"
+    path.write_text(text)
+    with pytest.raises(ZenohConfigError) as err:
+        load_zenoh_config(path)
+    message = str(err.value)
+    assert "\n" not in message and str(path) in message and key in message
+
+
+def test_sidecar_refuses_a_bad_config_with_exit_2(tmp_path: Path):
+    path = tmp_path / "z.json5"
+    path.write_text('{listen: {endpoints: ["tcp/0.0.0.0:7447"]}}')
+    fds = make_channel(pipe_bytes=None)
+    loop = LoopEnd(fds.loop_rx, fds.loop_tx)
+    try:
+        proc = start_sidecar(RIG, path, fds)
+        assert proc.wait(timeout=10) == 2
+    finally:
+        loop.close()
