@@ -16,6 +16,7 @@ import json
 import logging
 import math
 import os
+import resource
 import signal
 import time
 from dataclasses import replace
@@ -451,6 +452,7 @@ class Daemon:
                 self._send_actuator()
             finally:
                 self.bus.shutdown()
+        self.counters["cpu_loop_s"] = time.process_time()
         samples = self.samples()
         self.counters["telemetry_dropped"] += self.link.dropped if self.link else 0
         self.summary = summarize(samples, self.events, dict(self.counters))
@@ -465,6 +467,10 @@ class Daemon:
             except Exception:  # noqa: BLE001
                 log.warning("telemetry process did not stop in 15 s; terminating it")
                 self.sidecar.terminate()
+            self.summary["cpu_sidecar_s"] = (
+                resource.getrusage(resource.RUSAGE_CHILDREN).ru_utime
+                + resource.getrusage(resource.RUSAGE_CHILDREN).ru_stime
+            )
 
 
 def _jsonable(d: Any) -> Any:
@@ -489,13 +495,24 @@ def main(argv: list[str] | None = None) -> int:
     )
     ap.add_argument("--no-record", action="store_true", help="no Rerun recording")
     ap.add_argument("--summary-json", type=Path, help="also write the summary to this file")
+    ap.add_argument("--bus-interface", help="override bus.interface")
+    ap.add_argument("--bus-channel", help="override bus.channel")
+    ap.add_argument("--no-telemetry", action="store_true", help="no Zenoh telemetry")
     args = ap.parse_args(argv)
+    overrides: dict[str, dict] = {}
+    bus = {k: v for k, v in (("interface", args.bus_interface), ("channel", args.bus_channel)) if v}
+    if bus:
+        overrides["bus"] = bus
+    if args.no_telemetry:
+        overrides["telemetry"] = {"enabled": False}
     loop = {}
     if args.duration is not None:
         loop["duration_s"] = args.duration
     if args.arm:
         loop["arm_on_start"] = True
-    cfg = load_config(args.config, {"loop": loop} if loop else None)
+    if loop:
+        overrides["loop"] = loop
+    cfg = load_config(args.config, overrides)
     record = None
     if cfg.recording.enabled and not args.no_record:
         from mrrig.recording import recording_path

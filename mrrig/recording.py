@@ -96,7 +96,7 @@ def _json_default(obj: Any) -> Any:
 
 def to_json(d: dict[str, Any]) -> str:
     """JSON text of a summary/event dict; numpy scalars and arrays become plain numbers/lists."""
-    return json.dumps(d, default=_json_default, sort_keys=True)
+    return json.dumps(d, default=_json_default)
 
 
 def default_blueprint() -> rrb.Blueprint:
@@ -244,11 +244,11 @@ class Recorder:
             if self._closed:
                 return
             self._flush_locked()
-            self._rec.flush()
             self._rec.disconnect()
             self._closed = True
-            log.info("recording closed: %s (%d frames, %d events)", self.path,
-                     self._frames, self._events)
+            log.info(
+                "recording closed: %s (%d frames, %d events)", self.path, self._frames, self._events
+            )
 
     def __enter__(self) -> Recorder:
         return self
@@ -281,8 +281,10 @@ class Recorder:
         self._frames += n
         self._rec.reset_time()
         self._rec.set_time(SENSOR_TIMELINE, duration=float(batch["t"][-1]))
-        self._rec.log(LOOP_FV_ENTITY, rr.LineStrips2D([np.column_stack((batch["xd"],
-                                                                        batch["f_meas"]))]))
-        self._rec.log(LOOP_FX_ENTITY, rr.LineStrips2D([np.column_stack((batch["x"],
-                                                                        batch["f_meas"]))]))
+        self._rec.log(
+            LOOP_FV_ENTITY, rr.LineStrips2D([np.column_stack((batch["xd"], batch["f_meas"]))])
+        )
+        self._rec.log(
+            LOOP_FX_ENTITY, rr.LineStrips2D([np.column_stack((batch["x"], batch["f_meas"]))])
+        )
         self._rec.reset_time()

@@ -47,34 +47,45 @@ class Recording:
     summary: dict[str, Any] | None  # what `Recorder.add_summary` stored, or None
 
 
-def _scalar_column(table: pa.Table, name: str) -> tuple[np.ndarray, np.ndarray]:
-    """Values of a one-scalar-per-row list column, and the mask of rows that have one."""
-    col = table.column(name).combine_chunks()
-    present = np.asarray(col.is_valid().to_numpy(zero_copy_only=False), dtype=bool)
-    lengths = col.value_lengths().fill_null(0).to_numpy(zero_copy_only=False)
-    present &= lengths == 1
-    values = np.full(len(col), np.nan)
-    if lengths.sum() == present.sum():
-        values[present] = col.flatten().to_numpy(zero_copy_only=False)
-    else:
-        values[present] = [col[i].values[0].as_py() for i in np.flatnonzero(present)]
-    return values, present
+def _read_field(dataset: Any, entity: str, path: Path) -> tuple[np.ndarray, np.ndarray]:
+    """Frame numbers and values of one scalar entity (one query per entity: much faster than
+    one query joining all of them)."""
+    name = f"/{entity}:Scalars:scalars"
+    table = (
+        dataset.filter_contents([f"/{entity}"])
+        .reader(index=FRAME_TIMELINE)
+        .select(FRAME_TIMELINE, name)
+        .to_arrow_table()
+    )
+    frames = table.column(FRAME_TIMELINE).to_numpy()
+    lists = table.column(name).combine_chunks()
+    lengths = lists.value_lengths().fill_null(0).to_numpy(zero_copy_only=False)
+    if not (lengths == 1).all():
+        log.warning("%s: %s has %d rows without one value", path, entity, (lengths != 1).sum())
+        keep = lengths == 1
+        frames, lists = frames[keep], lists.filter(pa.array(keep))
+    return frames, lists.flatten().to_numpy(zero_copy_only=False)
 
 
-def _rebuild_samples(table: pa.Table, path: Path) -> np.ndarray:
-    columns = {}
-    complete = np.ones(table.num_rows, dtype=bool)
-    for field, entity in FIELD_ENTITIES.items():
-        name = f"/{entity}:Scalars:scalars"
-        if name not in table.column_names:
-            raise ReviewError(f"{path}: recording has no column {name}")
-        columns[field], present = _scalar_column(table, name)
+def _rebuild_samples(dataset: Any, path: Path) -> np.ndarray:
+    """Samples from the per-field entities, aligned on the frame timeline. Frames missing a
+    field (a writer killed mid-flush) are dropped."""
+    columns = {
+        field: _read_field(dataset, entity, path) for field, entity in FIELD_ENTITIES.items()
+    }
+    n = max((int(f.max()) + 1 for f, _ in columns.values() if f.size), default=0)
+    complete = np.ones(n, dtype=bool)
+    for frames, _ in columns.values():
+        present = np.zeros(n, dtype=bool)
+        present[frames] = True
         complete &= present
     if not complete.all():
         log.warning("%s: %d frames with missing fields dropped", path, int((~complete).sum()))
     samples = np.empty(int(complete.sum()), dtype=SAMPLE_DTYPE)
-    for field, values in columns.items():
-        samples[field] = values[complete].astype(SAMPLE_DTYPE[field])
+    for field, (frames, values) in columns.items():
+        full = np.empty(n)
+        full[frames] = values
+        samples[field] = full[complete].astype(SAMPLE_DTYPE[field])
     return samples[np.argsort(samples["t"], kind="stable")]
 
 
@@ -97,8 +108,9 @@ def read_recording(path: str | Path) -> Recording:
     """Read a recording written by `Recorder`.
 
     A file without footer (writer killed before `close()`) still gives what reached the
-    disk; `rerun rrd optimize IN -o OUT` rewrites it with a footer. Serves the file with a local Rerun server on 127.0.0.1 (random port) for the query and
-    shuts it down before returning.
+    disk; `rerun rrd optimize IN -o OUT` rewrites it with a footer. Serves the file with a
+    local Rerun server on 127.0.0.1 (random port) for the query and shuts it down before
+    returning.
     """
     path = Path(path)
     if not path.is_file():
@@ -118,12 +130,7 @@ def read_recording(path: str | Path) -> Recording:
                 " see `rerun rrd verify`)"
             )
         if FRAME_TIMELINE in indexes:
-            samples_table = (
-                dataset.filter_contents([f"/{e}" for e in FIELD_ENTITIES.values()])
-                .reader(index=FRAME_TIMELINE)
-                .to_arrow_table()
-            )
-            samples = _rebuild_samples(samples_table, path)
+            samples = _rebuild_samples(dataset, path)
         else:
             samples = np.empty(0, dtype=SAMPLE_DTYPE)
         events: list[dict[str, Any]] = []
@@ -139,7 +146,9 @@ def read_recording(path: str | Path) -> Recording:
             static = (
                 dataset.filter_contents([f"/{SUMMARY_ENTITY}"]).reader(index=None).to_arrow_table()
             )
-            summary = json.loads(static.column(f"/{SUMMARY_ENTITY}:TextDocument:text")[0][0].as_py())
+            summary = json.loads(
+                static.column(f"/{SUMMARY_ENTITY}:TextDocument:text")[0][0].as_py()
+            )
     except ReviewError:
         raise
     except Exception as e:

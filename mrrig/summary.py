@@ -81,8 +81,16 @@ def format_summary(d: Mapping[str, Any]) -> str:
         f"faults        {len(d['faults'])}",
     ]
     lines += [f"  t={_fmt(f['t'], ' s', 6)}  {f['reason']}" for f in d["faults"]]
-    known = {"duration_s", "frames", "armed_frames", "et", "tracking_error_n", "i_cmd_a",
-             "latency_us", "faults"}
+    known = {
+        "duration_s",
+        "frames",
+        "armed_frames",
+        "et",
+        "tracking_error_n",
+        "i_cmd_a",
+        "latency_us",
+        "faults",
+    }
     extra = {k: v for k, v in d.items() if k not in known}
     if extra:
         lines.append("counters")

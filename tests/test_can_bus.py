@@ -14,8 +14,14 @@ import pytest
 from mrrig.canbus.bus import BusError, find_free_port, open_bus, start_bridge, stop_bridge
 from mrrig.canbus.codec import Codec
 
-SENSORS = {"ActuatorEnabled": 1, "LimitTripped": 0, "EStop": 0, "SensorFault": 0,
-           "Displacement": 0.001, "Force": 10.0}
+SENSORS = {
+    "ActuatorEnabled": 1,
+    "LimitTripped": 0,
+    "EStop": 0,
+    "SensorFault": 0,
+    "Displacement": 0.001,
+    "Force": 10.0,
+}
 RECV_TIMEOUT_S = 5.0
 
 # The firmware's side, in its own process: answer each valid RigSensors with a DamperCommand
@@ -110,7 +116,8 @@ def test_two_processes_exchange_frames_through_the_bridge(bridge_url: str) -> No
     packer, parser = codec.packer("RIG"), codec.parser()
     child = subprocess.Popen(
         [sys.executable, "-c", ECHO_CHILD, bridge_url, str(n_frames)],
-        stdout=subprocess.PIPE, text=True,
+        stdout=subprocess.PIPE,
+        text=True,
     )
     bus = None
     try:

@@ -20,37 +20,70 @@ from mrrig.canbus.codec import (
 # The contract's test vectors: (message, counter, values, payload).
 VECTORS = [
     (
-        "RigSensors", 3,
-        {"ActuatorEnabled": 1, "LimitTripped": 0, "EStop": 0, "SensorFault": 0,
-         "Displacement": 0.012345, "Force": 1234.56},
+        "RigSensors",
+        3,
+        {
+            "ActuatorEnabled": 1,
+            "LimitTripped": 0,
+            "EStop": 0,
+            "SensorFault": 0,
+            "Displacement": 0.012345,
+            "Force": 1234.56,
+        },
         "1b 13 39 30 00 40 e2 01",
     ),
     (
-        "RigSensors", 15,
-        {"ActuatorEnabled": 1, "LimitTripped": 0, "EStop": 0, "SensorFault": 0,
-         "Displacement": -0.02, "Force": -987.65},
+        "RigSensors",
+        15,
+        {
+            "ActuatorEnabled": 1,
+            "LimitTripped": 0,
+            "EStop": 0,
+            "SensorFault": 0,
+            "Displacement": -0.02,
+            "Force": -987.65,
+        },
         "41 1f e0 b1 ff 33 7e fe",
     ),
     (
-        "RigStatus", 7,
-        {"State": 2, "CoilCurrent": 0.85, "DamperTemperature": 31.25, "FaultCode": 0,
-         "CommandTimeouts": 0},
+        "RigStatus",
+        7,
+        {
+            "State": 2,
+            "CoilCurrent": 0.85,
+            "DamperTemperature": 31.25,
+            "FaultCode": 0,
+            "CommandTimeouts": 0,
+        },
         "c0 27 34 21 35 0c 00 00",
     ),
     (
-        "DamperCommand", 3,
-        {"Mode": 1, "CurrentSetpoint": 1.2345, "SensorCounterEcho": 3, "ControllerId": 1,
-         "DesiredForce": 1200.0},
+        "DamperCommand",
+        3,
+        {
+            "Mode": 1,
+            "CurrentSetpoint": 1.2345,
+            "SensorCounterEcho": 3,
+            "ControllerId": 1,
+            "DesiredForce": 1200.0,
+        },
         "2d 13 39 30 13 c0 d4 01",
     ),
     (
-        "DamperCommand", 0,
-        {"Mode": 0, "CurrentSetpoint": 0.0, "SensorCounterEcho": 15, "ControllerId": 0,
-         "DesiredForce": 0.0},
+        "DamperCommand",
+        0,
+        {
+            "Mode": 0,
+            "CurrentSetpoint": 0.0,
+            "SensorCounterEcho": 15,
+            "ControllerId": 0,
+            "DesiredForce": 0.0,
+        },
         "52 00 00 00 0f 00 00 00",
     ),
     (
-        "ActuatorCommand", 1,
+        "ActuatorCommand",
+        1,
         {"Waveform": 1, "Amplitude": 0.015, "Frequency": 2.0},
         "a6 11 dc 05 d0 07 00 00",
     ),
@@ -63,8 +96,14 @@ CONTRACT_IDS = {  # message: (CAN ID, Data ID, sender)
     "ActuatorCommand": (0x211, 0x62, "DAEMON"),
 }
 
-SENSORS = {"ActuatorEnabled": 1, "LimitTripped": 0, "EStop": 0, "SensorFault": 0,
-           "Displacement": 0.001, "Force": 10.0}
+SENSORS = {
+    "ActuatorEnabled": 1,
+    "LimitTripped": 0,
+    "EStop": 0,
+    "SensorFault": 0,
+    "Displacement": 0.001,
+    "Force": 10.0,
+}
 
 
 @pytest.fixture(scope="module")
@@ -168,8 +207,13 @@ def test_counter_wrap_15_to_0_is_accepted_without_loss(codec: Codec) -> None:
 
 def test_packer_counter_rolls_per_message_and_wraps(codec: Codec) -> None:
     packer, parser = codec.packer("DAEMON"), codec.parser()
-    command = {"Mode": 0, "CurrentSetpoint": 0.0, "SensorCounterEcho": 0, "ControllerId": 0,
-               "DesiredForce": 0.0}
+    command = {
+        "Mode": 0,
+        "CurrentSetpoint": 0.0,
+        "SensorCounterEcho": 0,
+        "ControllerId": 0,
+        "DesiredForce": 0.0,
+    }
     actuator = {"Waveform": 0, "Amplitude": 0.0, "Frequency": 0.0}
     counters = []
     for i in range(40):
@@ -198,22 +242,38 @@ def test_packer_refuses_e2e_missing_unknown_signals_and_other_senders(codec: Cod
 
 @pytest.mark.parametrize(
     "signal,value",
-    [("CurrentSetpoint", 6.6), ("CurrentSetpoint", -0.001), ("Mode", 2),
-     ("DesiredForce", 1e6), ("DesiredForce", math.nan), ("Mode", "BOOST")],
+    [
+        ("CurrentSetpoint", 6.6),
+        ("CurrentSetpoint", -0.001),
+        ("Mode", 2),
+        ("DesiredForce", 1e6),
+        ("DesiredForce", math.nan),
+        ("Mode", "BOOST"),
+    ],
 )
 def test_packer_refuses_values_outside_the_dbc_range(
     codec: Codec, signal: str, value: float | str
 ) -> None:
-    command = {"Mode": 1, "CurrentSetpoint": 1.0, "SensorCounterEcho": 0, "ControllerId": 1,
-               "DesiredForce": 0.0}
+    command = {
+        "Mode": 1,
+        "CurrentSetpoint": 1.0,
+        "SensorCounterEcho": 0,
+        "ControllerId": 1,
+        "DesiredForce": 0.0,
+    }
     with pytest.raises(EncodeError, match=f"DamperCommand: {signal}="):
         codec.packer("DAEMON").encode("DamperCommand", dict(command, **{signal: value}))
 
 
 def test_packer_takes_value_table_labels(codec: Codec) -> None:
     packer = codec.packer("DAEMON")
-    labelled = {"Mode": "ACTIVE", "CurrentSetpoint": 1.2345, "SensorCounterEcho": 3,
-                "ControllerId": "NETWORK_INVERSION", "DesiredForce": 1200.0}
+    labelled = {
+        "Mode": "ACTIVE",
+        "CurrentSetpoint": 1.2345,
+        "SensorCounterEcho": 3,
+        "ControllerId": "NETWORK_INVERSION",
+        "DesiredForce": 1200.0,
+    }
     assert packer.encode("DamperCommand", labelled, counter=3).hex(" ") == VECTORS[3][3]
 
 
@@ -231,9 +291,18 @@ def test_unknown_id_and_wrong_length_are_rejected_and_counted(codec: Codec) -> N
 
 def test_value_outside_dbc_range_with_good_crc_is_rejected(codec: Codec) -> None:
     msg = codec.db.get_message_by_name("DamperCommand")
-    raw = msg.encode({"E2E_CRC": 0, "E2E_Counter": 0, "Mode": 5, "CurrentSetpoint": 0,
-                      "SensorCounterEcho": 0, "ControllerId": 0, "DesiredForce": 0},
-                     strict=False)
+    raw = msg.encode(
+        {
+            "E2E_CRC": 0,
+            "E2E_Counter": 0,
+            "Mode": 5,
+            "CurrentSetpoint": 0,
+            "SensorCounterEcho": 0,
+            "ControllerId": 0,
+            "DesiredForce": 0,
+        },
+        strict=False,
+    )
     data = bytes([compute_profile2_crc(raw, 0x61)]) + raw[1:]
     parser = codec.parser()
     parsed = parser.parse(0x210, data, 0.0)
@@ -295,7 +364,9 @@ FAST_CODEC = Codec()
 @pytest.mark.parametrize("name", MESSAGES)
 @settings(max_examples=300, deadline=None)
 @given(data=st.data(), counter=st.integers(0, 15))
-def test_fast_encode_and_decode_equal_cantools(name: str, data: st.DataObject, counter: int) -> None:
+def test_fast_encode_and_decode_equal_cantools(
+    name: str, data: st.DataObject, counter: int
+) -> None:
     values = data.draw(_in_range_values(FAST_CODEC, name))
     layout = FAST_CODEC.layout(name)
     msg = FAST_CODEC.db.get_message_by_name(name)
@@ -368,8 +439,10 @@ def test_e2e_signal_names_are_read_from_the_dbc(tmp_path) -> None:
 def test_signal_layout_and_scale_are_read_from_the_dbc(tmp_path) -> None:
     edited = _edited_codec(
         tmp_path,
-        (" SG_ Force : 40|24@1- (0.01,0) [-83886.08|83886.07]",
-         " SG_ Force : 40|24@1- (0.1,0) [-838860.8|838860.7]"),
+        (
+            " SG_ Force : 40|24@1- (0.01,0) [-83886.08|83886.07]",
+            " SG_ Force : 40|24@1- (0.1,0) [-838860.8|838860.7]",
+        ),
     )
     data = edited.packer("RIG").encode("RigSensors", dict(SENSORS, Force=1234.5))
     assert int.from_bytes(data[5:8], "little") == 12345

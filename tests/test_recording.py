@@ -54,8 +54,13 @@ def run_events(s: np.ndarray) -> list[dict]:
     return [
         {"t": t_arm, "level": "INFO", "text": "state IDLE -> ARMED", "kind": "state"},
         # a fault and its state change in the same cycle: two events at one time
-        {"t": t_fault, "level": "ERROR", "text": "fault: non-finite model force",
-         "kind": "fault", "reason": "non_finite"},
+        {
+            "t": t_fault,
+            "level": "ERROR",
+            "text": "fault: non-finite model force",
+            "kind": "fault",
+            "reason": "non_finite",
+        },
         {"t": t_fault, "level": "WARN", "text": "state ARMED -> FAULT", "kind": "state"},
     ]
 
@@ -155,8 +160,9 @@ def test_read_back_gives_the_stored_summary(run, read_back) -> None:
 def test_summary_of_read_back_equals_summary_of_original(run, read_back) -> None:
     _, s, events, _ = run
     counters = {"frames_received": 4003}
-    assert_same(summarize(read_back.samples, read_back.events, counters),
-                summarize(s, events, counters))
+    assert_same(
+        summarize(read_back.samples, read_back.events, counters), summarize(s, events, counters)
+    )
 
 
 def test_read_recording_rejects_missing_and_non_rrd_files(tmp_path: Path) -> None:

@@ -3,6 +3,7 @@ test plays the control loop on the other end of the pipes."""
 
 from __future__ import annotations
 
+import contextlib
 import io
 import json
 import math
@@ -23,6 +24,7 @@ import zenoh
 
 from mrrig import client
 from mrrig.ipc import LoopEnd, Msg, make_channel
+from mrrig.review import read_recording, verify_rrd
 from mrrig.samples import FIELDS, SAMPLE_DTYPE, RigState
 from mrrig.sidecar import keys, start_sidecar
 from mrrig.zenoh_config import ZenohConfigError, load_zenoh_config, local_config
@@ -77,8 +79,9 @@ class Rig:
         return _wait_for(got, timeout_s)
 
 
-@pytest.fixture
-def rig(tmp_path: Path) -> Iterator[Rig]:
+@contextlib.contextmanager
+def running_sidecar(tmp_path: Path, record: Path | None = None) -> Iterator[Rig]:
+    """A sidecar process on its own port, an observer session, and the loop's pipe end."""
     port = _free_port()
     conf_path = tmp_path / "zenoh-daemon.json5"
     conf_path.write_text(
@@ -87,14 +90,14 @@ def rig(tmp_path: Path) -> Iterator[Rig]:
     )
     fds = make_channel()
     loop = LoopEnd(fds.loop_rx, fds.loop_tx)
-    proc = start_sidecar(RIG, conf_path, fds, record=None, telemetry_hz=50)
+    proc = start_sidecar(RIG, conf_path, fds, record=record, telemetry_hz=50)
     client_config = local_config("client", connect=[f"tcp/127.0.0.1:{port}"])
     # the sidecar may still be opening its listener: retry until it accepts
     observer = _wait_for(lambda: _try_open(local_config("client",
                                                         connect=[f"tcp/127.0.0.1:{port}"])))
-    assert observer, "could not connect to the sidecar"
     r = Rig(proc, loop, observer, client_config)
     try:
+        assert observer, "could not connect to the sidecar"
         assert _wait_for(r.alive_tokens), "sidecar never declared its liveliness token"
         yield r
     finally:
@@ -104,8 +107,15 @@ def rig(tmp_path: Path) -> Iterator[Rig]:
         except subprocess.TimeoutExpired:
             proc.kill()
             proc.wait()
-        observer.close()
+        if observer:
+            observer.close()
         r.loop.close()
+
+
+@pytest.fixture
+def rig(tmp_path: Path) -> Iterator[Rig]:
+    with running_sidecar(tmp_path) as r:
+        yield r
 
 
 def _try_open(conf: zenoh.Config) -> zenoh.Session | None:
@@ -349,3 +359,21 @@ def test_sidecar_refuses_a_bad_config_with_exit_2(tmp_path: Path):
         assert proc.wait(timeout=10) == 2
     finally:
         loop.close()
+
+
+def test_sigterm_still_writes_a_complete_recording(tmp_path: Path):
+    path = tmp_path / "run.rrd"
+    arr = _samples(300)
+    with running_sidecar(tmp_path, record=path) as r:
+        r.loop.send_samples(arr)
+        r.loop.send_event({"t": 0.1, "level": "error", "text": "bad CRC", "kind": "fault"})
+        r.loop.send_summary({"frames": 300})
+        time.sleep(0.3)  # let the sidecar take them before the signal
+        r.proc.send_signal(signal.SIGTERM)
+        assert r.proc.wait(timeout=10) == 0
+    verify_rrd(path)  # footer present
+    rec = read_recording(path)
+    assert rec.samples.tobytes() == arr.tobytes()
+    assert [(e["level"], e["text"], e["kind"]) for e in rec.events] == [
+        ("error", "bad CRC", "fault")]
+    assert rec.summary == {"frames": 300}

@@ -34,21 +34,33 @@ class BusError(can.CanError):
 
 
 class CheckedRemoteBus(RemoteBus):
-    """can_remote client that raises `BusError` when the server connection is gone."""
+    """can_remote client that raises `BusError` when the server connection is gone.
+
+    Once `recv` has seen the connection drop, every later `send` raises too. A `send` before
+    that can still vanish silently: TCP reports a dead peer only on the write after it.
+    """
+
+    def __init__(self, channel: str, **config: Any) -> None:
+        self.lost_reason: str | None = None
+        super().__init__(channel, **config)
+
+    def _lost(self, exc: Exception) -> BusError:
+        self.lost_reason = self.lost_reason or f"{type(exc).__name__}: {exc}"
+        return BusError(f"remote CAN bus {self.channel} lost: {self.lost_reason}")
 
     def recv(self, timeout: float | None = None) -> can.Message | None:
         try:
             return super().recv(timeout)
         except (WebsocketClosed, OSError) as exc:
-            raise BusError(f"remote CAN bus {self.channel} lost: {exc}") from exc
+            raise self._lost(exc) from exc
 
     def send(self, msg: can.Message, timeout: float | None = None) -> None:
-        if self.remote_protocol._ws.closed:
-            raise BusError(f"remote CAN bus {self.channel} is closed")
+        if self.lost_reason is not None or self.remote_protocol._ws.closed:
+            raise BusError(f"remote CAN bus {self.channel} lost: {self.lost_reason or 'closed'}")
         try:
             super().send(msg, timeout)
         except OSError as exc:
-            raise BusError(f"remote CAN bus {self.channel} lost: {exc}") from exc
+            raise self._lost(exc) from exc
 
     def shutdown(self) -> None:
         try:
@@ -114,8 +126,19 @@ def start_bridge(
     """
     if _port_in_use(host, port):
         raise BusError(f"CAN bridge: port {host}:{port} already in use")
-    cmd = [sys.executable, "-m", "can_remote", "-i", "virtual", "-c", channel,
-           "-H", host, "-p", str(port)]
+    cmd = [
+        sys.executable,
+        "-m",
+        "can_remote",
+        "-i",
+        "virtual",
+        "-c",
+        channel,
+        "-H",
+        host,
+        "-p",
+        str(port),
+    ]
     # The server logs every connection at DEBUG: a file, never an unread pipe that fills up.
     with tempfile.TemporaryFile() as log:
         proc = subprocess.Popen(cmd, stdin=subprocess.DEVNULL, stdout=log, stderr=log)
@@ -134,8 +157,9 @@ def start_bridge(
                 stop_bridge(proc)
                 raise BusError(f"CAN bridge on {host}:{port} not listening after {timeout_s} s")
             time.sleep(0.02)
-    logger.info("CAN bridge pid %d serving virtual channel %r on ws://%s:%d/",
-                proc.pid, channel, host, port)
+    logger.info(
+        "CAN bridge pid %d serving virtual channel %r on ws://%s:%d/", proc.pid, channel, host, port
+    )
     return proc
 
 

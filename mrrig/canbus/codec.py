@@ -112,6 +112,10 @@ def _attribute(msg: DbcMessage, name: str) -> int | float | str:
     raise CodecError(f"{msg.name}: DBC message attribute {name!r} missing")
 
 
+def _physical_to_raw(value: float, signal: cantools.database.can.Signal) -> float:
+    return round((value - signal.offset) / signal.scale, 6)
+
+
 def _signal_field(msg: DbcMessage, signal: cantools.database.can.Signal) -> SignalField:
     if signal.byte_order != "little_endian":
         raise CodecError(f"{msg.name}.{signal.name}: only Intel (little-endian) signals supported")
@@ -124,11 +128,12 @@ def _signal_field(msg: DbcMessage, signal: cantools.database.can.Signal) -> Sign
     else:
         sign_bit = 0
         raw_min, raw_max = 0, mask
-    # DBC [min|max] are physical and multiples of the scale: narrow the raw range to them.
+    # DBC [min|max] are physical: narrow the raw range to them (rounded to absorb float error
+    # of limits that are multiples of the scale).
     if signal.minimum is not None:
-        raw_min = max(raw_min, math.ceil(round((signal.minimum - signal.offset) / signal.scale, 6)))
+        raw_min = max(raw_min, math.ceil(_physical_to_raw(signal.minimum, signal)))
     if signal.maximum is not None:
-        raw_max = min(raw_max, math.floor(round((signal.maximum - signal.offset) / signal.scale, 6)))
+        raw_max = min(raw_max, math.floor(_physical_to_raw(signal.maximum, signal)))
     labels = {str(label): raw for raw, label in (signal.choices or {}).items()}
     return SignalField(
         name=signal.name,
@@ -349,14 +354,24 @@ class Parser:
         if len(data) != lay.length:
             stats.wrong_length += 1
             return Parsed(
-                False, name, None, None, 0, timestamp_s,
+                False,
+                name,
+                None,
+                None,
+                0,
+                timestamp_s,
                 f"{name}: wrong length {len(data)} (want {lay.length})",
             )
         crc = profile2_crc(data, lay.data_id)
         if crc != data[0]:
             stats.bad_crc += 1
             return Parsed(
-                False, name, None, None, 0, timestamp_s,
+                False,
+                name,
+                None,
+                None,
+                0,
+                timestamp_s,
                 f"{name}: CRC mismatch (got 0x{data[0]:02x}, want 0x{crc:02x})",
             )
         word = int.from_bytes(data, "little")
@@ -368,7 +383,12 @@ class Parser:
             if delta == 0:
                 stats.repeated_counter += 1
                 return Parsed(
-                    False, name, None, counter, 0, timestamp_s,
+                    False,
+                    name,
+                    None,
+                    counter,
+                    0,
+                    timestamp_s,
                     f"{name}: repeated counter {counter}",
                 )
             lost = delta - 1
@@ -380,7 +400,12 @@ class Parser:
             if not f.raw_min <= raw <= f.raw_max:
                 stats.decode_errors += 1
                 return Parsed(
-                    False, name, None, counter, 0, timestamp_s,
+                    False,
+                    name,
+                    None,
+                    counter,
+                    0,
+                    timestamp_s,
                     f"{name}: {f.name} raw {raw} outside DBC range [{f.raw_min}, {f.raw_max}]",
                 )
             values[f.name] = raw * f.scale + f.offset

@@ -142,7 +142,9 @@ def train_lm(
     X = np.asarray(X, dtype=np.float64)
     y = np.asarray(y, dtype=np.float64).ravel()
     if X.ndim != 2 or X.shape[0] != y.shape[0] or X.shape[1] != len(input_names):
-        raise ValueError(f"train_lm: X {X.shape} and y {y.shape} do not match {len(input_names)} inputs")
+        raise ValueError(
+            f"train_lm: X {X.shape} and y {y.shape} do not match {len(input_names)} inputs"
+        )
     fingerprint_arrays = [X, y]
     if validation is not None:
         Xv, yv = (np.asarray(a, dtype=np.float64) for a in validation)

@@ -1,0 +1,120 @@
+"""`python -m firmware_sim` (or `mrrig sim`): the simulated rig firmware on a CAN bus.
+
+    python -m firmware_sim --config configs/sim.toml --bus-channel ws://127.0.0.1:54701/ \\
+        --fault estop@5:2 --duration 30 --stats sim-stats.json
+
+Exit codes: 0 after SIGINT/SIGTERM or --duration, 1 on a bus error (one error line in the
+log), 2 for a config that cannot be used.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import signal
+import sys
+import time
+from pathlib import Path
+from types import FrameType
+
+import can
+from can_remote.websocket import WebsocketClosed
+
+from firmware_sim.config import FAULT_KINDS, ConfigError, FaultSpec, load_config
+from firmware_sim.firmware import Firmware
+from firmware_sim.runner import RunStats, run, tune_process
+from mrrig.canbus import DEFAULT_DBC_PATH, BusError, Codec, open_bus
+
+logger = logging.getLogger("firmware_sim")
+
+DEFAULT_CONFIG = Path("configs/sim.toml")
+
+
+def _fault_arg(text: str) -> FaultSpec:
+    try:
+        return FaultSpec.from_cli(text)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+
+
+def build_parser() -> argparse.ArgumentParser:
+    ap = argparse.ArgumentParser(prog="firmware_sim", description=__doc__.splitlines()[0])
+    ap.add_argument("--config", type=Path, default=DEFAULT_CONFIG, help="simulator TOML config")
+    ap.add_argument("--bus-interface", help="python-can interface (overrides [bus] interface)")
+    ap.add_argument("--bus-channel", help="python-can channel (overrides [bus] channel)")
+    ap.add_argument(
+        "--fault", type=_fault_arg, action="append", default=[], metavar="KIND@START_S[:DUR_S]",
+        help=f"inject a fault (repeatable); KIND: {', '.join(FAULT_KINDS)}",
+    )
+    ap.add_argument("--duration", type=float, metavar="S", help="stop after S seconds")
+    ap.add_argument("--stats", type=Path, metavar="FILE", help="write run statistics (JSON)")
+    return ap
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        config = load_config(args.config)
+    except ConfigError as exc:
+        logger.error("%s", exc)
+        return 2
+    interface = args.bus_interface or config.bus.interface
+    channel = args.bus_channel or config.bus.channel
+    codec = Codec(config.bus.dbc_path or DEFAULT_DBC_PATH)
+    firmware = Firmware(config, codec, (*config.faults, *args.fault))
+
+    stopping = False
+
+    def request_stop(signum: int, _frame: FrameType | None) -> None:
+        nonlocal stopping
+        stopping = True
+        logger.info("%s: stopping", signal.Signals(signum).name)
+
+    previous = {s: signal.signal(s, request_stop) for s in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        try:
+            bus = open_bus(interface, channel)
+        except BusError as exc:
+            logger.error("%s", exc)
+            return 1
+        logger.info("rig firmware on %s %s, %d fault injections", interface, channel,
+                    len(config.faults) + len(args.fault))
+        tune_process(config.timing.realtime_priority)
+        stats = RunStats()
+        rc = 0
+        wall0, cpu0 = time.monotonic(), time.process_time()
+        try:
+            run(firmware, bus, stats, lead_s=config.timing.lead_s, spin_s=config.timing.spin_s,
+                send_timeout_s=config.bus.send_timeout_s, duration_s=args.duration,
+                should_stop=lambda: stopping)
+        except (can.CanError, WebsocketClosed, OSError) as exc:
+            logger.error("CAN bus error on %s %s: %s", interface, channel, exc)
+            rc = 1
+        wall_s, cpu_s = time.monotonic() - wall0, time.process_time() - cpu0
+        _shutdown(bus)
+        summary = stats.summary(firmware, wall_s, cpu_s)
+        if args.stats is not None:
+            args.stats.write_text(json.dumps(summary, indent=2) + "\n")
+        jitter = summary["period_jitter_us"]
+        logger.info("%d sensor frames in %.1f s, jitter p99 %s us, CPU %.0f %%",
+                    stats.sensor_frames_sent, wall_s, jitter["p99"],
+                    100.0 * summary["cpu_fraction"])
+        return rc
+    finally:
+        for s, handler in previous.items():
+            signal.signal(s, handler)
+
+
+def _shutdown(bus: can.BusABC) -> None:
+    try:
+        bus.shutdown()
+    except Exception as exc:  # noqa: BLE001 - a dead bus may fail to close in any way
+        logger.debug("bus shutdown: %s", exc)
+
+
+if __name__ == "__main__":
+    logging.basicConfig(
+        level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s"
+    )
+    sys.exit(main())

@@ -1,0 +1,500 @@
+"""The simulated rig firmware as a pure state machine: frames and a clock in, frames out.
+
+`Firmware.on_frame(frame_id, data, t_s)` takes a received frame, `Firmware.tick(t_s)` advances
+the rig by one RigSensors period and returns the frames to send; no I/O, no clock of its own,
+so the CAN contract's firmware rules (`spec/can-protocol.md`) are tested by calling it.
+Times are seconds since boot. The DBC gives the periods, the layouts and the value tables
+(State, FaultCode, Mode and Waveform are handled by their labels).
+
+Choices the contract leaves open, made here:
+- Before the first valid DamperCommand the watchdog is not armed and State is IDLE (BOOT in
+  the very first RigStatus only). Any valid DamperCommand, SAFE or ACTIVE, feeds the watchdog.
+- In State FAULT (watchdog, e-stop, stroke limit) the coil command is 0 A. After a watchdog
+  trip, 5 consecutive valid ACTIVE commands return it to RUNNING (the contract); 5 consecutive
+  valid SAFE commands return it to IDLE, so a daemon that stopped and now sends SAFE can see
+  the firmware healthy before it re-arms. A gap of more than 20 ms restarts the count.
+- The actuator timeout (500 ms) is armed by the first valid ActuatorCommand, so an autostart
+  motion runs until a daemon takes over.
+- FaultCode shows the most important active condition: e-stop 5, stroke limit 3, watchdog 1,
+  sensor fault 4, actuator timeout 1, bad command frames 6, setpoint over limit 2.
+- corrupt_crc, freeze_counter and drop_frames act on RigSensors; silent stops every frame.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import random
+from collections import deque
+from collections.abc import Sequence
+from typing import NamedTuple
+
+import numpy as np
+
+from firmware_sim.config import ActuatorConfig, FaultSpec, SimConfig
+from firmware_sim.plant import BoucWenDamper, BoucWenParams
+from firmware_sim.signals import bandlimited_noise
+from mrrig.canbus.codec import Codec, MessageLayout, Parsed
+
+logger = logging.getLogger(__name__)
+
+# The CAN contract's firmware numbers (spec/can-protocol.md, "Firmware behaviour").
+WATCHDOG_TIMEOUT_S = 0.020
+RECOVERY_COMMANDS = 5
+ACTUATOR_TIMEOUT_S = 0.5
+PLANT_PRESET = "rig-current"
+
+
+class Frame(NamedTuple):
+    """One frame to send; `expect_answer` marks a clean RigSensors frame (one command due)."""
+
+    frame_id: int
+    data: bytes
+    counter: int
+    expect_answer: bool
+
+
+def _counter(layout: MessageLayout, data: bytes) -> int:
+    return (int.from_bytes(data, "little") >> layout.counter_shift) & layout.counter_mask
+
+
+class _Ramp:
+    """A value that moves linearly to its target in a given time."""
+
+    __slots__ = ("value", "target", "rate")
+
+    def __init__(self, value: float = 0.0) -> None:
+        self.value = value
+        self.target = value
+        self.rate = 0.0
+
+    def set(self, target: float, ramp_s: float) -> None:
+        """Head for target, arriving in ramp_s; a repeated target keeps the running ramp."""
+        if target == self.target:
+            return
+        self.target = target
+        self.rate = abs(target - self.value) / ramp_s
+
+    def advance(self, dt_s: float) -> float:
+        """Move by dt_s; returns the slope at the end of the step (0 once the target is hit)."""
+        delta = self.target - self.value
+        step = self.rate * dt_s
+        if abs(delta) <= step:
+            self.value = self.target
+            return 0.0
+        self.value += math.copysign(step, delta)
+        return math.copysign(self.rate, delta)
+
+
+class Actuator:
+    """Displacement x = A_s sin(phase) + A_r n(tau): a sine plus a band-limited noise record.
+
+    Every command moves amplitudes, the sine frequency and the noise's time rate linearly
+    over `ramp_s`, so position and velocity stay continuous: STOP ramps both amplitudes to 0
+    (rest at stroke centre), HOLD ramps the frequency and the noise rate to 0 (the motion
+    slows to a standstill where it is), SINE and RANDOM cross-fade. A new RANDOM band fades
+    the old record out before the new one fades in.
+    """
+
+    def __init__(self, cfg: ActuatorConfig, period_s: float, rng: np.random.Generator) -> None:
+        self._cfg = cfg
+        self._period_s = period_s
+        self._rng = rng
+        self._amp_sine = _Ramp()
+        self._freq = _Ramp()
+        self._amp_rand = _Ramp()
+        self._rate_rand = _Ramp(1.0)
+        self._phase = 0.0
+        self._tau_s = 0.0
+        self._noise: tuple[list[float], list[float]] | None = None
+        self._band_hz = -1.0
+        self._pending: tuple[float, float] | None = None  # (peak, band) after the fade-out
+        self.waveform = "STOP"
+        self.x_m = 0.0
+        self.xd_m_s = 0.0
+
+    @property
+    def at_rest(self) -> bool:
+        return self._amp_sine.value == 0.0 and self._amp_rand.value == 0.0 and (
+            self._amp_sine.target == 0.0 and self._amp_rand.target == 0.0
+        )
+
+    @property
+    def moving(self) -> bool:
+        return self.waveform in ("SINE", "RANDOM") and not self.at_rest
+
+    def command(self, waveform: str, amplitude_m: float, frequency_hz: float) -> None:
+        """Apply an ActuatorCommand (amplitude clamped to the stroke)."""
+        ramp_s = self._cfg.ramp_s
+        amplitude_m = min(max(amplitude_m, 0.0), self._cfg.stroke_m)
+        self.waveform = waveform
+        if waveform == "HOLD":
+            self._freq.set(0.0, ramp_s)
+            self._rate_rand.set(0.0, ramp_s)
+            return
+        self._pending = None
+        if waveform == "SINE":
+            self._amp_sine.set(amplitude_m, ramp_s)
+            self._freq.set(frequency_hz, ramp_s)
+            self._amp_rand.set(0.0, ramp_s)
+        elif waveform == "RANDOM":
+            self._amp_sine.set(0.0, ramp_s)
+            self._rate_rand.set(1.0, ramp_s)
+            if frequency_hz == self._band_hz:
+                self._amp_rand.set(amplitude_m, ramp_s)
+            else:
+                self._pending = (amplitude_m, frequency_hz)
+                self._amp_rand.set(0.0, ramp_s)
+        else:  # STOP
+            self._amp_sine.set(0.0, ramp_s)
+            self._amp_rand.set(0.0, ramp_s)
+
+    def _load_noise(self, peak_m: float, band_hz: float) -> None:
+        n = round(self._cfg.random_record_s / self._period_s)
+        try:
+            x, xd, _ = bandlimited_noise(n, self._period_s, band_hz, 1.0, self._rng)
+        except ValueError as exc:
+            logger.warning("RANDOM band %.3f Hz unusable, staying at rest: %s", band_hz, exc)
+            self._noise, self._band_hz = None, -1.0
+            return
+        self._noise = (x.tolist(), xd.tolist())
+        self._band_hz = band_hz
+        self._tau_s = 0.0
+        self._amp_rand.set(peak_m, self._cfg.ramp_s)
+
+    def advance(self, dt_s: float) -> tuple[float, float]:
+        """Move on by dt_s; returns (x_m, xd_m_s) at the end of the step."""
+        f0 = self._freq.value
+        a_s_dot = self._amp_sine.advance(dt_s)
+        self._freq.advance(dt_s)
+        self._phase = (self._phase + math.pi * (f0 + self._freq.value) * dt_s) % (2.0 * math.pi)
+        r0 = self._rate_rand.value
+        self._rate_rand.advance(dt_s)
+        a_r_dot = self._amp_rand.advance(dt_s)
+        if self._pending is not None and self._amp_rand.value == 0.0:
+            pending, self._pending = self._pending, None
+            self._load_noise(*pending)
+        a_s = self._amp_sine.value
+        s, c = math.sin(self._phase), math.cos(self._phase)
+        x = a_s * s
+        xd = a_s_dot * s + a_s * 2.0 * math.pi * self._freq.value * c
+        if self._noise is not None:
+            record_s = len(self._noise[0]) * self._period_s
+            self._tau_s = (self._tau_s + 0.5 * (r0 + self._rate_rand.value) * dt_s) % record_s
+            pos = self._tau_s / self._period_s
+            i = int(pos)
+            frac = pos - i
+            nx, nv = self._noise
+            j = (i + 1) % len(nx)
+            n = nx[i] + frac * (nx[j] - nx[i])
+            nd = nv[i] + frac * (nv[j] - nv[i])
+            a_r = self._amp_rand.value
+            x += a_r * n
+            xd += a_r_dot * n + a_r * self._rate_rand.value * nd
+        self.x_m, self.xd_m_s = x, xd
+        return x, xd
+
+
+class Firmware:
+    """The rig firmware: command handling, watchdog, actuator, damper plant, sensors, faults."""
+
+    def __init__(
+        self, config: SimConfig, codec: Codec, faults: Sequence[FaultSpec] | None = None
+    ) -> None:
+        self._cfg = config
+        self._packer = codec.packer("RIG")
+        self._parser = codec.parser()
+        sensors = codec.layout("RigSensors")
+        status = codec.layout("RigStatus")
+        if sensors.period_s is None or status.period_s is None:
+            raise ValueError(f"{codec.dbc_path}: RigSensors/RigStatus need GenMsgCycleTime")
+        self.period_s: float = sensors.period_s
+        self._status_every = round(status.period_s / sensors.period_s)
+        self._sensors = sensors
+        self._status = status
+        self.sensors_id = sensors.frame_id
+        self.status_id = status.frame_id
+        coil = next(f for f in status.fields if f.name == "CoilCurrent")
+        self._coil_current_max_a = coil.raw_max * coil.scale + coil.offset
+        self.damper_command_id = codec.layout("DamperCommand").frame_id
+        self._actuator_id = codec.layout("ActuatorCommand").frame_id
+        self._mode_labels = codec.choices("DamperCommand", "Mode")
+        self._waveform_labels = codec.choices("ActuatorCommand", "Waveform")
+
+        self._faults = tuple(config.faults if faults is None else faults)
+        self._fault_on = [False] * len(self._faults)
+        self.active_faults: frozenset[str] = frozenset()
+
+        self._gauss = random.Random(config.seed).gauss
+        self.actuator = Actuator(
+            config.actuator, self.period_s, np.random.default_rng(config.seed)
+        )
+        act = config.actuator
+        if act.autostart != "STOP":
+            self.actuator.command(act.autostart, act.autostart_amplitude_m,
+                                  act.autostart_frequency_hz)
+        self._plant = BoucWenDamper(BoucWenParams.preset(PLANT_PRESET), config.damper.substep_s)
+        self._limit_a = config.damper.current_limit_a
+        self.temperature_degc = config.thermal.ambient_degc
+
+        self.events: list[tuple[float, str]] = []
+        self._ticks = 0
+        self._t_prev_s = 0.0
+        self._boot = True
+        # damper command state
+        self._armed = False
+        self._last_cmd_s = 0.0
+        self._active = False
+        self._setpoint_a = 0.0
+        self._over_limit = False
+        self.max_commanded_current_a = 0.0
+        self._tripped = False
+        self.watchdog_trips = 0
+        self._n_active = 0
+        self._n_safe = 0
+        # actuator command state
+        self._act_seen = False
+        self._last_act_s = 0.0
+        self._act_timed_out = False
+        # bad command frames within the budget window
+        self._bad_times: deque[float] = deque()
+        self._bad_over = False
+        # outputs of the last tick
+        self.coil_command_a = 0.0
+        self.coil_current_a = 0.0
+        self.force_n = 0.0
+        self._last_sensor_counter = 0
+
+    # ---- received frames ------------------------------------------------------------------
+
+    def on_frame(self, frame_id: int, data: bytes, t_s: float) -> Parsed | None:
+        """Check and apply one received frame; None for frames that are not commands."""
+        if frame_id != self.damper_command_id and frame_id != self._actuator_id:
+            return None
+        parsed = self._parser.parse(frame_id, data, t_s)
+        if not parsed.ok:
+            self._bad_times.append(t_s)
+            logger.debug("dropped command frame: %s", parsed.reason)
+            return parsed
+        v = parsed.values
+        assert v is not None
+        if frame_id == self.damper_command_id:
+            self.on_damper_command(
+                self._mode_labels[int(v["Mode"])], v["CurrentSetpoint"], t_s
+            )
+        else:
+            self.on_actuator_command(
+                self._waveform_labels[int(v["Waveform"])], v["Amplitude"], v["Frequency"], t_s
+            )
+        return parsed
+
+    def on_damper_command(self, mode: str, setpoint_a: float, t_s: float) -> None:
+        """A valid DamperCommand: feeds the watchdog; ACTIVE sets the (clamped) setpoint."""
+        self._armed = True
+        self._last_cmd_s = t_s
+        if mode == "ACTIVE":
+            self.max_commanded_current_a = max(self.max_commanded_current_a, setpoint_a)
+            over = setpoint_a > self._limit_a
+            if over and not self._over_limit:
+                self._event(t_s, f"setpoint {setpoint_a:.4f} A over the limit "
+                                 f"{self._limit_a:.4f} A: clamped")
+            self._over_limit = over
+            self._setpoint_a = min(setpoint_a, self._limit_a)
+            self._active = True
+            self._n_active += 1
+            self._n_safe = 0
+        else:
+            self._over_limit = False
+            self._setpoint_a = 0.0
+            self._active = False
+            self._n_safe += 1
+            self._n_active = 0
+        if self._tripped and max(self._n_active, self._n_safe) >= RECOVERY_COMMANDS:
+            self._tripped = False
+            self._event(t_s, f"watchdog cleared after {RECOVERY_COMMANDS} valid {mode} commands")
+
+    def on_actuator_command(
+        self, waveform: str, amplitude_m: float, frequency_hz: float, t_s: float
+    ) -> None:
+        """A valid ActuatorCommand: re-arms the actuator timeout and drives the motion."""
+        self._act_seen = True
+        self._last_act_s = t_s
+        if self._act_timed_out:
+            self._act_timed_out = False
+            self._event(t_s, "actuator command stream back")
+        if self._halted_by_injection():
+            return
+        if amplitude_m > self._cfg.actuator.stroke_m and waveform in ("SINE", "RANDOM"):
+            logger.warning("actuator amplitude %.5f m clamped to the stroke %.5f m",
+                           amplitude_m, self._cfg.actuator.stroke_m)
+        if waveform != self.actuator.waveform:
+            logger.info("actuator %s amplitude %.5f m frequency %.3f Hz",
+                        waveform, amplitude_m, frequency_hz)
+        self.actuator.command(waveform, amplitude_m, frequency_hz)
+
+    # ---- derived state ----------------------------------------------------------------------
+
+    def _halted_by_injection(self) -> bool:
+        return "estop" in self.active_faults or "stroke_limit" in self.active_faults
+
+    @property
+    def state(self) -> str:
+        """RigStatus State label."""
+        if self._boot:
+            return "BOOT"
+        if self._tripped or self._halted_by_injection():
+            return "FAULT"
+        return "RUNNING" if self._active else "IDLE"
+
+    @property
+    def fault_code(self) -> str:
+        """RigStatus FaultCode label: the most important active condition."""
+        active = self.active_faults
+        if "estop" in active:
+            return "E_STOP"
+        if "stroke_limit" in active:
+            return "STROKE_LIMIT"
+        if self._tripped:
+            return "COMMAND_TIMEOUT"
+        if "sensor_fault" in active:
+            return "SENSOR_FAULT"
+        if self._act_timed_out:
+            return "COMMAND_TIMEOUT"
+        if self._bad_over:
+            return "BAD_COMMAND_FRAMES"
+        if self._over_limit and self._active:
+            return "SETPOINT_OVER_LIMIT"
+        return "NONE"
+
+    def command_counts(self) -> dict[str, int]:
+        """Received command frames: valid, bad CRC, repeated counter, other rejections."""
+        out = {"damper_valid": 0, "actuator_valid": 0, "bad_crc": 0, "repeated_counter": 0,
+               "other_rejected": 0}
+        for name, key in (("DamperCommand", "damper_valid"), ("ActuatorCommand",
+                                                               "actuator_valid")):
+            st = self._parser.stats[name]
+            out[key] = st.frames_ok
+            out["bad_crc"] += st.bad_crc
+            out["repeated_counter"] += st.repeated_counter
+            out["other_rejected"] += st.wrong_length + st.decode_errors
+        return out
+
+    def _event(self, t_s: float, text: str) -> None:
+        self.events.append((t_s, text))
+        logger.info("t=%.3f s: %s", t_s, text)
+
+    # ---- one period -------------------------------------------------------------------------
+
+    def _update_injections(self, t_s: float) -> None:
+        active = set()
+        half = 0.5 * self.period_s  # windows hold round(duration / period) ticks, float-safe
+        for i, spec in enumerate(self._faults):
+            end_s = spec.start_s + max(spec.duration_s, self.period_s)
+            on = spec.start_s - half <= t_s < end_s - half
+            if on != self._fault_on[i]:
+                self._fault_on[i] = on
+                self._event(t_s, f"fault injection {spec.kind} {'starts' if on else 'ends'}")
+            if on:
+                active.add(spec.kind)
+        self.active_faults = frozenset(active)
+        if self._halted_by_injection() and self.actuator.waveform != "STOP":
+            self.actuator.command("STOP", 0.0, 0.0)
+
+    def _check_timeouts(self, t_s: float) -> None:
+        if self._armed and t_s - self._last_cmd_s > WATCHDOG_TIMEOUT_S:
+            if not self._tripped:
+                self._tripped = True
+                self.watchdog_trips += 1
+                self._event(t_s, f"watchdog: no valid DamperCommand for "
+                                 f"{(t_s - self._last_cmd_s) * 1e3:.1f} ms, coil to 0 A")
+            self._n_active = self._n_safe = 0
+        if (self._act_seen and not self._act_timed_out and self.actuator.moving
+                and t_s - self._last_act_s > ACTUATOR_TIMEOUT_S):
+            self._act_timed_out = True
+            self.actuator.command("STOP", 0.0, 0.0)
+            self._event(t_s, "no ActuatorCommand for 500 ms while moving: ramping to rest")
+        window = self._cfg.commands.bad_frame_window_s
+        bad = self._bad_times
+        while bad and t_s - bad[0] > window:
+            bad.popleft()
+        over = len(bad) > self._cfg.commands.bad_frame_budget
+        if over != self._bad_over:
+            self._bad_over = over
+            self._event(t_s, f"bad command frames {'over' if over else 'back within'} budget "
+                             f"({len(bad)} in {window:g} s)")
+
+    def tick(self, t_s: float) -> list[Frame]:
+        """Advance the rig to t_s (one RigSensors period after the last tick) and return the
+        frames due: RigSensors, and RigStatus every status period (both subject to faults)."""
+        dt_s = t_s - self._t_prev_s if self._ticks else 0.0
+        self._t_prev_s = t_s
+        self._update_injections(t_s)
+        self._check_timeouts(t_s)
+        x, xd = self.actuator.advance(dt_s) if dt_s > 0.0 else (
+            self.actuator.x_m, self.actuator.xd_m_s)
+        on = self.active_faults
+        halted = self._tripped or self._halted_by_injection()
+        self.coil_command_a = self._setpoint_a if self._active and not halted else 0.0
+        if dt_s > 0.0:
+            force = self._plant.step(x, xd, self.coil_command_a, dt_s)
+        else:
+            force = self._plant.reset(x, xd, 0.0)
+        current_a = self._plant.state[2]
+        self.force_n = force
+        th = self._cfg.thermal
+        power_w = th.coil_resistance_ohm * current_a * current_a + force * xd
+        self.temperature_degc += dt_s * (
+            power_w / th.heat_capacity_j_per_k
+            - (self.temperature_degc - th.ambient_degc) / th.time_constant_s
+        )
+
+        sn = self._cfg.sensors
+        gauss = self._gauss
+        displacement = x + gauss(0.0, sn.displacement_noise_m)
+        force_meas = force + gauss(0.0, sn.force_noise_n)
+        if "sensor_spike" in on:
+            displacement += sn.spike_displacement_m
+            force_meas += sn.spike_force_n
+        self.coil_current_a = max(0.0, current_a + gauss(0.0, sn.current_noise_a))
+
+        frames: list[Frame] = []
+        if "silent" not in on:
+            if "drop_frames" not in on:
+                frames.append(self._sensor_frame(displacement, force_meas, on))
+            if self._ticks % self._status_every == 0:
+                frames.append(self._status_frame())
+        self._ticks += 1
+        self._boot = False
+        return frames
+
+    def _sensor_frame(self, displacement_m: float, force_n: float, on: frozenset[str]) -> Frame:
+        values = {
+            "ActuatorEnabled": int(not self.actuator.at_rest and not self._halted_by_injection()),
+            "LimitTripped": int("stroke_limit" in on),
+            "EStop": int("estop" in on),
+            "SensorFault": int("sensor_fault" in on),
+            "Displacement": displacement_m,  # quantised to the DBC's scale by the packer
+            "Force": force_n,
+        }
+        frozen = "freeze_counter" in on
+        lay = self._sensors
+        data = self._packer.encode(
+            "RigSensors", values, counter=self._last_sensor_counter if frozen else None
+        )
+        corrupt = "corrupt_crc" in on
+        if corrupt:
+            data = bytes((data[0] ^ 0xFF,)) + data[1:]
+        counter = _counter(lay, data)
+        self._last_sensor_counter = counter
+        return Frame(lay.frame_id, data, counter, not (frozen or corrupt))
+
+    def _status_frame(self) -> Frame:
+        values = {
+            "State": self.state,
+            "CoilCurrent": min(self.coil_current_a, self._coil_current_max_a),
+            "DamperTemperature": self.temperature_degc,
+            "FaultCode": self.fault_code,
+            "CommandTimeouts": self.watchdog_trips % 256,
+        }
+        data = self._packer.encode("RigStatus", values)
+        return Frame(self.status_id, data, _counter(self._status, data), False)

@@ -1,0 +1,161 @@
+"""`mrrig bench loop`: the real-time loop measured end to end, as separate processes.
+
+Starts the bridge, firmware_sim and the daemon (as the demo does) and runs for `--duration`
+seconds, once with telemetry (Zenoh) and recording (Rerun) off and once with both on, then
+prints per run: receive->send latency p50/p99/p99.9/max (the daemon's own measure, per frame),
+frames without a command (the simulator's count), the simulator's period jitter, CPU per
+process, and the on/off ratio of the latency p99.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import os
+import signal
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+from mrrig.canbus.bus import find_free_port, start_bridge, stop_bridge
+
+log = logging.getLogger(__name__)
+
+
+def _cpu_s(pid: int) -> float:
+    """utime + stime of a live process, s (Linux /proc)."""
+    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def run_once(config: Path, sim_config: Path, duration_s: float, telemetry: bool) -> dict:
+    work = Path(tempfile.mkdtemp(prefix="mrrig-bench-loop-"))
+    port = find_free_port()
+    channel = f"ws://127.0.0.1:{port}/"
+    bridge = start_bridge(port)
+    sim = daemon = None
+    try:
+        t_bridge0 = _cpu_s(bridge.pid)
+        sim = subprocess.Popen(
+            [
+                sys.executable,
+                "-m",
+                "firmware_sim",
+                "--config",
+                str(sim_config),
+                "--bus-channel",
+                channel,
+                "--stats",
+                str(work / "sim.json"),
+            ]
+        )
+        time.sleep(1.0)
+        cmd = [
+            sys.executable,
+            "-m",
+            "mrrig",
+            "-q",
+            "run",
+            "--config",
+            str(config),
+            "--bus-channel",
+            channel,
+            "--duration",
+            str(duration_s),
+            "--arm",
+            "--summary-json",
+            str(work / "daemon.json"),
+        ]
+        if telemetry:
+            cmd += ["--record", str(work / "bench.rrd")]
+        else:
+            cmd += ["--no-record", "--no-telemetry"]
+        t0 = time.monotonic()
+        daemon = subprocess.Popen(cmd, stdout=subprocess.DEVNULL)
+        rc = daemon.wait(timeout=duration_s + 120)
+        wall = time.monotonic() - t0
+        bridge_cpu = _cpu_s(bridge.pid) - t_bridge0
+        if rc != 0:
+            raise RuntimeError(f"daemon exited with code {rc}")
+        sim.send_signal(signal.SIGTERM)
+        sim.wait(timeout=10)
+        d = json.loads((work / "daemon.json").read_text())
+        s = json.loads((work / "sim.json").read_text())
+        return {
+            "telemetry_and_recording": telemetry,
+            "duration_s": d["duration_s"],
+            "frames": d["frames"],
+            "latency_us": d["latency_us"],
+            "frames_without_command": s.get("unanswered"),
+            "frames_answered_more_than_once": s.get("answered_more_than_once"),
+            "sim_jitter_us": s.get("period_jitter_us"),
+            "sim_answer_latency_us": s.get("answer_latency_us"),
+            "cpu_pct": {
+                "daemon_loop": 100 * d.get("cpu_loop_s", float("nan")) / wall,
+                "telemetry_process": 100 * d.get("cpu_sidecar_s", 0.0) / wall,
+                "firmware_sim": 100 * s.get("cpu_fraction", float("nan")),
+                "bridge": 100 * bridge_cpu / wall,
+            },
+            "et": d.get("et"),
+            "faults": d.get("faults"),
+            "telemetry_dropped": d.get("telemetry_dropped"),
+        }
+    finally:
+        for p in (daemon, sim):
+            if p is not None and p.poll() is None:
+                p.kill()
+                p.wait()
+        stop_bridge(bridge)
+
+
+def format_run(r: dict) -> str:
+    lat = r["latency_us"]
+    cpu = r["cpu_pct"]
+    jit = r["sim_jitter_us"] or {}
+    on = "ON " if r["telemetry_and_recording"] else "OFF"
+    return "\n".join(
+        [
+            f"telemetry+recording {on}: {r['frames']} frames in {r['duration_s']:.1f} s, "
+            f"faults {len(r['faults'] or [])}, Et {r['et']}",
+            f"  receive->send latency us: p50 {lat['p50']:.0f}  p99 {lat['p99']:.0f}  "
+            f"p99.9 {lat['p99.9']:.0f}  max {lat['max']:.0f}",
+            f"  frames without a command: {r['frames_without_command']}  "
+            f"(answered twice: {r['frames_answered_more_than_once']}); "
+            f"telemetry samples dropped: {r['telemetry_dropped']}",
+            "  firmware_sim period jitter us: " + "  ".join(f"{k} {v:.0f}" for k, v in jit.items()),
+            "  CPU % of one core: " + "  ".join(f"{k} {v:.1f}" for k, v in cpu.items()),
+        ]
+    )
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(prog="mrrig bench loop", description=__doc__)
+    ap.add_argument("--config", type=Path, default=Path("configs/rig.toml"))
+    ap.add_argument("--sim-config", type=Path, default=Path("configs/sim.toml"))
+    ap.add_argument("--duration", type=float, default=60.0, help="seconds per run (default 60)")
+    ap.add_argument("--only", choices=("on", "off"), help="one run instead of both")
+    ap.add_argument("--json", type=Path, help="also write the numbers here")
+    args = ap.parse_args(argv)
+    from mrrig.demo import SIM_MODEL, ensure_sim_model
+
+    ensure_sim_model(SIM_MODEL)
+    modes = {"off": [False], "on": [True], None: [False, True]}[args.only]
+    runs = []
+    for telemetry in modes:
+        log.info(
+            "run with telemetry+recording %s, %.0f s", "on" if telemetry else "off", args.duration
+        )
+        runs.append(run_once(args.config, args.sim_config, args.duration, telemetry))
+        print(format_run(runs[-1]), flush=True)
+    result = {"runs": runs}
+    if len(runs) == 2:
+        ratio = runs[1]["latency_us"]["p99"] / runs[0]["latency_us"]["p99"]
+        result["p99_ratio_on_off"] = ratio
+        print(f"latency p99 ratio on/off: {ratio:.2f}")
+    print("budget (spec/system.md): p99 <= 300 us, p99.9 <= 1000 us, 0 frames without a command")
+    if args.json:
+        args.json.write_text(json.dumps(result, indent=2))
+    return 0

@@ -1,0 +1,291 @@
+"""Network inversion (paper eqs 2-14): the current that makes the forward MLP give a force.
+
+With the weights frozen, the force is a function of the current alone for each sample:
+
+    f(i) = f0 + sum_h v_h tanh(k_h + w_h i),   k = feature part of the pre-activation (eq. 5)
+
+Two methods:
+- `gradient_inversion`: the paper's reference, gradient descent on E = 1/2 (f_d - f_net)^2
+  (eqs 2-3) with the analytic gradient of eq. 14, from a random start.
+- `exact_inversion` (the default): bracket the roots of f(i) - f_d on a grid over [0, i_max],
+  take the root nearest the previous command, refine it by safeguarded Newton with the same
+  analytic derivative; saturate at the nearest bound when the force is out of reach.
+`ScalarInverter` is the one-sample path of both for the real-time loop.
+
+Features are the model's inputs without the current, in the model's order, physical units.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from mrrig.model.mlp import MLP
+
+
+@dataclass(frozen=True)
+class _Split:
+    """The model's pre-activation split into a feature part and a current part.
+
+    Physical units: pre = features @ A.T + a0 + w * current_a; force = f0 + v . tanh(pre).
+    Standardised units (as trained): pre = z_features @ W1f.T + b1 + W1c * current_std.
+    """
+
+    A: np.ndarray  # H x (n-1), per physical feature unit
+    a0: np.ndarray  # H
+    w: np.ndarray  # H, per ampere
+    v: np.ndarray  # H, N per unit of hidden output
+    vw: np.ndarray  # H, v * w
+    f0: float
+    c: int
+    c_mean: float
+    c_std: float
+
+    @classmethod
+    def of(cls, model: MLP) -> _Split:
+        c = model.current_index
+        if c is None:
+            raise ValueError("network inversion needs a model with an input named 'current'")
+        others = [j for j in range(model.n_in) if j != c]
+        A = model.W1[:, others] / model.in_std[others]
+        c_mean, c_std = float(model.in_mean[c]), float(model.in_std[c])
+        w = model.W1[:, c] / c_std
+        a0 = model.b1 - A @ model.in_mean[others] - w * c_mean
+        v = model.out_std * model.W2
+        return cls(A=A, a0=a0, w=w, v=v, vw=v * w, f0=model.out_mean + model.out_std * model.b2,
+                   c=c, c_mean=c_mean, c_std=c_std)
+
+    def features_part(self, features: np.ndarray) -> np.ndarray:
+        """k (N x H): the pre-activation without the current term."""
+        return features @ self.A.T + self.a0
+
+
+def _as_batch(model: MLP, features: np.ndarray, f_des: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    features = np.asarray(features, dtype=np.float64)
+    if features.ndim != 2 or features.shape[1] != model.n_in - 1:
+        raise ValueError(f"features must be (N, {model.n_in - 1}) (inputs without the current), "
+                         f"got {features.shape}")
+    f_des = np.broadcast_to(np.asarray(f_des, dtype=np.float64), (features.shape[0],))
+    return features, f_des
+
+
+def eq14_gradient(model: MLP, X: np.ndarray, f_des: np.ndarray,
+                  standardised: bool = False) -> np.ndarray:
+    """dE/dcurrent (N,) of E = 1/2 (f_des - f_net(X))^2 at the full inputs X (N x n_in).
+
+    Physical units (N^2/A) by default; `standardised=True` gives the gradient w.r.t. the
+    standardised current of E in standardised force units, the quantity the paper's
+    normalised MATLAB network descends on.
+    """
+    c = model.current_index
+    if c is None:
+        raise ValueError("eq14_gradient needs a model with an input named 'current'")
+    X = np.asarray(X, dtype=np.float64)
+    z = (X - model.in_mean) / model.in_std
+    o = np.tanh(z @ model.W1.T + model.b1)  # eqs 5, 7
+    f_net_s = o @ model.W2 + model.b2  # eq. 12: linear output
+    f_des_s = (np.asarray(f_des, dtype=np.float64) - model.out_mean) / model.out_std
+    # eq. 14 = eq. 11 * sum over hidden of eq. 8 * eq. 9 * eq. 13
+    grad_s = (f_net_s - f_des_s) * ((1.0 - o * o) @ (model.W1[:, c] * model.W2))
+    if standardised:
+        return grad_s
+    return grad_s * model.out_std**2 / model.in_std[c]
+
+
+def gradient_inversion(
+    model: MLP,
+    features: np.ndarray,
+    f_des: np.ndarray,
+    *,
+    i_max: float,
+    rate: float = 1e-3,
+    iterations: int = 1000,
+    i0: np.ndarray | None = None,
+    rng: np.random.Generator | None = None,
+) -> np.ndarray:
+    """The paper's inversion: `iterations` steps of eq. 2 from i0 (default uniform on [0, i_max]).
+
+    The descent runs in standardised current and force units, as the paper's MATLAB network
+    (normalised inputs and output) did: rate 0.001 on E in N^2 w.r.t. amperes would diverge.
+    The result is clipped to [0, i_max]. Returns currents (N,) in A.
+    """
+    features, f_des = _as_batch(model, features, f_des)
+    s = _Split.of(model)
+    n = features.shape[0]
+    if i0 is None:
+        i0 = (rng if rng is not None else np.random.default_rng()).uniform(0.0, i_max, n)
+    i_s = (np.broadcast_to(np.asarray(i0, dtype=np.float64), (n,)) - s.c_mean) / s.c_std
+    # Standardised units: pre = k_s + W1c * i_s, f_s = W2 . o + b2.
+    W1c = model.W1[:, s.c]
+    k_s = s.features_part(features) + s.w * s.c_mean
+    f_des_s = (f_des - model.out_mean) / model.out_std
+    w_sum = W1c * model.W2
+    for _ in range(iterations):
+        o = np.tanh(k_s + np.multiply.outer(i_s, W1c))  # eqs 5, 7
+        grad = (o @ model.W2 + model.b2 - f_des_s) * ((1.0 - o * o) @ w_sum)  # eq. 14
+        i_s = i_s - rate * grad  # eq. 2
+    return np.clip(i_s * s.c_std + s.c_mean, 0.0, i_max)
+
+
+def exact_inversion(
+    model: MLP,
+    features: np.ndarray,
+    f_des: np.ndarray,
+    i_prev: np.ndarray | float,
+    *,
+    i_max: float,
+    grid_points: int = 33,
+    xtol_a: float = 1e-6,
+    max_iter: int = 60,
+) -> np.ndarray:
+    """Currents (N,) in [0, i_max] with f_net(features, i) = f_des, vectorised over samples.
+
+    Roots are bracketed on `grid_points` currents; of several, the one nearest `i_prev`
+    (judged by the secant estimate in each bracket) is refined by Newton steps, bisecting
+    when a step leaves the bracket, until a step is below `xtol_a`. Two roots inside one grid
+    cell are not seen. No root: the bound whose force is nearest f_des (tie: nearest i_prev).
+    """
+    features, f_des = _as_batch(model, features, f_des)
+    s = _Split.of(model)
+    n = features.shape[0]
+    i_prev = np.broadcast_to(np.asarray(i_prev, dtype=np.float64), (n,))
+    grid = np.linspace(0.0, i_max, grid_points)
+    k = s.features_part(features)
+    c = s.f0 - f_des
+    g = np.tanh(k[:, None, :] + grid[:, None] * s.w) @ s.v + c[:, None]  # N x G
+    g_lo, g_hi = g[:, :-1], g[:, 1:]
+    bracket = g_lo * g_hi <= 0.0
+    denom = g_lo - g_hi
+    with np.errstate(divide="ignore", invalid="ignore"):
+        r = grid[:-1] + np.where(denom != 0.0, g_lo / denom, 0.0) * (grid[1] - grid[0])
+    cell = np.argmin(np.where(bracket, np.abs(r - i_prev[:, None]), np.inf), axis=1)
+    found = bracket.any(axis=1)
+    rows = np.arange(n)
+
+    out = np.empty(n)
+    # Out of reach: saturate at the bound with the nearer force.
+    miss = ~found
+    e0, e1 = np.abs(g[miss, 0]), np.abs(g[miss, -1])
+    upper = (e1 < e0) | ((e1 == e0) & (np.abs(i_max - i_prev[miss]) < np.abs(i_prev[miss])))
+    out[miss] = np.where(upper, i_max, 0.0)
+
+    idx = rows[found]
+    cf = cell[found]
+    lo, hi = grid[cf], grid[cf + 1]
+    glo = g_lo[found, cf]
+    x = r[found, cf]
+    kk, cc = k[found], c[found]
+    active = np.ones(idx.size, dtype=bool)
+    for _ in range(max_iter):
+        if not active.any():
+            break
+        a = np.flatnonzero(active)
+        t = np.tanh(kk[a] + x[a, None] * s.w)  # eqs 5, 7
+        gx = t @ s.v + cc[a]
+        dg = s.vw.sum() - (t * t) @ s.vw  # df/di: eq. 14 without the error factor
+        same = np.sign(gx) == np.sign(glo[a])
+        lo[a] = np.where(same, x[a], lo[a])
+        glo[a] = np.where(same, gx, glo[a])
+        hi[a] = np.where(same, hi[a], x[a])
+        with np.errstate(divide="ignore", invalid="ignore"):
+            xn = x[a] - gx / dg
+        bad = ~((xn > lo[a]) & (xn < hi[a]))
+        xn = np.where(bad, 0.5 * (lo[a] + hi[a]), xn)
+        done = (gx == 0.0) | (np.abs(xn - x[a]) <= xtol_a)
+        x[a] = np.where(gx == 0.0, x[a], xn)
+        active[a[done]] = False
+    out[idx] = x
+    return out
+
+
+class ScalarInverter:
+    """One sample at a time, for the real-time loop; same results as the batch functions.
+
+    method "exact" (default) or "gradient" (the paper's; random start from `seed`).
+    """
+
+    def __init__(self, model: MLP, i_max: float, method: str = "exact", *,
+                 grid_points: int = 33, xtol_a: float = 1e-6, max_iter: int = 60,
+                 rate: float = 1e-3, iterations: int = 1000, seed: int | None = None) -> None:
+        if method not in ("exact", "gradient"):
+            raise ValueError(f"unknown inversion method {method!r} (exact, gradient)")
+        self.model = model
+        self.method = method
+        self.i_max = float(i_max)
+        self.xtol_a, self.max_iter = xtol_a, max_iter
+        self.rate, self.iterations = rate, iterations
+        self._rng = np.random.default_rng(seed)
+        s = _Split.of(model)
+        self._s = s
+        self._grid = np.linspace(0.0, self.i_max, grid_points)
+        self._h = float(self._grid[1] - self._grid[0])
+        self._grid_list = self._grid.tolist()
+        self._grid_w = self._grid[:, None] * s.w  # G x H
+        self._buf_g = np.empty_like(self._grid_w)
+        self._k = np.empty(model.hidden)
+        self._buf_h = np.empty(model.hidden)
+        self._vw_sum = float(s.vw.sum())
+
+    def solve(self, features: np.ndarray, f_des: float, i_prev: float) -> float:
+        """Current in A for one sample; features = the model's inputs without the current."""
+        if self.method == "gradient":
+            return self._gradient(features, f_des)
+        s = self._s
+        k, buf_g, buf_h = self._k, self._buf_g, self._buf_h
+        np.dot(s.A, features, out=k)
+        k += s.a0
+        c = s.f0 - f_des
+        np.add(self._grid_w, k, out=buf_g)
+        np.tanh(buf_g, out=buf_g)
+        g = (buf_g @ s.v + c).tolist()
+        grid, h = self._grid_list, self._h
+        best = np.inf
+        cell = -1
+        for j in range(len(g) - 1):
+            gl, gh = g[j], g[j + 1]
+            if gl * gh <= 0.0:
+                rj = grid[j] + (gl / (gl - gh) if gl != gh else 0.0) * h
+                if abs(rj - i_prev) < best:
+                    best, cell, x, glo = abs(rj - i_prev), j, rj, gl
+        if cell < 0:
+            e0, e1 = abs(g[0]), abs(g[-1])
+            if e1 < e0 or (e1 == e0 and abs(self.i_max - i_prev) < abs(i_prev)):
+                return self.i_max
+            return 0.0
+        lo, hi = grid[cell], grid[cell + 1]
+        w, v, vw, vw_sum = s.w, s.v, s.vw, self._vw_sum
+        for _ in range(self.max_iter):
+            np.multiply(w, x, out=buf_h)
+            buf_h += k
+            np.tanh(buf_h, out=buf_h)  # eqs 5, 7
+            gx = float(buf_h @ v) + c
+            if gx == 0.0:
+                break
+            np.multiply(buf_h, buf_h, out=buf_h)
+            dg = vw_sum - float(buf_h @ vw)
+            if (gx > 0.0) == (glo > 0.0) and glo != 0.0:
+                lo, glo = x, gx
+            else:
+                hi = x
+            xn = x - gx / dg if dg != 0.0 else np.nan
+            if not lo < xn < hi:
+                xn = 0.5 * (lo + hi)
+            step = abs(xn - x)
+            x = xn
+            if step <= self.xtol_a:
+                break
+        return x
+
+    def _gradient(self, features: np.ndarray, f_des: float) -> float:
+        m, s = self.model, self._s
+        W1c = m.W1[:, s.c]
+        k_s = s.A @ features + s.a0 + s.w * s.c_mean
+        f_des_s = (f_des - m.out_mean) / m.out_std
+        w_sum = W1c * m.W2
+        i_s = (self._rng.uniform(0.0, self.i_max) - s.c_mean) / s.c_std
+        for _ in range(self.iterations):
+            o = np.tanh(k_s + i_s * W1c)  # eqs 5, 7
+            grad = (float(o @ m.W2) + m.b2 - f_des_s) * float((1.0 - o * o) @ w_sum)  # eq. 14
+            i_s = i_s - self.rate * grad  # eq. 2
+        return min(max(i_s * s.c_std + s.c_mean, 0.0), self.i_max)

@@ -1,0 +1,141 @@
+"""`mrrig train DATA...`: the forward network (and the supervised inverse) from measured data.
+
+DATA are tidy characterization CSVs, daemon recordings (.rrd) or other CSVs with a column map
+(`--columns x=Pos,force=F,current=I,t=time`) and units (`--units x=cm,force=kN`). Writes the
+model file and prints the validation report (spec/modeling.md section 5).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import sys
+from pathlib import Path
+from typing import Any
+
+from mrrig.datasets import DataError
+from mrrig.training import (
+    COIL_LAG_TAU_S,
+    CURRENT_INPUTS,
+    PAPER_N_TRAIN,
+    PAPER_N_VAL,
+    load_training_data,
+    train_and_validate,
+)
+
+log = logging.getLogger(__name__)
+
+PROGRESS_EVERY_EPOCHS = 10
+
+
+def _mapping(text: str | None, option: str) -> dict[str, str] | None:
+    """`a=b,c=d` -> {"a": "b", "c": "d"}; a one-line DataError on anything else."""
+    if text is None:
+        return None
+    out = {}
+    for item in text.split(","):
+        key, sep, value = item.partition("=")
+        if not sep or not key.strip() or not value.strip():
+            raise DataError(f"{option}: expected FIELD=NAME[,FIELD=NAME...], got {item!r}")
+        out[key.strip()] = value.strip()
+    return out
+
+
+def _progress(epoch: int, train_mse: float, val_mse: float | None, mu: float) -> None:
+    if epoch % PROGRESS_EVERY_EPOCHS == 0:
+        val = f"{val_mse:.4g}" if val_mse is not None else "-"
+        log.info("epoch %4d  train MSE %.4g  val MSE %s  mu %.3g", epoch, train_mse, val, mu)
+
+
+def _pct(d: dict[str, float] | None) -> str:
+    if d is None:
+        return "n/a (no plant: offline data)"
+    return f"p50 {d['p50']:.1f}  p95 {d['p95']:.1f}  max {d['max']:.1f}"
+
+
+def format_report(r: dict[str, Any]) -> str:
+    ni = r["network_inversion"]
+    lines = [
+        f"split: {r['split']['rule']} (seed {r['split']['seed']})",
+        f"current input: {r['current_input']}"
+        + (f" (lag tau {r['lag_tau_s'] * 1e3:.2f} ms)" if r["lag_tau_s"] else ""),
+        f"forward network: {r['epochs']} epochs ({r['stop_reason']}), {r['seconds']:.1f} s",
+        f"forward Et on the {r['n_val']} validation samples: {r['forward']['et']:.4f}"
+        f" (RMSE {r['forward']['rmse_n']:.2f} N)",
+        f"network inversion: inverse-current RMSE {ni['current_rmse_a']:.4f} A (paper 0.09 A),"
+        f" i_max {r['i_max_a']:g} A",
+        "  tracking error, forward model at the inverted current (N): "
+        + _pct(ni["tracking_model_n"]),
+    ]
+    sup = r.get("supervised")
+    if sup is not None:
+        lines += [
+            f"supervised inverse MLP: current RMSE {sup['current_rmse_a']:.4f} A (paper 0.20 A)",
+            f"  tracking error, forward model at its current (N): {_pct(sup['tracking_model_n'])}",
+        ]
+    lines.append(f"(tracking: desired force = {r['definitions']['desired force']})")
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(prog="mrrig train", description=__doc__.splitlines()[0])
+    ap.add_argument("data", nargs="+", type=Path, help="tidy CSV, .rrd recording or CSV")
+    ap.add_argument("--out", type=Path, default=Path("models/forward.json"),
+                    help="the forward model file (default models/forward.json)")
+    ap.add_argument("--columns", help="CSV column map, e.g. x=Pos,force=F,current=I,t=time")
+    ap.add_argument("--units", help="CSV units, e.g. x=cm,xd=cm/s,force=kN,current=mA,t=ms")
+    ap.add_argument("--current-input", choices=CURRENT_INPUTS, default="commanded",
+                    help="current input of the network: as commanded, or through the coil lag")
+    ap.add_argument("--lag-tau-s", type=float, default=COIL_LAG_TAU_S,
+                    help=f"coil lag time constant for --current-input lagged "
+                    f"(default {COIL_LAG_TAU_S:.6g} s)")
+    ap.add_argument("--epochs", type=int, default=1000, help="LM epoch limit (default 1000)")
+    ap.add_argument("--seed", type=int, default=0, help="split and initial weights")
+    ap.add_argument("--n-train", type=int, default=PAPER_N_TRAIN)
+    ap.add_argument("--n-val", type=int, default=PAPER_N_VAL)
+    ap.add_argument("--i-max", type=float, help="inversion bound, A (default: the data's largest)")
+    ap.add_argument("--supervised-out", type=Path, help="also write the supervised inverse MLP")
+    ap.add_argument("--no-supervised", action="store_true",
+                    help="skip the supervised inverse MLP (faster)")
+    ap.add_argument("--report", type=Path, help="write the validation report as JSON")
+    args = ap.parse_args(argv)
+    if args.epochs < 1:
+        raise DataError(f"--epochs must be >= 1, got {args.epochs}")
+    if args.no_supervised and args.supervised_out:
+        raise DataError("--supervised-out needs the supervised model: drop --no-supervised")
+    series = load_training_data(
+        args.data, _mapping(args.columns, "--columns"), _mapping(args.units, "--units")
+    )
+    log.info("training on %d samples from %d file(s)", len(series), len(args.data))
+    fwd, sup, report = train_and_validate(
+        series,
+        n_train=args.n_train,
+        n_val=args.n_val,
+        seed=args.seed,
+        progress=_progress,
+        current_input=args.current_input,
+        lag_tau_s=args.lag_tau_s,
+        max_epochs=args.epochs,
+        i_max=args.i_max,
+        supervised=not args.no_supervised,
+    )
+    fwd.meta["data_files"] = [str(p) for p in args.data]
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    fwd.save(args.out)
+    log.info("wrote %s", args.out)
+    if sup is not None and args.supervised_out:
+        args.supervised_out.parent.mkdir(parents=True, exist_ok=True)
+        sup.save(args.supervised_out)
+        log.info("wrote %s", args.supervised_out)
+    if args.report:
+        args.report.write_text(json.dumps(report, indent=2), encoding="utf-8")
+        log.info("wrote %s", args.report)
+    print(format_report(report))
+    return 0
+
+
+if __name__ == "__main__":
+    from mrrig.cli import main as mrrig_main
+
+    raise SystemExit(mrrig_main(["train", *sys.argv[1:]]))

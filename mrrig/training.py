@@ -1,0 +1,521 @@
+"""Training the forward network (and the supervised inverse) from measured data, and the
+validation report of the paper's section on network inversion (spec/modeling.md 2, 4 B/C, 5).
+
+Data comes from tidy characterization CSVs, from daemon recordings (.rrd) and from any CSV with a
+column map and units; everything is converted to a `Series` in SI units with a run id per
+sample. Velocity and acceleration, where a file lacks them, come from the daemon's Kalman filter
+run over each run; the filter's start-up transient (`KALMAN_WARMUP_S`) is dropped.
+
+The split is the paper's: a random 12771 training / 1419 validation samples out of all the data
+(the rest is not used), or 90/10 of everything when there are fewer samples than that.
+"""
+
+from __future__ import annotations
+
+import csv
+import logging
+import math
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from scipy import signal
+
+from mrrig.datasets import DataError, Series, load_csv
+from mrrig.estimation import KalmanEstimator
+from mrrig.inversion import exact_inversion
+from mrrig.metrics import error_norm, percentiles, rmse
+from mrrig.model.mlp import MLP, data_fingerprint
+from mrrig.model.train import ProgressFn, train_lm
+
+log = logging.getLogger(__name__)
+
+TIDY_HEADER = (
+    "run_id",
+    "t_s",
+    "x_m",
+    "xd_m_s",
+    "xdd_m_s",
+    "force_n",
+    "current_cmd_a",
+    "current_meas_a",
+)
+PAPER_N_TRAIN = 12771  # the paper's split (spec/modeling.md 4 B)
+PAPER_N_VAL = 1419
+SMALL_DATA_VAL_FRACTION = 0.1
+COIL_LAG_TAU_S = 1.0 / 190.0  # the plant's command lag, 1/eta (paper Table 3)
+KALMAN_WARMUP_S = 0.1  # dropped at the start of each run whose xd/xdd we estimate
+CURRENT_INPUTS = ("commanded", "lagged")
+INPUT_NAMES = ("x", "xd", "xdd", "current")
+INPUT_UNITS = ("m", "m/s", "m/s^2", "A")
+SUPERVISED_INPUT_NAMES = ("x", "xd", "xdd", "f_des")
+SUPERVISED_INPUT_UNITS = ("m", "m/s", "m/s^2", "N")
+TRACKING_QUANTILES = (50.0, 95.0)
+
+# plant_force(rows, current_a) -> force_n: the plant's force at sample rows of the series, had
+# the damper run at the given (constant) currents; only the simulator benchmark has one.
+PlantForceFn = Callable[[np.ndarray, np.ndarray], np.ndarray]
+
+
+# ---------------------------------------------------------------------------------- data files
+def write_tidy(path: str | Path, series: Series, current_meas_a: np.ndarray | None = None) -> None:
+    """Write a Series as tidy characterization CSV (`TIDY_HEADER`), floats to 17 digits (a
+    round trip is exact); absent xd/xdd/current_meas are written as nan."""
+    n = len(series)
+    run_id = series.run_id if series.run_id is not None else np.zeros(n, dtype=int)
+    nan = np.full(n, np.nan)
+    cols = [
+        series.t,
+        series.x,
+        series.xd if series.xd is not None else nan,
+        series.xdd if series.xdd is not None else nan,
+        series.force,
+        series.current,
+        nan if current_meas_a is None else np.asarray(current_meas_a, dtype=float),
+    ]
+    with Path(path).open("w", newline="", encoding="utf-8") as fh:
+        w = csv.writer(fh, lineterminator="\n")
+        w.writerow(TIDY_HEADER)
+        rows = zip(run_id.tolist(), *(c.tolist() for c in cols), strict=True)
+        w.writerows([r, *(repr(v) for v in vals)] for r, *vals in rows)
+
+
+def _is_tidy(path: Path) -> bool:
+    try:
+        with path.open(newline="", encoding="utf-8-sig") as fh:
+            header = next(csv.reader(fh), [])
+    except (OSError, UnicodeDecodeError, csv.Error) as exc:
+        raise DataError(f"{path}: cannot read: {exc}".replace("\n", " ")) from exc
+    return tuple(h.strip() for h in header) == TIDY_HEADER
+
+
+def load_tidy(path: str | Path) -> Series:
+    """Read a tidy characterization CSV. xd/xdd are None when the file has any nan in them
+    (the caller estimates them). current_meas_a is not used for training."""
+    path = Path(path)
+    if not _is_tidy(path):
+        header = ",".join(TIDY_HEADER)
+        raise DataError(f"{path}: not a tidy characterization file (header {header})")
+    try:
+        a = np.loadtxt(path, delimiter=",", skiprows=1, ndmin=2, encoding="utf-8")
+    except (OSError, ValueError) as exc:
+        raise DataError(f"{path}: {exc}".replace("\n", " ")) from exc
+    if a.shape[0] == 0:
+        raise DataError(f"{path}: no data rows")
+    if a.shape[1] != len(TIDY_HEADER):
+        raise DataError(f"{path}: {a.shape[1]} columns, want {len(TIDY_HEADER)}")
+    for j in (0, 1, 2, 5, 6):
+        if not np.all(np.isfinite(a[:, j])):
+            row = int(np.flatnonzero(~np.isfinite(a[:, j]))[0]) + 1
+            raise DataError(f"{path}: column {TIDY_HEADER[j]!r}, data row {row}: not finite")
+    if np.any(a[:, 0] != np.round(a[:, 0])):
+        raise DataError(f"{path}: column 'run_id' must hold integers")
+    has_est = bool(np.all(np.isfinite(a[:, 3:5])))
+    return Series(
+        t=a[:, 1],
+        x=a[:, 2],
+        xd=a[:, 3] if has_est else None,
+        xdd=a[:, 4] if has_est else None,
+        current=a[:, 6],
+        force=a[:, 5],
+        name=path.stem,
+        run_id=a[:, 0].astype(int),
+    )
+
+
+def _runs_from_time(t: np.ndarray) -> np.ndarray:
+    """Run ids for a file without a run column: a new run wherever time does not increase."""
+    return np.concatenate([[0], np.cumsum(np.diff(t) <= 0.0)]).astype(int)
+
+
+def load_recording(path: str | Path) -> Series:
+    """A daemon recording (.rrd) as a Series: x_est, xd, xdd (the daemon's own Kalman
+    estimates, the inputs its controller saw), f_meas, i_cmd.
+
+    Samples in FAULT are dropped: there the command path is not trusted. In IDLE the daemon
+    sends SAFE 0 A and records i_cmd = 0, which is what the firmware applies, so those samples
+    stay (they are the 0 A part of the data). A new run id starts after every dropped stretch
+    or time gap over 5 sample periods, so lag filters restart there.
+    """
+    from mrrig.review import read_recording
+    from mrrig.samples import RigState
+
+    path = Path(path)
+    s = read_recording(path).samples
+    fields = ("t", "x_est", "xd", "xdd", "f_meas", "i_cmd")
+    keep = s["state"] != RigState.FAULT
+    for f in fields:
+        keep &= np.isfinite(s[f])
+    if keep.sum() < 2:
+        raise DataError(f"{path}: fewer than 2 usable samples (not FAULT, all fields finite)")
+    idx = np.flatnonzero(keep)
+    t = s["t"][idx]
+    dt = np.diff(t)
+    period = float(np.median(dt))
+    new_run = (np.diff(idx) > 1) | (dt > 5.0 * period) | (dt <= 0.0)
+    return Series(
+        t=t,
+        x=s["x_est"][idx],
+        xd=s["xd"][idx],
+        xdd=s["xdd"][idx],
+        current=s["i_cmd"][idx],
+        force=s["f_meas"][idx],
+        name=path.stem,
+        run_id=np.concatenate([[0], np.cumsum(new_run)]).astype(int),
+    )
+
+
+def estimate_derivatives(series: Series, warmup_s: float = KALMAN_WARMUP_S) -> Series:
+    """Fill xd/xdd with the Kalman filter (the daemon's, paper eqs 17-29) run over each run at
+    its median sample period, and drop the first `warmup_s` of each run (the filter's start-up
+    transient). x becomes the filtered displacement, as the daemon's controller sees it."""
+    run_id = series.run_id if series.run_id is not None else _runs_from_time(series.t)
+    x, xd, xdd = (np.empty(len(series)) for _ in range(3))
+    keep = np.zeros(len(series), dtype=bool)
+    for r in np.unique(run_id):
+        rows = np.flatnonzero(run_id == r)
+        t = series.t[rows]
+        if rows.size < 2 or np.any(np.diff(t) <= 0.0):
+            raise DataError(f"{series.name}: run {r}: time must increase (and >= 2 samples)")
+        dt_s = float(np.median(np.diff(t)))
+        x[rows], xd[rows], xdd[rows] = KalmanEstimator(dt_s).estimate(series.x[rows])
+        keep[rows] = t - t[0] > warmup_s - 0.5 * dt_s  # round(warmup_s / dt_s) samples dropped
+    out = replace(series, x=x, xd=xd, xdd=xdd, run_id=run_id, x_meas=None, force_meas=None)
+    return _select(out, keep)
+
+
+def _select(s: Series, rows: np.ndarray) -> Series:
+    """The Series restricted to rows (a boolean mask or indices)."""
+    pick = {
+        f: (None if getattr(s, f) is None else getattr(s, f)[rows])
+        for f in ("t", "x", "xd", "xdd", "current", "force", "run_id", "x_meas", "force_meas")
+    }
+    return Series(name=s.name, **pick)
+
+
+def concatenate(parts: Sequence[Series], name: str = "") -> Series:
+    """One Series from several, run ids renumbered so that every part's runs stay distinct."""
+    runs, offset = [], 0
+    for p in parts:
+        rid = p.run_id if p.run_id is not None else _runs_from_time(p.t)
+        _, dense = np.unique(rid, return_inverse=True)
+        runs.append(dense + offset)
+        offset += int(dense.max()) + 1
+    cat = lambda f: np.concatenate([getattr(p, f) for p in parts])  # noqa: E731
+    return Series(
+        t=cat("t"),
+        x=cat("x"),
+        xd=cat("xd"),
+        xdd=cat("xdd"),
+        current=cat("current"),
+        force=cat("force"),
+        name=name,
+        run_id=np.concatenate(runs),
+    )
+
+
+def load_training_data(
+    paths: Sequence[str | Path],
+    columns: dict[str, str] | None = None,
+    units: dict[str, str] | None = None,
+) -> Series:
+    """Load and concatenate training files into one Series with xd/xdd present.
+
+    By file: `.rrd` -> `load_recording`; a CSV with the tidy header -> `load_tidy`; any other
+    CSV -> `datasets.load_csv` with `columns`/`units` (a new run wherever time does not
+    increase). Files without velocity/acceleration get them from `estimate_derivatives`.
+    Errors are one-line `DataError`s naming the file.
+    """
+    if not paths:
+        raise DataError("no training data files given")
+    parts = []
+    for p in map(Path, paths):
+        if not p.is_file():
+            raise DataError(f"{p}: no such file")
+        if p.suffix.lower() == ".rrd":
+            s = load_recording(p)
+        elif _is_tidy(p):
+            s = load_tidy(p)
+        elif columns is None:
+            raise DataError(f"{p}: not a tidy characterization CSV: give a column map (--columns)")
+        else:
+            s = load_csv(p, columns, units)
+            s = replace(s, run_id=_runs_from_time(s.t))
+        if s.xd is None or s.xdd is None:
+            s = estimate_derivatives(s)
+            if len(s) == 0:
+                raise DataError(f"{p}: no samples left after the Kalman warm-up")
+        log.info("%s: %d samples, %d runs", p, len(s), np.unique(s.run_id).size)
+        parts.append(s)
+    return concatenate(parts, name="+".join(s.name for s in parts))
+
+
+# ---------------------------------------------------------------------------------- features
+def lagged_current(
+    current: np.ndarray, t_s: np.ndarray, run_id: np.ndarray, tau_s: float = COIL_LAG_TAU_S
+) -> np.ndarray:
+    """The coil driver's first-order lag of the command, u' = (v - u) / tau (paper eq. 36 with
+    eta = 1/tau), discretised exactly for a command held over each sample period (ZOH), at each
+    run's median period; u starts at the run's first command."""
+    if not tau_s > 0.0:
+        raise ValueError(f"lag_tau_s must be positive, got {tau_s}")
+    u = np.empty_like(current, dtype=float)
+    for r in np.unique(run_id):
+        rows = np.flatnonzero(run_id == r)
+        v = current[rows]
+        dt = float(np.median(np.diff(t_s[rows]))) if rows.size > 1 else tau_s
+        a = -math.expm1(-dt / tau_s)
+        # u[k] = (1 - a) u[k-1] + a v[k-1], from u[0] = v[0]
+        u[rows] = v[0] + signal.lfilter([0.0, a], [1.0, a - 1.0], v - v[0])
+    return u
+
+
+def features(
+    series: Series, current_input: str = "commanded", lag_tau_s: float = COIL_LAG_TAU_S
+) -> tuple[np.ndarray, np.ndarray]:
+    """Forward-network rows X = (x, xd, xdd, current) (`INPUT_NAMES`, `INPUT_UNITS`) and the
+    target y = force. With current_input="lagged" the current column is `lagged_current`."""
+    if current_input not in CURRENT_INPUTS:
+        raise ValueError(f"unknown current input {current_input!r} ({', '.join(CURRENT_INPUTS)})")
+    if series.xd is None or series.xdd is None:
+        raise ValueError(f"{series.name}: no velocity/acceleration: use estimate_derivatives")
+    current = series.current
+    if current_input == "lagged":
+        run_id = series.run_id if series.run_id is not None else _runs_from_time(series.t)
+        current = lagged_current(series.current, series.t, run_id, lag_tau_s)
+    return np.column_stack([series.x, series.xd, series.xdd, current]), series.force.copy()
+
+
+def series_fingerprint(series: Series) -> str:
+    """sha256 of the whole training data set (independent of the split and the options)."""
+    run_id = series.run_id if series.run_id is not None else np.zeros(len(series))
+    return data_fingerprint(
+        run_id, series.t, series.x, series.xd, series.xdd, series.current, series.force
+    )
+
+
+# ---------------------------------------------------------------------------------- training
+@dataclass(frozen=True)
+class Split:
+    train: np.ndarray  # row indices, sorted
+    val: np.ndarray
+    rule: str  # how the sizes were chosen, for the report
+
+
+def split_samples(n: int, n_train: int = PAPER_N_TRAIN, n_val: int = PAPER_N_VAL,
+                  seed: int = 0) -> Split:
+    """A random disjoint split: n_train / n_val out of n (the rest unused), or 90/10 of all n
+    when n < n_train + n_val. The same (n, sizes, seed) always gives the same split."""
+    if n_train < 1 or n_val < 1:
+        raise ValueError(f"split sizes must be positive, got {n_train} / {n_val}")
+    if n < n_train + n_val:
+        rule = f"90/10 of all {n} samples (fewer than {n_train} + {n_val})"
+        n_val = max(1, round(SMALL_DATA_VAL_FRACTION * n))
+        n_train = n - n_val
+        if n_train < 1:
+            raise DataError(f"only {n} samples: too few to train")
+    else:
+        rule = f"random {n_train} / {n_val} of {n} samples (the paper's split)"
+    perm = np.random.default_rng(seed).permutation(n)
+    return Split(np.sort(perm[:n_train]), np.sort(perm[n_train : n_train + n_val]), rule)
+
+
+def train_forward(
+    series: Series,
+    n_train: int = PAPER_N_TRAIN,
+    n_val: int = PAPER_N_VAL,
+    seed: int = 0,
+    progress: ProgressFn | None = None,
+    current_input: str = "commanded",
+    lag_tau_s: float = COIL_LAG_TAU_S,
+    max_epochs: int = 1000,
+) -> tuple[MLP, dict[str, Any]]:
+    """The 4-30-1 forward network by Levenberg-Marquardt on the random split, early-stopped on
+    the validation part. The model's meta records the options, the split and the data's
+    fingerprint; the returned report has the training numbers and the split's rule."""
+    X, y = features(series, current_input, lag_tau_s)
+    split = split_samples(len(y), n_train, n_val, seed)
+    model, tr = train_lm(
+        X[split.train],
+        y[split.train],
+        INPUT_NAMES,
+        INPUT_UNITS,
+        "force",
+        "N",
+        validation=(X[split.val], y[split.val]),
+        max_epochs=max_epochs,
+        seed=seed,
+        progress=progress,
+        description=series.name,
+    )
+    model.meta.update(
+        current_input=current_input,
+        lag_tau_s=lag_tau_s if current_input == "lagged" else None,
+        split_rule=split.rule,
+        split_seed=seed,
+        n_samples=len(y),
+        n_runs=int(np.unique(series.run_id).size) if series.run_id is not None else 1,
+        data_fingerprint=series_fingerprint(series),
+        current_range_a=[float(X[:, 3].min()), float(X[:, 3].max())],
+    )
+    report = {
+        "split": {"rule": split.rule, "n_train": tr.n_train, "n_val": tr.n_val, "seed": seed},
+        "epochs": tr.epochs,
+        "best_epoch": tr.best_epoch,
+        "stop_reason": tr.stop_reason,
+        "seconds": tr.seconds,
+        "train_mse_n2": tr.train_mse,
+        "val_mse_n2": tr.val_mse,
+    }
+    return model, report
+
+
+def train_supervised(
+    series: Series,
+    split: Split,
+    seed: int = 0,
+    progress: ProgressFn | None = None,
+    current_input: str = "commanded",
+    lag_tau_s: float = COIL_LAG_TAU_S,
+    max_epochs: int = 1000,
+) -> tuple[MLP, dict[str, Any]]:
+    """The supervised inverse MLP (x, xd, xdd, f) -> current (paper Fig. 10), same split."""
+    X, y = features(series, current_input, lag_tau_s)
+    Xs = np.column_stack([X[:, :3], y])
+    model, tr = train_lm(
+        Xs[split.train],
+        X[split.train, 3],
+        SUPERVISED_INPUT_NAMES,
+        SUPERVISED_INPUT_UNITS,
+        "current",
+        "A",
+        validation=(Xs[split.val], X[split.val, 3]),
+        max_epochs=max_epochs,
+        seed=seed,
+        progress=progress,
+        description=series.name,
+    )
+    model.meta.update(current_input=current_input, data_fingerprint=series_fingerprint(series))
+    return model, {"epochs": tr.epochs, "stop_reason": tr.stop_reason, "seconds": tr.seconds}
+
+
+# ---------------------------------------------------------------------------------- validation
+def _tracking(errors_n: np.ndarray) -> dict[str, float]:
+    p = percentiles(np.abs(errors_n), TRACKING_QUANTILES)
+    p["rms"] = float(np.sqrt(np.mean(errors_n**2)))
+    return p
+
+
+def _inverse_metrics(
+    model: MLP,
+    X_val: np.ndarray,
+    f_des: np.ndarray,
+    current_a: np.ndarray,
+    i_max: float,
+    plant_force: Callable[[np.ndarray], np.ndarray] | None,
+) -> dict[str, Any]:
+    Xi = X_val.copy()
+    Xi[:, 3] = current_a
+    out: dict[str, Any] = {
+        "current_rmse_a": rmse(current_a, X_val[:, 3]),
+        "at_bound_fraction": float(np.mean((current_a <= 0.0) | (current_a >= i_max))),
+        "tracking_model_n": _tracking(model.predict(Xi) - f_des),
+        "tracking_plant_n": None,
+    }
+    if plant_force is not None:
+        out["tracking_plant_n"] = _tracking(plant_force(current_a) - f_des)
+    return out
+
+
+TRACKING_DEFINITIONS = {
+    "desired force": "the measured force of each validation sample",
+    "tracking_model_n": "|forward-model force at the inverted current - desired force|: "
+    "zero for an exact inversion unless the force is out of reach",
+    "tracking_plant_n": "|plant force, damper run in steady state at the inverted current "
+    "in the sample's own motion - desired force|: only where the plant is known (simulator)",
+}
+
+
+def validation_report(
+    model: MLP,
+    X_val: np.ndarray,
+    y_val: np.ndarray,
+    i_max: float,
+    supervised: MLP | None = None,
+    plant_force: Callable[[np.ndarray], np.ndarray] | None = None,
+) -> dict[str, Any]:
+    """Forward Et, and for network inversion (and the supervised inverse, if given): the
+    inverse-current RMSE (A) against the current that produced each sample's force, and the
+    tracking error percentiles (N) as `TRACKING_DEFINITIONS` states.
+
+    Each validation sample is inverted alone for its measured force by the exact scalar solve
+    over [0, i_max]; offline there is no previous command, so i_prev = 0 (as at the start of a
+    run) picks the smallest current where several give the force. `plant_force(current_a)`
+    gives the plant's force at the validation samples for the given currents.
+    """
+    X_val = np.asarray(X_val, dtype=float)
+    y_val = np.asarray(y_val, dtype=float)
+    f_fwd = model.predict(X_val)
+    report: dict[str, Any] = {
+        "n_val": int(y_val.size),
+        "i_max_a": float(i_max),
+        "forward": {"et": error_norm(y_val, f_fwd), "rmse_n": rmse(y_val, f_fwd)},
+        "definitions": TRACKING_DEFINITIONS,
+    }
+    features_val = np.delete(X_val, model.current_index, axis=1)
+    i_ni = exact_inversion(model, features_val, y_val, 0.0, i_max=i_max)
+    report["network_inversion"] = _inverse_metrics(model, X_val, y_val, i_ni, i_max, plant_force)
+    if supervised is not None:
+        Xs = np.column_stack([X_val[:, :3], y_val])
+        i_sup = np.clip(supervised.predict(Xs), 0.0, i_max)
+        report["supervised"] = _inverse_metrics(model, X_val, y_val, i_sup, i_max, plant_force)
+    return report
+
+
+def train_and_validate(
+    series: Series,
+    n_train: int = PAPER_N_TRAIN,
+    n_val: int = PAPER_N_VAL,
+    seed: int = 0,
+    progress: ProgressFn | None = None,
+    current_input: str = "commanded",
+    lag_tau_s: float = COIL_LAG_TAU_S,
+    max_epochs: int = 1000,
+    i_max: float | None = None,
+    supervised: bool = True,
+    plant_force: PlantForceFn | None = None,
+) -> tuple[MLP, MLP | None, dict[str, Any]]:
+    """Forward network, supervised inverse (optional) and the validation report, one split.
+
+    i_max (the inversion's bracket) defaults to the largest current in the data: beyond it the
+    network is extrapolating. The report's numbers are also stored in the model's metrics.
+    """
+    fwd, report = train_forward(
+        series, n_train, n_val, seed, progress, current_input, lag_tau_s, max_epochs
+    )
+    X, y = features(series, current_input, lag_tau_s)
+    split = split_samples(len(y), n_train, n_val, seed)
+    i_max = float(X[:, 3].max()) if i_max is None else float(i_max)
+    if not i_max > 0.0:
+        raise DataError(f"{series.name}: all currents are 0 A: nothing to invert")
+    sup = None
+    if supervised:
+        sup, report["supervised_training"] = train_supervised(
+            series, split, seed, progress, current_input, lag_tau_s, max_epochs
+        )
+    rows_plant = None
+    if plant_force is not None:
+        rows_plant = lambda i: plant_force(split.val, i)  # noqa: E731
+    val = validation_report(fwd, X[split.val], y[split.val], i_max, sup, rows_plant)
+    report.update(val)
+    report["current_input"] = current_input
+    report["lag_tau_s"] = lag_tau_s if current_input == "lagged" else None
+    fwd.metrics.update(
+        val_et=val["forward"]["et"],
+        inverse_current_rmse_a=val["network_inversion"]["current_rmse_a"],
+        tracking_model_p95_n=val["network_inversion"]["tracking_model_n"]["p95"],
+    )
+    fwd.meta["i_max_a"] = i_max
+    return fwd, sup, report

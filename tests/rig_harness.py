@@ -1,0 +1,133 @@
+"""A scripted rig for in-process daemon tests: frames built with the DBC packer on a virtual bus.
+
+The test plays the firmware frame by frame (exact control over counters, CRCs, flags and
+timing) while the real `Daemon` runs its loop in a thread on the same python-can `virtual`
+channel.
+"""
+
+from __future__ import annotations
+
+import itertools
+import threading
+import time
+from pathlib import Path
+
+import can
+
+from mrrig.canbus.codec import Codec
+from mrrig.config import load_config
+from mrrig.daemon import Daemon
+
+_channels = itertools.count()
+
+
+def write_config(tmp_path: Path, channel: str, timeout_periods: int) -> Path:
+    path = tmp_path / "rig.toml"
+    path.write_text(
+        f"""
+[rig]
+name = "test"
+[bus]
+interface = "virtual"
+channel = "{channel}"
+[loop]
+realtime = false
+arm_on_start = true
+timeout_periods = {timeout_periods}
+[controller]
+name = "constant"
+current_a = 1.25
+[reference]
+kind = "constant"
+offset_n = 300.0
+[telemetry]
+enabled = false
+[recording]
+enabled = false
+"""
+    )
+    return path
+
+
+class ScriptedRig:
+    """The firmware's side of the bus, driven by the test."""
+
+    def __init__(self, tmp_path: Path, timeout_periods: int = 50):
+        # a generous sensor timeout by default: the test thread plays the firmware and can be
+        # slower than 2 ms per frame on a loaded machine; the timeout test sets the real one
+        self.channel = f"rig-harness-{next(_channels)}"
+        cfg_path = write_config(tmp_path, self.channel, timeout_periods)
+        self.cfg = load_config(cfg_path)
+        self.codec = Codec()
+        self.packer = self.codec.packer("RIG")
+        self.parser = self.codec.parser()
+        self.bus = can.Bus(interface="virtual", channel=self.channel, receive_own_messages=False)
+        self.daemon = Daemon(self.cfg)
+        self.thread = threading.Thread(target=self.daemon.run, daemon=True)
+        self.counter = 0
+
+    def __enter__(self) -> ScriptedRig:
+        self.thread.start()
+        time.sleep(0.2)  # the daemon opens its bus and sends its first ActuatorCommand
+        self.drain()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.daemon.request_stop("test done")
+        self.thread.join(timeout=5)
+        self.bus.shutdown()
+        assert not self.thread.is_alive(), "daemon did not stop"
+
+    def drain(self) -> None:
+        while self.bus.recv(timeout=0) is not None:
+            pass
+
+    def sensors(self, x=0.001, force=250.0, counter=None, crc_ok=True, **flags) -> int:
+        """Send one RigSensors frame; returns the counter it carried."""
+        values = {
+            "ActuatorEnabled": 1,
+            "LimitTripped": flags.get("LimitTripped", 0),
+            "EStop": flags.get("EStop", 0),
+            "SensorFault": flags.get("SensorFault", 0),
+            "Displacement": x,
+            "Force": force,
+        }
+        c = self.counter if counter is None else counter
+        data = bytearray(self.packer.encode("RigSensors", values, counter=c))
+        if not crc_ok:
+            data[0] ^= 0xFF
+        if counter is None:
+            self.counter = (self.counter + 1) & 0xF
+        self.bus.send(can.Message(arbitration_id=0x110, is_extended_id=False, data=bytes(data)))
+        return c
+
+    def status(self, state="RUNNING", fault_code=0, timeouts=0) -> None:
+        values = {
+            "State": state,
+            "CoilCurrent": 0.5,
+            "DamperTemperature": 25.0,
+            "FaultCode": fault_code,
+            "CommandTimeouts": timeouts,
+        }
+        self.bus.send(self.packer.message("RigStatus", values))
+
+    def command(self, timeout=0.5) -> dict | None:
+        """The next DamperCommand (decoded), skipping ActuatorCommands; None on timeout."""
+        end = time.monotonic() + timeout
+        while (left := end - time.monotonic()) > 0:
+            msg = self.bus.recv(timeout=left)
+            if msg is None:
+                return None
+            if msg.arbitration_id == 0x210:
+                p = self.parser.parse(msg.arbitration_id, msg.data, time.monotonic())
+                assert p.ok, p.reason
+                return p.values
+        return None
+
+    def exchange(self, **kw) -> dict:
+        """One sensor frame and the command that answers it."""
+        c = self.sensors(**kw)
+        cmd = self.command()
+        assert cmd is not None, f"no command for sensor frame {c}"
+        assert cmd["SensorCounterEcho"] == c
+        return cmd

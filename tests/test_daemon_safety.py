@@ -1,0 +1,214 @@
+"""The daemon's safety rules (spec/system.md, Safety), one test per fault.
+
+Each test drives the real daemon loop through a scripted rig on a virtual bus: the daemon must
+go to FAULT within one frame, send SAFE 0 A next, and record the fault as an event with a reason.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+
+import numpy as np
+import pytest
+
+from mrrig.safety import Fault
+from mrrig.samples import RigState
+from tests.rig_harness import ScriptedRig
+
+SAFE = 0
+ACTIVE = 1
+
+
+def assert_safe(cmd: dict) -> None:
+    assert cmd["Mode"] == SAFE
+    assert cmd["CurrentSetpoint"] == 0.0
+    assert cmd["ControllerId"] == 0
+
+
+def assert_fault(rig: ScriptedRig, fault: Fault) -> dict:
+    assert rig.daemon.supervisor.state is RigState.FAULT
+    events = [e for e in rig.daemon.events if e["kind"] == "fault"]
+    assert events, "no fault event"
+    assert events[-1]["fault"] == fault.value
+    assert events[-1]["reason"]
+    return events[-1]
+
+
+def test_every_valid_frame_gets_one_active_command_echoing_its_counter(tmp_path):
+    with ScriptedRig(tmp_path) as rig:
+        for _ in range(40):
+            cmd = rig.exchange()
+            assert cmd["Mode"] == ACTIVE
+            assert cmd["CurrentSetpoint"] == pytest.approx(1.25, abs=1e-4)
+            assert cmd["ControllerId"] == 6
+            assert cmd["DesiredForce"] == pytest.approx(300.0, abs=0.01)
+        assert rig.command(timeout=0.05) is None  # no extra command
+
+
+def test_frames_failing_crc_get_no_command_and_beyond_budget_fault(tmp_path):
+    with ScriptedRig(tmp_path) as rig:
+        rig.exchange()
+        budget = rig.cfg.loop.bad_frame_budget
+        for k in range(budget + 1):
+            rig.sensors(crc_ok=False)
+            assert rig.command(timeout=0.01) is None, "a command answered a bad frame"
+            if k < budget:
+                assert rig.daemon.supervisor.state is RigState.ARMED
+        ev = assert_fault(rig, Fault.BAD_FRAMES)
+        assert "CRC" in ev["reason"]
+        assert_safe(rig.exchange())
+
+
+def test_repeated_counter_beyond_budget_faults(tmp_path):
+    with ScriptedRig(tmp_path) as rig:
+        c = rig.sensors()
+        rig.command()
+        for _ in range(rig.cfg.loop.bad_frame_budget + 1):
+            rig.sensors(counter=c)
+            assert rig.command(timeout=0.01) is None
+        ev = assert_fault(rig, Fault.BAD_FRAMES)
+        assert "repeated counter" in ev["reason"]
+        assert_safe(rig.exchange())
+
+
+def test_lost_frames_beyond_budget_fault(tmp_path):
+    with ScriptedRig(tmp_path) as rig:
+        rig.exchange()
+        rig.counter = (rig.counter + rig.cfg.loop.lost_frame_budget + 1) & 0xF  # a jump
+        cmd = rig.exchange()
+        assert_fault(rig, Fault.LOST_FRAMES)
+        assert_safe(cmd)
+
+
+def test_no_sensor_frame_for_three_periods_faults_and_sends_safe_on_its_own(tmp_path):
+    with ScriptedRig(tmp_path, timeout_periods=3) as rig:
+        c = rig.sensors()
+        assert rig.command()["Mode"] == ACTIVE
+        t0 = time.monotonic()
+        cmd = rig.command(timeout=0.5)  # nothing sent: the daemon must speak by itself
+        waited = time.monotonic() - t0
+        assert cmd is not None, "no SAFE command after the sensor timeout"
+        assert_safe(cmd)
+        assert cmd["SensorCounterEcho"] == c
+        assert waited < 0.1
+        assert_fault(rig, Fault.SENSOR_TIMEOUT)
+
+
+@pytest.mark.parametrize(
+    ("kw", "fault"),
+    [
+        ({"x": 0.050}, Fault.DISPLACEMENT_RANGE),
+        ({"x": -0.050}, Fault.DISPLACEMENT_RANGE),
+        ({"force": 7000.0}, Fault.FORCE_RANGE),
+        ({"force": -7000.0}, Fault.FORCE_RANGE),
+        ({"EStop": 1}, Fault.ESTOP),
+        ({"LimitTripped": 1}, Fault.LIMIT_TRIPPED),
+        ({"SensorFault": 1}, Fault.SENSOR_FAULT),
+    ],
+)
+def test_sensor_frame_out_of_range_or_flagged_faults_within_the_frame(tmp_path, kw, fault):
+    with ScriptedRig(tmp_path) as rig:
+        assert rig.exchange()["Mode"] == ACTIVE
+        assert_safe(rig.exchange(**kw))  # the offending frame itself is answered SAFE
+        assert_fault(rig, fault)
+        assert_safe(rig.exchange())  # and it stays SAFE until re-armed
+
+
+def test_range_boundaries_are_inside(tmp_path):
+    with ScriptedRig(tmp_path) as rig:
+        lo, hi = rig.cfg.loop.x_range_m
+        for x in (lo, hi):
+            assert rig.exchange(x=x)["Mode"] == ACTIVE
+        flo, fhi = rig.cfg.loop.f_range_n
+        for f in (flo, fhi):
+            assert rig.exchange(force=f)["Mode"] == ACTIVE
+
+
+def test_firmware_fault_status_faults_and_blocks_arming(tmp_path):
+    with ScriptedRig(tmp_path) as rig:
+        rig.status()
+        assert rig.exchange()["Mode"] == ACTIVE
+        rig.status(state="FAULT", fault_code=3)
+        time.sleep(0.05)
+        assert_safe(rig.exchange())
+        ev = assert_fault(rig, Fault.FIRMWARE_FAULT)
+        assert "STROKE_LIMIT" in ev["reason"]
+        ok, msg, _ = rig.daemon.supervisor.arm(0.0)
+        assert not ok and "firmware" in msg
+
+
+def test_firmware_watchdog_trip_faults_an_armed_daemon(tmp_path):
+    with ScriptedRig(tmp_path) as rig:
+        rig.status(timeouts=0)
+        rig.exchange()
+        rig.status(state="FAULT", fault_code=1, timeouts=1)
+        time.sleep(0.05)
+        assert_safe(rig.exchange())
+        assert "watchdog" in assert_fault(rig, Fault.FIRMWARE_FAULT)["reason"]
+
+
+class _NaNController:
+    """A controller that fails numerically (stands for a broken model)."""
+
+    name = "nan"
+    controller_id = 1
+
+    def reset(self, batch=1):
+        pass
+
+    def command(self, s):
+        return np.array([math.nan])
+
+    def model_force(self, s, current):
+        return np.array([math.nan])
+
+
+def test_non_finite_controller_output_faults_within_the_frame(tmp_path):
+    with ScriptedRig(tmp_path) as rig:
+        assert rig.exchange()["Mode"] == ACTIVE
+        rig.daemon.controller = _NaNController()
+        assert_safe(rig.exchange())
+        assert_fault(rig, Fault.NON_FINITE)
+
+
+def test_stale_external_force_reference_faults(tmp_path):
+    with ScriptedRig(tmp_path) as rig:
+        from mrrig import reference as ref
+
+        rig.daemon.reference = ref.External(timeout_s=0.05)
+        rig.daemon.on_force_ref(400.0, time.monotonic())
+        cmd = rig.exchange()
+        assert cmd["Mode"] == ACTIVE and cmd["DesiredForce"] == pytest.approx(400.0)
+        time.sleep(0.08)
+        assert_safe(rig.exchange())
+        assert "stale" in assert_fault(rig, Fault.STALE_REFERENCE)["reason"]
+
+
+def test_bus_error_faults_and_stops_the_loop(tmp_path):
+    with ScriptedRig(tmp_path) as rig:
+        rig.exchange()
+        rig.daemon.bus.shutdown()  # the bus goes away under the daemon
+        rig.thread.join(timeout=2)
+        assert not rig.thread.is_alive()
+        assert_fault(rig, Fault.BUS_ERROR)
+
+
+def test_commands_are_clamped_to_i_max(tmp_path):
+    with ScriptedRig(tmp_path) as rig:
+        from mrrig.controllers import ConstantCurrent
+
+        rig.daemon.controller = ConstantCurrent(10.0, 9.0)  # a controller that asks too much
+        cmd = rig.exchange()
+        assert cmd["CurrentSetpoint"] == pytest.approx(rig.cfg.loop.i_max_a)
+
+
+def test_rearm_after_fault_is_explicit(tmp_path):
+    with ScriptedRig(tmp_path) as rig:
+        rig.exchange(EStop=1)
+        assert_safe(rig.exchange())
+        assert_safe(rig.exchange())
+        from mrrig.control import handle
+
+        assert handle(rig.daemon, {"cmd": "arm"})["ok"]
+        assert rig.exchange()["Mode"] == ACTIVE

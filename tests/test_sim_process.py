@@ -1,0 +1,183 @@
+"""firmware_sim as a real process on the python-can-remote bridge; the test is the daemon.
+
+Rates are checked by ratios of frame counts and loose wall-clock bounds only (noisy 2-core VM);
+the simulator's own jitter and CPU numbers are printed, not asserted.
+"""
+
+from __future__ import annotations
+
+import json
+import signal
+import subprocess
+import sys
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+
+from mrrig.canbus import Codec, find_free_port, open_bus, start_bridge, stop_bridge
+
+REPO = Path(__file__).resolve().parents[1]
+CODEC = Codec()
+SENSORS_ID = CODEC.layout("RigSensors").frame_id
+STATUS_ID = CODEC.layout("RigStatus").frame_id
+START_TIMEOUT_S = 10.0
+
+
+@pytest.fixture
+def bridge() -> Iterator[tuple[str, subprocess.Popen[bytes]]]:
+    port = find_free_port()
+    proc = start_bridge(port)
+    try:
+        yield f"ws://127.0.0.1:{port}/", proc
+    finally:
+        stop_bridge(proc)
+
+
+def start_sim(url: str, tmp_path: Path, *extra: str) -> subprocess.Popen[bytes]:
+    cmd = [sys.executable, "-m", "firmware_sim", "--config", "configs/sim.toml",
+           "--bus-channel", url, "--stats", str(tmp_path / "stats.json"), *extra]
+    return subprocess.Popen(cmd, cwd=REPO, stdout=subprocess.DEVNULL,
+                            stderr=(tmp_path / "sim.log").open("wb"))
+
+
+def wait_first_sensor_frame(bus, proc: subprocess.Popen[bytes]) -> None:
+    deadline = time.monotonic() + START_TIMEOUT_S
+    while time.monotonic() < deadline:
+        assert proc.poll() is None, "simulator exited during start-up"
+        msg = bus.recv(0.1)
+        if msg is not None and msg.arbitration_id == SENSORS_ID:
+            return
+    pytest.fail("no RigSensors frame from the simulator")
+
+
+def stop_sim(proc: subprocess.Popen[bytes]) -> int:
+    proc.send_signal(signal.SIGTERM)
+    try:
+        return proc.wait(5.0)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        proc.wait()
+        raise
+
+
+def test_sim_streams_sensors_at_500_hz_answers_are_matched_watchdog_trips_and_sigterm_exits_0(
+    bridge, tmp_path
+):
+    url, _ = bridge
+    proc = start_sim(url, tmp_path)
+    bus = open_bus("remote", url)
+    try:
+        wait_first_sensor_frame(bus, proc)
+        parser = CODEC.parser()
+        packer = CODEC.packer("DAEMON")
+        sensor_counters: list[int] = []
+        statuses: list[dict[str, float]] = []
+        commands_sent = 0
+        t_start = time.monotonic()
+        while time.monotonic() - t_start < 3.0:
+            msg = bus.recv(0.1)
+            if msg is None:
+                continue
+            parsed = parser.parse_message(msg)
+            assert parsed.ok, parsed.reason
+            if msg.arbitration_id == SENSORS_ID:
+                sensor_counters.append(parsed.counter)
+                bus.send(packer.message("DamperCommand", {
+                    "Mode": "ACTIVE", "CurrentSetpoint": 1.0,
+                    "SensorCounterEcho": parsed.counter, "ControllerId": 1,
+                    "DesiredForce": 500.0,
+                }), timeout=0.01)
+                commands_sent += 1
+            elif msg.arbitration_id == STATUS_ID:
+                statuses.append(parsed.values)
+        elapsed_s = time.monotonic() - t_start
+        last_command_s = time.monotonic()
+
+        steps = {(b - a) % 16 for a, b in zip(sensor_counters, sensor_counters[1:], strict=False)}
+        assert steps == {1}, "RigSensors counters not consecutive"
+        rate_hz = len(sensor_counters) / elapsed_s
+        assert 400.0 < rate_hz < 600.0
+        assert 50 * len(statuses) == pytest.approx(len(sensor_counters), abs=100)
+        assert any(s["State"] == 2 and s["FaultCode"] == 0 for s in statuses)  # RUNNING
+        # a stall of the VM may already have tripped the watchdog while we answered
+        timeouts_before = statuses[-1]["CommandTimeouts"]
+
+        # stop answering: the watchdog must show in RigStatus within 20 ms + a status period
+        tripped_after_s = None
+        while time.monotonic() - last_command_s < 1.0:
+            msg = bus.recv(0.1)
+            if msg is None or msg.arbitration_id != STATUS_ID:
+                continue
+            values = parser.parse_message(msg).values
+            if values["State"] == 3 and values["CommandTimeouts"] > timeouts_before:
+                tripped_after_s = time.monotonic() - last_command_s
+                assert values["FaultCode"] == 1
+                timeouts_after = values["CommandTimeouts"]
+                assert values["CoilCurrent"] < 0.5  # decaying to 0 A (coil lag ~5 ms)
+                break
+        print(f"\nsensor rate {rate_hz:.1f} Hz; watchdog seen in RigStatus after "
+              f"{tripped_after_s} s")
+        # 20 ms watchdog + one status period + slack for the bridge on a busy VM
+        assert tripped_after_s is not None and tripped_after_s < 0.020 + 0.100 + 0.150
+    finally:
+        bus.shutdown()
+        rc = stop_sim(proc)
+    assert rc == 0
+    stats = json.loads((tmp_path / "stats.json").read_text())
+    print("simulator stats:", json.dumps({k: stats[k] for k in (
+        "answers", "answer_latency_us", "period_jitter_us", "cpu_fraction")}))
+    assert stats["commands"]["damper_valid"] == commands_sent
+    assert stats["commands"]["bad_crc"] == stats["commands"]["repeated_counter"] == 0
+    answers = stats["answers"]
+    assert answers["answered_more_than_once"] == 0
+    # a command is 'answered once' only if it beat the next sensor frame (bridge latency)
+    assert answers["answered_once"] + answers["unmatched"] == commands_sent
+    assert answers["answered_once"] > 0.5 * commands_sent
+    assert stats["watchdog_trips"] == timeouts_after
+    assert stats["max_commanded_current_a"] == pytest.approx(1.0)
+
+
+def test_sim_applies_command_line_fault_and_stops_after_duration(bridge, tmp_path):
+    url, _ = bridge
+    proc = start_sim(url, tmp_path, "--duration", "3", "--fault", "estop@1.0:0.5")
+    bus = open_bus("remote", url)
+    parser = CODEC.parser()
+    estop_frames = 0
+    try:
+        wait_first_sensor_frame(bus, proc)
+        while proc.poll() is None:
+            msg = bus.recv(0.1)
+            if msg is not None and msg.arbitration_id == SENSORS_ID:
+                estop_frames += parser.parse_message(msg).values["EStop"]
+        assert proc.wait(5.0) == 0
+    finally:
+        bus.shutdown()
+        if proc.poll() is None:
+            stop_sim(proc)
+    assert estop_frames == pytest.approx(0.5 / 0.002, abs=5)
+    events = [e["event"] for e in json.loads((tmp_path / "stats.json").read_text())
+              ["fault_events"]]
+    assert "fault injection estop starts" in events and "fault injection estop ends" in events
+
+
+def test_sim_exits_non_zero_with_one_error_line_when_the_bridge_dies(bridge, tmp_path):
+    url, bridge_proc = bridge
+    proc = start_sim(url, tmp_path)
+    bus = open_bus("remote", url)
+    try:
+        wait_first_sensor_frame(bus, proc)
+    finally:
+        bus.shutdown()
+    stop_bridge(bridge_proc)
+    try:
+        rc = proc.wait(5.0)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    assert rc == 1
+    errors = [ln for ln in (tmp_path / "sim.log").read_text().splitlines() if " ERROR " in ln]
+    assert len(errors) == 1 and "CAN bus error" in errors[0]
+    assert (tmp_path / "stats.json").exists()
