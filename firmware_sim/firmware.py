@@ -18,6 +18,9 @@ Choices the contract leaves open, made here:
 - FaultCode shows the most important active condition: e-stop 5, stroke limit 3, watchdog 1,
   sensor fault 4, actuator timeout 1, bad command frames 6, setpoint over limit 2.
 - corrupt_crc, freeze_counter and drop_frames act on RigSensors; silent stops every frame.
+  During an e-stop or stroke-limit injection the actuator ramps to rest (ActuatorEnabled 0)
+  and ActuatorCommands are ignored; the next one after the injection ends moves it again.
+- Fault windows hold round(duration / period) ticks (at least one): tick times are ideal.
 """
 
 from __future__ import annotations
@@ -379,9 +382,9 @@ class Firmware:
             out["other_rejected"] += st.wrong_length + st.decode_errors
         return out
 
-    def _event(self, t_s: float, text: str) -> None:
+    def _event(self, t_s: float, text: str, level: int = logging.INFO) -> None:
         self.events.append((t_s, text))
-        logger.info("t=%.3f s: %s", t_s, text)
+        logger.log(level, "t=%.3f s: %s", t_s, text)
 
     # ---- one period -------------------------------------------------------------------------
 
@@ -406,7 +409,8 @@ class Firmware:
                 self._tripped = True
                 self.watchdog_trips += 1
                 self._event(t_s, f"watchdog: no valid DamperCommand for "
-                                 f"{(t_s - self._last_cmd_s) * 1e3:.1f} ms, coil to 0 A")
+                                 f"{(t_s - self._last_cmd_s) * 1e3:.1f} ms, coil to 0 A",
+                            logging.WARNING)
             self._n_active = self._n_safe = 0
         if (self._act_seen and not self._act_timed_out and self.actuator.moving
                 and t_s - self._last_act_s > ACTUATOR_TIMEOUT_S):

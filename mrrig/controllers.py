@@ -127,7 +127,7 @@ class NetworkInversion(Controller):
         seed: int = 0,
     ) -> None:
         super().__init__(i_max)
-        if model.current_index is None or len(model.input_names) != 4:
+        if model.current_index != 3 or len(model.input_names) != 4:
             raise ValueError(
                 f"network inversion needs a forward model with inputs (x, xd, xdd, current), "
                 f"got {model.input_names}"
@@ -141,15 +141,20 @@ class NetworkInversion(Controller):
         self.gradient_rate = gradient_rate
         self.gradient_iterations = gradient_iterations
         self._rng = np.random.default_rng(seed)
-        self._scalar = ScalarInverter(model, i_max) if method == "exact" else None
+        self._scalar = ScalarInverter(model, i_max)
 
     def reset(self, batch: int = 1) -> None:
         super().reset(batch)
         self._prev = np.zeros(batch)
         self._residual = np.zeros(batch)
+        self._first = True
 
     def _features(self, s: ControlInput, current: np.ndarray) -> np.ndarray:
         return np.stack([s.x, s.xd, s.xdd, current], axis=-1)
+
+    @staticmethod
+    def _state(s: ControlInput) -> np.ndarray:
+        return np.stack([s.x, s.xd, s.xdd], axis=-1)
 
     def model_force(self, s: ControlInput, current: np.ndarray) -> np.ndarray:
         return self.model.predict(self._features(s, np.asarray(current, dtype=float)))
@@ -162,24 +167,24 @@ class NetworkInversion(Controller):
             self._residual += a * (residual - self._residual)
             target = s.f_des - self._residual
         if self.method == "gradient":
+            # the paper's on-line inverse estimation: a random initial current, then each
+            # sample's descent starts from the previous sample's current
             i = gradient_inversion(
                 self.model,
-                self._features(s, self._prev),
+                self._state(s),
                 target,
+                i_max=self.i_max,
                 rate=self.gradient_rate,
                 iterations=self.gradient_iterations,
+                i0=None if self._first else self._prev,
                 rng=self._rng,
-                i_max=self.i_max,
             )
-        elif self.batch == 1 and self._scalar is not None:
-            i = np.array(
-                [self._scalar.solve((s.x[0], s.xd[0], s.xdd[0]), float(target[0]), self._prev[0])]
-            )
+        elif self.batch == 1:
+            i = np.array([self._scalar.solve(self._state(s)[0], float(target[0]), self._prev[0])])
         else:
-            i = exact_inversion(
-                self.model, self._features(s, self._prev), target, self._prev, self.i_max
-            )
+            i = exact_inversion(self.model, self._state(s), target, self._prev, i_max=self.i_max)
         self._prev = np.clip(i, 0.0, self.i_max)
+        self._first = False
         return self._prev.copy()
 
 

@@ -16,6 +16,8 @@ from pathlib import Path
 
 import pytest
 
+from firmware_sim.firmware import Frame
+from firmware_sim.runner import RunStats
 from mrrig.canbus import Codec, find_free_port, open_bus, start_bridge, stop_bridge
 
 REPO = Path(__file__).resolve().parents[1]
@@ -60,6 +62,25 @@ def stop_sim(proc: subprocess.Popen[bytes]) -> int:
         proc.kill()
         proc.wait()
         raise
+
+
+def test_run_stats_count_each_sensor_frame_answered_once_unanswered_or_more_than_once():
+    stats = RunStats()
+    frames = [Frame(SENSORS_ID, b"", c, True) for c in range(4)]
+    stats.on_sensor_sent(frames[0], 0.000, 0.0001)
+    stats.on_command(0, 0.0006)  # answered once, 500 us
+    stats.on_sensor_sent(frames[1], 0.002, 0.0021)  # unanswered
+    stats.on_command(0, 0.0030)  # too late: echoes a frame no longer awaiting an answer
+    stats.on_sensor_sent(frames[2], 0.004, 0.0041)
+    stats.on_command(2, 0.0045)
+    stats.on_command(2, 0.0046)  # answered twice
+    stats.on_sensor_sent(Frame(SENSORS_ID, b"", 3, False), 0.006, 0.0062)  # faulted frame
+    stats.on_command(3, 0.0065)
+    stats.on_sensor_sent(frames[3], 0.008, 0.0081)  # still pending at the end: not counted
+    assert (stats.answered_once, stats.unanswered, stats.answered_more_than_once) == (1, 1, 1)
+    assert stats.unmatched_answers == 2 and stats.sensor_frames_faulted == 1
+    assert list(stats.latency_us) == pytest.approx([500.0, 400.0])
+    assert list(stats.jitter_us) == pytest.approx([100.0, 100.0, 100.0, 200.0, 100.0])
 
 
 def test_sim_streams_sensors_at_500_hz_answers_are_matched_watchdog_trips_and_sigterm_exits_0(

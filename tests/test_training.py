@@ -44,7 +44,8 @@ def small_truth(small_b) -> Series:
 
 
 def _write_csv(path, header, cols):
-    rows = [",".join(header)] + [",".join(map(repr, r)) for r in zip(*(c.tolist() for c in cols), strict=True)]
+    values = zip(*(c.tolist() for c in cols), strict=True)
+    rows = [",".join(header)] + [",".join(map(repr, r)) for r in values]
     path.write_text("\n".join(rows) + "\n")
 
 
@@ -117,11 +118,17 @@ def test_validation_split_is_disjoint_and_falls_back_to_90_10_for_small_data():
     assert "90/10" in small.rule
 
 
-def test_small_matrix_report_has_every_number(small_truth):
-    cond = dataset_b_conditions(SMALL["amplitudes_m"], SMALL["freqs_hz"], SMALL["currents_a"])
-    plant = make_plant_force(small_truth, BoucWenParams.preset("rig-current"), cond)
-    fwd, sup, r = train_and_validate(small_truth, seed=0, max_epochs=EPOCHS, plant_force=plant)
-    assert r["split"]["n_train"] + r["split"]["n_val"] == len(small_truth)
+TINY = dict(amplitudes_m=(0.015,), freqs_hz=(2.0, 5.0), currents_a=(0.0, 0.6, 1.2))
+
+
+def test_small_matrix_report_has_every_number():
+    b = dataset_b(duration_s=0.3, **TINY)
+    s = Series(t=b.t, x=b.x, xd=b.xd, xdd=b.xdd, current=b.current, force=b.force_meas,
+               run_id=b.run_id)
+    cond = dataset_b_conditions(TINY["amplitudes_m"], TINY["freqs_hz"], TINY["currents_a"])
+    plant = make_plant_force(s, BoucWenParams.preset("rig-current"), cond)
+    fwd, sup, r = train_and_validate(s, seed=0, max_epochs=EPOCHS, plant_force=plant)
+    assert (r["split"]["n_train"], r["split"]["n_val"]) == (810, 90)  # 90/10 of 6 x 150
     assert r["i_max_a"] == 1.2
     numbers = [r["forward"]["et"], r["forward"]["rmse_n"]]
     for side in ("network_inversion", "supervised"):
@@ -136,7 +143,7 @@ def test_small_matrix_report_has_every_number(small_truth):
 def test_plant_force_at_the_data_currents_is_the_data_force(small_b):
     cond = dataset_b_conditions(SMALL["amplitudes_m"], SMALL["freqs_hz"], SMALL["currents_a"])
     plant = make_plant_force(small_b, BoucWenParams.preset("rig-current"), cond)
-    rows = np.arange(0, len(small_b), 37)
+    rows = np.arange(0, len(small_b), 97)
     np.testing.assert_allclose(plant(rows, small_b.current[rows]), small_b.force[rows], atol=1e-9)
 
 
@@ -177,3 +184,30 @@ def test_data_errors_are_one_line_and_name_the_file(tmp_path, capsys):
     assert mrrig_main(["train", str(missing), "--out", str(tmp_path / "m.json")]) == 2
     err = capsys.readouterr().err.strip()
     assert err.startswith("error: ") and "nope.rrd" in err and "\n" not in err
+
+
+def test_recording_gives_x_est_i_cmd_f_meas_without_fault_samples_and_splits_runs(tmp_path):
+    from mrrig.recording import Recorder
+    from mrrig.samples import SAMPLE_DTYPE, RigState
+
+    n = 300
+    s = np.zeros(n, dtype=SAMPLE_DTYPE)
+    s["t"] = np.arange(n) * 0.002
+    k = np.arange(n)
+    s["x"], s["x_est"], s["xd"], s["xdd"] = 1e-3 * k, 1e-3 * k + 1e-6, 0.5, -2.0
+    s["f_meas"], s["i_cmd"], s["i_meas"] = 10.0 + k, 0.01 * k, 0.3
+    s["state"] = RigState.ARMED
+    s["state"][:50] = RigState.IDLE
+    s["state"][200:220] = RigState.FAULT
+    path = tmp_path / "run.rrd"
+    with Recorder(path, "rig1") as rec:
+        rec.add_samples(s)
+    got = load_training_data([path])
+    keep = s["state"] != RigState.FAULT
+    assert len(got) == keep.sum()
+    np.testing.assert_array_equal(got.x, s["x_est"][keep])
+    np.testing.assert_array_equal(got.current, s["i_cmd"][keep])
+    np.testing.assert_array_equal(got.force, s["f_meas"][keep])
+    # IDLE and ARMED are one run; after the FAULT stretch a new run starts (lag filters restart)
+    np.testing.assert_array_equal(np.unique(got.run_id[: 200]), [0])
+    np.testing.assert_array_equal(np.unique(got.run_id[200:]), [1])

@@ -176,13 +176,14 @@ class MLP:
             if not _has_kind(value, kind):
                 raise ModelError(f"{path}: field '{name}': expected {kind}")
             kwargs[name] = value
-        rows = len(doc["W1"])
-        if doc.get("hidden", rows) != rows:
-            raise ModelError(f"{path}: field 'hidden': {doc['hidden']!r} but W1 has {rows} rows")
         try:
-            return cls(**kwargs)
+            model = cls(**kwargs)
         except ModelError as exc:
             raise ModelError(f"{path}: {str(exc).removeprefix('model: ')}") from None
+        if doc.get("hidden", model.hidden) != model.hidden:
+            raise ModelError(f"{path}: field 'hidden': {doc['hidden']!r} but W1 has "
+                             f"{model.hidden} rows")
+        return model
 
 
 _FIELDS: dict[str, str] = {

@@ -1,0 +1,172 @@
+"""Network inversion (paper eqs 2-14): eq. 14's gradient, the exact default, the scalar path."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from mrrig.inversion import (
+    ScalarInverter,
+    eq14_gradient,
+    exact_inversion,
+    gradient_inversion,
+)
+from mrrig.model.mlp import MLP
+from mrrig.model.train import MLPModule
+
+NAMES = ["x", "xd", "xdd", "current"]
+UNITS = ["m", "m/s", "m/s^2", "A"]
+I_MAX = 2.0
+
+
+def random_model(rng: np.random.Generator, hidden: int = 30, monotone: bool = False) -> MLP:
+    """A 4-H-1 force model with random weights; `monotone`: force increases with current."""
+    W1 = rng.normal(size=(hidden, 4))
+    W2 = rng.normal(size=hidden) * 0.3
+    if monotone:
+        W1[:, 3] = np.abs(W1[:, 3]) * np.sign(W2)
+    return MLP(NAMES, UNITS, "force", "N", in_mean=[0.0, 0.0, 0.0, 0.9],
+               in_std=[0.01, 0.1, 5.0, 0.6], out_mean=100.0, out_std=500.0, W1=W1,
+               b1=rng.normal(size=hidden), W2=W2, b2=0.1)
+
+
+def bump_model() -> MLP:
+    """f(i) = tanh(3 (i - 0.5)) - tanh(3 (i - 1.5)): non-monotone, symmetric about i = 1 A."""
+    W1 = np.array([[0.0, 0.0, 0.0, 3.0], [0.0, 0.0, 0.0, 3.0]])
+    return MLP(NAMES, UNITS, "force", "N", in_mean=np.zeros(4), in_std=np.ones(4),
+               out_mean=0.0, out_std=1.0, W1=W1, b1=[-1.5, -4.5], W2=[1.0, -1.0], b2=0.0)
+
+
+def random_features(rng: np.random.Generator, n: int) -> np.ndarray:
+    return np.column_stack([rng.uniform(-0.02, 0.02, n), rng.uniform(-0.2, 0.2, n),
+                            rng.uniform(-10.0, 10.0, n)])
+
+
+def force(model: MLP, features: np.ndarray, current_a: np.ndarray) -> np.ndarray:
+    return model.predict(np.column_stack([features, current_a]))
+
+
+def test_eq14_gradient_equals_autograd_in_physical_and_standardised_units() -> None:
+    rng = np.random.default_rng(1)
+    model = random_model(rng)
+    X = np.column_stack([random_features(rng, 200), rng.uniform(0.0, I_MAX, 200)])
+    f_des = rng.uniform(-500.0, 800.0, 200)
+    net = MLPModule(model)
+    mean_c, std_c = model.in_mean[3], model.in_std[3]
+
+    i_phys = torch.tensor(X[:, 3], requires_grad=True)
+    Xt = torch.cat([torch.tensor(X[:, :3]), i_phys[:, None]], dim=1)
+    E = 0.5 * (torch.tensor(f_des) - net(Xt)) ** 2
+    E.sum().backward()
+    np.testing.assert_allclose(eq14_gradient(model, X, f_des), i_phys.grad.numpy(), rtol=1e-6)
+
+    i_std = torch.tensor((X[:, 3] - mean_c) / std_c, requires_grad=True)
+    Xt = torch.cat([torch.tensor(X[:, :3]), (i_std * std_c + mean_c)[:, None]], dim=1)
+    E_s = 0.5 * ((torch.tensor(f_des) - net(Xt)) / model.out_std) ** 2
+    E_s.sum().backward()
+    np.testing.assert_allclose(eq14_gradient(model, X, f_des, standardised=True),
+                               i_std.grad.numpy(), rtol=1e-6)
+
+
+def test_exact_inversion_reproduces_reachable_force() -> None:
+    rng = np.random.default_rng(2)
+    model = random_model(rng, monotone=True)
+    features = random_features(rng, 500)
+    i_true = rng.uniform(0.0, I_MAX, 500)
+    f_des = force(model, features, i_true)
+    i_star = exact_inversion(model, features, f_des, rng.uniform(0.0, I_MAX, 500), i_max=I_MAX)
+    np.testing.assert_allclose(force(model, features, i_star), f_des, rtol=0, atol=1e-6)
+    np.testing.assert_allclose(i_star, i_true, rtol=0, atol=1e-8)
+
+
+def test_exact_inversion_saturates_at_the_nearest_bound_when_out_of_reach() -> None:
+    rng = np.random.default_rng(3)
+    model = random_model(rng, monotone=True)
+    features = random_features(rng, 100)
+    f_lo = force(model, features, np.zeros(100))
+    f_hi = force(model, features, np.full(100, I_MAX))
+    i_prev = np.full(100, 1.0)
+    np.testing.assert_array_equal(
+        exact_inversion(model, features, f_hi + 50.0, i_prev, i_max=I_MAX), I_MAX)
+    np.testing.assert_array_equal(
+        exact_inversion(model, features, f_lo - 50.0, i_prev, i_max=I_MAX), 0.0)
+
+
+def test_exact_inversion_saturation_tie_goes_to_the_bound_nearest_previous_command() -> None:
+    model = bump_model()
+    features = np.zeros((2, 3))
+    f_0 = force(model, features[:1], np.zeros(1))
+    f_2 = force(model, features[:1], np.full(1, I_MAX))
+    assert f_0 == f_2  # the symmetric bump makes both bounds equally far from any force
+    out = exact_inversion(model, features, 2.0, np.array([0.3, 1.7]), i_max=I_MAX)
+    np.testing.assert_array_equal(out, [0.0, I_MAX])
+
+
+def test_exact_inversion_picks_the_root_nearest_the_previous_command() -> None:
+    model = bump_model()
+    features = np.zeros((4, 3))
+    i_prev = np.array([0.0, 0.9, 1.1, 2.0])
+    i_star = exact_inversion(model, features, 1.0, i_prev, i_max=I_MAX)
+    np.testing.assert_allclose(force(model, features, i_star), 1.0, rtol=0, atol=1e-9)
+    assert np.all(i_star[:2] < 1.0) and np.all(i_star[2:] > 1.0)  # the roots straddle the peak
+    np.testing.assert_allclose(i_star[:2] + i_star[2:][::-1], 2.0, atol=1e-9)  # symmetric
+
+
+@pytest.mark.parametrize("monotone", [True, False])
+def test_scalar_inverter_equals_batch_exact_inversion(monotone: bool) -> None:
+    rng = np.random.default_rng(4)
+    model = random_model(rng, monotone=monotone)
+    features = random_features(rng, 300)
+    f_des = force(model, features, rng.uniform(0.0, I_MAX, 300)) + rng.normal(0.0, 30.0, 300)
+    i_prev = rng.uniform(0.0, I_MAX, 300)
+    batch = exact_inversion(model, features, f_des, i_prev, i_max=I_MAX)
+    inv = ScalarInverter(model, I_MAX)
+    scalar = [inv.solve(features[n], f_des[n], i_prev[n]) for n in range(300)]
+    np.testing.assert_allclose(scalar, batch, rtol=0, atol=1e-9)
+
+
+def test_scalar_inverter_equals_batch_on_the_two_root_model() -> None:
+    model = bump_model()
+    i_prev = np.linspace(0.0, I_MAX, 21)
+    f_des = np.linspace(-0.5, 2.0, 21)
+    features = np.zeros((21, 3))
+    batch = exact_inversion(model, features, f_des, i_prev, i_max=I_MAX)
+    inv = ScalarInverter(model, I_MAX)
+    scalar = [inv.solve(features[n], f_des[n], i_prev[n]) for n in range(21)]
+    np.testing.assert_allclose(scalar, batch, rtol=0, atol=1e-9)
+
+
+def test_gradient_inversion_descends_to_the_exact_root() -> None:
+    rng = np.random.default_rng(5)
+    model = random_model(rng, monotone=True)
+    features = random_features(rng, 50)
+    f_des = force(model, features, rng.uniform(0.2, 1.8, 50))
+    exact = exact_inversion(model, features, f_des, 1.0, i_max=I_MAX)
+    grad = gradient_inversion(model, features, f_des, i_max=I_MAX, rate=0.05, iterations=3000,
+                              rng=np.random.default_rng(0))
+    np.testing.assert_allclose(grad, exact, rtol=0, atol=1e-4)
+
+
+def test_paper_rate_reduces_the_force_error_from_the_random_start() -> None:
+    rng = np.random.default_rng(6)
+    model = random_model(rng, monotone=True)
+    features = random_features(rng, 200)
+    f_des = force(model, features, rng.uniform(0.2, 1.8, 200))
+    i0 = np.random.default_rng(7).uniform(0.0, I_MAX, 200)
+    i_star = gradient_inversion(model, features, f_des, i_max=I_MAX, i0=i0)
+    err0 = np.abs(force(model, features, i0) - f_des)
+    err = np.abs(force(model, features, i_star) - f_des)
+    assert np.mean(err) < 0.5 * np.mean(err0)
+
+
+def test_scalar_gradient_path_equals_batch_with_the_same_seed() -> None:
+    rng = np.random.default_rng(8)
+    model = random_model(rng, monotone=True)
+    features = random_features(rng, 20)
+    f_des = force(model, features, rng.uniform(0.0, I_MAX, 20))
+    batch = gradient_inversion(model, features, f_des, i_max=I_MAX, iterations=200,
+                               rng=np.random.default_rng(11))
+    inv = ScalarInverter(model, I_MAX, method="gradient", iterations=200, seed=11)
+    scalar = [inv.solve(features[n], f_des[n], 0.0) for n in range(20)]
+    np.testing.assert_allclose(scalar, batch, rtol=0, atol=1e-9)
