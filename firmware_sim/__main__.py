@@ -44,7 +44,11 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--bus-interface", help="python-can interface (overrides [bus] interface)")
     ap.add_argument("--bus-channel", help="python-can channel (overrides [bus] channel)")
     ap.add_argument(
-        "--fault", type=_fault_arg, action="append", default=[], metavar="KIND@START_S[:DUR_S]",
+        "--fault",
+        type=_fault_arg,
+        action="append",
+        default=[],
+        metavar="KIND@START_S[:DUR_S]",
         help=f"inject a fault (repeatable); KIND: {', '.join(FAULT_KINDS)}",
     )
     ap.add_argument("--duration", type=float, metavar="S", help="stop after S seconds")
@@ -78,28 +82,45 @@ def main(argv: list[str] | None = None) -> int:
         except BusError as exc:
             logger.error("%s", exc)
             return 1
-        logger.info("rig firmware on %s %s, %d fault injections", interface, channel,
-                    len(config.faults) + len(args.fault))
+        logger.info(
+            "rig firmware on %s %s, %d fault injections",
+            interface,
+            channel,
+            len(config.faults) + len(args.fault),
+        )
         tune_process(config.timing.realtime_priority)
         stats = RunStats()
         rc = 0
         wall0, cpu0 = time.monotonic(), time.process_time()
         try:
-            run(firmware, bus, stats, lead_s=config.timing.lead_s, spin_s=config.timing.spin_s,
-                send_timeout_s=config.bus.send_timeout_s, duration_s=args.duration,
-                should_stop=lambda: stopping)
+            run(
+                firmware,
+                bus,
+                stats,
+                lead_s=config.timing.lead_s,
+                spin_s=config.timing.spin_s,
+                send_timeout_s=config.bus.send_timeout_s,
+                duration_s=args.duration,
+                should_stop=lambda: stopping,
+                time_scale=config.timing.time_scale,
+            )
         except (can.CanError, WebsocketClosed, OSError) as exc:
             logger.error("CAN bus error on %s %s: %s", interface, channel, exc)
             rc = 1
         wall_s, cpu_s = time.monotonic() - wall0, time.process_time() - cpu0
         _shutdown(bus)
+        stats.finish()
         summary = stats.summary(firmware, wall_s, cpu_s)
         if args.stats is not None:
             args.stats.write_text(json.dumps(summary, indent=2) + "\n")
         jitter = summary["period_jitter_us"]
-        logger.info("%d sensor frames in %.1f s, jitter p99 %s us, CPU %.0f %%",
-                    stats.sensor_frames_sent, wall_s, jitter["p99"],
-                    100.0 * summary["cpu_fraction"])
+        logger.info(
+            "%d sensor frames in %.1f s, jitter p99 %s us, CPU %.0f %%",
+            stats.sensor_frames_sent,
+            wall_s,
+            jitter["p99"],
+            100.0 * summary["cpu_fraction"],
+        )
         return rc
     finally:
         for s, handler in previous.items():

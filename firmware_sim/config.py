@@ -49,8 +49,11 @@ class TimingConfig:
     lead_s: float = 0.0008  # compute the frame this long before its deadline
     spin_s: float = 0.0001  # busy-wait this last part before the deadline
     realtime_priority: int = 0  # SCHED_FIFO priority 1..99; 0 = normal scheduling
+    time_scale: float = 1.0  # > 1: everything that many times slower (emulated VMs only)
 
     def check(self) -> None:
+        if not 1.0 <= self.time_scale <= 100.0:
+            raise ValueError("time_scale: must be in [1, 100]")
         if not 0.0 <= self.spin_s <= self.lead_s < 0.002:
             raise ValueError("lead_s, spin_s: need 0 <= spin_s <= lead_s < 0.002")
         if not 0 <= self.realtime_priority <= 99:

@@ -118,8 +118,10 @@ class Actuator:
 
     @property
     def at_rest(self) -> bool:
-        return self._amp_sine.value == 0.0 and self._amp_rand.value == 0.0 and (
-            self._amp_sine.target == 0.0 and self._amp_rand.target == 0.0
+        return (
+            self._amp_sine.value == 0.0
+            and self._amp_rand.value == 0.0
+            and (self._amp_sine.target == 0.0 and self._amp_rand.target == 0.0)
         )
 
     @property
@@ -229,13 +231,12 @@ class Firmware:
         self.active_faults: frozenset[str] = frozenset()
 
         self._gauss = random.Random(config.seed).gauss
-        self.actuator = Actuator(
-            config.actuator, self.period_s, np.random.default_rng(config.seed)
-        )
+        self.actuator = Actuator(config.actuator, self.period_s, np.random.default_rng(config.seed))
         act = config.actuator
         if act.autostart != "STOP":
-            self.actuator.command(act.autostart, act.autostart_amplitude_m,
-                                  act.autostart_frequency_hz)
+            self.actuator.command(
+                act.autostart, act.autostart_amplitude_m, act.autostart_frequency_hz
+            )
         self._plant = BoucWenDamper(BoucWenParams.preset(PLANT_PRESET), config.damper.substep_s)
         self._limit_a = config.damper.current_limit_a
         self.temperature_degc = config.thermal.ambient_degc
@@ -282,9 +283,7 @@ class Firmware:
         v = parsed.values
         assert v is not None
         if frame_id == self.damper_command_id:
-            self.on_damper_command(
-                self._mode_labels[int(v["Mode"])], v["CurrentSetpoint"], t_s
-            )
+            self.on_damper_command(self._mode_labels[int(v["Mode"])], v["CurrentSetpoint"], t_s)
         else:
             self.on_actuator_command(
                 self._waveform_labels[int(v["Waveform"])], v["Amplitude"], v["Frequency"], t_s
@@ -299,8 +298,10 @@ class Firmware:
             self.max_commanded_current_a = max(self.max_commanded_current_a, setpoint_a)
             over = setpoint_a > self._limit_a
             if over and not self._over_limit:
-                self._event(t_s, f"setpoint {setpoint_a:.4f} A over the limit "
-                                 f"{self._limit_a:.4f} A: clamped")
+                self._event(
+                    t_s,
+                    f"setpoint {setpoint_a:.4f} A over the limit {self._limit_a:.4f} A: clamped",
+                )
             self._over_limit = over
             self._setpoint_a = min(setpoint_a, self._limit_a)
             self._active = True
@@ -328,11 +329,18 @@ class Firmware:
         if self._halted_by_injection():
             return
         if amplitude_m > self._cfg.actuator.stroke_m and waveform in ("SINE", "RANDOM"):
-            logger.warning("actuator amplitude %.5f m clamped to the stroke %.5f m",
-                           amplitude_m, self._cfg.actuator.stroke_m)
+            logger.warning(
+                "actuator amplitude %.5f m clamped to the stroke %.5f m",
+                amplitude_m,
+                self._cfg.actuator.stroke_m,
+            )
         if waveform != self.actuator.waveform:
-            logger.info("actuator %s amplitude %.5f m frequency %.3f Hz",
-                        waveform, amplitude_m, frequency_hz)
+            logger.info(
+                "actuator %s amplitude %.5f m frequency %.3f Hz",
+                waveform,
+                amplitude_m,
+                frequency_hz,
+            )
         self.actuator.command(waveform, amplitude_m, frequency_hz)
 
     # ---- derived state ----------------------------------------------------------------------
@@ -371,10 +379,14 @@ class Firmware:
 
     def command_counts(self) -> dict[str, int]:
         """Received command frames: valid, bad CRC, repeated counter, other rejections."""
-        out = {"damper_valid": 0, "actuator_valid": 0, "bad_crc": 0, "repeated_counter": 0,
-               "other_rejected": 0}
-        for name, key in (("DamperCommand", "damper_valid"), ("ActuatorCommand",
-                                                               "actuator_valid")):
+        out = {
+            "damper_valid": 0,
+            "actuator_valid": 0,
+            "bad_crc": 0,
+            "repeated_counter": 0,
+            "other_rejected": 0,
+        }
+        for name, key in (("DamperCommand", "damper_valid"), ("ActuatorCommand", "actuator_valid")):
             st = self._parser.stats[name]
             out[key] = st.frames_ok
             out["bad_crc"] += st.bad_crc
@@ -408,12 +420,19 @@ class Firmware:
             if not self._tripped:
                 self._tripped = True
                 self.watchdog_trips += 1
-                self._event(t_s, f"watchdog: no valid DamperCommand for "
-                                 f"{(t_s - self._last_cmd_s) * 1e3:.1f} ms, coil to 0 A",
-                            logging.WARNING)
+                self._event(
+                    t_s,
+                    f"watchdog: no valid DamperCommand for "
+                    f"{(t_s - self._last_cmd_s) * 1e3:.1f} ms, coil to 0 A",
+                    logging.WARNING,
+                )
             self._n_active = self._n_safe = 0
-        if (self._act_seen and not self._act_timed_out and self.actuator.moving
-                and t_s - self._last_act_s > ACTUATOR_TIMEOUT_S):
+        if (
+            self._act_seen
+            and not self._act_timed_out
+            and self.actuator.moving
+            and t_s - self._last_act_s > ACTUATOR_TIMEOUT_S
+        ):
             self._act_timed_out = True
             self.actuator.command("STOP", 0.0, 0.0)
             self._event(t_s, "no ActuatorCommand for 500 ms while moving: ramping to rest")
@@ -424,8 +443,11 @@ class Firmware:
         over = len(bad) > self._cfg.commands.bad_frame_budget
         if over != self._bad_over:
             self._bad_over = over
-            self._event(t_s, f"bad command frames {'over' if over else 'back within'} budget "
-                             f"({len(bad)} in {window:g} s)")
+            self._event(
+                t_s,
+                f"bad command frames {'over' if over else 'back within'} budget "
+                f"({len(bad)} in {window:g} s)",
+            )
 
     def tick(self, t_s: float) -> list[Frame]:
         """Advance the rig to t_s (one RigSensors period after the last tick) and return the
@@ -434,8 +456,9 @@ class Firmware:
         self._t_prev_s = t_s
         self._update_injections(t_s)
         self._check_timeouts(t_s)
-        x, xd = self.actuator.advance(dt_s) if dt_s > 0.0 else (
-            self.actuator.x_m, self.actuator.xd_m_s)
+        x, xd = (
+            self.actuator.advance(dt_s) if dt_s > 0.0 else (self.actuator.x_m, self.actuator.xd_m_s)
+        )
         on = self.active_faults
         halted = self._tripped or self._halted_by_injection()
         self.coil_command_a = self._setpoint_a if self._active and not halted else 0.0

@@ -11,12 +11,10 @@ computes a frame (a zero-order hold, as the firmware's coil driver would).
 
 from __future__ import annotations
 
-import ctypes
-import ctypes.util
+import collections
 import gc
 import logging
 import math
-import os
 import time
 from array import array
 from collections.abc import Callable
@@ -26,6 +24,7 @@ import can
 import numpy as np
 
 from firmware_sim.firmware import Firmware, Frame
+from mrrig.realtime import make_realtime
 
 logger = logging.getLogger(__name__)
 
@@ -33,62 +32,70 @@ logger = logging.getLogger(__name__)
 _POLL_MARGIN_S = 50e-6
 # Late by more than this many periods (a stalled VM): skip the missed deadlines.
 _RESYNC_PERIODS = 10
-_PR_SET_TIMERSLACK = 29
 
 
 class RunStats:
     """What the loop measured: frames, answers per sensor frame, latency, jitter, CPU."""
+
+    # An answer may arrive after later sensor frames (transport delay); it is matched to the
+    # newest frame with its counter among the last PENDING frames (counters wrap at 16).
+    PENDING = 15
 
     def __init__(self) -> None:
         self.sensor_frames_sent = 0
         self.sensor_frames_faulted = 0  # sent with a fault injected: no answer expected
         self.status_frames_sent = 0
         self.answered_once = 0
+        self.answered_late = 0  # of answered_once: arrived after the next sensor frame
         self.unanswered = 0
         self.answered_more_than_once = 0
         self.unmatched_answers = 0  # valid commands echoing no frame awaiting an answer
         self.resyncs = 0
         self.latency_us = array("d")
         self.jitter_us = array("d")
-        self._pending_counter = -1
-        self._pending_send_s = 0.0
-        self._pending_answers = 0
+        # [counter, send time, answers, answered late] of the frames awaiting answers
+        self._pending: collections.deque[list] = collections.deque()
 
-    def _close_pending(self) -> None:
-        if self._pending_counter < 0:
-            return
-        n = self._pending_answers
+    def _close(self, entry: list) -> None:
+        n = entry[2]
         if n == 0:
             self.unanswered += 1
         elif n == 1:
             self.answered_once += 1
+            self.answered_late += entry[3]
         else:
             self.answered_more_than_once += 1
 
     def on_sensor_sent(self, frame: Frame, ideal_s: float, sent_s: float) -> None:
         """A RigSensors frame left at sent_s for the deadline ideal_s (same clock)."""
-        self._close_pending()
         self.sensor_frames_sent += 1
         self.jitter_us.append((sent_s - ideal_s) * 1e6)
         if frame.expect_answer:
-            self._pending_counter = frame.counter
-            self._pending_send_s = sent_s
-            self._pending_answers = 0
+            self._pending.append([frame.counter, sent_s, 0, False])
+            if len(self._pending) > self.PENDING:
+                self._close(self._pending.popleft())
         else:
             self.sensor_frames_faulted += 1
-            self._pending_counter = -1
 
     def on_command(self, echo: int, received_s: float) -> None:
         """A valid DamperCommand echoing sensor counter `echo` arrived at received_s."""
-        if echo != self._pending_counter:
-            self.unmatched_answers += 1
-            return
-        if self._pending_answers == 0:
-            self.latency_us.append((received_s - self._pending_send_s) * 1e6)
-        self._pending_answers += 1
+        for k in range(len(self._pending) - 1, -1, -1):
+            entry = self._pending[k]
+            if entry[0] == echo:
+                if entry[2] == 0:
+                    self.latency_us.append((received_s - entry[1]) * 1e6)
+                    entry[3] = k < len(self._pending) - 1
+                entry[2] += 1
+                return
+        self.unmatched_answers += 1
+
+    def finish(self) -> None:
+        """Count the frames still pending, but for the newest (its answer may be in flight)."""
+        while len(self._pending) > 1:
+            self._close(self._pending.popleft())
 
     def summary(self, firmware: Firmware, wall_s: float, cpu_s: float) -> dict[str, Any]:
-        """The stats file's content (the last frame, still awaiting its answer, is left out)."""
+        """The stats file's content (call `finish()` first)."""
         return {
             "wall_s": wall_s,
             "sensor_frames_sent": self.sensor_frames_sent,
@@ -97,6 +104,7 @@ class RunStats:
             "commands": firmware.command_counts(),
             "answers": {
                 "answered_once": self.answered_once,
+                "answered_late": self.answered_late,
                 "unanswered": self.unanswered,
                 "answered_more_than_once": self.answered_more_than_once,
                 "unmatched": self.unmatched_answers,
@@ -120,19 +128,8 @@ def _percentiles(values: array) -> dict[str, float | int | None]:
 
 
 def tune_process(realtime_priority: int) -> None:
-    """Timer slack 1 ns (select wakes on time) and, if asked, SCHED_FIFO; warn where denied."""
-    libc_name = ctypes.util.find_library("c")
-    if libc_name is not None:
-        libc = ctypes.CDLL(libc_name, use_errno=True)
-        if libc.prctl(_PR_SET_TIMERSLACK, 1, 0, 0, 0) != 0:
-            logger.warning("cannot set timer slack: errno %d", ctypes.get_errno())
-    if realtime_priority > 0:
-        try:
-            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(realtime_priority))
-            logger.info("SCHED_FIFO priority %d", realtime_priority)
-        except (PermissionError, AttributeError, OSError) as exc:
-            logger.warning("SCHED_FIFO priority %d not permitted (%s): normal scheduling",
-                           realtime_priority, exc)
+    """Timer slack 1 ns (select wakes on time), locked memory and, if asked, SCHED_FIFO."""
+    make_realtime(realtime_priority, who="firmware_sim")
 
 
 def run(
@@ -146,19 +143,30 @@ def run(
     duration_s: float | None = None,
     should_stop: Callable[[], bool] = lambda: False,
     clock: Callable[[], float] = time.monotonic,
+    time_scale: float = 1.0,
 ) -> None:
     """Run the firmware on `bus` until `should_stop()` or `duration_s`, filling `stats`.
+
+    `time_scale` > 1 slows the whole firmware down by that factor against the wall clock
+    (every period, the watchdog and every timeout alike) for machines that cannot hold the
+    real rate, such as a software-emulated VM; the plant still integrates its own 2 ms steps.
 
     Bus errors (`can.CanError`, the remote bridge gone) propagate; `stats` keeps what was
     measured until then.
     """
     period_s = firmware.period_s
     sensors_id = firmware.sensors_id
+    if time_scale != 1.0:
+        wall_clock = clock
+
+        def clock() -> float:
+            return wall_clock() / time_scale
+
     damper_id = firmware.damper_command_id
 
     def receive_until(until: float) -> None:
         while (now := clock()) < until:
-            msg = bus.recv(until - now)
+            msg = bus.recv((until - now) * time_scale)
             if msg is not None:
                 _receive(firmware, stats, msg, clock() - t0, damper_id)
 
@@ -183,8 +191,12 @@ def run(
             for frame in frames:
                 sent_s = clock() - t0
                 bus.send(
-                    can.Message(arbitration_id=frame.frame_id, is_extended_id=False,
-                                dlc=len(frame.data), data=frame.data),
+                    can.Message(
+                        arbitration_id=frame.frame_id,
+                        is_extended_id=False,
+                        dlc=len(frame.data),
+                        data=frame.data,
+                    ),
                     timeout=send_timeout_s,
                 )
                 if frame.frame_id == sensors_id:

@@ -34,35 +34,39 @@ class ClientError(ConnectionError):
 @contextlib.contextmanager
 def open_session(zenoh_config: ZenohConfigLike) -> Iterator[zenoh.Session]:
     """A session from a checked config, closed on exit."""
-    conf = (zenoh_config if isinstance(zenoh_config, zenoh.Config)
-            else load_zenoh_config(zenoh_config))
+    conf = (
+        zenoh_config if isinstance(zenoh_config, zenoh.Config) else load_zenoh_config(zenoh_config)
+    )
     try:
         session = zenoh.open(conf)
     except zenoh.ZError as exc:
-        raise ClientError(f"cannot open a Zenoh session (is the daemon running?): "
-                          f"{str(exc).splitlines()[0]}") from exc
+        raise ClientError(
+            f"cannot open a Zenoh session (is the daemon running?): {str(exc).splitlines()[0]}"
+        ) from exc
     try:
         yield session
     finally:
         session.close()
 
 
-def request(rig: str, payload: dict[str, Any], zenoh_config: ZenohConfigLike,
-            timeout_s: float = 2.0) -> dict[str, Any]:
+def request(
+    rig: str, payload: dict[str, Any], zenoh_config: ZenohConfigLike, timeout_s: float = 2.0
+) -> dict[str, Any]:
     """Send one control request (e.g. {"cmd": "status"}) and return the daemon's JSON reply.
 
     Raises ClientError if no daemon answers within `timeout_s`.
     """
     key = keys(rig)["control"]
     with open_session(zenoh_config) as session:
-        replies = session.get(key, payload=json.dumps(payload), encoding=JSON,
-                              timeout=timeout_s)
+        replies = session.get(key, payload=json.dumps(payload), encoding=JSON, timeout=timeout_s)
         for reply in replies:
             if reply.ok is not None:
                 return json.loads(reply.ok.payload.to_bytes())
             raise ClientError(f"{key}: error reply: {reply.err.payload.to_string()}")
-    raise ClientError(f"no daemon answered on {key} within {timeout_s:g} s "
-                      f"(is `mrrig run` up for rig {rig!r}, with a matching Zenoh config?)")
+    raise ClientError(
+        f"no daemon answered on {key} within {timeout_s:g} s "
+        f"(is `mrrig run` up for rig {rig!r}, with a matching Zenoh config?)"
+    )
 
 
 def status(rig: str, zenoh_config: ZenohConfigLike, timeout_s: float = 2.0) -> dict[str, Any]:
@@ -88,14 +92,20 @@ def format_watch_line(samples_per_s: float, fields: dict[str, list[Any]]) -> str
     p99 = float(np.percentile(latency, 99)) if latency.size else float("nan")
     state = fields.get("state") or []
     state_name = RigState(state[-1]).name if state else "?"
-    return (f"rate {samples_per_s:6.1f} Hz  f_des {_last(fields.get('f_des', [])):9.1f} N  "
-            f"f_meas {_last(fields.get('f_meas', [])):9.1f} N  "
-            f"i_cmd {_last(fields.get('i_cmd', [])):6.3f} A  "
-            f"latency p99 {p99:7.1f} us  state {state_name}")
+    return (
+        f"rate {samples_per_s:6.1f} Hz  f_des {_last(fields.get('f_des', [])):9.1f} N  "
+        f"f_meas {_last(fields.get('f_meas', [])):9.1f} N  "
+        f"i_cmd {_last(fields.get('i_cmd', [])):6.3f} A  "
+        f"latency p99 {p99:7.1f} us  state {state_name}"
+    )
 
 
-def watch(rig: str, zenoh_config: ZenohConfigLike, duration_s: float | None = None,
-          out: TextIO = sys.stdout) -> int:
+def watch(
+    rig: str,
+    zenoh_config: ZenohConfigLike,
+    duration_s: float | None = None,
+    out: TextIO = sys.stdout,
+) -> int:
     """Print live numbers from `mrrig/<rig>/telemetry` once per second.
 
     Runs for `duration_s` (None: until Ctrl-C); returns the number of samples received.
@@ -119,8 +129,9 @@ def watch(rig: str, zenoh_config: ZenohConfigLike, duration_s: float | None = No
                 if now - window_start >= 1.0:
                     n = len(window.get("t", []))
                     total += n
-                    line = (format_watch_line(n / (now - window_start), window) if n
-                            else "no telemetry")
+                    line = (
+                        format_watch_line(n / (now - window_start), window) if n else "no telemetry"
+                    )
                     print(line, file=out, flush=True)
                     window, window_start = {}, now
         except KeyboardInterrupt:
@@ -149,8 +160,13 @@ def load_force_csv(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
     return data[:, 0], data[:, 1]
 
 
-def send_force(rig: str, zenoh_config: ZenohConfigLike, profile: ForceProfile,
-               rate_hz: float, duration_s: float | None = None) -> int:
+def send_force(
+    rig: str,
+    zenoh_config: ZenohConfigLike,
+    profile: ForceProfile,
+    rate_hz: float,
+    duration_s: float | None = None,
+) -> int:
     """Stream {"force_n": profile(t)} to `mrrig/<rig>/force_ref` at `rate_hz`.
 
     `profile` is a function of time since start (s) -> N, or a CSV path (linear

@@ -15,7 +15,6 @@ import gc
 import json
 import logging
 import math
-import os
 import resource
 import signal
 import time
@@ -39,8 +38,9 @@ from mrrig.controllers import (
     RecurrentInverse,
     SupervisedInverse,
 )
-from mrrig.estimation import KalmanEstimator
+from mrrig.estimation import RealtimeKalman
 from mrrig.model.mlp import MLP, ModelError
+from mrrig.realtime import make_realtime
 from mrrig.safety import Fault, Limits, Supervisor
 from mrrig.samples import SAMPLE_DTYPE, RigState
 from mrrig.summary import format_summary, summarize
@@ -102,18 +102,8 @@ def build_reference(r: ReferenceSection, dt_s: float) -> ref.ForceReference:
 
 
 def _realtime(cfg: DaemonConfig) -> None:
-    """SCHED_FIFO and CPU affinity where permitted; a warning where not."""
-    if cfg.loop.cpu is not None:
-        try:
-            os.sched_setaffinity(0, {cfg.loop.cpu})
-        except (OSError, AttributeError) as exc:
-            log.warning("CPU affinity %d not set: %s", cfg.loop.cpu, exc)
-    if cfg.loop.realtime:
-        try:
-            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(50))
-            log.info("SCHED_FIFO priority 50")
-        except (OSError, AttributeError) as exc:
-            log.warning("SCHED_FIFO not permitted (%s): running with normal priority", exc)
+    """SCHED_FIFO, CPU affinity and locked memory where permitted; a warning where not."""
+    make_realtime(50 if cfg.loop.realtime else 0, cpu=cfg.loop.cpu, who="daemon")
 
 
 class Daemon:
@@ -127,7 +117,7 @@ class Daemon:
         self.parser = self.codec.parser()
         self.controller = build_controller(cfg)
         self.reference = build_reference(cfg.reference, self.period_s)
-        self.kf = KalmanEstimator(self.period_s, q=cfg.estimator.q, r0=cfg.estimator.r0_m2)
+        self.kf = RealtimeKalman(self.period_s, q=cfg.estimator.q, r0=cfg.estimator.r0_m2)
         self.supervisor = Supervisor(
             Limits(
                 cfg.loop.x_range_m,
@@ -141,6 +131,7 @@ class Daemon:
         self.record_path = record_path
         self.stop_reason = ""
         self._stop = False
+        self._safe_sent_at_stop = False  # the stop's SAFE command answered a sensor frame
         self.bus = None
         self.link = None  # ipc.LoopEnd to the sidecar, when telemetry or recording is on
         self.sidecar = None
@@ -247,44 +238,67 @@ class Daemon:
 
     # ---- the cycle ---------------------------------------------------------------------
     def cycle(self, values: dict[str, float], counter: int, t_rx: float) -> None:
-        """One valid RigSensors frame -> exactly one DamperCommand."""
+        """One valid RigSensors frame -> exactly one DamperCommand.
+
+        An unexpected error in the computation does not unwind the loop: it is a fault, and
+        the frame is still answered, SAFE.
+        """
         sup = self.supervisor
         t = t_rx - self.t0
         x_meas, f_meas = values["Displacement"], values["Force"]
         events = sup.sensors(t, values)
-        x, xd, xdd = self.kf.update(x_meas)
-        self.last_x = x
-        events += sup.finite(t, "the Kalman estimate", x, xd, xdd)
+        x = xd = xdd = f_des = math.nan
+        i_cmd, s = 0.0, None
         try:
-            f_des = float(self.reference.force(t, x, xd))
-        except ref.StaleReference as exc:
-            f_des = 0.0
+            x, xd, xdd = self.kf.update(x_meas)
+            if self._last_sensor_t is None:
+                self.reference.reset(t, x)
+            events += sup.finite(t, "the Kalman estimate", x, xd, xdd)
+            try:
+                f_des = float(self.reference.force(t, x, xd))
+            except ref.StaleReference as exc:
+                f_des = 0.0
+                if sup.active:
+                    events += sup.trip(t, Fault.STALE_REFERENCE, f"stale force reference: {exc}")
+            f_des = min(max(f_des, -DESIRED_FORCE_LIMIT_N), DESIRED_FORCE_LIMIT_N)
             if sup.active:
-                events += sup.trip(t, Fault.STALE_REFERENCE, f"stale force reference: {exc}")
-        f_des = min(max(f_des, -DESIRED_FORCE_LIMIT_N), DESIRED_FORCE_LIMIT_N)
-        i_cmd, f_model = 0.0, math.nan
-        if sup.active:
-            s = ControlInput(
-                np.array([x]),
-                np.array([xd]),
-                np.array([xdd]),
-                np.array([f_meas]),
-                np.array([f_des]),
-            )
-            i = float(self.controller.command(s)[0])
-            events += sup.finite(t, f"the {self.controller.name} controller's command", i)
-            if sup.active:
-                i_cmd = min(max(i, 0.0), self.cfg.loop.i_max_a)
-        active = sup.active
-        self._send_command(active, i_cmd, f_des, counter)
+                s = ControlInput(
+                    np.array([x]),
+                    np.array([xd]),
+                    np.array([xdd]),
+                    np.array([f_meas]),
+                    np.array([f_des]),
+                )
+                i = float(self.controller.command(s)[0])
+                events += sup.finite(t, f"the {self.controller.name} controller's command", i)
+                if sup.active:
+                    i_cmd = min(max(i, 0.0), self.cfg.loop.i_max_a)
+        except Exception as exc:  # noqa: BLE001 - a bug must not leave a frame unanswered
+            log.exception("cycle failed")
+            events += sup.trip(t, Fault.INTERNAL_ERROR, f"{type(exc).__name__}: {exc}")
+            i_cmd = 0.0
+        active = sup.active and not self._stop
+        safe_f = f_des if math.isfinite(f_des) else 0.0
+        self._send_command(active, i_cmd if active else 0.0, safe_f, counter)
+        if self._stop:
+            self._safe_sent_at_stop = True
         latency_us = (time.perf_counter() - t_rx) * 1e6
-        if active:
-            f_model = float(self.controller.model_force(s, np.array([i_cmd]))[0])
+        self.last_x = x
+        f_model = math.nan
+        try:
+            # off the latency path: the next instant's reference, from the predicted state
+            T = self.period_s
+            self.reference.prepare(t + T, x + xd * T + 0.5 * xdd * T * T, xd + xdd * T)
+            if active:
+                f_model = float(self.controller.model_force(s, np.array([i_cmd]))[0])
+        except Exception as exc:  # noqa: BLE001
+            log.exception("after-send work failed")
+            events += sup.trip(t, Fault.INTERNAL_ERROR, f"{type(exc).__name__}: {exc}")
         row = self._buf[self._n]
         row["t"], row["counter"], row["x"], row["x_est"] = t, counter, x_meas, x
         row["xd"], row["xdd"], row["f_meas"], row["f_des"] = xd, xdd, f_meas, f_des
-        row["f_model"], row["i_cmd"], row["i_meas"] = f_model, i_cmd, self._i_meas
-        row["latency_us"], row["state"] = latency_us, sup.state
+        row["f_model"], row["i_cmd"] = f_model, i_cmd if active else 0.0
+        row["i_meas"], row["latency_us"], row["state"] = self._i_meas, latency_us, sup.state
         self._n += 1
         if self._n == len(self._buf):
             self._flush_samples()
@@ -318,9 +332,9 @@ class Daemon:
             if p.lost_frames:
                 self.counters["lost_frames"] += p.lost_frames
                 self._emit(self.supervisor.lost_frames(t_rx - self.t0, p.lost_frames))
+            self.cycle(p.values, p.counter, t_rx)
             self._last_sensor_t = t_rx
             self._last_counter = p.counter
-            self.cycle(p.values, p.counter, t_rx)
         elif p.name == "RigStatus" and p.ok:
             v = p.values
             self.counters["status_frames"] += 1
@@ -406,7 +420,12 @@ class Daemon:
         timeout_s = cfg.loop.timeout_periods * self.period_s
         end = None if cfg.loop.duration_s is None else self.t0 + cfg.loop.duration_s
         self._send_actuator()
-        while not self._stop:
+        stop_deadline = None
+        while not self._safe_sent_at_stop:
+            if self._stop and stop_deadline is None:
+                stop_deadline = time.perf_counter() + timeout_s
+            if stop_deadline is not None and time.perf_counter() > stop_deadline:
+                break  # no sensor frame to answer: _shutdown sends SAFE on its own
             try:
                 msg = recv(timeout=timeout_s)
             except Exception as exc:  # noqa: BLE001 - a dead bus stops the loop safely
@@ -445,7 +464,7 @@ class Daemon:
         """SAFE first, then the actuator to rest, the summary, the sidecar, the bus."""
         gc.unfreeze()
         if self.bus is not None:
-            if self._last_sensor_t is not None:
+            if self._last_sensor_t is not None and not self._safe_sent_at_stop:
                 self._send_command(False, 0.0, 0.0, self._last_counter)
             self.actuator = replace(self.actuator, waveform="stop")
             try:

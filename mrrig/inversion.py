@@ -53,8 +53,17 @@ class _Split:
         w = model.W1[:, c] / c_std
         a0 = model.b1 - A @ model.in_mean[others] - w * c_mean
         v = model.out_std * model.W2
-        return cls(A=A, a0=a0, w=w, v=v, vw=v * w, f0=model.out_mean + model.out_std * model.b2,
-                   c=c, c_mean=c_mean, c_std=c_std)
+        return cls(
+            A=A,
+            a0=a0,
+            w=w,
+            v=v,
+            vw=v * w,
+            f0=model.out_mean + model.out_std * model.b2,
+            c=c,
+            c_mean=c_mean,
+            c_std=c_std,
+        )
 
     def features_part(self, features: np.ndarray) -> np.ndarray:
         """k (N x H): the pre-activation without the current term."""
@@ -64,14 +73,17 @@ class _Split:
 def _as_batch(model: MLP, features: np.ndarray, f_des: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     features = np.asarray(features, dtype=np.float64)
     if features.ndim != 2 or features.shape[1] != model.n_in - 1:
-        raise ValueError(f"features must be (N, {model.n_in - 1}) (inputs without the current), "
-                         f"got {features.shape}")
+        raise ValueError(
+            f"features must be (N, {model.n_in - 1}) (inputs without the current), "
+            f"got {features.shape}"
+        )
     f_des = np.broadcast_to(np.asarray(f_des, dtype=np.float64), (features.shape[0],))
     return features, f_des
 
 
-def eq14_gradient(model: MLP, X: np.ndarray, f_des: np.ndarray,
-                  standardised: bool = False) -> np.ndarray:
+def eq14_gradient(
+    model: MLP, X: np.ndarray, f_des: np.ndarray, standardised: bool = False
+) -> np.ndarray:
     """dE/dcurrent (N,) of E = 1/2 (f_des - f_net(X))^2 at the full inputs X (N x n_in).
 
     Physical units (N^2/A) by default; `standardised=True` gives the gradient w.r.t. the
@@ -205,9 +217,19 @@ class ScalarInverter:
     method "exact" (default) or "gradient" (the paper's; random start from `seed`).
     """
 
-    def __init__(self, model: MLP, i_max: float, method: str = "exact", *,
-                 grid_points: int = 33, xtol_a: float = 1e-6, max_iter: int = 60,
-                 rate: float = 1e-3, iterations: int = 1000, seed: int | None = None) -> None:
+    def __init__(
+        self,
+        model: MLP,
+        i_max: float,
+        method: str = "exact",
+        *,
+        grid_points: int = 33,
+        xtol_a: float = 1e-6,
+        max_iter: int = 60,
+        rate: float = 1e-3,
+        iterations: int = 1000,
+        seed: int | None = None,
+    ) -> None:
         if method not in ("exact", "gradient"):
             raise ValueError(f"unknown inversion method {method!r} (exact, gradient)")
         self.model = model

@@ -28,10 +28,12 @@ from mrrig.samples import SAMPLE_DTYPE
 
 log = logging.getLogger(__name__)
 
-PIPE_BUF = 4096  # POSIX guarantees atomic pipe writes up to this size (Linux: 4096)
+# POSIX makes pipe writes of up to PIPE_BUF bytes atomic (Linux 4096, macOS 512)
+PIPE_BUF = min(4096, select.PIPE_BUF)
 HEADER = struct.Struct("<BH")
 MAX_PAYLOAD = PIPE_BUF - HEADER.size
 SAMPLES_PER_MESSAGE = MAX_PAYLOAD // SAMPLE_DTYPE.itemsize
+_SAMPLES_STEP = SAMPLES_PER_MESSAGE * SAMPLE_DTYPE.itemsize
 FORCE_REF = struct.Struct("<dd")
 _F_SETPIPE_SZ = 1031  # Linux fcntl; a bigger pipe rides out longer sidecar stalls
 _READ_CHUNK = 1 << 16
@@ -59,6 +61,10 @@ class ChannelFds:
     sidecar_rx: int
     sidecar_tx: int
 
+    def loop_fds(self) -> tuple[int, int]:
+        """(rx, tx) for `LoopEnd`."""
+        return (self.loop_rx, self.loop_tx)
+
     def sidecar_fds(self) -> tuple[int, int]:
         """The fds to hand to the sidecar process (`subprocess.Popen(pass_fds=...)`)."""
         return (self.sidecar_rx, self.sidecar_tx)
@@ -77,10 +83,12 @@ def make_channel(pipe_bytes: int | None = 1 << 20) -> ChannelFds:
             try:
                 fcntl.fcntl(fd, _F_SETPIPE_SZ, pipe_bytes)
             except OSError as exc:
-                log.warning("could not set pipe size to %d bytes (%s); using the default",
-                            pipe_bytes, exc)
-    return ChannelFds(loop_rx=to_loop_r, loop_tx=to_sidecar_w,
-                      sidecar_rx=to_sidecar_r, sidecar_tx=to_loop_w)
+                log.warning(
+                    "could not set pipe size to %d bytes (%s); using the default", pipe_bytes, exc
+                )
+    return ChannelFds(
+        loop_rx=to_loop_r, loop_tx=to_sidecar_w, sidecar_rx=to_sidecar_r, sidecar_tx=to_loop_w
+    )
 
 
 def parse_frames(buf: bytearray) -> list[tuple[int, bytes]]:
@@ -93,7 +101,7 @@ def parse_frames(buf: bytearray) -> list[tuple[int, bytes]]:
         end = pos + HEADER.size + length
         if end > n:
             break
-        out.append((mtype, bytes(buf[pos + HEADER.size:end])))
+        out.append((mtype, bytes(buf[pos + HEADER.size : end])))
         pos = end
     if pos:
         del buf[:pos]
@@ -120,22 +128,20 @@ class _Writer:
     def __init__(self, fd: int) -> None:
         os.set_blocking(fd, False)
         self._fd = fd
-        self._frame = bytearray(PIPE_BUF)
-        self._view = memoryview(self._frame)
         self.dropped = 0  # messages not written (pipe full, reader gone, too large)
         self.peer_gone = False
 
-    def write(self, mtype: int, payload: bytes | memoryview) -> bool:
+    def write(self, mtype: int, payload: bytes) -> bool:
         n = len(payload)
         if n > MAX_PAYLOAD:
             self.dropped += 1
-            log.warning("dropped a %s message of %d bytes (limit %d)", Msg(mtype).name, n,
-                        MAX_PAYLOAD)
+            log.warning(
+                "dropped a %s message of %d bytes (limit %d)", Msg(mtype).name, n, MAX_PAYLOAD
+            )
             return False
-        HEADER.pack_into(self._frame, 0, mtype, n)
-        self._frame[HEADER.size:HEADER.size + n] = payload
         try:
-            os.write(self._fd, self._view[:HEADER.size + n])
+            # one writev of <= PIPE_BUF bytes: atomic, so never a partial frame in the pipe
+            os.writev(self._fd, (HEADER.pack(mtype, n), payload))
         except BlockingIOError:
             self.dropped += 1
             return False
@@ -160,6 +166,9 @@ class LoopEnd:
     def __init__(self, rx_fd: int, tx_fd: int) -> None:
         os.set_blocking(rx_fd, False)
         self._rx = rx_fd
+        # poll(0) on a poll object is the cheapest "anything there?" (no exception, no lists)
+        self._poller = select.poll()
+        self._poller.register(rx_fd, select.POLLIN)
         self._rx_buf = bytearray()
         self._w = _Writer(tx_fd)
         self.dropped_samples = 0
@@ -178,13 +187,17 @@ class LoopEnd:
 
         Returns False if any part was dropped.
         """
-        if arr.dtype != SAMPLE_DTYPE:
+        if arr.dtype is not SAMPLE_DTYPE and arr.dtype != SAMPLE_DTYPE:
             raise TypeError(f"expected SAMPLE_DTYPE records, got {arr.dtype}")
-        raw = memoryview(np.ascontiguousarray(arr)).cast("B")
-        step = SAMPLES_PER_MESSAGE * SAMPLE_DTYPE.itemsize
+        raw = arr.tobytes()  # cheaper than memoryview casts of a structured array
+        if len(raw) <= MAX_PAYLOAD:
+            if self._w.write(Msg.SAMPLES, raw):
+                return True
+            self.dropped_samples += arr.size
+            return False
         ok = True
-        for start in range(0, len(raw), step):
-            part = raw[start:start + step]
+        for start in range(0, len(raw), _SAMPLES_STEP):
+            part = raw[start : start + _SAMPLES_STEP]
             if not self._w.write(Msg.SAMPLES, part):
                 self.dropped_samples += len(part) // SAMPLE_DTYPE.itemsize
                 ok = False
@@ -212,6 +225,8 @@ class LoopEnd:
 
         (Msg.REQUEST, dict) or (Msg.FORCE_REF, (force_n, t_rx_monotonic_s)).
         """
+        if not self._poller.poll(0):
+            return []
         try:
             data = os.read(self._rx, _READ_CHUNK)
         except BlockingIOError:

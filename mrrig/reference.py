@@ -35,6 +35,13 @@ class ForceReference(abc.ABC):
     def force(self, t_s: float, x_m: float, xd_m_s: float) -> float:
         """Desired force at t_s, N."""
 
+    def prepare(self, t_s: float, x_m: float, xd_m_s: float) -> None:  # noqa: B027
+        """Compute the force for the next instant ahead of time, from a predicted state.
+
+        The daemon calls this after it has sent a command, so that a reference that is
+        costly to evaluate (a damper model) is off the receive -> send path.
+        """
+
 
 class Constant(ForceReference):
     kind = "constant"
@@ -148,13 +155,27 @@ class BoucWenReference(ForceReference):
         self.current_a, self.current_amp_a = current_a, current_amp_a
         self.w = 2 * math.pi * current_freq_hz
         self.dt_s = dt_s
+        self._prepared_t = -math.inf
+        self._prepared_f = 0.0
 
     def reset(self, t_s: float, x_m: float) -> None:
         self._damper.reset(x_m, 0.0, self.current_a)
+        self._prepared_t = -math.inf
+        self._prepared_f = 0.0
 
-    def force(self, t_s: float, x_m: float, xd_m_s: float) -> float:
+    def _step(self, t_s: float, x_m: float, xd_m_s: float) -> float:
         i = max(0.0, self.current_a + self.current_amp_a * math.sin(self.w * t_s))
         return self._damper.step(x_m, xd_m_s, i, self.dt_s)
+
+    def prepare(self, t_s: float, x_m: float, xd_m_s: float) -> None:
+        self._prepared_f = self._step(t_s, x_m, xd_m_s)
+        self._prepared_t = t_s
+
+    def force(self, t_s: float, x_m: float, xd_m_s: float) -> float:
+        # the value prepared from the predicted state, when it is for this instant
+        if abs(t_s - self._prepared_t) < 0.5 * self.dt_s:
+            return self._prepared_f
+        return self._step(t_s, x_m, xd_m_s)
 
 
 class External(ForceReference):

@@ -29,6 +29,7 @@ class Fault(enum.Enum):
     LIMIT_TRIPPED = "limit_tripped"
     SENSOR_FAULT = "sensor_fault"
     BUS_ERROR = "bus_error"
+    INTERNAL_ERROR = "internal_error"  # an unexpected exception in the cycle
 
 
 @dataclass(frozen=True)

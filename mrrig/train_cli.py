@@ -81,23 +81,35 @@ def format_report(r: dict[str, Any]) -> str:
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="mrrig train", description=__doc__.splitlines()[0])
     ap.add_argument("data", nargs="+", type=Path, help="tidy CSV, .rrd recording or CSV")
-    ap.add_argument("--out", type=Path, default=Path("models/forward.json"),
-                    help="the forward model file (default models/forward.json)")
+    ap.add_argument(
+        "--out",
+        type=Path,
+        default=Path("models/forward.json"),
+        help="the forward model file (default models/forward.json)",
+    )
     ap.add_argument("--columns", help="CSV column map, e.g. x=Pos,force=F,current=I,t=time")
     ap.add_argument("--units", help="CSV units, e.g. x=cm,xd=cm/s,force=kN,current=mA,t=ms")
-    ap.add_argument("--current-input", choices=CURRENT_INPUTS, default="commanded",
-                    help="current input of the network: as commanded, or through the coil lag")
-    ap.add_argument("--lag-tau-s", type=float, default=COIL_LAG_TAU_S,
-                    help=f"coil lag time constant for --current-input lagged "
-                    f"(default {COIL_LAG_TAU_S:.6g} s)")
+    ap.add_argument(
+        "--current-input",
+        choices=CURRENT_INPUTS,
+        default="commanded",
+        help="current input of the network: as commanded, or through the coil lag",
+    )
+    ap.add_argument(
+        "--lag-tau-s",
+        type=float,
+        default=COIL_LAG_TAU_S,
+        help=f"coil lag time constant for --current-input lagged (default {COIL_LAG_TAU_S:.6g} s)",
+    )
     ap.add_argument("--epochs", type=int, default=1000, help="LM epoch limit (default 1000)")
     ap.add_argument("--seed", type=int, default=0, help="split and initial weights")
     ap.add_argument("--n-train", type=int, default=PAPER_N_TRAIN)
     ap.add_argument("--n-val", type=int, default=PAPER_N_VAL)
     ap.add_argument("--i-max", type=float, help="inversion bound, A (default: the data's largest)")
     ap.add_argument("--supervised-out", type=Path, help="also write the supervised inverse MLP")
-    ap.add_argument("--no-supervised", action="store_true",
-                    help="skip the supervised inverse MLP (faster)")
+    ap.add_argument(
+        "--no-supervised", action="store_true", help="skip the supervised inverse MLP (faster)"
+    )
     ap.add_argument("--report", type=Path, help="write the validation report as JSON")
     args = ap.parse_args(argv)
     if args.epochs < 1:

@@ -136,9 +136,11 @@ def load_recording(path: str | Path) -> Series:
 
     Samples in FAULT are dropped: there the command path is not trusted. In IDLE the daemon
     sends SAFE 0 A and records i_cmd = 0, which is what the firmware applies, so those samples
-    stay (they are the 0 A part of the data). A new run id starts after every dropped stretch
-    or time gap over 5 sample periods, so lag filters restart there.
+    stay (they are the 0 A part of the data). The first `KALMAN_WARMUP_S` of the file are
+    dropped too (the daemon's filter starts with it). A new run id starts after every dropped
+    stretch or time gap over 5 sample periods, so lag filters restart there.
     """
+    # rerun and pyarrow are slow to import: only .rrd inputs pay for them
     from mrrig.review import read_recording
     from mrrig.samples import RigState
 
@@ -148,6 +150,9 @@ def load_recording(path: str | Path) -> Series:
     keep = s["state"] != RigState.FAULT
     for f in fields:
         keep &= np.isfinite(s[f])
+    if s.size:
+        period = float(np.median(np.diff(s["t"]))) if s.size > 1 else 0.0
+        keep &= s["t"] - s["t"][0] > KALMAN_WARMUP_S - 0.5 * period
     if keep.sum() < 2:
         raise DataError(f"{path}: fewer than 2 usable samples (not FAULT, all fields finite)")
     idx = np.flatnonzero(keep)
@@ -304,8 +309,9 @@ class Split:
     rule: str  # how the sizes were chosen, for the report
 
 
-def split_samples(n: int, n_train: int = PAPER_N_TRAIN, n_val: int = PAPER_N_VAL,
-                  seed: int = 0) -> Split:
+def split_samples(
+    n: int, n_train: int = PAPER_N_TRAIN, n_val: int = PAPER_N_VAL, seed: int = 0
+) -> Split:
     """A random disjoint split: n_train / n_val out of n (the rest unused), or 90/10 of all n
     when n < n_train + n_val. The same (n, sizes, seed) always gives the same split."""
     if n_train < 1 or n_val < 1:
@@ -337,6 +343,7 @@ def train_forward(
     fingerprint; the returned report has the training numbers and the split's rule."""
     X, y = features(series, current_input, lag_tau_s)
     split = split_samples(len(y), n_train, n_val, seed)
+    log.info("training the forward network (MSE in N^2): %s", split.rule)
     model, tr = train_lm(
         X[split.train],
         y[split.train],
@@ -384,6 +391,7 @@ def train_supervised(
     """The supervised inverse MLP (x, xd, xdd, f) -> current (paper Fig. 10), same split."""
     X, y = features(series, current_input, lag_tau_s)
     Xs = np.column_stack([X[:, :3], y])
+    log.info("training the supervised inverse MLP (MSE in A^2)")
     model, tr = train_lm(
         Xs[split.train],
         X[split.train, 3],
@@ -519,3 +527,36 @@ def train_and_validate(
     )
     fwd.meta["i_max_a"] = i_max
     return fwd, sup, report
+
+
+def measured_series(b: Series) -> Series:
+    """What the rig records of data set B: noisy displacement and force, the command; xd/xdd
+    by the daemon's Kalman filter (first 0.1 s of each run dropped)."""
+    raw = Series(
+        t=b.t,
+        x=b.x_meas,
+        xd=None,
+        xdd=None,
+        current=b.current,
+        force=b.force_meas,
+        name="B-measured",
+        run_id=b.run_id,
+    )
+    return estimate_derivatives(raw)
+
+
+def simulated_matrix_model(path: str | Path, seed: int = 0, max_epochs: int = 1000) -> MLP:
+    """A forward model trained on the simulated characterization matrix (data set B, the
+    simulator's plant and sensor noise), saved to `path`: the demo's and the tests' model."""
+    from mrrig.datasets import dataset_b
+
+    series = measured_series(dataset_b())
+    model, report = train_forward(series, seed=seed, max_epochs=max_epochs)
+    Path(path).parent.mkdir(parents=True, exist_ok=True)
+    model.save(path)
+    log.info(
+        "forward model trained on the simulated matrix in %.1f s: %s",
+        report.get("seconds", float("nan")),
+        path,
+    )
+    return model

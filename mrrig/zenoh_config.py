@@ -82,8 +82,9 @@ def load_zenoh_config(path: str | Path) -> zenoh.Config:
     return conf
 
 
-def local_config(mode: str, listen: list[str] | None = None,
-                 connect: list[str] | None = None) -> zenoh.Config:
+def local_config(
+    mode: str, listen: list[str] | None = None, connect: list[str] | None = None
+) -> zenoh.Config:
     """A checked config built in code (tests, tools): multicast off, the given endpoints."""
     conf = zenoh.Config()
     conf.insert_json5("mode", json.dumps(mode))

@@ -147,8 +147,8 @@ def test_two_processes_exchange_frames_through_the_bridge(bridge_url: str) -> No
 
 
 def test_dead_bridge_raises_bus_error_on_recv_and_send() -> None:
-    proc = start_bridge(find_free_port())
-    port = proc.args[proc.args.index("-p") + 1]
+    port = find_free_port()
+    proc = start_bridge(port)
     bus = open_bus("remote", f"ws://127.0.0.1:{port}/")
     try:
         stop_bridge(proc)

@@ -104,3 +104,18 @@ def test_finite_difference_eqs_15_16_settle_to_velocity_and_acceleration():
     _, xdd = finite_difference(0.5 * 6.0 * t * t, DT_S)
     assert xd[-1] == pytest.approx(0.25, rel=1e-9)
     assert xdd[-1] == pytest.approx(6.0, rel=1e-9)
+
+
+def test_realtime_kalman_equals_filterpy_kalman():
+    from mrrig.estimation import KalmanEstimator, RealtimeKalman
+
+    rng = np.random.default_rng(3)
+    t = np.arange(0, 2.0, 0.002)
+    x = 0.015 * np.sin(2 * np.pi * 4 * t) + rng.normal(0, 2e-5, t.size)
+    ref, fast = KalmanEstimator(0.002), RealtimeKalman(0.002)
+    ref.reset(x[0])
+    fast.reset(x[0])
+    for k, v in enumerate(x):
+        meas = None if k % 97 == 50 else float(v)  # a few missing samples too
+        a, b = ref.update(meas), fast.update(meas)
+        assert np.allclose(a, b, rtol=1e-9, atol=1e-12), (k, a, b)

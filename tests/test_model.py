@@ -159,3 +159,10 @@ def test_unreadable_or_non_json_model_file_raises_model_error(tmp_path: Path) ->
             MLP.load(path)
     with pytest.raises(ModelError, match="cannot read"):
         MLP.load(tmp_path / "missing.json")
+
+
+def test_lm_stops_at_the_time_limit() -> None:
+    X, y = smooth_data(np.random.default_rng(7), 200)
+    _, report = train_lm(X, y, NAMES, UNITS, "force", "N", hidden=5, max_epochs=1000,
+                         time_limit_s=0.0)
+    assert (report.stop_reason, report.epochs) == ("time_limit", 1)

@@ -377,3 +377,36 @@ def test_sigterm_still_writes_a_complete_recording(tmp_path: Path):
     assert [(e["level"], e["text"], e["kind"]) for e in rec.events] == [
         ("error", "bad CRC", "fault")]
     assert rec.summary == {"frames": 300}
+
+
+def test_sidecar_exits_3_when_its_port_is_taken(tmp_path: Path):
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        path = tmp_path / "z.json5"
+        path.write_text(
+            f'{{listen: {{endpoints: ["tcp/127.0.0.1:{taken.getsockname()[1]}"]}},'
+            " scouting: {multicast: {enabled: false}}}"
+        )
+        fds = make_channel(pipe_bytes=None)
+        loop = LoopEnd(fds.loop_rx, fds.loop_tx)
+        try:
+            proc = start_sidecar(RIG, path, fds)
+            assert proc.wait(timeout=10) == 3
+        finally:
+            loop.close()
+
+
+def test_recording_only_sidecar_needs_no_zenoh(tmp_path: Path):
+    path = tmp_path / "run.rrd"
+    arr = _samples(100)
+    fds = make_channel()
+    loop = LoopEnd(*fds.loop_fds())
+    try:
+        proc = start_sidecar(RIG, None, fds, record=path)
+        loop.send_samples(arr)
+        loop.send_stop()
+        assert proc.wait(timeout=20) == 0
+    finally:
+        loop.close()
+    assert read_recording(path).samples.tobytes() == arr.tobytes()

@@ -66,21 +66,24 @@ def stop_sim(proc: subprocess.Popen[bytes]) -> int:
 
 def test_run_stats_count_each_sensor_frame_answered_once_unanswered_or_more_than_once():
     stats = RunStats()
-    frames = [Frame(SENSORS_ID, b"", c, True) for c in range(4)]
+    frames = [Frame(SENSORS_ID, b"", c, True) for c in range(5)]
     stats.on_sensor_sent(frames[0], 0.000, 0.0001)
     stats.on_command(0, 0.0006)  # answered once, 500 us
     stats.on_sensor_sent(frames[1], 0.002, 0.0021)  # unanswered
-    stats.on_command(0, 0.0030)  # too late: echoes a frame no longer awaiting an answer
+    stats.on_command(0, 0.0030)  # frame 0 again: answered twice
     stats.on_sensor_sent(frames[2], 0.004, 0.0041)
-    stats.on_command(2, 0.0045)
-    stats.on_command(2, 0.0046)  # answered twice
-    stats.on_sensor_sent(Frame(SENSORS_ID, b"", 3, False), 0.006, 0.0062)  # faulted frame
-    stats.on_command(3, 0.0065)
-    stats.on_sensor_sent(frames[3], 0.008, 0.0081)  # still pending at the end: not counted
-    assert (stats.answered_once, stats.unanswered, stats.answered_more_than_once) == (1, 1, 1)
-    assert stats.unmatched_answers == 2 and stats.sensor_frames_faulted == 1
-    assert list(stats.latency_us) == pytest.approx([500.0, 400.0])
-    assert list(stats.jitter_us) == pytest.approx([100.0, 100.0, 100.0, 200.0, 100.0])
+    stats.on_sensor_sent(frames[3], 0.006, 0.0061)
+    stats.on_command(2, 0.0065)  # late (after frame 3) but answered once, 2400 us
+    stats.on_command(3, 0.0066)  # answered once, 500 us
+    stats.on_sensor_sent(Frame(SENSORS_ID, b"", 9, False), 0.008, 0.0082)  # faulted frame
+    stats.on_command(9, 0.0085)  # echoes a frame that awaits no answer
+    stats.on_sensor_sent(frames[4], 0.010, 0.0101)  # still in flight at the end: not counted
+    stats.finish()
+    assert (stats.answered_once, stats.unanswered, stats.answered_more_than_once) == (2, 1, 1)
+    assert stats.answered_late == 1
+    assert stats.unmatched_answers == 1 and stats.sensor_frames_faulted == 1
+    assert list(stats.latency_us) == pytest.approx([500.0, 2400.0, 500.0])
+    assert list(stats.jitter_us) == pytest.approx([100.0, 100.0, 100.0, 100.0, 200.0, 100.0])
 
 
 def test_sim_streams_sensors_at_500_hz_answers_are_matched_watchdog_trips_and_sigterm_exits_0(

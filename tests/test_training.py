@@ -197,17 +197,18 @@ def test_recording_gives_x_est_i_cmd_f_meas_without_fault_samples_and_splits_run
     s["x"], s["x_est"], s["xd"], s["xdd"] = 1e-3 * k, 1e-3 * k + 1e-6, 0.5, -2.0
     s["f_meas"], s["i_cmd"], s["i_meas"] = 10.0 + k, 0.01 * k, 0.3
     s["state"] = RigState.ARMED
-    s["state"][:50] = RigState.IDLE
+    s["state"][:100] = RigState.IDLE
     s["state"][200:220] = RigState.FAULT
     path = tmp_path / "run.rrd"
     with Recorder(path, "rig1") as rec:
         rec.add_samples(s)
     got = load_training_data([path])
     keep = s["state"] != RigState.FAULT
+    keep[:50] = False  # the Kalman filter's first 0.1 s
     assert len(got) == keep.sum()
     np.testing.assert_array_equal(got.x, s["x_est"][keep])
     np.testing.assert_array_equal(got.current, s["i_cmd"][keep])
     np.testing.assert_array_equal(got.force, s["f_meas"][keep])
     # IDLE and ARMED are one run; after the FAULT stretch a new run starts (lag filters restart)
-    np.testing.assert_array_equal(np.unique(got.run_id[: 200]), [0])
-    np.testing.assert_array_equal(np.unique(got.run_id[200:]), [1])
+    np.testing.assert_array_equal(np.unique(got.run_id[:150]), [0])
+    np.testing.assert_array_equal(np.unique(got.run_id[150:]), [1])

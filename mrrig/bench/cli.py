@@ -10,6 +10,7 @@ BENCHES = {
     "estimation": "mrrig.bench.estimation",
     "inversion": "mrrig.bench.inversion",
     "loop": "mrrig.bench.loop",
+    "matrix": "mrrig.bench.matrix",
 }
 
 

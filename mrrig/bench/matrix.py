@@ -33,7 +33,7 @@ from mrrig.datasets import DISPLACEMENT_LSB_M, Series, dataset_b, dataset_b_cond
 from mrrig.estimation import KalmanEstimator
 from mrrig.metrics import error_norm, percentiles
 from mrrig.model.mlp import MLP
-from mrrig.training import estimate_derivatives, train_and_validate
+from mrrig.training import measured_series, train_and_validate
 
 log = logging.getLogger(__name__)
 
@@ -59,16 +59,6 @@ PAPER = {"inverse_current_rmse_a": 0.09, "supervised_current_rmse_a": 0.20, "tra
 
 def _conditions() -> np.ndarray:
     return dataset_b_conditions(AMPLITUDES_M, FREQS_HZ, CURRENTS_A)
-
-
-def measured_series(b: Series) -> Series:
-    """What the rig records of data set B: noisy displacement and force, the command; xd/xdd
-    by the daemon's Kalman filter (first 0.1 s of each run dropped)."""
-    raw = Series(
-        t=b.t, x=b.x_meas, xd=None, xdd=None, current=b.current, force=b.force_meas,
-        name="B-measured", run_id=b.run_id,
-    )
-    return estimate_derivatives(raw)
 
 
 def make_plant_force(s: Series, params: BoucWenParams, cond: np.ndarray | None = None):
@@ -107,8 +97,9 @@ def closed_loop_estimated(
     f_act, command = np.empty((batch, n)), np.empty((batch, n))
     for k in range(n):
         f_act[:, k] = f_a
-        s = ControlInput(est[0][:, k], est[1][:, k], est[2][:, k], f_a + f_meas_noise[:, k],
-                         f_des[:, k])
+        s = ControlInput(
+            est[0][:, k], est[1][:, k], est[2][:, k], f_a + f_meas_noise[:, k], f_des[:, k]
+        )
         command[:, k] = controller.command(s)
         if k + 1 < n:
             cmd = command[:, k].tolist()
@@ -162,18 +153,31 @@ def run(seed: int = 0, epochs: int = 1000, current_input: str = "commanded") -> 
     b = dataset_b()
     s = measured_series(b)
     data_s = time.perf_counter() - t0
-    log.info("data set B: %d runs, %d samples after the Kalman warm-up (%.1f s)",
-             int(np.unique(s.run_id).size), len(s), data_s)
+    log.info(
+        "data set B: %d runs, %d samples after the Kalman warm-up (%.1f s)",
+        int(np.unique(s.run_id).size),
+        len(s),
+        data_s,
+    )
 
     def progress(epoch: int, mse: float, val: float | None, mu: float) -> None:
         if epoch % 25 == 0:
-            log.info("  epoch %d: train MSE %.4g N^2, val MSE %.4g N^2, mu %.3g", epoch, mse,
-                     val if val is not None else float("nan"), mu)
+            log.info(
+                "  epoch %d: train MSE %.4g, val MSE %.4g, mu %.3g",
+                epoch,
+                mse,
+                val if val is not None else float("nan"),
+                mu,
+            )
 
     plant_force = make_plant_force(s, params)
     t0 = time.perf_counter()
     fwd, sup, report = train_and_validate(
-        s, seed=seed, progress=progress, current_input=current_input, max_epochs=epochs,
+        s,
+        seed=seed,
+        progress=progress,
+        current_input=current_input,
+        max_epochs=epochs,
         plant_force=plant_force,
     )
     total_s = time.perf_counter() - t0
@@ -245,8 +249,7 @@ def format_report(r: dict) -> str:
     ]
     for name, c in r["closed_loop"]["controllers"].items():
         lines.append(
-            f"  {name:<28} {_pct(c['tracking_n'])}   Et "
-            + " ".join(f"{e:.3f}" for e in c["et"])
+            f"  {name:<28} {_pct(c['tracking_n'])}   Et " + " ".join(f"{e:.3f}" for e in c["et"])
         )
     return "\n".join(lines)
 

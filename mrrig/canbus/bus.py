@@ -12,6 +12,7 @@ can_remote does not report a dead server as a CAN error: `recv` raises `Websocke
 from __future__ import annotations
 
 import logging
+import os
 import socket
 import subprocess
 import sys
@@ -118,30 +119,36 @@ def start_bridge(
     channel: str = "rig",
     host: str = "127.0.0.1",
     timeout_s: float = BRIDGE_START_TIMEOUT_S,
+    realtime_priority: int = 30,
 ) -> subprocess.Popen[bytes]:
     """Start a can_remote server serving virtual channel `channel` on ws://host:port/.
 
-    Returns once the server accepts connections. Raises `BusError` if the port is taken,
-    the server exits, or it does not listen within `timeout_s`.
+    The bridge is on the path of every frame, so it runs SCHED_FIFO `realtime_priority`
+    where permitted (0: normal scheduling; a warning where not permitted). Returns once the
+    server accepts connections. Raises `BusError` if the port is taken, the server exits,
+    or it does not listen within `timeout_s`.
     """
     if _port_in_use(host, port):
         raise BusError(f"CAN bridge: port {host}:{port} already in use")
     cmd = [
         sys.executable,
         "-m",
-        "can_remote",
-        "-i",
-        "virtual",
-        "-c",
+        "mrrig.canbus.bridge",
+        "--channel",
         channel,
-        "-H",
+        "--host",
         host,
-        "-p",
+        "--port",
         str(port),
     ]
     # The server logs every connection at DEBUG: a file, never an unread pipe that fills up.
     with tempfile.TemporaryFile() as log:
         proc = subprocess.Popen(cmd, stdin=subprocess.DEVNULL, stdout=log, stderr=log)
+        if realtime_priority:
+            try:
+                os.sched_setscheduler(proc.pid, os.SCHED_FIFO, os.sched_param(realtime_priority))
+            except (OSError, AttributeError) as exc:
+                logger.warning("CAN bridge: SCHED_FIFO not permitted (%s): normal priority", exc)
         deadline = time.monotonic() + timeout_s
         while True:
             if proc.poll() is not None:

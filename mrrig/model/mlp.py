@@ -181,8 +181,9 @@ class MLP:
         except ModelError as exc:
             raise ModelError(f"{path}: {str(exc).removeprefix('model: ')}") from None
         if doc.get("hidden", model.hidden) != model.hidden:
-            raise ModelError(f"{path}: field 'hidden': {doc['hidden']!r} but W1 has "
-                             f"{model.hidden} rows")
+            raise ModelError(
+                f"{path}: field 'hidden': {doc['hidden']!r} but W1 has {model.hidden} rows"
+            )
         return model
 
 

@@ -10,18 +10,23 @@ solve again with the same J. The Jacobian is analytic (one hidden layer); J^T J 
 an epoch. The epoch runs in numpy float64: numpy computes J J^T as one BLAS syrk (half the
 flops of the gemm torch uses; measured 8 ms vs 15 ms for 12771 x 181 here), and one BLAS
 thread pool avoids the torch-OpenMP/OpenBLAS contention that made mixed epochs 2-10x slower on
-this 2-core VM. Torch provides `MLPModule`, the autograd twin of the numpy model.
+this 2-core VM. BLAS runs on `blas_threads` threads during training (default 1): on a busy
+2-core machine OpenBLAS's spinning worker threads made an epoch 20x slower (590 ms vs 23 ms),
+on an idle one two threads gain only about 1.3x. Torch provides `MLPModule`, the autograd twin
+of the numpy model.
 """
 
 from __future__ import annotations
 
+import contextlib
+import ctypes
 import logging
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
-import scipy.linalg
 import torch
 
 from mrrig.metrics import error_norm
@@ -98,8 +103,11 @@ class _Net:
         D = o * o
         np.subtract(1.0, D, out=D)
         D *= W2[:, None]  # d f / d pre-activation
-        np.multiply(D[:, None, :], Z1t[None, :, :],
-                    out=Jt[: self.n_a].reshape(self.hidden, self.n_in + 1, -1))
+        np.multiply(
+            D[:, None, :],
+            Z1t[None, :, :],
+            out=Jt[: self.n_a].reshape(self.hidden, self.n_in + 1, -1),
+        )
         Jt[self.n_a : self.n_a + self.hidden] = o
         Jt[-1] = 1.0
 
@@ -112,6 +120,25 @@ class _Net:
         b = rng.uniform(-beta, beta, H)
         W2 = rng.uniform(-1.0, 1.0, H) / np.sqrt(H)
         return np.concatenate([np.column_stack([W, b]).ravel(), W2, [0.0]])
+
+
+@contextlib.contextmanager
+def _blas_threads(n: int | None) -> Iterator[None]:
+    """Limit numpy's bundled OpenBLAS to n threads inside the block (no-op if n is None or
+    numpy uses another BLAS)."""
+    libs = sorted((Path(np.__file__).parent.parent / "numpy.libs").glob("libscipy_openblas*.so*"))
+    lib = ctypes.CDLL(str(libs[0])) if libs and n is not None else None
+    setter = getattr(lib, "scipy_openblas_set_num_threads64_", None)
+    getter = getattr(lib, "scipy_openblas_get_num_threads64_", None)
+    if setter is None or getter is None:
+        yield
+        return
+    before = getter()
+    setter(n)
+    try:
+        yield
+    finally:
+        setter(before)
 
 
 def _standardise(a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -142,14 +169,62 @@ def train_lm(
     progress: ProgressFn | None = None,
     time_limit_s: float | None = None,
     description: str = "",
+    blas_threads: int | None = 1,
 ) -> tuple[MLP, TrainReport]:
     """Train an n_in-hidden-1 tanh MLP on (X (N x n_in), y (N,)) by Levenberg-Marquardt.
 
     Validation: `validation=(Xv, yv)`, or else a random `validation_fraction` of X held out
     (0: no early stop). Returns the best-validation weights (the last ones without
     validation). `progress(epoch, train_mse, val_mse, mu)` is called after every epoch, MSEs
-    in physical units squared.
+    in physical units squared. `blas_threads`: see the module docstring.
     """
+    with _blas_threads(blas_threads):
+        return _train_lm(
+            X,
+            y,
+            input_names,
+            input_units,
+            output_name,
+            output_unit,
+            hidden,
+            max_epochs,
+            validation,
+            validation_fraction,
+            mu0,
+            mu_inc,
+            mu_dec,
+            mu_max,
+            max_fail,
+            min_grad,
+            seed,
+            progress,
+            time_limit_s,
+            description,
+        )
+
+
+def _train_lm(
+    X: np.ndarray,
+    y: np.ndarray,
+    input_names: Sequence[str],
+    input_units: Sequence[str],
+    output_name: str,
+    output_unit: str,
+    hidden: int,
+    max_epochs: int,
+    validation: tuple[np.ndarray, np.ndarray] | None,
+    validation_fraction: float,
+    mu0: float,
+    mu_inc: float,
+    mu_dec: float,
+    mu_max: float,
+    max_fail: int,
+    min_grad: float,
+    seed: int,
+    progress: ProgressFn | None,
+    time_limit_s: float | None,
+    description: str,
+) -> tuple[MLP, TrainReport]:
     t_start = time.perf_counter()
     X = np.asarray(X, dtype=np.float64)
     y = np.asarray(y, dtype=np.float64).ravel()
@@ -211,11 +286,12 @@ def train_lm(
             M = JtJ.copy()
             M[diag] += mu
             try:
-                L = scipy.linalg.cho_factor(M, check_finite=False)
+                # numpy, not scipy: scipy's own OpenBLAS would spin up its threads here
+                step = np.linalg.solve(M, g)
             except np.linalg.LinAlgError:
-                L = None
-            if L is not None:
-                w_try = w + scipy.linalg.cho_solve(L, g, check_finite=False)
+                step = None
+            if step is not None:
+                w_try = w + step
                 f_try, o_try = net.forward(w_try, Z1)
                 e_try = ys - f_try
                 perf_try = float(e_try @ e_try) / N
@@ -238,8 +314,13 @@ def train_lm(
         if progress is not None:
             progress(epoch, perf * scale, v_phys, mu)
         if epoch % 50 == 0:
-            log.info("LM epoch %d: train MSE %.6g, val MSE %s, mu %.3g", epoch, perf * scale,
-                     f"{v_phys:.6g}" if v_phys is not None else "-", mu)
+            log.info(
+                "LM epoch %d: train MSE %.6g, val MSE %s, mu %.3g",
+                epoch,
+                perf * scale,
+                f"{v_phys:.6g}" if v_phys is not None else "-",
+                mu,
+            )
         if has_val and fails >= max_fail:
             stop = "validation"
             break
@@ -304,6 +385,12 @@ def train_lm(
             "numpy": np.__version__,
         },
     )
-    log.info("LM stopped (%s) after %d epochs in %.2f s: train MSE %.6g, val MSE %s",
-             stop, epoch, seconds, train_mse, metrics["val_mse"])
+    log.info(
+        "LM stopped (%s) after %d epochs in %.2f s: train MSE %.6g, val MSE %s",
+        stop,
+        epoch,
+        seconds,
+        train_mse,
+        metrics["val_mse"],
+    )
     return model, report

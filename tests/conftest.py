@@ -1,0 +1,141 @@
+"""Shared fixtures: a forward model trained from the simulator, processes on a bridge."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import can
+import pytest
+
+from mrrig.canbus.bus import find_free_port, open_bus, start_bridge, stop_bridge
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture(scope="session")
+def sim_model(tmp_path_factory) -> Path:
+    """A forward network trained on the simulated characterization matrix (once per session)."""
+    from mrrig.training import simulated_matrix_model
+
+    path = tmp_path_factory.mktemp("model") / "sim-forward.json"
+    simulated_matrix_model(path, seed=0)
+    return path
+
+
+@pytest.fixture
+def bridge():
+    """A python-can-remote bridge on 127.0.0.1; yields its channel URL."""
+    port = find_free_port()
+    proc = start_bridge(port)
+    try:
+        yield f"ws://127.0.0.1:{port}/"
+    finally:
+        stop_bridge(proc)
+
+
+class BusLog:
+    """Every frame on the bridge, as (t, id, data), recorded by a client of its own."""
+
+    def __init__(self, channel: str) -> None:
+        self.bus = open_bus("remote", channel)
+        self.frames: list[tuple[float, int, bytes]] = []
+        self._stop = False
+        self._thread = threading.Thread(target=self._run, daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        while not self._stop:
+            msg = self.bus.recv(timeout=0.1)
+            if msg is not None:
+                self.frames.append((time.monotonic(), msg.arbitration_id, bytes(msg.data)))
+
+    def close(self) -> None:
+        self._stop = True
+        self._thread.join(timeout=2)
+        self.bus.shutdown()
+
+
+@pytest.fixture
+def buslog(bridge):
+    log = BusLog(bridge)
+    try:
+        yield log
+    finally:
+        log.close()
+
+
+def start(args: list[str], **kw) -> subprocess.Popen:
+    env = dict(os.environ, PYTHONUNBUFFERED="1")
+    return subprocess.Popen([sys.executable, *args], cwd=REPO, env=env, **kw)
+
+
+def stop(proc: subprocess.Popen, timeout_s: float = 15.0) -> int:
+    if proc.poll() is None:
+        proc.terminate()
+        try:
+            proc.wait(timeout=timeout_s)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()
+    return proc.returncode
+
+
+@pytest.fixture
+def procs():
+    """Processes started by a test; all stopped at its end, whatever happens."""
+    started: list[subprocess.Popen] = []
+
+    def _start(args, **kw):
+        p = start(args, **kw)
+        started.append(p)
+        return p
+
+    yield _start
+    for p in reversed(started):
+        stop(p)
+
+
+def rig_config(tmp_path: Path, channel: str, model: Path | None, **sections) -> Path:
+    """A daemon config for process tests, from configs/rig.toml with overrides."""
+    import tomllib
+
+    table = tomllib.loads((REPO / "configs/rig.toml").read_text())
+    table["bus"]["channel"] = channel
+    if model is not None:
+        table["controller"]["model"] = str(model)
+    table["telemetry"]["enabled"] = False
+    table["recording"]["enabled"] = False
+    for name, values in sections.items():
+        table.setdefault(name, {}).update(values)
+    path = tmp_path / "rig.toml"
+    path.write_text(_toml(table))
+    return path
+
+
+def _toml(table: dict) -> str:
+    lines: list[str] = []
+    for section, values in table.items():
+        lines.append(f"[{section}]")
+        for k, v in values.items():
+            lines.append(f"{k} = {_value(v)}")
+    return "\n".join(lines) + "\n"
+
+
+def _value(v) -> str:
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, str):
+        return '"' + v.replace("\\", "\\\\").replace('"', '\\"') + '"'
+    if isinstance(v, list | tuple):
+        return "[" + ", ".join(_value(x) for x in v) + "]"
+    if isinstance(v, dict):
+        return "{" + ", ".join(f"{k} = {_value(x)}" for k, x in v.items()) + "}"
+    return repr(v)
+
+
+__all__ = ["BusLog", "REPO", "can", "rig_config", "start", "stop"]
