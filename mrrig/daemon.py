@@ -532,11 +532,13 @@ def main(argv: list[str] | None = None) -> int:
     if loop:
         overrides["loop"] = loop
     cfg = load_config(args.config, overrides)
-    record = None
-    if cfg.recording.enabled and not args.no_record:
+    record = args.record
+    if record is None and cfg.recording.enabled:
         from mrrig.recording import recording_path
 
-        record = args.record or recording_path(cfg.recording.directory, cfg.rig.name)
+        record = recording_path(cfg.recording.directory, cfg.rig.name)
+    if args.no_record:
+        record = None
     daemon = Daemon(cfg, record_path=record)
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda s, _f: daemon.request_stop(signal.Signals(s).name))

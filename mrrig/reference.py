@@ -191,9 +191,6 @@ class External(ForceReference):
         self._t_rx = -math.inf
         self.now = 0.0  # the daemon's clock, set before force()
 
-    def reset(self, t_s: float, x_m: float) -> None:
-        self._value, self._t_rx = None, -math.inf
-
     def receive(self, force_n: float, t_rx_s: float) -> None:
         self._value, self._t_rx = force_n, t_rx_s
 

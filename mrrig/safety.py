@@ -62,7 +62,16 @@ class Supervisor:
         return self.state is RigState.ARMED
 
     def _event(self, t_s: float, kind: str, reason: str, **extra) -> dict:
-        return {"t": t_s, "kind": kind, "state": self.state.name, "reason": reason, **extra}
+        level = "error" if kind == "fault" else "info"
+        return {
+            "t": t_s,
+            "kind": kind,
+            "level": level,
+            "text": f"{kind}: {reason}",
+            "state": self.state.name,
+            "reason": reason,
+            **extra,
+        }
 
     def trip(self, t_s: float, fault: Fault, reason: str) -> list[dict]:
         """Enter FAULT (or stay there, recording the new reason). Returns the events."""

@@ -90,7 +90,10 @@ def test_ten_seconds_of_force_tracking_one_command_per_sensor_frame(
     # python-can-remote bridge's round trip reaches tens of ms on this 2-core VM (the
     # simulator measures it); every frame was still answered once, checked above.
     bridge_stalled = st["answer_latency_us"]["max"] > 20_000
-    during = [f for f in s["faults"] if f["t"] < s["duration_s"] - 0.1]
+    faults = s["faults"]
+    if faults and faults[-1]["reason"].startswith("no sensor frame"):
+        faults = faults[:-1]  # the simulator stopped first
+    during = faults
     unexplained = [f for f in during if not (bridge_stalled and "watchdog" in f["reason"])]
     assert unexplained == []
     assert st["watchdog_trips"] == 0 or bridge_stalled

@@ -1,0 +1,32 @@
+"""`mrrig review FILE.rrd`: the metrics of a recorded run, read back with Rerun's reader."""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+from mrrig.review import plot_recording, read_recording, verify_rrd
+from mrrig.summary import format_summary, summarize
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(prog="mrrig review", description=__doc__)
+    ap.add_argument("file", type=Path, help="a recording (.rrd) written by the daemon")
+    ap.add_argument("--plot", type=Path, help="also write a figure (PNG) of the run")
+    ap.add_argument("--json", type=Path, help="also write the metrics as JSON")
+    ap.add_argument("--verify", action="store_true", help="run `rerun rrd verify` first")
+    args = ap.parse_args(argv)
+    if args.verify:
+        verify_rrd(args.file)
+    rec = read_recording(args.file)
+    counters = rec.summary or {}
+    keep = {k: v for k, v in counters.items() if not isinstance(v, dict | list)}
+    metrics = summarize(rec.samples, rec.events, keep)
+    print(format_summary(metrics))
+    if args.plot:
+        plot_recording(rec, args.plot)
+        print(f"figure: {args.plot}")
+    if args.json:
+        args.json.write_text(json.dumps(metrics, indent=2, default=float))
+    return 0
