@@ -16,6 +16,9 @@ import numpy as np
 from mrrig.inversion import ScalarInverter, exact_inversion, gradient_inversion
 from mrrig.model.mlp import MLP
 
+FORWARD_INPUTS = ("x", "xd", "xdd", "current")
+SUPERVISED_INPUTS = ("x", "xd", "xdd", "f_des")
+
 
 @dataclass
 class ControlInput:
@@ -127,10 +130,10 @@ class NetworkInversion(Controller):
         seed: int = 0,
     ) -> None:
         super().__init__(i_max)
-        if model.current_index != 3 or len(model.input_names) != 4:
+        if tuple(model.input_names) != FORWARD_INPUTS or model.output_name != "force":
             raise ValueError(
-                f"network inversion needs a forward model with inputs (x, xd, xdd, current), "
-                f"got {model.input_names}"
+                f"network inversion needs a forward model {FORWARD_INPUTS} -> force, "
+                f"got {tuple(model.input_names)} -> {model.output_name}"
             )
         if method not in ("exact", "gradient"):
             raise ValueError(f"unknown inversion method {method!r} (exact, gradient)")
@@ -196,8 +199,11 @@ class SupervisedInverse(Controller):
 
     def __init__(self, i_max: float, model: MLP) -> None:
         super().__init__(i_max)
-        if len(model.input_names) != 4:
-            raise ValueError(f"supervised inverse needs 4 inputs, got {model.input_names}")
+        if tuple(model.input_names) != SUPERVISED_INPUTS or model.output_name != "current":
+            raise ValueError(
+                f"the supervised inverse needs a model {SUPERVISED_INPUTS} -> current, "
+                f"got {tuple(model.input_names)} -> {model.output_name}"
+            )
         self.model = model
 
     def command(self, s: ControlInput) -> np.ndarray:
@@ -227,7 +233,7 @@ class RecurrentInverse(Controller):
 
     def __init__(self, i_max: float, model: MLP) -> None:
         super().__init__(i_max)
-        if tuple(model.input_names) != RNN_INPUTS:
+        if tuple(model.input_names) != RNN_INPUTS or model.output_name != "current":
             raise ValueError(f"RNN controller needs inputs {RNN_INPUTS}, got {model.input_names}")
         self.model = model
 

@@ -17,6 +17,7 @@ import logging
 import math
 import resource
 import signal
+import threading
 import time
 from dataclasses import replace
 from pathlib import Path
@@ -66,7 +67,7 @@ def build_controller(cfg: DaemonConfig, section=None) -> Controller:
         if not 0 <= c.current_a <= i_max:
             raise ConfigError(f"{cfg.source}: controller.current_a: outside [0, {i_max}] A")
         return ConstantCurrent(i_max, c.current_a)
-    model = load_model(c.model)
+    model = load_model(c.model, cfg.source)
     try:
         if c.name == "network_inversion":
             return NetworkInversion(
@@ -79,11 +80,13 @@ def build_controller(cfg: DaemonConfig, section=None) -> Controller:
         raise ModelError(f"{c.model}: input_names: {exc}") from None
 
 
-def load_model(path: Path | None) -> MLP:
+def load_model(path: Path | None, source: str) -> MLP:
     if path is None:
-        raise ModelError("controller.model: no model file given")
+        raise ModelError(f"{source}: controller.model: no model file given")
     if not Path(path).is_file():
-        raise ModelError(f"{path}: model file not found (train one: mrrig train ...)")
+        raise ModelError(
+            f"{source}: controller.model: {path} not found (train one: mrrig train ...)"
+        )
     return MLP.load(path)
 
 
@@ -103,7 +106,12 @@ def build_reference(r: ReferenceSection, dt_s: float) -> ref.ForceReference:
 
 def _realtime(cfg: DaemonConfig) -> None:
     """SCHED_FIFO, CPU affinity and locked memory where permitted; a warning where not."""
-    make_realtime(50 if cfg.loop.realtime else 0, cpu=cfg.loop.cpu, who="daemon")
+    make_realtime(
+        50 if cfg.loop.realtime else 0,
+        cpu=cfg.loop.cpu,
+        lock_memory=cfg.loop.realtime,
+        who="daemon",
+    )
 
 
 class Daemon:
@@ -131,6 +139,7 @@ class Daemon:
         self.record_path = record_path
         self.stop_reason = ""
         self._stop = False
+        self.started = threading.Event()  # set when the loop listens for frames
         self._safe_sent_at_stop = False  # the stop's SAFE command answered a sensor frame
         self.bus = None
         self.link = None  # ipc.LoopEnd to the sidecar, when telemetry or recording is on
@@ -420,6 +429,7 @@ class Daemon:
         timeout_s = cfg.loop.timeout_periods * self.period_s
         end = None if cfg.loop.duration_s is None else self.t0 + cfg.loop.duration_s
         self._send_actuator()
+        self.started.set()
         stop_deadline = None
         while not self._safe_sent_at_stop:
             if self._stop and stop_deadline is None:

@@ -68,7 +68,8 @@ class ScriptedRig:
 
     def __enter__(self) -> ScriptedRig:
         self.thread.start()
-        time.sleep(0.2)  # the daemon opens its bus and sends its first ActuatorCommand
+        assert self.daemon.started.wait(timeout=10), "daemon loop did not start"
+        time.sleep(0.05)  # its first ActuatorCommand
         self.drain()
         return self
 

@@ -44,12 +44,12 @@ def check(frames, i_max: float, min_frames: int) -> list[str]:
             errors.append(f"t={t:.6f} 0x{fid:x}: {p.lost_frames} frames lost (counter jump)")
         if fid == SENSORS:
             n["sensors"] += 1
-            seq.append(("S", p.counter, t))
+            seq.append(("S", p.counter, t, None))
         elif fid == COMMAND:
             n["commands"] += 1
             n["active"] += p.values["Mode"] == 1
             t_cmd.append(t)
-            seq.append(("C", int(p.values["SensorCounterEcho"]), t))
+            seq.append(("C", int(p.values["SensorCounterEcho"]), t, int(p.values["Mode"])))
             if p.values["CurrentSetpoint"] > i_max + 1e-9:
                 errors.append(f"t={t:.6f}: setpoint {p.values['CurrentSetpoint']} A > {i_max} A")
         elif fid == STATUS:
@@ -63,9 +63,15 @@ def check(frames, i_max: float, min_frames: int) -> list[str]:
     starts = [i for i in range(first) if seq[i][0] == "S" and seq[i][1] == seq[first][1]]
     if not starts:
         return errors + ["the first command answers no sensor frame"]
-    window = seq[starts[-1] : last + 1]
-    sensors = [c for k, c, _ in window if k == "S"]
-    echoes = [c for k, c, _ in window if k == "C"]
+    last_s = max(i for i, e in enumerate(seq) if e[0] == "S")
+    # commands after the last sensor frame: its answer, then the daemon's own SAFE commands
+    # once the simulator had stopped (sensor timeout, stop); those must be SAFE
+    tail = [e for e in seq[last_s + 1 : last + 1] if e[0] == "C"]
+    answer_to_last = tail[:1] if tail and tail[0][1] == seq[last_s][1] else []
+    after = len(tail) - len(answer_to_last)
+    window = seq[starts[-1] : last_s + 1] + answer_to_last
+    sensors = [c for k, c, _, _ in window if k == "S"]
+    echoes = [c for k, c, _, _ in window if k == "C"]
     mismatch = next(
         (i for i, (a, b) in enumerate(zip(sensors, echoes, strict=False)) if a != b), None
     )
@@ -77,12 +83,15 @@ def check(frames, i_max: float, min_frames: int) -> list[str]:
         errors.append(f"{len(sensors)} sensor frames but {len(echoes)} commands in the window")
     if len(echoes) < min_frames:
         errors.append(f"only {len(echoes)} answered frames (want >= {min_frames})")
+    if any(mode != 0 for _, _, _, mode in tail[len(answer_to_last) :]):
+        errors.append("an ACTIVE command after the simulator stopped")
     span = window[-1][2] - window[0][2]
     print(
         f"candump check: {len(frames)} frames; in the daemon's window {len(sensors)} sensor "
         f"frames, {len(echoes)} commands ({n['active']} ACTIVE) over {span:.1f} s = "
         f"{len(sensors) / span if span else 0:.0f} Hz; {n['status']} RigStatus, "
-        f"{n['actuator']} ActuatorCommand; {len(errors)} errors"
+        f"{n['actuator']} ActuatorCommand; {after} SAFE commands after the simulator stopped; "
+        f"{len(errors)} errors"
     )
     return errors
 

@@ -1,0 +1,564 @@
+"""`mrrig characterize`: the characterization test matrix (spec/modeling.md 4 B) on the rig.
+
+For each run (amplitude x frequency x current, paper Table 1): constant current, actuator sine,
+arm, wait `settle_s` (actuator ramp, coil lag), keep `duration_s` of ARMED samples, disarm.
+Each finished run is written to `DIR/run-NNN.rrd`, appended to `DIR/matrix.csv` (tidy:
+`mrrig.training.TIDY_HEADER`) and then listed in `DIR/done.json` (written last, atomically):
+a rerun skips the runs listed there and drops any rows of unlisted runs from matrix.csv, so a
+run interrupted midway is redone from scratch. Ctrl-C/SIGTERM: SAFE, actuator STOP, exit 130.
+
+The daemon's loop runs in a thread of this process (`RigSession`); the tool drives it with
+control requests between runs (never per frame). `mrrig validate` uses the same session.
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime as dt
+import json
+import logging
+import math
+import os
+import signal
+import sys
+import threading
+import time
+from collections.abc import Iterator
+from contextlib import contextmanager
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any, TextIO
+
+import numpy as np
+
+from mrrig.config import DaemonConfig, load_config
+from mrrig.control import handle
+from mrrig.daemon import Daemon
+from mrrig.datasets import dataset_b_conditions
+from mrrig.recording import Recorder
+from mrrig.samples import SAMPLE_DTYPE, RigState
+from mrrig.summary import summarize
+from mrrig.typed_config import ConfigError, load_toml, parse
+
+log = logging.getLogger(__name__)
+
+# The rig must stream sensor frames this soon after the loop starts; the daemon's start-up
+# (mlockall of this process: 1-2 s here, rerun's libraries being mapped) is inside it.
+FIRST_FRAME_TIMEOUT_S = 10.0
+# Disarmed (SAFE) time before the first arm: the loop's first few hundred ms after start-up
+# have stalls past the firmware's 20 ms watchdog on this VM (measured: 2 trips in 0.4 s).
+WARMUP_S = 1.0
+FLUSH_MARGIN_S = 0.1  # the loop hands samples over in batches of telemetry_batch frames
+MIN_SAMPLE_FRACTION = 0.95  # a run with fewer samples than this of duration/period is redone
+# Disarmed pause before another attempt: the firmware reports a watchdog trip in its next
+# RigStatus (10 Hz); arming again at once would fault on that old trip.
+RETRY_PAUSE_S = 0.5
+RUN_OVERHEAD_S = 0.5  # requests and file writing per run, for the first time-left estimate
+DONE_FILE = "done.json"
+MATRIX_FILE = "matrix.csv"
+EXIT_INTERRUPTED = 130
+# mrrig.training.TIDY_HEADER (a test pins them equal): importing mrrig.training would load
+# torch, and the daemon's mlockall would then lock its ~2 GB of mappings in this process.
+TIDY_HEADER = (
+    "run_id",
+    "t_s",
+    "x_m",
+    "xd_m_s",
+    "xdd_m_s",
+    "force_n",
+    "current_cmd_a",
+    "current_meas_a",
+)
+
+
+class RigError(RuntimeError):
+    """The rig or the daemon cannot go on (no sensor frames, a refused request, a dead loop)."""
+
+
+class RunFailed(RigError):
+    """One run did not give clean data (a fault, missing samples); it may be tried again."""
+
+
+class Interrupted(Exception):
+    """SIGINT or SIGTERM arrived: stop safely."""
+
+
+# ---------------------------------------------------------------------------------- config
+@dataclass(frozen=True)
+class MatrixSection:
+    """Paper Table 1: 3 amplitudes x 5 frequencies x 10 currents = 150 runs."""
+
+    amplitudes_m: tuple[float, ...] = (0.010, 0.015, 0.020)
+    freqs_hz: tuple[float, ...] = (2.0, 3.0, 4.0, 5.0, 6.0)
+    currents_a: tuple[float, ...] = tuple(round(0.2 * k, 1) for k in range(10))
+    settle_s: float = 1.0  # after arming: the actuator's 0.5 s ramp and the coil's lag
+    duration_s: float = 2.0  # kept per run
+    attempts: int = 3  # tries per run before the tool stops
+
+    def check(self) -> None:
+        if not (self.amplitudes_m and self.freqs_hz and self.currents_a):
+            raise ValueError("amplitudes_m, freqs_hz, currents_a: must not be empty")
+        if not all(0 < a <= 0.04 for a in self.amplitudes_m):
+            raise ValueError("amplitudes_m: each must be in (0, 0.04] m")
+        if not all(0 < f <= 20 for f in self.freqs_hz):
+            raise ValueError("freqs_hz: each must be in (0, 20] Hz")
+        if not all(i >= 0 and math.isfinite(i) for i in self.currents_a):
+            raise ValueError("currents_a: each must be >= 0 A")
+        if not (self.settle_s >= 0 and self.duration_s > 0):
+            raise ValueError("settle_s, duration_s: settle_s >= 0 and duration_s > 0")
+        if self.attempts < 1:
+            raise ValueError("attempts: must be at least 1")
+
+
+@dataclass(frozen=True)
+class OutputSection:
+    directory: Path = Path("recordings/characterization")
+
+
+@dataclass(frozen=True)
+class CharacterizeConfig:
+    matrix: MatrixSection = field(default_factory=MatrixSection)
+    output: OutputSection = field(default_factory=OutputSection)
+
+
+def load_characterize_config(path: str | Path) -> CharacterizeConfig:
+    return parse(CharacterizeConfig, load_toml(path), str(path))
+
+
+@dataclass(frozen=True)
+class Run:
+    run_id: int
+    amplitude_m: float
+    freq_hz: float
+    current_a: float
+
+    def label(self) -> str:
+        return f"{self.amplitude_m * 1e3:g} mm, {self.freq_hz:g} Hz, {self.current_a:.2f} A"
+
+
+def matrix_runs(m: MatrixSection) -> list[Run]:
+    """The runs in paper Table 1's order (current outermost); the index is the run id."""
+    rows = dataset_b_conditions(m.amplitudes_m, m.freqs_hz, m.currents_a)
+    return [Run(k, float(a), float(f), float(i)) for k, (a, f, i) in enumerate(rows)]
+
+
+# ---------------------------------------------------------------------------------- the rig
+class RigSession:
+    """The daemon's loop in a background thread, driven by control requests.
+
+    `handle` is called from this thread between frames, a few times per run; the samples are
+    read from the batches the loop has already handed over (never from its live buffer).
+    """
+
+    def __init__(self, cfg: DaemonConfig) -> None:
+        self.daemon = Daemon(cfg)
+        self.period_s = cfg.loop.period_s
+        self._thread = threading.Thread(target=self._run, name="mrrig-loop", daemon=True)
+        self._error: BaseException | None = None
+        self._seen_chunks = 0
+        self._seen_events = 0
+
+    def _run(self) -> None:
+        try:
+            self.daemon.run()
+        except BaseException as exc:  # noqa: BLE001 - reported by check_alive in the caller
+            self._error = exc
+
+    def __enter__(self) -> RigSession:
+        self._thread.start()
+        end = time.monotonic() + FIRST_FRAME_TIMEOUT_S
+        while self.daemon.counters["sensor_frames_valid"] == 0:
+            self.check_alive()
+            if time.monotonic() > end:
+                self.close()
+                cfg = self.daemon.cfg
+                raise RigError(
+                    f"no sensor frames from the rig in {FIRST_FRAME_TIMEOUT_S:g} s on "
+                    f"{cfg.bus.interface}/{cfg.bus.channel} (is the firmware running?)"
+                )
+            time.sleep(0.02)
+        end = time.monotonic() + WARMUP_S
+        while time.monotonic() < end:
+            self.check_alive()
+            time.sleep(0.05)
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def check_alive(self) -> None:
+        if self._error is not None:
+            raise RigError(f"the daemon loop stopped: {self._error}") from self._error
+        if not self._thread.is_alive() and self._thread.ident is not None:
+            raise RigError(f"the daemon loop stopped: {self.daemon.stop_reason or 'unknown'}")
+
+    def now(self) -> float:
+        """The daemon's clock (the samples' `t`), s."""
+        return self.daemon.now()
+
+    def request(self, **req: Any) -> dict[str, Any]:
+        reply = handle(self.daemon, req)
+        if not reply["ok"]:
+            raise RigError(f"{req['cmd']}: {reply['error']}")
+        return reply
+
+    def state(self) -> RigState:
+        return self.daemon.supervisor.state
+
+    def fault_reason(self) -> str:
+        return self.daemon.supervisor.reason
+
+    def wait_until(self, t_s: float, stop: threading.Event, fail_on_fault: bool = True) -> None:
+        """Sleep until daemon time `t_s`; Interrupted on `stop`, RunFailed on a daemon FAULT."""
+        while (left := t_s - self.now()) > 0:
+            if stop.wait(min(left, 0.05)):
+                raise Interrupted
+            self.check_alive()
+            if fail_on_fault and self.state() is RigState.FAULT:
+                raise RunFailed(f"fault: {self.fault_reason()}")
+
+    def take(self, t0_s: float, t1_s: float) -> tuple[np.ndarray, list[dict]]:
+        """Samples with t in [t0_s, t1_s) and the events since the last call.
+
+        Older samples are dropped for good: windows come in time order.
+        """
+        chunks = self.daemon._chunks  # appended by the loop thread only; a slice is atomic
+        n = len(chunks)
+        new = chunks[self._seen_chunks : n]
+        self._seen_chunks = n
+        events = self.daemon.events[self._seen_events :]
+        self._seen_events += len(events)
+        if not new:
+            return np.zeros(0, dtype=SAMPLE_DTYPE), events
+        s = np.concatenate(new)
+        return s[(s["t"] >= t0_s) & (s["t"] < t1_s)], events
+
+    def latest_t(self) -> float:
+        chunks = self.daemon._chunks
+        return float(chunks[-1]["t"][-1]) if chunks else -math.inf
+
+    def wait_samples(self, t_s: float, stop: threading.Event) -> None:
+        """Until the loop has handed over a sample at or after `t_s` (or a short timeout)."""
+        end = time.monotonic() + 1.0
+        while self.latest_t() < t_s and time.monotonic() < end:
+            if stop.wait(0.01):
+                raise Interrupted
+            self.check_alive()
+
+    def close(self) -> None:
+        """SAFE, actuator STOP (the daemon's shutdown sends both), loop stopped."""
+        if self._thread.is_alive():
+            handle(self.daemon, {"cmd": "disarm"})
+            handle(self.daemon, {"cmd": "actuator", "waveform": "stop"})
+            self.daemon.request_stop("session closed")
+            self._thread.join(timeout=10)
+            if self._thread.is_alive():
+                log.error("the daemon loop did not stop in 10 s")
+
+
+@contextmanager
+def stop_on_signals() -> Iterator[threading.Event]:
+    """An event set by SIGINT/SIGTERM while the block runs (main thread only)."""
+    stop = threading.Event()
+    handler = lambda s, _f: stop.set()  # noqa: E731
+    old = {sig: signal.signal(sig, handler) for sig in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        yield stop
+    finally:
+        for sig, h in old.items():
+            signal.signal(sig, h)
+
+
+def rig_overrides(
+    bus_channel: str | None, no_telemetry: bool, **sections: dict[str, Any]
+) -> dict[str, dict[str, Any]]:
+    """Overrides of the rig config for a tool: not armed at start, no time limit."""
+    out: dict[str, dict[str, Any]] = {"loop": {"arm_on_start": False, "duration_s": None}}
+    if bus_channel:
+        out["bus"] = {"channel": bus_channel}
+    if no_telemetry:
+        out["telemetry"] = {"enabled": False}
+    for name, values in sections.items():
+        out.setdefault(name, {}).update(values)
+    return out
+
+
+# ---------------------------------------------------------------------------------- one run
+def record_run(
+    session: RigSession, run: Run, m: MatrixSection, stop: threading.Event
+) -> np.ndarray:
+    """One run on the rig: its ARMED samples of the kept window (RunFailed if not clean)."""
+    session.request(cmd="disarm")
+    session.request(cmd="set_controller", name="constant", current_a=run.current_a)
+    session.request(
+        cmd="actuator", waveform="sine", amplitude_m=run.amplitude_m, frequency_hz=run.freq_hz
+    )
+    session.take(math.inf, math.inf)  # drop what came before this run
+    session.request(cmd="arm")
+    t_start = session.now() + m.settle_s
+    t_end = t_start + m.duration_s
+    try:
+        session.wait_until(t_end + FLUSH_MARGIN_S, stop)
+        session.wait_samples(t_end, stop)
+    finally:
+        session.request(cmd="disarm")
+    s, events = session.take(t_start, t_end)
+    faults = [e for e in events if e["kind"] == "fault"]
+    if faults:
+        raise RunFailed(f"fault: {faults[0]['reason']}")
+    expected = m.duration_s / session.period_s
+    if s.size < MIN_SAMPLE_FRACTION * expected:
+        raise RunFailed(f"{s.size} samples, expected about {expected:.0f}")
+    if np.any(s["state"] != RigState.ARMED):
+        raise RunFailed("not ARMED for the whole window")
+    return s
+
+
+def append_tidy(fh: TextIO, run_id: int, s: np.ndarray, t0_s: float) -> None:
+    """Rows of `TIDY_HEADER`: x = the daemon's Kalman displacement, its xd/xdd, the load
+    cell, the commanded and measured current; time from the window's start."""
+    cols = (
+        s["t"] - t0_s,
+        s["x_est"],
+        s["xd"],
+        s["xdd"],
+        s["f_meas"],
+        s["i_cmd"],
+        s["i_meas"],
+    )
+    rows = zip(*(c.tolist() for c in cols), strict=True)
+    fh.writelines(f"{run_id}," + ",".join(map(repr, r)) + "\n" for r in rows)
+
+
+def write_run_recording(path: Path, rig: str, run: Run, s: np.ndarray, m: MatrixSection) -> None:
+    tmp = path.with_name(path.name + ".part")
+    rec = Recorder(tmp, rig)
+    try:
+        rec.add_event(
+            float(s["t"][0]),
+            "info",
+            f"characterization run {run.run_id}: {run.label()}",
+            kind="run",
+            **asdict(run),
+            settle_s=m.settle_s,
+            duration_s=m.duration_s,
+        )
+        rec.add_samples(s)
+        rec.add_summary({**summarize(s, []), "run": asdict(run)})
+    finally:
+        rec.close()
+    os.replace(tmp, path)
+
+
+# ---------------------------------------------------------------------------------- the output
+class MatrixStore:
+    """DIR/done.json (the truth about finished runs), DIR/matrix.csv, DIR/run-NNN.rrd."""
+
+    def __init__(self, directory: Path, m: MatrixSection) -> None:
+        self.dir = directory
+        self.dir.mkdir(parents=True, exist_ok=True)
+        self.m = m
+        self.done_path = self.dir / DONE_FILE
+        self.csv_path = self.dir / MATRIX_FILE
+        self.done: dict[int, dict[str, Any]] = {}
+        if self.done_path.is_file():
+            data = json.loads(self.done_path.read_text(encoding="utf-8"))
+            if data.get("matrix") != _matrix_json(m):
+                raise ConfigError(
+                    f"{self.dir}: recorded with another matrix ({self.done_path}); "
+                    "use another --out or remove that directory"
+                )
+            self.done = {int(k): v for k, v in data["runs"].items()}
+        self._clean_csv()
+
+    def _clean_csv(self) -> None:
+        """Keep only rows of runs in done.json; a done run without rows is not done."""
+        header = ",".join(TIDY_HEADER) + "\n"
+        if not self.csv_path.is_file():
+            if self.done:
+                log.warning("%s is missing: redoing every run", self.csv_path)
+                self.done.clear()
+            self.csv_path.write_text(header, encoding="utf-8")
+            self._write_done()
+            return
+        with self.csv_path.open(encoding="utf-8") as fh:
+            lines = fh.readlines()
+        if not lines or lines[0] != header:
+            raise ConfigError(f"{self.csv_path}: not a tidy characterization file")
+        keep = [header]
+        present: set[int] = set()
+        for line in lines[1:]:
+            if not line.endswith("\n"):
+                continue  # a row cut off by a crash
+            rid = int(line.split(",", 1)[0])
+            if rid in self.done:
+                keep.append(line)
+                present.add(rid)
+        missing = set(self.done) - present
+        for rid in missing:
+            log.warning(
+                "run %d is in %s but has no rows in %s: redoing it", rid, DONE_FILE, MATRIX_FILE
+            )
+            del self.done[rid]
+        if len(keep) != len(lines):
+            log.info(
+                "%s: dropped %d rows of unfinished runs", self.csv_path, len(lines) - len(keep)
+            )
+            tmp = self.csv_path.with_suffix(".csv.part")
+            tmp.write_text("".join(keep), encoding="utf-8")
+            os.replace(tmp, self.csv_path)
+        if missing:
+            self._write_done()
+
+    def _write_done(self) -> None:
+        data = {
+            "matrix": _matrix_json(self.m),
+            "runs": {str(k): v for k, v in sorted(self.done.items())},
+        }
+        tmp = self.done_path.with_suffix(".json.part")
+        tmp.write_text(json.dumps(data, indent=1), encoding="utf-8")
+        os.replace(tmp, self.done_path)
+
+    def rrd_path(self, run: Run) -> Path:
+        return self.dir / f"run-{run.run_id:03d}.rrd"
+
+    def save(self, rig: str, run: Run, s: np.ndarray, attempts: int) -> None:
+        """Recording, then the CSV rows, then done.json: a crash before the last redoes it."""
+        t0 = float(s["t"][0])
+        write_run_recording(self.rrd_path(run), rig, run, s, self.m)
+        with self.csv_path.open("a", encoding="utf-8") as fh:
+            append_tidy(fh, run.run_id, s, t0)
+            fh.flush()
+            os.fsync(fh.fileno())
+        self.done[run.run_id] = {
+            **asdict(run),
+            "samples": int(s.size),
+            "attempts": attempts,
+            "finished_utc": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
+        }
+        self._write_done()
+
+
+def _matrix_json(m: MatrixSection) -> dict[str, Any]:
+    d = asdict(m)
+    d.pop("attempts")  # how often to try does not change the data
+    return {k: list(v) if isinstance(v, tuple) else v for k, v in d.items()}
+
+
+# ---------------------------------------------------------------------------------- progress
+class Progress:
+    """One line per run on stderr: run k/N, its conditions, the time left."""
+
+    def __init__(self, n_todo: int, n_total: int, m: MatrixSection, out: TextIO = sys.stderr):
+        self.n_todo, self.n_total = n_todo, n_total
+        self.out = out
+        self.t0 = time.monotonic()
+        self.first_guess_s = m.settle_s + m.duration_s + RUN_OVERHEAD_S
+        self.k = 0
+
+    def start(self, run: Run) -> None:
+        per_run = (time.monotonic() - self.t0) / self.k if self.k else self.first_guess_s
+        left_s = per_run * (self.n_todo - self.k)
+        width = 20
+        fill = round(width * self.k / max(self.n_todo, 1))
+        bar = "#" * fill + "." * (width - fill)
+        self.out.write(
+            f"[{bar}] run {self.k + 1}/{self.n_todo} (id {run.run_id} of {self.n_total}): "
+            f"{run.label()}; about {_hms(left_s)} left\n"
+        )
+        self.out.flush()
+
+    def finish(self) -> None:
+        self.k += 1
+
+
+def _hms(s: float) -> str:
+    s = max(0, round(s))
+    return f"{s // 3600}:{s // 60 % 60:02d}:{s % 60:02d}"
+
+
+# ---------------------------------------------------------------------------------- main
+def characterize(
+    session: RigSession, store: MatrixStore, runs: list[Run], stop: threading.Event
+) -> None:
+    """Every run of `runs` not yet in the store; RigError when a run fails `attempts` times."""
+    todo = [r for r in runs if r.run_id not in store.done]
+    if len(todo) < len(runs):
+        log.info(
+            "%d of %d runs already recorded in %s: skipping them",
+            len(runs) - len(todo),
+            len(runs),
+            store.dir,
+        )
+    progress = Progress(len(todo), len(runs), store.m)
+    rig = session.daemon.cfg.rig.name
+    for run in todo:
+        progress.start(run)
+        for attempt in range(1, store.m.attempts + 1):
+            try:
+                s = record_run(session, run, store.m, stop)
+                break
+            except RunFailed as exc:
+                log.warning("run %d, attempt %d: %s", run.run_id, attempt, exc)
+                if attempt == store.m.attempts:
+                    raise RigError(f"run {run.run_id} ({run.label()}) failed: {exc}") from None
+                session.wait_until(session.now() + RETRY_PAUSE_S, stop, fail_on_fault=False)
+        store.save(rig, run, s, attempt)
+        progress.finish()
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(prog="mrrig characterize", description=__doc__.splitlines()[0])
+    ap.add_argument(
+        "--config",
+        type=Path,
+        default=Path("configs/characterize.toml"),
+        help="the test matrix (TOML)",
+    )
+    ap.add_argument(
+        "--rig-config", type=Path, default=Path("configs/rig.toml"), help="daemon config (TOML)"
+    )
+    ap.add_argument("--bus-channel", help="override bus.channel of the rig config")
+    ap.add_argument("--out", type=Path, help="output directory (default: output.directory)")
+    ap.add_argument("--no-telemetry", action="store_true", help="no Zenoh telemetry")
+    args = ap.parse_args(argv)
+    ccfg = load_characterize_config(args.config)
+    m = ccfg.matrix
+    overrides = rig_overrides(
+        args.bus_channel,
+        args.no_telemetry,
+        controller={"name": "constant", "current_a": 0.0},
+        actuator={"waveform": "stop"},
+    )
+    cfg = load_config(args.rig_config, overrides)
+    if max(m.currents_a) > cfg.loop.i_max_a:
+        raise ConfigError(
+            f"{args.config}: matrix.currents_a: {max(m.currents_a):g} A is above the rig's "
+            f"loop.i_max_a {cfg.loop.i_max_a:g} A ({args.rig_config})"
+        )
+    store = MatrixStore(args.out or ccfg.output.directory, m)
+    runs = matrix_runs(m)
+    with stop_on_signals() as stop:
+        try:
+            with RigSession(cfg) as session:
+                characterize(session, store, runs, stop)
+        except Interrupted:
+            print(
+                f"interrupted: {len(store.done)} of {len(runs)} runs recorded in {store.dir}; "
+                "run the same command again to resume",
+                file=sys.stderr,
+            )
+            return EXIT_INTERRUPTED
+        except RigError as exc:
+            print(
+                f"error: {exc}\n{len(store.done)} of {len(runs)} runs recorded in {store.dir}; "
+                "run the same command again to resume",
+                file=sys.stderr,
+            )
+            return 1
+    n = sum(r["samples"] for r in store.done.values())
+    print(
+        f"characterization complete: {len(runs)} runs, {n} samples in {store.csv_path}\n"
+        f"train the forward model: mrrig train {store.csv_path} --out models/forward.json"
+    )
+    return 0

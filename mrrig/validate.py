@@ -1,0 +1,139 @@
+"""`mrrig validate MODEL [MODEL...]`: force tracking on the rig by network inversion of each model.
+
+The daemon runs with the rig config's force reference (bouc_wen or sine, ...) and actuator
+motion; for each model: arm, wait `--settle` s, keep `--duration` s of samples, disarm, and
+print the report (Et, tracking error, current, latency, faults). Models after the first are
+switched in with the daemon's `set_model` control request while disarmed, without a restart.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+import threading
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from mrrig.characterize import (
+    EXIT_INTERRUPTED,
+    FLUSH_MARGIN_S,
+    Interrupted,
+    RigError,
+    RigSession,
+    rig_overrides,
+    stop_on_signals,
+)
+from mrrig.config import load_config
+from mrrig.daemon import load_model
+from mrrig.recording import to_json
+from mrrig.samples import RigState
+from mrrig.summary import format_summary, summarize
+from mrrig.typed_config import ConfigError
+
+log = logging.getLogger(__name__)
+
+
+def track(
+    session: RigSession, settle_s: float, duration_s: float, stop: threading.Event
+) -> dict[str, Any]:
+    """One force-tracking window with the daemon's current controller: its summary."""
+    session.request(cmd="disarm")
+    session.take(np.inf, np.inf)  # drop what came before
+    session.request(cmd="arm")
+    t_start = session.now() + settle_s
+    t_end = t_start + duration_s
+    try:
+        session.wait_until(t_end + FLUSH_MARGIN_S, stop, fail_on_fault=False)
+        session.wait_samples(t_end, stop)
+    finally:
+        session.request(cmd="disarm")
+    s, events = session.take(t_start, t_end)
+    summary = summarize(s, events)  # events since arming: a fault while settling counts too
+    armed = s["state"] == RigState.ARMED
+    i_meas = s["i_meas"][armed]
+    summary["i_meas_a"] = {
+        "mean": float(i_meas.mean()) if i_meas.size else float("nan"),
+        "max": float(i_meas.max()) if i_meas.size else float("nan"),
+    }
+    return summary
+
+
+def format_report(r: dict[str, Any]) -> str:
+    core = {k: v for k, v in r.items() if k not in ("model", "setup", "i_meas_a")}
+    i_meas = r["i_meas_a"]
+    return "\n".join(
+        [
+            f"model         {r['model']}",
+            f"setup         {r['setup']}",
+            format_summary(core),
+            f"i_meas        mean {i_meas['mean']:.4g} A, max {i_meas['max']:.4g} A (armed)",
+        ]
+    )
+
+
+def _setup(cfg) -> str:
+    r, a, c = cfg.reference, cfg.actuator, cfg.controller
+    ref = f"reference {r.kind}"
+    if r.kind == "bouc_wen":
+        ref += (
+            f" ({r.preset}, {r.current_a:g} A + {r.current_amp_a:g} A at {r.current_freq_hz:g} Hz)"
+        )
+    elif r.kind == "sine":
+        ref += f" ({r.offset_n:g} N + {r.amplitude_n:g} N at {r.freq_hz:g} Hz)"
+    fb = f", feedback tau {c.feedback_tau_s:g} s" if c.feedback_tau_s else ""
+    return (
+        f"{ref}; actuator {a.waveform} {a.amplitude_m * 1e3:g} mm {a.frequency_hz:g} Hz; "
+        f"inversion {c.method}{fb}"
+    )
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(prog="mrrig validate", description=__doc__.splitlines()[0])
+    ap.add_argument("model", nargs="+", type=Path, help="forward model file(s) (mrrig train)")
+    ap.add_argument("--rig-config", type=Path, default=Path("configs/rig.toml"))
+    ap.add_argument("--duration", type=float, default=10.0, help="kept per model, s")
+    ap.add_argument("--settle", type=float, default=1.0, help="after arming, not kept, s")
+    ap.add_argument("--bus-channel", help="override bus.channel of the rig config")
+    ap.add_argument("--no-telemetry", action="store_true", help="no Zenoh telemetry")
+    ap.add_argument("--json", type=Path, help="write the reports (a list) as JSON")
+    args = ap.parse_args(argv)
+    if not (args.duration > 0 and args.settle >= 0):
+        raise ConfigError("--duration must be > 0 and --settle >= 0")
+    for path in args.model:
+        load_model(path)  # a missing or broken file stops here, before the rig moves
+    overrides = rig_overrides(
+        args.bus_channel,
+        args.no_telemetry,
+        controller={"name": "network_inversion", "model": str(args.model[0])},
+    )
+    cfg = load_config(args.rig_config, overrides)
+    if cfg.actuator.waveform == "stop":
+        raise ConfigError(f"{args.rig_config}: actuator.waveform: 'stop': nothing would move")
+    reports: list[dict[str, Any]] = []
+    with stop_on_signals() as stop:
+        try:
+            with RigSession(cfg) as session:
+                for k, model in enumerate(args.model):
+                    if k:
+                        session.request(cmd="disarm")
+                        session.request(cmd="set_model", path=str(model))
+                    r = track(session, args.settle, args.duration, stop)
+                    r = {"model": str(model), "setup": _setup(cfg), **r}
+                    reports.append(r)
+                    print(format_report(r), flush=True)
+        except Interrupted:
+            print("interrupted: the rig is SAFE and the actuator stopped", file=sys.stderr)
+            return EXIT_INTERRUPTED
+        except RigError as exc:
+            print(f"error: {exc}", file=sys.stderr)
+            return 1
+    if args.json:
+        args.json.write_text(to_json({"reports": reports}), encoding="utf-8")
+    faulted = [r["model"] for r in reports if r["faults"]]
+    if faulted:
+        print(f"faults during the validation of: {', '.join(faulted)}", file=sys.stderr)
+        return 1
+    return 0

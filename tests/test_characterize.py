@@ -1,0 +1,358 @@
+"""`mrrig characterize` and `mrrig validate`: the matrix, its files, resuming, model switching,
+and the rig workflow characterize -> train -> validate from the command line."""
+
+from __future__ import annotations
+
+import itertools
+import json
+import math
+import shutil
+import signal
+import subprocess
+import threading
+import time
+from pathlib import Path
+
+import can
+import numpy as np
+import pytest
+
+from firmware_sim.config import load_config as load_sim_config
+from firmware_sim.firmware import Firmware
+from firmware_sim.runner import RunStats
+from firmware_sim.runner import run as run_firmware
+from mrrig import training
+from mrrig.canbus import Codec
+from mrrig.characterize import (
+    TIDY_HEADER,
+    CharacterizeConfig,
+    Interrupted,
+    MatrixSection,
+    MatrixStore,
+    RigSession,
+    Run,
+    append_tidy,
+    characterize,
+    load_characterize_config,
+    matrix_runs,
+    rig_overrides,
+)
+from mrrig.config import load_config
+from mrrig.review import read_recording
+from mrrig.samples import SAMPLE_DTYPE, RigState
+from mrrig.training import load_tidy
+from mrrig.typed_config import ConfigError
+from mrrig.validate import track
+from tests.conftest import REPO, rig_config
+
+_channels = itertools.count()
+
+TINY = MatrixSection(
+    amplitudes_m=(0.015,),
+    freqs_hz=(3.0,),
+    currents_a=(0.0, 1.2),
+    settle_s=0.6,
+    duration_s=0.4,
+    attempts=3,
+)
+
+
+# ------------------------------------------------------------------------------ the matrix
+def test_default_matrix_is_the_papers_150_runs_current_outermost():
+    cfg = load_characterize_config(REPO / "configs/characterize.toml")
+    assert cfg.matrix == CharacterizeConfig().matrix  # the file states the defaults
+    runs = matrix_runs(cfg.matrix)
+    assert len(runs) == 150
+    assert [r.run_id for r in runs] == list(range(150))
+    assert {r.amplitude_m for r in runs} == {0.010, 0.015, 0.020}
+    assert {r.freq_hz for r in runs} == {2.0, 3.0, 4.0, 5.0, 6.0}
+    assert sorted({r.current_a for r in runs}) == pytest.approx([0.2 * k for k in range(10)])
+    assert runs[0] == Run(0, 0.010, 2.0, 0.0)
+    assert runs[1] == Run(1, 0.015, 2.0, 0.0)  # amplitude innermost
+    assert runs[15].current_a == pytest.approx(0.2)  # current outermost
+
+
+def test_matrix_out_of_range_values_are_refused_with_the_field_named(tmp_path):
+    path = tmp_path / "m.toml"
+    path.write_text("[matrix]\namplitudes_m = [0.05]\n")
+    with pytest.raises(ConfigError, match="matrix.amplitudes_m"):
+        load_characterize_config(path)
+
+
+# ------------------------------------------------------------------------------ the files
+def _samples(n: int, t0_s: float, current_a: float) -> np.ndarray:
+    s = np.zeros(n, dtype=SAMPLE_DTYPE)
+    s["t"] = t0_s + 0.002 * np.arange(n)
+    s["x"] = 0.01 * np.sin(2 * np.pi * 3 * s["t"])
+    s["x_est"] = s["x"] + 1e-6
+    s["xd"] = 0.01 * 2 * np.pi * 3 * np.cos(2 * np.pi * 3 * s["t"])
+    s["xdd"] = -((2 * np.pi * 3) ** 2) * s["x"]
+    s["f_meas"] = 1000.0 * s["xd"] * (1 + current_a)
+    s["i_cmd"] = current_a
+    s["i_meas"] = current_a * 0.98
+    s["state"] = RigState.ARMED
+    return s
+
+
+def test_tidy_rows_are_the_daemons_estimates_and_load_back_exactly(tmp_path):
+    assert TIDY_HEADER == training.TIDY_HEADER
+    s = _samples(50, 12.5, 0.8)
+    path = tmp_path / "m.csv"
+    with path.open("w") as fh:
+        fh.write(",".join(TIDY_HEADER) + "\n")
+        append_tidy(fh, 7, s, t0_s=12.5)
+    back = load_tidy(path)
+    assert np.all(back.run_id == 7)
+    np.testing.assert_array_equal(back.t, s["t"] - 12.5)
+    np.testing.assert_array_equal(back.x, s["x_est"])  # the Kalman estimate, not the sensor
+    np.testing.assert_array_equal(back.xd, s["xd"])
+    np.testing.assert_array_equal(back.xdd, s["xdd"])
+    np.testing.assert_array_equal(back.force, s["f_meas"])
+    np.testing.assert_array_equal(back.current, s["i_cmd"])
+    meas = np.loadtxt(path, delimiter=",", skiprows=1)[:, 7]
+    np.testing.assert_array_equal(meas, s["i_meas"])
+
+
+def test_rerun_drops_rows_of_an_unfinished_run_and_keeps_the_finished_ones(tmp_path):
+    runs = matrix_runs(TINY)
+    store = MatrixStore(tmp_path, TINY)
+    store.save("test", runs[0], _samples(200, 3.0, 0.0), attempts=1)
+    rrd = store.rrd_path(runs[0])
+    assert read_recording(rrd).samples.size == 200
+    # a crash after run 1's rows were appended, before done.json listed it
+    with store.csv_path.open("a") as fh:
+        append_tidy(fh, 1, _samples(120, 9.0, 1.2), t0_s=9.0)
+        fh.write("1,0.5,0.001")  # and a row cut off midway
+    again = MatrixStore(tmp_path, TINY)
+    assert set(again.done) == {0}
+    data = load_tidy(again.csv_path)
+    assert set(data.run_id.tolist()) == {0}
+    assert data.t.size == 200
+
+
+def test_a_done_run_without_its_rows_is_redone(tmp_path):
+    runs = matrix_runs(TINY)
+    store = MatrixStore(tmp_path, TINY)
+    store.save("test", runs[0], _samples(200, 3.0, 0.0), attempts=1)
+    store.csv_path.unlink()
+    assert MatrixStore(tmp_path, TINY).done == {}
+
+
+def test_an_output_directory_of_another_matrix_is_refused(tmp_path):
+    store = MatrixStore(tmp_path, TINY)
+    store.save("test", matrix_runs(TINY)[0], _samples(200, 3.0, 0.0), attempts=1)
+    other = MatrixSection(amplitudes_m=(0.02,), freqs_hz=(3.0,), currents_a=(0.0, 1.2))
+    with pytest.raises(ConfigError, match="another matrix"):
+        MatrixStore(tmp_path, other)
+
+
+# ------------------------------------------------------------------------------ in-process rig
+class ThreadRig:
+    """firmware_sim's firmware and loop in a thread, on a python-can `virtual` channel."""
+
+    def __init__(self) -> None:
+        self.channel = f"characterize-{next(_channels)}"
+        cfg = load_sim_config(REPO / "configs/sim.toml")
+        self.firmware = Firmware(cfg, Codec(), ())
+        self.bus = can.Bus(interface="virtual", channel=self.channel, receive_own_messages=False)
+        self.stats = RunStats()
+        self._stop = False
+        t = cfg.timing
+        self.thread = threading.Thread(
+            target=run_firmware,
+            args=(self.firmware, self.bus, self.stats),
+            kwargs=dict(
+                lead_s=t.lead_s,
+                spin_s=t.spin_s,
+                send_timeout_s=cfg.bus.send_timeout_s,
+                should_stop=lambda: self._stop,
+            ),
+            daemon=True,
+        )
+
+    def __enter__(self) -> ThreadRig:
+        self.thread.start()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self._stop = True
+        self.thread.join(timeout=5)
+        self.bus.shutdown()
+
+    def daemon_config(self, tmp_path: Path, **sections):
+        # one process, two 500 Hz loops sharing the GIL: a generous sensor timeout
+        path = rig_config(tmp_path, self.channel, None)
+        over = rig_overrides(
+            None,
+            True,
+            bus={"interface": "virtual"},
+            loop={"realtime": False, "timeout_periods": 25},
+            **sections,
+        )
+        return load_config(path, over)
+
+
+def _watch(store: MatrixStore, n_done: int, stop: threading.Event) -> threading.Thread:
+    """Set `stop` (as Ctrl-C would) once `n_done` runs are recorded."""
+
+    def run() -> None:
+        end = time.monotonic() + 60
+        while len(store.done) < n_done and time.monotonic() < end:
+            time.sleep(0.005)
+        stop.set()
+
+    t = threading.Thread(target=run, daemon=True)
+    t.start()
+    return t
+
+
+def test_interrupted_matrix_resumes_without_repeating_finished_runs(tmp_path):
+    runs = matrix_runs(TINY)
+    out = tmp_path / "char"
+    with ThreadRig() as rig:
+        cfg = rig.daemon_config(tmp_path, controller={"name": "constant", "current_a": 0.0})
+        store = MatrixStore(out, TINY)
+        stop = threading.Event()
+        with RigSession(cfg) as session:
+            _watch(store, 1, stop)
+            with pytest.raises(Interrupted):
+                characterize(session, store, runs, stop)
+            assert session.state() is not RigState.ARMED  # SAFE after the interruption
+        assert set(store.done) == {0}
+        first = dict(store.done[0])
+        mtime = store.rrd_path(runs[0]).stat().st_mtime_ns
+        store = MatrixStore(out, TINY)
+        with RigSession(cfg) as session:
+            characterize(session, store, runs, threading.Event())
+    assert set(store.done) == {0, 1}
+    assert store.done[0] == first  # not repeated
+    assert store.rrd_path(runs[0]).stat().st_mtime_ns == mtime
+    data = load_tidy(store.csv_path)
+    for r in runs:
+        rows = data.run_id == r.run_id
+        assert rows.sum() == store.done[r.run_id]["samples"]  # each run's rows once
+        assert np.all(data.current[rows] == r.current_a)
+        assert read_recording(store.rrd_path(r)).samples.size == rows.sum()
+    f0 = np.abs(data.force[data.run_id == 0]).max()
+    f1 = np.abs(data.force[data.run_id == 1]).max()
+    print(f"peak force: {f0:.0f} N at 0 A, {f1:.0f} N at 1.2 A; samples per run: {store.done}")
+    assert f1 > 2 * f0  # the current reached the damper
+
+
+def test_validate_switches_models_with_set_model_while_disarmed(tmp_path, sim_model):
+    other = tmp_path / "other-model.json"
+    shutil.copy(sim_model, other)
+    with ThreadRig() as rig:
+        cfg = rig.daemon_config(
+            tmp_path,
+            controller={"name": "network_inversion", "model": str(sim_model)},
+            actuator={"waveform": "sine", "amplitude_m": 0.015, "frequency_hz": 2.0},
+        )
+        with RigSession(cfg) as session:
+            first = track(session, 0.6, 1.0, threading.Event())
+            session.request(cmd="arm")
+            refused = session.daemon.handle_request({"cmd": "set_model", "path": str(other)})
+            assert not refused["ok"] and "not armed" in refused["error"]
+            session.request(cmd="disarm")
+            session.request(cmd="set_model", path=str(other))
+            assert session.daemon.cfg.controller.model == other
+            second = track(session, 0.6, 1.0, threading.Event())
+    print(f"Et with the model: {first['et']:.4f}; after set_model: {second['et']:.4f}")
+    for r in (first, second):
+        assert r["armed_frames"] >= 450
+        assert math.isfinite(r["et"]) and r["et"] < 0.2
+        assert r["faults"] == []
+
+
+# ------------------------------------------------------------------------------ processes
+def _mrrig(procs, *args: str) -> subprocess.Popen:
+    return procs(
+        ["-m", "mrrig", *args], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True
+    )
+
+
+def _sim(procs, bridge: str) -> subprocess.Popen:
+    sim = procs(["-m", "firmware_sim", "--config", "configs/sim.toml", "--bus-channel", bridge])
+    time.sleep(1.0)
+    assert sim.poll() is None
+    return sim
+
+
+@pytest.mark.slow
+def test_characterize_train_validate_from_the_command_line(tmp_path, bridge, procs):
+    """The acceptance test of issue 5: three commands in separate processes on the simulator."""
+    _sim(procs, bridge)
+    rig = rig_config(tmp_path, bridge, None)
+    out, model, report = tmp_path / "char", tmp_path / "model.json", tmp_path / "val.json"
+    t0 = time.monotonic()
+    p = _mrrig(
+        procs, "characterize", "--config", "configs/characterize-short.toml",
+        "--rig-config", str(rig), "--out", str(out),
+    )  # fmt: skip
+    log, _ = p.communicate(timeout=120)
+    assert p.returncode == 0, log
+    t1 = time.monotonic()
+    p = _mrrig(procs, "train", str(out / "matrix.csv"), "--out", str(model), "--no-supervised")
+    log_train, _ = p.communicate(timeout=120)
+    assert p.returncode == 0, log_train
+    t2 = time.monotonic()
+    p = _mrrig(
+        procs, "validate", str(model), "--rig-config", str(rig),
+        "--duration", "5", "--json", str(report),
+    )  # fmt: skip
+    log_val, _ = p.communicate(timeout=120)
+    t3 = time.monotonic()
+    print(log_val)
+    print(f"characterize {t1 - t0:.1f} s, train {t2 - t1:.1f} s, validate {t3 - t2:.1f} s")
+    (r,) = json.loads(report.read_text())["reports"]
+    # validate exits 1 when the run had a fault; the python-can-remote bridge between
+    # processes stalls for tens of ms now and then on this 2-core VM (see test_rig_e2e):
+    # a sensor timeout or firmware watchdog trip from such a stall is the only fault allowed
+    stalls = [
+        f for f in r["faults"] if "no sensor frame" in f["reason"] or "watchdog" in f["reason"]
+    ]
+    assert stalls == r["faults"], log_val
+    assert p.returncode == (1 if r["faults"] else 0), log_val
+    done = json.loads((out / "done.json").read_text())
+    assert len(done["runs"]) == 6
+    assert sorted(out.glob("run-*.rrd")) == [out / f"run-{k:03d}.rrd" for k in range(6)]
+    assert json.loads(model.read_text())["meta"]["data_files"] == [str(out / "matrix.csv")]
+    assert r["model"] == str(model)
+    assert "Et " in log_val and r["armed_frames"] >= (1000 if r["faults"] else 2400)
+    # measured: Et 0.25 on this 6-run matrix (3 Hz only) against 0.027 for the forward model
+    # trained on the full simulated 150-run matrix, same reference and motion
+    assert math.isfinite(r["et"]) and r["et"] < 0.4
+
+
+@pytest.mark.slow
+def test_interrupted_characterize_command_resumes_without_repeating_runs(tmp_path, bridge, procs):
+    _sim(procs, bridge)
+    rig = rig_config(tmp_path, bridge, None)
+    out = tmp_path / "char"
+    args = ("characterize", "--config", "configs/characterize-short.toml", "--rig-config", str(rig))
+    p = _mrrig(procs, *args, "--out", str(out))
+    done_path = out / "done.json"
+    end = time.monotonic() + 60
+    while time.monotonic() < end:
+        if done_path.is_file() and json.loads(done_path.read_text())["runs"]:
+            break
+        time.sleep(0.05)
+    p.send_signal(signal.SIGINT)
+    log, _ = p.communicate(timeout=30)
+    assert p.returncode == 130, log
+    assert "run the same command again to resume" in log
+    first = json.loads(done_path.read_text())["runs"]
+    assert 1 <= len(first) < 6
+    mtimes = {k: (out / f"run-{int(k):03d}.rrd").stat().st_mtime_ns for k in first}
+    p = _mrrig(procs, *args, "--out", str(out))
+    log, _ = p.communicate(timeout=120)
+    assert p.returncode == 0, log
+    assert f"{len(first)} of 6 runs already recorded" in log
+    runs = json.loads(done_path.read_text())["runs"]
+    assert set(runs) == {str(k) for k in range(6)}
+    for k, entry in first.items():
+        assert runs[k] == entry
+        assert (out / f"run-{int(k):03d}.rrd").stat().st_mtime_ns == mtimes[k]
+    data = load_tidy(out / "matrix.csv")
+    counts = np.bincount(data.run_id)
+    assert counts.tolist() == [runs[str(k)]["samples"] for k in range(6)]

@@ -1,0 +1,36 @@
+#!/usr/bin/env bash
+# Inside the VM (scripts/vcan-vm -- bash tests/vm/rig_on_vcan.sh): firmware_sim and the rig
+# daemon as separate processes on SocketCAN vcan0, `candump -L vcan0` logging the bus, then the
+# log decoded with the project's DBC and checked (tests/vm/check_candump.py).
+# Software emulation is slow: the simulator runs 5x slower than real time (100 Hz) and the
+# daemon's sensor timeout is generous; the check is on correctness, and it prints the rate held.
+set -euo pipefail
+cd "$(dirname "$0")/../.."
+out=tests/vm/out
+rm -rf "$out"
+mkdir -p "$out"
+SIM_SECONDS=${SIM_SECONDS:-4}           # simulated seconds (x5 on the wall clock)
+
+# a large socket buffer and a real-time priority: candump must not drop frames itself
+chrt -f 40 candump -L -r 8388608 vcan0 > "$out/candump.log" &
+dump=$!
+python -m mrrig run --config configs/vcan-vm.toml --arm --summary-json "$out/daemon.json" \
+    > "$out/daemon.log" 2>&1 &
+daemon=$!
+# the daemon is up when it has logged its start line (imports are slow in the VM)
+for _ in $(seq 1 600); do
+    grep -q "rig vm:" "$out/daemon.log" 2>/dev/null && break
+    kill -0 "$daemon" 2>/dev/null || { cat "$out/daemon.log"; exit 1; }
+    sleep 1
+done
+sleep 2
+echo "rig_on_vcan: daemon up; simulator for ${SIM_SECONDS} simulated s"
+python -m firmware_sim --config configs/sim-vcan-vm.toml --duration "$SIM_SECONDS" \
+    --stats "$out/sim.json" > "$out/sim.log" 2>&1
+sleep 1
+kill -TERM "$daemon"
+wait "$daemon" || { echo "daemon exit $?"; tail -20 "$out/daemon.log"; exit 1; }
+kill -TERM "$dump"
+wait "$dump" || true
+tail -3 "$out/sim.log"
+python tests/vm/check_candump.py "$out/candump.log" --i-max 2.0 --min-frames 1000
