@@ -5,7 +5,9 @@ arm, wait `settle_s` (actuator ramp, coil lag), keep `duration_s` of ARMED sampl
 Each finished run is written to `DIR/run-NNN.rrd`, appended to `DIR/matrix.csv` (tidy:
 `mrrig.training.TIDY_HEADER`) and then listed in `DIR/done.json` (written last, atomically):
 a rerun skips the runs listed there and drops any rows of unlisted runs from matrix.csv, so a
-run interrupted midway is redone from scratch. Ctrl-C/SIGTERM: SAFE, actuator STOP, exit 130.
+run interrupted midway is redone from scratch. A run with a fault or missing samples is tried
+again (`attempts`), then left for the next invocation (exit 1). Ctrl-C/SIGTERM: SAFE, actuator
+STOP, exit 130.
 
 The daemon's loop runs in a thread of this process (`RigSession`); the tool drives it with
 control requests between runs (never per frame). `mrrig validate` uses the same session.
@@ -52,7 +54,8 @@ FLUSH_MARGIN_S = 0.1  # the loop hands samples over in batches of telemetry_batc
 MIN_SAMPLE_FRACTION = 0.95  # a run with fewer samples than this of duration/period is redone
 # Disarmed pause before another attempt: the firmware reports a watchdog trip in its next
 # RigStatus (10 Hz); arming again at once would fault on that old trip.
-RETRY_PAUSE_S = 0.5
+RETRY_PAUSE_S = 1.0
+MAX_FAILED_IN_A_ROW = 3  # then the rig is taken to be unusable and the tool stops
 RUN_OVERHEAD_S = 0.5  # requests and file writing per run, for the first time-left estimate
 DONE_FILE = "done.json"
 MATRIX_FILE = "matrix.csv"
@@ -480,8 +483,9 @@ def _hms(s: float) -> str:
 # ---------------------------------------------------------------------------------- main
 def characterize(
     session: RigSession, store: MatrixStore, runs: list[Run], stop: threading.Event
-) -> None:
-    """Every run of `runs` not yet in the store; RigError when a run fails `attempts` times."""
+) -> list[Run]:
+    """Every run of `runs` not yet in the store; returns the runs that failed `attempts` times
+    (left for the next invocation). RigError after `MAX_FAILED_IN_A_ROW` such runs in a row."""
     todo = [r for r in runs if r.run_id not in store.done]
     if len(todo) < len(runs):
         log.info(
@@ -492,19 +496,29 @@ def characterize(
         )
     progress = Progress(len(todo), len(runs), store.m)
     rig = session.daemon.cfg.rig.name
+    failed: list[Run] = []
+    in_a_row = 0
     for run in todo:
         progress.start(run)
         for attempt in range(1, store.m.attempts + 1):
             try:
                 s = record_run(session, run, store.m, stop)
-                break
             except RunFailed as exc:
                 log.warning("run %d, attempt %d: %s", run.run_id, attempt, exc)
-                if attempt == store.m.attempts:
-                    raise RigError(f"run {run.run_id} ({run.label()}) failed: {exc}") from None
                 session.wait_until(session.now() + RETRY_PAUSE_S, stop, fail_on_fault=False)
-        store.save(rig, run, s, attempt)
+                continue
+            store.save(rig, run, s, attempt)
+            in_a_row = 0
+            break
+        else:
+            log.error("run %d (%s): %d attempts failed; left for the next invocation",
+                      run.run_id, run.label(), store.m.attempts)  # fmt: skip
+            failed.append(run)
+            in_a_row += 1
+            if in_a_row == MAX_FAILED_IN_A_ROW:
+                raise RigError(f"{in_a_row} runs in a row failed; last: {run.label()}")
         progress.finish()
+    return failed
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -541,7 +555,7 @@ def main(argv: list[str] | None = None) -> int:
     with stop_on_signals() as stop:
         try:
             with RigSession(cfg) as session:
-                characterize(session, store, runs, stop)
+                failed = characterize(session, store, runs, stop)
         except Interrupted:
             print(
                 f"interrupted: {len(store.done)} of {len(runs)} runs recorded in {store.dir}; "
@@ -556,6 +570,14 @@ def main(argv: list[str] | None = None) -> int:
                 file=sys.stderr,
             )
             return 1
+    if failed:
+        print(
+            f"{len(failed)} runs failed (ids {', '.join(str(r.run_id) for r in failed)}); "
+            f"{len(store.done)} of {len(runs)} runs recorded in {store.dir}; "
+            "run the same command again to retry them",
+            file=sys.stderr,
+        )
+        return 1
     n = sum(r["samples"] for r in store.done.values())
     print(
         f"characterization complete: {len(runs)} runs, {n} samples in {store.csv_path}\n"

@@ -51,6 +51,7 @@ class LoopSection:
     realtime: bool = True  # SCHED_FIFO where permitted
     cpu: int | None = None  # pin the loop to this CPU where permitted
     arm_on_start: bool = False
+    arm_settle_s: float = 1.0  # arm_on_start arms after this long of valid sensor frames
     duration_s: float | None = None  # stop by itself after this long (tests, demo)
     telemetry_batch: int = 10  # samples per hand-off to the telemetry process
 

@@ -145,6 +145,7 @@ class Daemon:
         self.link = None  # ipc.LoopEnd to the sidecar, when telemetry or recording is on
         self.sidecar = None
         self.t0 = time.perf_counter()
+        self._cpu0 = time.process_time()
         self.counters = {
             "frames_received": 0,
             "sensor_frames_valid": 0,
@@ -162,6 +163,8 @@ class Daemon:
         self._buf = np.zeros(cfg.loop.telemetry_batch, dtype=SAMPLE_DTYPE)
         self._n = 0
         self._last_sensor_t = None
+        self._first_sensor_t = 0.0
+        self._arm_pending = False
         self._last_counter = 0
         self._i_meas = 0.0
         self.last_x = 0.0  # the latest displacement estimate, m
@@ -341,6 +344,10 @@ class Daemon:
             if p.lost_frames:
                 self.counters["lost_frames"] += p.lost_frames
                 self._emit(self.supervisor.lost_frames(t_rx - self.t0, p.lost_frames))
+            if self._last_sensor_t is None:
+                self._first_sensor_t = t_rx
+            if self._arm_pending and t_rx - self._first_sensor_t >= self.cfg.loop.arm_settle_s:
+                self._arm_at_start(t_rx)
             self.cycle(p.values, p.counter, t_rx)
             self._last_sensor_t = t_rx
             self._last_counter = p.counter
@@ -358,6 +365,18 @@ class Daemon:
             )
         elif not p.ok and p.name is None:
             log.debug("ignored frame: %s", p.reason)
+
+    def _arm_at_start(self, t_rx: float) -> None:
+        """arm_on_start: once the sensor frames have streamed for arm_settle_s."""
+        self._arm_pending = False
+        if self.supervisor.state is not RigState.IDLE:
+            log.warning("not armed at start: the daemon is in %s", self.supervisor.state.name)
+            return
+        ok, msg, events = self.supervisor.arm(t_rx - self.t0)
+        if not ok:
+            log.warning("arm at start refused: %s", msg)
+        self.controller.reset(1)
+        self._emit(events)
 
     def check_timeout(self, now_abs: float) -> None:
         """No sensor frame for timeout_periods: FAULT, and a SAFE command on its own."""
@@ -411,13 +430,15 @@ class Daemon:
         try:
             if cfg.telemetry.enabled or self.record_path is not None:
                 self._start_sidecar()
-            _realtime(cfg)
             self.controller.reset(1)
-            self.t0 = time.perf_counter()
-            if cfg.loop.arm_on_start:
-                self._emit(self.supervisor.arm(0.0)[2])
+            # collect and freeze before raising the priority: a full collection at
+            # SCHED_FIFO would starve the simulator and the bridge on a 2-core machine
             gc.collect()
             gc.freeze()
+            _realtime(cfg)
+            self.t0 = time.perf_counter()
+            self._cpu0 = time.process_time()
+            self._arm_pending = cfg.loop.arm_on_start
             self._loop()
         finally:
             self._shutdown()
@@ -481,7 +502,8 @@ class Daemon:
                 self._send_actuator()
             finally:
                 self.bus.shutdown()
-        self.counters["cpu_loop_s"] = time.process_time()
+        self.counters["cpu_loop_s"] = time.process_time() - self._cpu0
+        self.counters["loop_wall_s"] = self.now()
         samples = self.samples()
         self.counters["telemetry_dropped"] += self.link.dropped if self.link else 0
         self.summary = summarize(samples, self.events, dict(self.counters))

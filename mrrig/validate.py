@@ -12,6 +12,7 @@ import argparse
 import logging
 import sys
 import threading
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -27,7 +28,7 @@ from mrrig.characterize import (
     stop_on_signals,
 )
 from mrrig.config import load_config
-from mrrig.daemon import load_model
+from mrrig.daemon import build_controller
 from mrrig.recording import to_json
 from mrrig.samples import RigState
 from mrrig.summary import format_summary, summarize
@@ -102,14 +103,14 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     if not (args.duration > 0 and args.settle >= 0):
         raise ConfigError("--duration must be > 0 and --settle >= 0")
-    for path in args.model:
-        load_model(path)  # a missing or broken file stops here, before the rig moves
     overrides = rig_overrides(
         args.bus_channel,
         args.no_telemetry,
         controller={"name": "network_inversion", "model": str(args.model[0])},
     )
     cfg = load_config(args.rig_config, overrides)
+    for path in args.model:  # a missing or unfit model stops here, before the rig moves
+        build_controller(cfg, replace(cfg.controller, model=path))
     if cfg.actuator.waveform == "stop":
         raise ConfigError(f"{args.rig_config}: actuator.waveform: 'stop': nothing would move")
     reports: list[dict[str, Any]] = []

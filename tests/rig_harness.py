@@ -33,6 +33,7 @@ channel = "{channel}"
 [loop]
 realtime = false
 arm_on_start = true
+arm_settle_s = 0.0
 timeout_periods = {timeout_periods}
 [controller]
 name = "constant"

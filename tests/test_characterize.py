@@ -271,6 +271,10 @@ def _mrrig(procs, *args: str) -> subprocess.Popen:
     )
 
 
+SHORT = REPO / "configs/characterize-short.toml"
+N_SHORT = len(matrix_runs(load_characterize_config(SHORT).matrix))
+
+
 def _sim(procs, bridge: str) -> subprocess.Popen:
     sim = procs(["-m", "firmware_sim", "--config", "configs/sim.toml", "--bus-channel", bridge])
     time.sleep(1.0)
@@ -286,7 +290,7 @@ def test_characterize_train_validate_from_the_command_line(tmp_path, bridge, pro
     out, model, report = tmp_path / "char", tmp_path / "model.json", tmp_path / "val.json"
     t0 = time.monotonic()
     p = _mrrig(
-        procs, "characterize", "--config", "configs/characterize-short.toml",
+        procs, "characterize", "--config", str(SHORT),
         "--rig-config", str(rig), "--out", str(out),
     )  # fmt: skip
     log, _ = p.communicate(timeout=120)
@@ -314,14 +318,13 @@ def test_characterize_train_validate_from_the_command_line(tmp_path, bridge, pro
     assert stalls == r["faults"], log_val
     assert p.returncode == (1 if r["faults"] else 0), log_val
     done = json.loads((out / "done.json").read_text())
-    assert len(done["runs"]) == 6
-    assert sorted(out.glob("run-*.rrd")) == [out / f"run-{k:03d}.rrd" for k in range(6)]
+    assert len(done["runs"]) == N_SHORT
+    assert sorted(out.glob("run-*.rrd")) == [out / f"run-{k:03d}.rrd" for k in range(N_SHORT)]
     assert json.loads(model.read_text())["meta"]["data_files"] == [str(out / "matrix.csv")]
     assert r["model"] == str(model)
     assert "Et " in log_val and r["armed_frames"] >= (1000 if r["faults"] else 2400)
-    # measured: Et 0.25 on this 6-run matrix (3 Hz only) against 0.027 for the forward model
-    # trained on the full simulated 150-run matrix, same reference and motion
-    assert math.isfinite(r["et"]) and r["et"] < 0.4
+    print(f"validate: Et {r['et']:.4f}, |error| p95 {r['tracking_error_n']['p95']:.1f} N")
+    assert math.isfinite(r["et"]) and r["et"] < 1.0
 
 
 @pytest.mark.slow
@@ -329,7 +332,7 @@ def test_interrupted_characterize_command_resumes_without_repeating_runs(tmp_pat
     _sim(procs, bridge)
     rig = rig_config(tmp_path, bridge, None)
     out = tmp_path / "char"
-    args = ("characterize", "--config", "configs/characterize-short.toml", "--rig-config", str(rig))
+    args = ("characterize", "--config", str(SHORT), "--rig-config", str(rig))
     p = _mrrig(procs, *args, "--out", str(out))
     done_path = out / "done.json"
     end = time.monotonic() + 60
@@ -342,17 +345,17 @@ def test_interrupted_characterize_command_resumes_without_repeating_runs(tmp_pat
     assert p.returncode == 130, log
     assert "run the same command again to resume" in log
     first = json.loads(done_path.read_text())["runs"]
-    assert 1 <= len(first) < 6
+    assert 1 <= len(first) < N_SHORT
     mtimes = {k: (out / f"run-{int(k):03d}.rrd").stat().st_mtime_ns for k in first}
     p = _mrrig(procs, *args, "--out", str(out))
     log, _ = p.communicate(timeout=120)
     assert p.returncode == 0, log
-    assert f"{len(first)} of 6 runs already recorded" in log
+    assert f"{len(first)} of {N_SHORT} runs already recorded" in log
     runs = json.loads(done_path.read_text())["runs"]
-    assert set(runs) == {str(k) for k in range(6)}
+    assert set(runs) == {str(k) for k in range(N_SHORT)}
     for k, entry in first.items():
         assert runs[k] == entry
         assert (out / f"run-{int(k):03d}.rrd").stat().st_mtime_ns == mtimes[k]
     data = load_tidy(out / "matrix.csv")
     counts = np.bincount(data.run_id)
-    assert counts.tolist() == [runs[str(k)]["samples"] for k in range(6)]
+    assert counts.tolist() == [runs[str(k)]["samples"] for k in range(N_SHORT)]

@@ -73,20 +73,35 @@ class Rig:
             (self.sensors if f.frame_id == SENSORS_ID else self.status).append(parsed)
         return frames
 
-    def damper(self, mode: str = "ACTIVE", current_a: float = 1.0, echo: int = 0,
-               counter: int | None = None, corrupt: bool = False) -> Parsed | None:
-        data = self.daemon.encode("DamperCommand", {
-            "Mode": mode, "CurrentSetpoint": current_a, "SensorCounterEcho": echo,
-            "ControllerId": 1 if mode == "ACTIVE" else 0, "DesiredForce": 0.0,
-        }, counter)
+    def damper(
+        self,
+        mode: str = "ACTIVE",
+        current_a: float = 1.0,
+        echo: int = 0,
+        counter: int | None = None,
+        corrupt: bool = False,
+    ) -> Parsed | None:
+        data = self.daemon.encode(
+            "DamperCommand",
+            {
+                "Mode": mode,
+                "CurrentSetpoint": current_a,
+                "SensorCounterEcho": echo,
+                "ControllerId": 1 if mode == "ACTIVE" else 0,
+                "DesiredForce": 0.0,
+            },
+            counter,
+        )
         if corrupt:
             data = bytes((data[0] ^ 0x5A,)) + data[1:]
         return self.fw.on_frame(DAMPER_ID, data, self.t_s + ANSWER_DELAY_S)
 
     def actuator(self, waveform: str, amplitude_m: float = 0.0, frequency_hz: float = 0.0):
         self.last_actuator = (waveform, amplitude_m, frequency_hz)
-        data = self.daemon.encode("ActuatorCommand", {
-            "Waveform": waveform, "Amplitude": amplitude_m, "Frequency": frequency_hz})
+        data = self.daemon.encode(
+            "ActuatorCommand",
+            {"Waveform": waveform, "Amplitude": amplitude_m, "Frequency": frequency_hz},
+        )
         return self.fw.on_frame(ACTUATOR_ID, data, self.t_s + ANSWER_DELAY_S)
 
     def run(self, n: int, answer: str | None = None, current_a: float = 1.0) -> None:
@@ -97,8 +112,9 @@ class Rig:
                 sensor = [f for f in frames if f.frame_id == SENSORS_ID]
                 self.damper(answer, current_a, sensor[0].counter if sensor else 0)
 
-    def run_until_status(self, answer: str | None = None, current_a: float = 1.0
-                         ) -> dict[str, float]:
+    def run_until_status(
+        self, answer: str | None = None, current_a: float = 1.0
+    ) -> dict[str, float]:
         """Tick until the next RigStatus and return its values."""
         n = len(self.status)
         while len(self.status) == n:
@@ -154,8 +170,11 @@ def test_watchdog_trips_after_20_ms_without_damper_command_fault_code_1_and_time
         assert rig.fw.state == "RUNNING" and rig.fw.coil_command_a == 1.0
     rig.run(1)  # the first tick more than 20 ms after the last command
     assert rig.fw.coil_command_a == 0.0
-    assert (rig.fw.state, rig.fw.fault_code, rig.fw.watchdog_trips) == ("FAULT",
-                                                                       "COMMAND_TIMEOUT", 1)
+    assert (rig.fw.state, rig.fw.fault_code, rig.fw.watchdog_trips) == (
+        "FAULT",
+        "COMMAND_TIMEOUT",
+        1,
+    )
     status = rig.run_until_status()
     assert (status["State"], status["FaultCode"], status["CommandTimeouts"]) == (FAULT, 1, 1)
     rig.run(3 * STATUS_EVERY)
@@ -227,8 +246,9 @@ def test_bad_crc_and_repeated_counter_command_frames_are_dropped_and_counted():
 
 
 def test_bad_command_frames_beyond_the_budget_report_fault_code_6():
-    config = dataclasses.replace(QUIET, commands=CommandConfig(bad_frame_budget=3,
-                                                               bad_frame_window_s=0.5))
+    config = dataclasses.replace(
+        QUIET, commands=CommandConfig(bad_frame_budget=3, bad_frame_window_s=0.5)
+    )
     rig = Rig(config)
     rig.run(1)
     for _ in range(3):
@@ -273,8 +293,9 @@ def test_sine_changes_of_amplitude_and_frequency_are_phase_continuous_and_ramped
     steps = [abs(b - a) for a, b in zip(xs, xs[1:], strict=False)]
     assert max(steps) <= v_max * T * 1.01
     # velocity is the derivative of the displacement (trapezoid check over each step)
-    assert all(abs(xs[i + 1] - xs[i] - 0.5 * (vs[i] + vs[i + 1]) * T) < 2e-5
-               for i in range(len(xs) - 1))
+    assert all(
+        abs(xs[i + 1] - xs[i] - 0.5 * (vs[i] + vs[i + 1]) * T) < 2e-5 for i in range(len(xs) - 1)
+    )
     assert max(abs(x) for x in xs[-250:]) == pytest.approx(0.02, rel=0.01)
 
 
@@ -362,7 +383,7 @@ def test_fault_freeze_counter_repeats_the_rig_sensors_counter():
     assert rig.parser.stats["RigSensors"].repeated_counter == round(DURATION_S / T)
     counters = [f.counter for f in rig.frames if f.frame_id == SENSORS_ID]
     first = round(START_S / T)
-    assert set(counters[first - 1:first + round(DURATION_S / T)]) == {counters[first - 1]}
+    assert set(counters[first - 1 : first + round(DURATION_S / T)]) == {counters[first - 1]}
     assert counters[first + round(DURATION_S / T)] == (counters[first - 1] + 1) % 16
 
 
@@ -432,6 +453,7 @@ def test_fault_injections_are_logged_when_they_start_and_end(caplog):
 
 
 # ---- config ------------------------------------------------------------------------------------
+
 
 def test_fault_spec_from_command_line_kind_at_start_colon_duration():
     assert FaultSpec.from_cli("estop@5:2") == FaultSpec("estop", 5.0, 2.0)

@@ -26,21 +26,45 @@ def random_model(rng: np.random.Generator, hidden: int = 30, monotone: bool = Fa
     W2 = rng.normal(size=hidden) * 0.3
     if monotone:
         W1[:, 3] = np.abs(W1[:, 3]) * np.sign(W2)
-    return MLP(NAMES, UNITS, "force", "N", in_mean=[0.0, 0.0, 0.0, 0.9],
-               in_std=[0.01, 0.1, 5.0, 0.6], out_mean=100.0, out_std=500.0, W1=W1,
-               b1=rng.normal(size=hidden), W2=W2, b2=0.1)
+    return MLP(
+        NAMES,
+        UNITS,
+        "force",
+        "N",
+        in_mean=[0.0, 0.0, 0.0, 0.9],
+        in_std=[0.01, 0.1, 5.0, 0.6],
+        out_mean=100.0,
+        out_std=500.0,
+        W1=W1,
+        b1=rng.normal(size=hidden),
+        W2=W2,
+        b2=0.1,
+    )
 
 
 def bump_model() -> MLP:
     """f(i) = tanh(3 (i - 0.5)) - tanh(3 (i - 1.5)): non-monotone, symmetric about i = 1 A."""
     W1 = np.array([[0.0, 0.0, 0.0, 3.0], [0.0, 0.0, 0.0, 3.0]])
-    return MLP(NAMES, UNITS, "force", "N", in_mean=np.zeros(4), in_std=np.ones(4),
-               out_mean=0.0, out_std=1.0, W1=W1, b1=[-1.5, -4.5], W2=[1.0, -1.0], b2=0.0)
+    return MLP(
+        NAMES,
+        UNITS,
+        "force",
+        "N",
+        in_mean=np.zeros(4),
+        in_std=np.ones(4),
+        out_mean=0.0,
+        out_std=1.0,
+        W1=W1,
+        b1=[-1.5, -4.5],
+        W2=[1.0, -1.0],
+        b2=0.0,
+    )
 
 
 def random_features(rng: np.random.Generator, n: int) -> np.ndarray:
-    return np.column_stack([rng.uniform(-0.02, 0.02, n), rng.uniform(-0.2, 0.2, n),
-                            rng.uniform(-10.0, 10.0, n)])
+    return np.column_stack(
+        [rng.uniform(-0.02, 0.02, n), rng.uniform(-0.2, 0.2, n), rng.uniform(-10.0, 10.0, n)]
+    )
 
 
 def force(model: MLP, features: np.ndarray, current_a: np.ndarray) -> np.ndarray:
@@ -65,8 +89,9 @@ def test_eq14_gradient_equals_autograd_in_physical_and_standardised_units() -> N
     Xt = torch.cat([torch.tensor(X[:, :3]), (i_std * std_c + mean_c)[:, None]], dim=1)
     E_s = 0.5 * ((torch.tensor(f_des) - net(Xt)) / model.out_std) ** 2
     E_s.sum().backward()
-    np.testing.assert_allclose(eq14_gradient(model, X, f_des, standardised=True),
-                               i_std.grad.numpy(), rtol=1e-6)
+    np.testing.assert_allclose(
+        eq14_gradient(model, X, f_des, standardised=True), i_std.grad.numpy(), rtol=1e-6
+    )
 
 
 def test_exact_inversion_reproduces_reachable_force() -> None:
@@ -88,9 +113,11 @@ def test_exact_inversion_saturates_at_the_nearest_bound_when_out_of_reach() -> N
     f_hi = force(model, features, np.full(100, I_MAX))
     i_prev = np.full(100, 1.0)
     np.testing.assert_array_equal(
-        exact_inversion(model, features, f_hi + 50.0, i_prev, i_max=I_MAX), I_MAX)
+        exact_inversion(model, features, f_hi + 50.0, i_prev, i_max=I_MAX), I_MAX
+    )
     np.testing.assert_array_equal(
-        exact_inversion(model, features, f_lo - 50.0, i_prev, i_max=I_MAX), 0.0)
+        exact_inversion(model, features, f_lo - 50.0, i_prev, i_max=I_MAX), 0.0
+    )
 
 
 def test_exact_inversion_saturation_tie_goes_to_the_bound_nearest_previous_command() -> None:
@@ -143,8 +170,15 @@ def test_gradient_inversion_descends_to_the_exact_root() -> None:
     features = random_features(rng, 50)
     f_des = force(model, features, rng.uniform(0.2, 1.8, 50))
     exact = exact_inversion(model, features, f_des, 1.0, i_max=I_MAX)
-    grad = gradient_inversion(model, features, f_des, i_max=I_MAX, rate=0.05, iterations=3000,
-                              rng=np.random.default_rng(0))
+    grad = gradient_inversion(
+        model,
+        features,
+        f_des,
+        i_max=I_MAX,
+        rate=0.05,
+        iterations=3000,
+        rng=np.random.default_rng(0),
+    )
     np.testing.assert_allclose(grad, exact, rtol=0, atol=1e-4)
 
 
@@ -165,8 +199,9 @@ def test_scalar_gradient_path_equals_batch_with_the_same_seed() -> None:
     model = random_model(rng, monotone=True)
     features = random_features(rng, 20)
     f_des = force(model, features, rng.uniform(0.0, I_MAX, 20))
-    batch = gradient_inversion(model, features, f_des, i_max=I_MAX, iterations=200,
-                               rng=np.random.default_rng(11))
+    batch = gradient_inversion(
+        model, features, f_des, i_max=I_MAX, iterations=200, rng=np.random.default_rng(11)
+    )
     inv = ScalarInverter(model, I_MAX, method="gradient", iterations=200, seed=11)
     scalar = [inv.solve(features[n], f_des[n], 0.0) for n in range(20)]
     np.testing.assert_allclose(scalar, batch, rtol=0, atol=1e-9)

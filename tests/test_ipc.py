@@ -99,8 +99,7 @@ def test_requests_and_force_refs_reach_the_loop_decoded(ends):
     assert loop.poll() == []
     side.send_request({"id": 3, "cmd": "arm"})
     side.send_force_ref(-512.5, 123.0)
-    assert loop.poll() == [(Msg.REQUEST, {"id": 3, "cmd": "arm"}),
-                           (Msg.FORCE_REF, (-512.5, 123.0))]
+    assert loop.poll() == [(Msg.REQUEST, {"id": 3, "cmd": "arm"}), (Msg.FORCE_REF, (-512.5, 123.0))]
 
 
 def test_loop_poll_buffers_a_partial_frame_until_it_completes():
@@ -123,9 +122,9 @@ def test_full_pipe_drops_and_counts_instead_of_blocking(ends):
     arr = _samples(SAMPLES_PER_MESSAGE)
     attempts = 2000  # 8 MB: far more than any pipe holds
     results: list[bool] = []
-    sender = threading.Thread(target=lambda: results.extend(loop.send_samples(arr)
-                                                           for _ in range(attempts)),
-                              daemon=True)
+    sender = threading.Thread(
+        target=lambda: results.extend(loop.send_samples(arr) for _ in range(attempts)), daemon=True
+    )
     sender.start()
     sender.join(timeout=20)
     assert not sender.is_alive(), "send_samples blocked on a full pipe"

@@ -21,10 +21,20 @@ UNITS = ["m", "m/s", "m/s^2", "A"]
 
 def smooth_data(rng: np.random.Generator, n: int, noise_n: float = 0.0) -> tuple[np.ndarray, ...]:
     """A smooth damper-like force (N) of (x, xd, xdd, current)."""
-    X = np.column_stack([rng.uniform(-0.02, 0.02, n), rng.uniform(-0.3, 0.3, n),
-                         rng.uniform(-20.0, 20.0, n), rng.uniform(0.0, 2.0, n)])
-    y = ((300.0 + 900.0 * X[:, 3]) * np.tanh(X[:, 1] / 0.1) + 800.0 * X[:, 1]
-         + 2000.0 * X[:, 0] + 4.0 * X[:, 2])
+    X = np.column_stack(
+        [
+            rng.uniform(-0.02, 0.02, n),
+            rng.uniform(-0.3, 0.3, n),
+            rng.uniform(-20.0, 20.0, n),
+            rng.uniform(0.0, 2.0, n),
+        ]
+    )
+    y = (
+        (300.0 + 900.0 * X[:, 3]) * np.tanh(X[:, 1] / 0.1)
+        + 800.0 * X[:, 1]
+        + 2000.0 * X[:, 0]
+        + 4.0 * X[:, 2]
+    )
     return X, y + rng.normal(0.0, noise_n, n)
 
 
@@ -38,8 +48,9 @@ def trained() -> tuple[MLP, np.ndarray]:
 def test_lm_fits_a_smooth_function_to_near_zero_error() -> None:
     X, y = smooth_data(np.random.default_rng(1), 800)
     Xv, yv = smooth_data(np.random.default_rng(2), 200)
-    model, report = train_lm(X, y, NAMES, UNITS, "force", "N", hidden=12, max_epochs=300,
-                             validation_fraction=0.0)
+    model, report = train_lm(
+        X, y, NAMES, UNITS, "force", "N", hidden=12, max_epochs=300, validation_fraction=0.0
+    )
     rel_rms = np.sqrt(np.mean((model.predict(Xv) - yv) ** 2)) / np.std(yv)
     assert rel_rms < 1e-2  # on unseen points; a constant predictor scores 1
     assert report.train_mse == pytest.approx(np.mean((model.predict(X) - y) ** 2), rel=1e-9)
@@ -49,14 +60,24 @@ def test_lm_stops_on_validation_failures_and_keeps_the_best_weights() -> None:
     X, y = smooth_data(np.random.default_rng(3), 300, noise_n=60.0)
     Xv, yv = smooth_data(np.random.default_rng(4), 200, noise_n=60.0)
     calls: list[tuple[int, float, float | None, float]] = []
-    model, report = train_lm(X, y, NAMES, UNITS, "force", "N", hidden=20, max_epochs=500,
-                             validation=(Xv, yv), max_fail=6,
-                             progress=lambda *a: calls.append(a))
+    model, report = train_lm(
+        X,
+        y,
+        NAMES,
+        UNITS,
+        "force",
+        "N",
+        hidden=20,
+        max_epochs=500,
+        validation=(Xv, yv),
+        max_fail=6,
+        progress=lambda *a: calls.append(a),
+    )
     assert report.stop_reason == "validation"
     assert report.best_epoch == report.epochs - 6
     assert [c[0] for c in calls] == list(range(1, report.epochs + 1))
     val = np.array([c[2] for c in calls])
-    assert np.all(val[report.best_epoch:] > val[report.best_epoch - 1])
+    assert np.all(val[report.best_epoch :] > val[report.best_epoch - 1])
     best_val = np.mean((model.predict(Xv) - yv) ** 2)
     assert best_val == pytest.approx(val.min(), rel=1e-9)
     assert report.val_mse == pytest.approx(best_val, rel=1e-9)
@@ -66,8 +87,18 @@ def test_lm_stops_on_validation_failures_and_keeps_the_best_weights() -> None:
 def test_lm_training_mse_never_increases() -> None:
     X, y = smooth_data(np.random.default_rng(5), 300)
     calls: list[tuple[int, float, float | None, float]] = []
-    _, report = train_lm(X, y, NAMES, UNITS, "force", "N", hidden=6, max_epochs=60,
-                         validation_fraction=0.0, progress=lambda *a: calls.append(a))
+    _, report = train_lm(
+        X,
+        y,
+        NAMES,
+        UNITS,
+        "force",
+        "N",
+        hidden=6,
+        max_epochs=60,
+        validation_fraction=0.0,
+        progress=lambda *a: calls.append(a),
+    )
     train = [c[1] for c in calls]
     assert report.stop_reason == "max_epochs" and len(train) == 60
     assert all(b < a for a, b in zip(train, train[1:], strict=False))
@@ -76,14 +107,16 @@ def test_lm_training_mse_never_increases() -> None:
 
 def test_lm_holds_out_a_random_validation_fraction() -> None:
     X, y = smooth_data(np.random.default_rng(6), 500)
-    model, report = train_lm(X, y, NAMES, UNITS, "force", "N", hidden=5, max_epochs=5,
-                             validation_fraction=0.1)
+    model, report = train_lm(
+        X, y, NAMES, UNITS, "force", "N", hidden=5, max_epochs=5, validation_fraction=0.1
+    )
     assert (report.n_train, report.n_val) == (450, 50)
     assert model.meta["n_val"] == 50 and len(model.fingerprint) == 64
 
 
-def test_model_file_round_trip_is_bit_exact(trained: tuple[MLP, np.ndarray],
-                                            tmp_path: Path) -> None:
+def test_model_file_round_trip_is_bit_exact(
+    trained: tuple[MLP, np.ndarray], tmp_path: Path
+) -> None:
     model, X = trained
     path = tmp_path / "forward.json"
     model.save(path)
@@ -97,7 +130,8 @@ def test_model_file_round_trip_is_bit_exact(trained: tuple[MLP, np.ndarray],
 
 
 def test_model_file_loads_without_torch_and_gives_the_torch_module_forces(
-        trained: tuple[MLP, np.ndarray], tmp_path: Path) -> None:
+    trained: tuple[MLP, np.ndarray], tmp_path: Path
+) -> None:
     model, X = trained
     model.save(tmp_path / "forward.json")
     np.save(tmp_path / "X.npy", X)
@@ -113,8 +147,9 @@ def test_model_file_loads_without_torch_and_gives_the_torch_module_forces(
     subprocess.run([sys.executable, "-c", script], check=True, cwd=Path(__file__).parents[1])
     with torch.no_grad():
         f_torch = MLPModule(model)(torch.tensor(X)).numpy()
-    np.testing.assert_allclose(np.load(tmp_path / "f.npy"), f_torch, rtol=0,
-                               atol=1e-9 * np.abs(f_torch).max())
+    np.testing.assert_allclose(
+        np.load(tmp_path / "f.npy"), f_torch, rtol=0, atol=1e-9 * np.abs(f_torch).max()
+    )
 
 
 def _corrupt(doc: dict, field: str, value: object) -> dict:
@@ -129,21 +164,25 @@ def _corrupt(doc: dict, field: str, value: object) -> dict:
 _MISSING = object()
 
 
-@pytest.mark.parametrize(("field", "value"), [
-    ("format", "mrrig-mlp/0"),
-    ("W1", _MISSING),
-    ("W1", [[1.0, 2.0]]),
-    ("W1", [[1.0, 2.0, 3.0, 4.0], [1.0]]),
-    ("b1", [0.0]),
-    ("W2", ["a"] * 8),
-    ("in_std", [1.0, 0.0, 1.0, 1.0]),
-    ("out_std", "big"),
-    ("input_units", ["m"]),
-    ("hidden", 9),
-    ("b2", float("nan")),
-])
+@pytest.mark.parametrize(
+    ("field", "value"),
+    [
+        ("format", "mrrig-mlp/0"),
+        ("W1", _MISSING),
+        ("W1", [[1.0, 2.0]]),
+        ("W1", [[1.0, 2.0, 3.0, 4.0], [1.0]]),
+        ("b1", [0.0]),
+        ("W2", ["a"] * 8),
+        ("in_std", [1.0, 0.0, 1.0, 1.0]),
+        ("out_std", "big"),
+        ("input_units", ["m"]),
+        ("hidden", 9),
+        ("b2", float("nan")),
+    ],
+)
 def test_bad_model_file_raises_one_line_error_naming_file_and_field(
-        trained: tuple[MLP, np.ndarray], tmp_path: Path, field: str, value: object) -> None:
+    trained: tuple[MLP, np.ndarray], tmp_path: Path, field: str, value: object
+) -> None:
     path = tmp_path / "bad.json"
     path.write_text(json.dumps(_corrupt(trained[0].to_dict(), field, value)))
     with pytest.raises(ModelError) as info:
@@ -163,6 +202,7 @@ def test_unreadable_or_non_json_model_file_raises_model_error(tmp_path: Path) ->
 
 def test_lm_stops_at_the_time_limit() -> None:
     X, y = smooth_data(np.random.default_rng(7), 200)
-    _, report = train_lm(X, y, NAMES, UNITS, "force", "N", hidden=5, max_epochs=1000,
-                         time_limit_s=0.0)
+    _, report = train_lm(
+        X, y, NAMES, UNITS, "force", "N", hidden=5, max_epochs=1000, time_limit_s=0.0
+    )
     assert (report.stop_reason, report.epochs) == ("time_limit", 1)

@@ -76,6 +76,7 @@ class Rig:
     def poll_until(self, mtype: Msg, timeout_s: float = 5.0) -> Any:
         def got() -> Any:
             return next((p for m, p in self.loop.poll() if m == mtype), None)
+
         return _wait_for(got, timeout_s)
 
 
@@ -93,8 +94,9 @@ def running_sidecar(tmp_path: Path, record: Path | None = None) -> Iterator[Rig]
     proc = start_sidecar(RIG, conf_path, fds, record=record, telemetry_hz=50)
     client_config = local_config("client", connect=[f"tcp/127.0.0.1:{port}"])
     # the sidecar may still be opening its listener: retry until it accepts
-    observer = _wait_for(lambda: _try_open(local_config("client",
-                                                        connect=[f"tcp/127.0.0.1:{port}"])))
+    observer = _wait_for(
+        lambda: _try_open(local_config("client", connect=[f"tcp/127.0.0.1:{port}"]))
+    )
     r = Rig(proc, loop, observer, client_config)
     try:
         assert observer, "could not connect to the sidecar"
@@ -141,7 +143,7 @@ def test_samples_arrive_as_json_telemetry_with_equal_values(rig: Rig):
     time.sleep(0.2)  # let the subscription reach the sidecar
     arr = _samples(200)
     for start in range(0, arr.size, 25):  # 50 ms batches, as the loop sends them
-        assert rig.loop.send_samples(arr[start:start + 25])
+        assert rig.loop.send_samples(arr[start : start + 25])
     got: dict[str, list[Any]] = {name: [] for name in FIELDS}
     encodings = set()
 
@@ -195,9 +197,8 @@ def test_control_query_is_forwarded_as_request_and_the_loops_reply_returned(rig:
     assert seen[0]["cmd"] == "arm" and isinstance(seen[0]["id"], int)
 
 
-@pytest.mark.parametrize("payload", ["{not json", "[1, 2]", "\"arm\"", b"\xff\xfe"])
-def test_malformed_control_request_gets_an_error_reply_without_reaching_the_loop(rig: Rig,
-                                                                                 payload):
+@pytest.mark.parametrize("payload", ["{not json", "[1, 2]", '"arm"', b"\xff\xfe"])
+def test_malformed_control_request_gets_an_error_reply_without_reaching_the_loop(rig: Rig, payload):
     replies = list(rig.observer.get(keys(RIG)["control"], payload=payload, timeout=2.0))
     assert len(replies) == 1 and replies[0].ok is not None
     reply = json.loads(replies[0].ok.payload.to_bytes())
@@ -237,8 +238,10 @@ def test_malformed_force_ref_is_an_event_and_not_forwarded(rig: Rig):
 def test_events_are_published_one_message_each(rig: Rig):
     sub = rig.observer.declare_subscriber(keys(RIG)["events"])
     time.sleep(0.2)
-    sent = [{"t": 1.0, "level": "error", "text": "bad CRC", "kind": "fault"},
-            {"t": 1.5, "level": "info", "text": "re-armed", "kind": "state"}]
+    sent = [
+        {"t": 1.0, "level": "error", "text": "bad CRC", "kind": "fault"},
+        {"t": 1.5, "level": "info", "text": "re-armed", "kind": "state"},
+    ]
     for event in sent:
         rig.loop.send_event(event)
     got = _collect(sub, 2)
@@ -289,7 +292,7 @@ def test_watch_prints_live_numbers(rig: Rig):
 
     def feed() -> None:
         for start in range(0, arr.size, 25):
-            rig.loop.send_samples(arr[start:start + 25])
+            rig.loop.send_samples(arr[start : start + 25])
             time.sleep(0.05)
 
     feeder = threading.Thread(target=feed)
@@ -306,8 +309,13 @@ def test_send_force_streams_the_csv_profile(rig: Rig, tmp_path: Path):
     csv.write_text("t_s,force_n\n0,0\n0.1,100\n")
     sent = client.send_force(RIG, rig.client_config, csv, rate_hz=50)
     forces = []
-    _wait_for(lambda: forces.extend(p[0] for m, p in rig.loop.poll() if m == Msg.FORCE_REF)
-              or len(forces) >= sent, timeout_s=5.0)
+    _wait_for(
+        lambda: (
+            forces.extend(p[0] for m, p in rig.loop.poll() if m == Msg.FORCE_REF)
+            or len(forces) >= sent
+        ),
+        timeout_s=5.0,
+    )
     assert sent == 6
     assert forces == pytest.approx([0, 20, 40, 60, 80, 100])
 
@@ -315,8 +323,9 @@ def test_send_force_streams_the_csv_profile(rig: Rig, tmp_path: Path):
 def test_request_without_a_daemon_is_a_clear_error(tmp_path: Path):
     port = _free_port()
     with pytest.raises(client.ClientError, match="daemon"):
-        client.request(RIG, {"cmd": "status"},
-                       local_config("client", connect=[f"tcp/127.0.0.1:{port}"]))
+        client.request(
+            RIG, {"cmd": "status"}, local_config("client", connect=[f"tcp/127.0.0.1:{port}"])
+        )
     lonely = local_config("peer", listen=[f"tcp/127.0.0.1:{port}"])
     with pytest.raises(client.ClientError, match="no daemon answered on mrrig/testrig/control"):
         client.request(RIG, {"cmd": "status"}, lonely, timeout_s=0.3)
@@ -330,14 +339,21 @@ def test_shipped_zenoh_configs_are_accepted():
 @pytest.mark.parametrize(
     ("text", "key"),
     [
-        ('{listen: {endpoints: ["tcp/127.0.0.1:7447"]}, scouting: {multicast: {enabled: true}}}',
-         "scouting/multicast/enabled"),
+        (
+            '{listen: {endpoints: ["tcp/127.0.0.1:7447"]}, scouting: {multicast: {enabled: true}}}',
+            "scouting/multicast/enabled",
+        ),
         ('{listen: {endpoints: ["tcp/127.0.0.1:7447"]}}', "scouting/multicast/enabled"),
-        ('{listen: {endpoints: ["tcp/0.0.0.0:7447"]}, scouting: {multicast: {enabled: false}}}',
-         "listen/endpoints"),
-        ('{scouting: {multicast: {enabled: false}}}', "listen/endpoints"),  # default: [::]
-        ('{mode: "client", connect: {endpoints: ["tcp/10.0.0.5:7447"]},'
-         ' scouting: {multicast: {enabled: false}}}', "connect/endpoints"),
+        (
+            '{listen: {endpoints: ["tcp/0.0.0.0:7447"]}, scouting: {multicast: {enabled: false}}}',
+            "listen/endpoints",
+        ),
+        ("{scouting: {multicast: {enabled: false}}}", "listen/endpoints"),  # default: [::]
+        (
+            '{mode: "client", connect: {endpoints: ["tcp/10.0.0.5:7447"]},'
+            " scouting: {multicast: {enabled: false}}}",
+            "connect/endpoints",
+        ),
     ],
 )
 def test_zenoh_config_leaving_localhost_is_refused_with_one_line(tmp_path: Path, text, key):
@@ -375,7 +391,8 @@ def test_sigterm_still_writes_a_complete_recording(tmp_path: Path):
     rec = read_recording(path)
     assert rec.samples.tobytes() == arr.tobytes()
     assert [(e["level"], e["text"], e["kind"]) for e in rec.events] == [
-        ("error", "bad CRC", "fault")]
+        ("error", "bad CRC", "fault")
+    ]
     assert rec.summary == {"frames": 300}
 
 

@@ -38,10 +38,21 @@ def bridge() -> Iterator[tuple[str, subprocess.Popen[bytes]]]:
 
 
 def start_sim(url: str, tmp_path: Path, *extra: str) -> subprocess.Popen[bytes]:
-    cmd = [sys.executable, "-m", "firmware_sim", "--config", "configs/sim.toml",
-           "--bus-channel", url, "--stats", str(tmp_path / "stats.json"), *extra]
-    return subprocess.Popen(cmd, cwd=REPO, stdout=subprocess.DEVNULL,
-                            stderr=(tmp_path / "sim.log").open("wb"))
+    cmd = [
+        sys.executable,
+        "-m",
+        "firmware_sim",
+        "--config",
+        "configs/sim.toml",
+        "--bus-channel",
+        url,
+        "--stats",
+        str(tmp_path / "stats.json"),
+        *extra,
+    ]
+    return subprocess.Popen(
+        cmd, cwd=REPO, stdout=subprocess.DEVNULL, stderr=(tmp_path / "sim.log").open("wb")
+    )
 
 
 def wait_first_sensor_frame(bus, proc: subprocess.Popen[bytes]) -> None:
@@ -108,11 +119,19 @@ def test_sim_streams_sensors_at_500_hz_answers_are_matched_watchdog_trips_and_si
             assert parsed.ok, parsed.reason
             if msg.arbitration_id == SENSORS_ID:
                 sensor_counters.append(parsed.counter)
-                bus.send(packer.message("DamperCommand", {
-                    "Mode": "ACTIVE", "CurrentSetpoint": 1.0,
-                    "SensorCounterEcho": parsed.counter, "ControllerId": 1,
-                    "DesiredForce": 500.0,
-                }), timeout=0.01)
+                bus.send(
+                    packer.message(
+                        "DamperCommand",
+                        {
+                            "Mode": "ACTIVE",
+                            "CurrentSetpoint": 1.0,
+                            "SensorCounterEcho": parsed.counter,
+                            "ControllerId": 1,
+                            "DesiredForce": 500.0,
+                        },
+                    ),
+                    timeout=0.01,
+                )
                 commands_sent += 1
             elif msg.arbitration_id == STATUS_ID:
                 statuses.append(parsed.values)
@@ -141,8 +160,9 @@ def test_sim_streams_sensors_at_500_hz_answers_are_matched_watchdog_trips_and_si
                 timeouts_after = values["CommandTimeouts"]
                 assert values["CoilCurrent"] < 0.5  # decaying to 0 A (coil lag ~5 ms)
                 break
-        print(f"\nsensor rate {rate_hz:.1f} Hz; watchdog seen in RigStatus after "
-              f"{tripped_after_s} s")
+        print(
+            f"\nsensor rate {rate_hz:.1f} Hz; watchdog seen in RigStatus after {tripped_after_s} s"
+        )
         # 20 ms watchdog + one status period + slack for the bridge on a busy VM
         assert tripped_after_s is not None and tripped_after_s < 0.020 + 0.100 + 0.150
     finally:
@@ -150,8 +170,15 @@ def test_sim_streams_sensors_at_500_hz_answers_are_matched_watchdog_trips_and_si
         rc = stop_sim(proc)
     assert rc == 0
     stats = json.loads((tmp_path / "stats.json").read_text())
-    print("simulator stats:", json.dumps({k: stats[k] for k in (
-        "answers", "answer_latency_us", "period_jitter_us", "cpu_fraction")}))
+    print(
+        "simulator stats:",
+        json.dumps(
+            {
+                k: stats[k]
+                for k in ("answers", "answer_latency_us", "period_jitter_us", "cpu_fraction")
+            }
+        ),
+    )
     assert stats["commands"]["damper_valid"] == commands_sent
     assert stats["commands"]["bad_crc"] == stats["commands"]["repeated_counter"] == 0
     answers = stats["answers"]
@@ -181,8 +208,7 @@ def test_sim_applies_command_line_fault_and_stops_after_duration(bridge, tmp_pat
         if proc.poll() is None:
             stop_sim(proc)
     assert estop_frames == pytest.approx(0.5 / 0.002, abs=5)
-    events = [e["event"] for e in json.loads((tmp_path / "stats.json").read_text())
-              ["fault_events"]]
+    events = [e["event"] for e in json.loads((tmp_path / "stats.json").read_text())["fault_events"]]
     assert "fault injection estop starts" in events and "fault injection estop ends" in events
 
 

@@ -39,8 +39,16 @@ def small_b() -> Series:
 def small_truth(small_b) -> Series:
     """The small matrix with its exact kinematics (no estimation in the way)."""
     b = small_b
-    return Series(t=b.t, x=b.x, xd=b.xd, xdd=b.xdd, current=b.current, force=b.force_meas,
-                  name="small", run_id=b.run_id)
+    return Series(
+        t=b.t,
+        x=b.x,
+        xd=b.xd,
+        xdd=b.xdd,
+        current=b.current,
+        force=b.force_meas,
+        name="small",
+        run_id=b.run_id,
+    )
 
 
 def _write_csv(path, header, cols):
@@ -52,10 +60,14 @@ def _write_csv(path, header, cols):
 def test_csv_in_cm_and_kn_with_other_names_gives_the_same_model_as_si(tmp_path, small_truth):
     s = small_truth
     si, other = tmp_path / "si.csv", tmp_path / "other.csv"
-    _write_csv(si, ["t", "x", "xd", "xdd", "current", "force"],
-               [s.t, s.x, s.xd, s.xdd, s.current, s.force])
-    _write_csv(other, ["time_ms", "Pos", "Vel", "Acc", "I", "F"],
-               [s.t * 1e3, s.x * 1e2, s.xd * 1e2, s.xdd * 1e2, s.current * 1e3, s.force * 1e-3])
+    _write_csv(
+        si, ["t", "x", "xd", "xdd", "current", "force"], [s.t, s.x, s.xd, s.xdd, s.current, s.force]
+    )
+    _write_csv(
+        other,
+        ["time_ms", "Pos", "Vel", "Acc", "I", "F"],
+        [s.t * 1e3, s.x * 1e2, s.xd * 1e2, s.xdd * 1e2, s.current * 1e3, s.force * 1e-3],
+    )
     cols_si = dict(t="t", x="x", xd="xd", xdd="xdd", current="current", force="force")
     cols_other = dict(t="time_ms", x="Pos", xd="Vel", xdd="Acc", current="I", force="F")
     units = dict(t="ms", x="cm", xd="cm/s", xdd="cm/s^2", current="mA", force="kN")
@@ -81,8 +93,9 @@ def test_tidy_file_round_trip_is_exact(tmp_path, small_truth):
 
 def test_tidy_file_without_estimates_gets_kalman_estimates_after_a_warmup(tmp_path, small_b):
     b = small_b
-    raw = Series(t=b.t, x=b.x_meas, xd=None, xdd=None, current=b.current, force=b.force_meas,
-                 run_id=b.run_id)
+    raw = Series(
+        t=b.t, x=b.x_meas, xd=None, xdd=None, current=b.current, force=b.force_meas, run_id=b.run_id
+    )
     path = tmp_path / "raw.csv"
     write_tidy(path, raw)
     s = load_training_data([path])
@@ -123,8 +136,9 @@ TINY = dict(amplitudes_m=(0.015,), freqs_hz=(2.0, 5.0), currents_a=(0.0, 0.6, 1.
 
 def test_small_matrix_report_has_every_number():
     b = dataset_b(duration_s=0.3, **TINY)
-    s = Series(t=b.t, x=b.x, xd=b.xd, xdd=b.xdd, current=b.current, force=b.force_meas,
-               run_id=b.run_id)
+    s = Series(
+        t=b.t, x=b.x, xd=b.xd, xdd=b.xdd, current=b.current, force=b.force_meas, run_id=b.run_id
+    )
     cond = dataset_b_conditions(TINY["amplitudes_m"], TINY["freqs_hz"], TINY["currents_a"])
     plant = make_plant_force(s, BoucWenParams.preset("rig-current"), cond)
     fwd, sup, r = train_and_validate(s, seed=0, max_epochs=EPOCHS, plant_force=plant)
@@ -151,8 +165,23 @@ def test_mrrig_train_writes_the_model_with_options_and_fingerprint(tmp_path, sma
     data = tmp_path / "char.csv"
     write_tidy(data, small_truth)
     out, sup_out, rep = tmp_path / "m" / "fwd.json", tmp_path / "sup.json", tmp_path / "r.json"
-    rc = train_main([str(data), "--out", str(out), "--epochs", "5", "--current-input", "lagged",
-                     "--supervised-out", str(sup_out), "--report", str(rep), "--seed", "2"])
+    rc = train_main(
+        [
+            str(data),
+            "--out",
+            str(out),
+            "--epochs",
+            "5",
+            "--current-input",
+            "lagged",
+            "--supervised-out",
+            str(sup_out),
+            "--report",
+            str(rep),
+            "--seed",
+            "2",
+        ]
+    )
     assert rc == 0
     model = MLP.load(out)
     assert model.input_names == ["x", "xd", "xdd", "current"]

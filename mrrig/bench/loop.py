@@ -31,6 +31,21 @@ def _cpu_s(pid: int) -> float:
     return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
 
+def _wait_for_daemon(proc: subprocess.Popen, timeout_s: float = 60.0) -> None:
+    """Until the daemon's process has settled (imports done, bus open), or it died."""
+    deadline = time.monotonic() + timeout_s
+    cpu = -1.0
+    while time.monotonic() < deadline:
+        if proc.poll() is not None:
+            raise RuntimeError(f"daemon exited at start with code {proc.returncode}")
+        now = _cpu_s(proc.pid)
+        if now == cpu:  # idle: waiting for frames
+            return
+        cpu = now
+        time.sleep(0.5)
+    raise RuntimeError("daemon did not settle in 60 s")
+
+
 def run_once(config: Path, sim_config: Path, duration_s: float, telemetry: bool) -> dict:
     work = Path(tempfile.mkdtemp(prefix="mrrig-bench-loop-"))
     port = find_free_port()
@@ -39,6 +54,28 @@ def run_once(config: Path, sim_config: Path, duration_s: float, telemetry: bool)
     sim = daemon = None
     try:
         t_bridge0 = _cpu_s(bridge.pid)
+        # the daemon first, so that every frame the simulator sends has a daemon to answer it
+        cmd = [
+            sys.executable,
+            "-m",
+            "mrrig",
+            "-q",
+            "run",
+            "--config",
+            str(config),
+            "--bus-channel",
+            channel,
+            "--arm",
+            "--summary-json",
+            str(work / "daemon.json"),
+        ]
+        if telemetry:
+            cmd += ["--record", str(work / "bench.rrd")]
+        else:
+            cmd += ["--no-record", "--no-telemetry"]
+        daemon = subprocess.Popen(cmd, stdout=subprocess.DEVNULL)
+        _wait_for_daemon(daemon)
+        t0 = time.monotonic()
         sim = subprocess.Popen(
             [
                 sys.executable,
@@ -50,38 +87,17 @@ def run_once(config: Path, sim_config: Path, duration_s: float, telemetry: bool)
                 channel,
                 "--stats",
                 str(work / "sim.json"),
+                "--duration",
+                str(duration_s),
             ]
         )
-        time.sleep(1.0)
-        cmd = [
-            sys.executable,
-            "-m",
-            "mrrig",
-            "-q",
-            "run",
-            "--config",
-            str(config),
-            "--bus-channel",
-            channel,
-            "--duration",
-            str(duration_s),
-            "--arm",
-            "--summary-json",
-            str(work / "daemon.json"),
-        ]
-        if telemetry:
-            cmd += ["--record", str(work / "bench.rrd")]
-        else:
-            cmd += ["--no-record", "--no-telemetry"]
-        t0 = time.monotonic()
-        daemon = subprocess.Popen(cmd, stdout=subprocess.DEVNULL)
-        rc = daemon.wait(timeout=duration_s + 120)
+        if sim.wait(timeout=duration_s + 120) != 0:
+            raise RuntimeError(f"firmware_sim exited with code {sim.returncode}")
         wall = time.monotonic() - t0
         bridge_cpu = _cpu_s(bridge.pid) - t_bridge0
-        if rc != 0:
-            raise RuntimeError(f"daemon exited with code {rc}")
-        sim.send_signal(signal.SIGTERM)
-        sim.wait(timeout=10)
+        daemon.send_signal(signal.SIGTERM)
+        if daemon.wait(timeout=60) != 0:
+            raise RuntimeError(f"daemon exited with code {daemon.returncode}")
         d = json.loads((work / "daemon.json").read_text())
         s = json.loads((work / "sim.json").read_text())
         return {
@@ -89,13 +105,16 @@ def run_once(config: Path, sim_config: Path, duration_s: float, telemetry: bool)
             "duration_s": d["duration_s"],
             "frames": d["frames"],
             "latency_us": d["latency_us"],
-            "frames_without_command": s.get("unanswered"),
-            "frames_answered_more_than_once": s.get("answered_more_than_once"),
+            "sensor_frames_sent": s["sensor_frames_sent"],
+            "frames_without_command": s["answers"]["unanswered"],
+            "frames_answered_more_than_once": s["answers"]["answered_more_than_once"],
+            "watchdog_trips": s["watchdog_trips"],
             "sim_jitter_us": s.get("period_jitter_us"),
             "sim_answer_latency_us": s.get("answer_latency_us"),
             "cpu_pct": {
-                "daemon_loop": 100 * d.get("cpu_loop_s", float("nan")) / wall,
-                "telemetry_process": 100 * d.get("cpu_sidecar_s", 0.0) / wall,
+                "daemon_loop": 100 * d["cpu_loop_s"] / d["loop_wall_s"],
+                # the sidecar's whole life, start-up included, over the loop's time
+                "telemetry_process": 100 * d.get("cpu_sidecar_s", 0.0) / d["loop_wall_s"],
                 "firmware_sim": 100 * s.get("cpu_fraction", float("nan")),
                 "bridge": 100 * bridge_cpu / wall,
             },
@@ -118,8 +137,10 @@ def format_run(r: dict) -> str:
     on = "ON " if r["telemetry_and_recording"] else "OFF"
     return "\n".join(
         [
-            f"telemetry+recording {on}: {r['frames']} frames in {r['duration_s']:.1f} s, "
-            f"faults {len(r['faults'] or [])}, Et {r['et']}",
+            f"telemetry+recording {on}: simulator sent {r['sensor_frames_sent']} sensor frames, "
+            f"daemon answered {r['frames']} in {r['duration_s']:.1f} s; faults "
+            f"{[f['reason'] for f in r['faults'] or []]}; firmware watchdog trips "
+            f"{r['watchdog_trips']}; tracking Et {r['et']}",
             f"  receive->send latency us: p50 {lat['p50']:.0f}  p99 {lat['p99']:.0f}  "
             f"p99.9 {lat['p99.9']:.0f}  max {lat['max']:.0f}",
             f"  frames without a command: {r['frames_without_command']}  "

@@ -15,7 +15,6 @@ import sys
 log = logging.getLogger(__name__)
 
 
-
 def _interrupt(signum: int, frame: object) -> None:
     raise KeyboardInterrupt
 
