@@ -449,6 +449,12 @@ class Daemon:
         recv = self.bus.recv
         timeout_s = cfg.loop.timeout_periods * self.period_s
         end = None if cfg.loop.duration_s is None else self.t0 + cfg.loop.duration_s
+        # frames queued while the daemon started are stale: the rig has moved on
+        stale = 0
+        while recv(timeout=0) is not None:
+            stale += 1
+        if stale:
+            log.info("discarded %d frames queued before the loop started", stale)
         self._send_actuator()
         self.started.set()
         stop_deadline = None
