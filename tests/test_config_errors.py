@@ -1,0 +1,75 @@
+"""Start-up refuses a config or model that does not fit, with one line naming file and field."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+
+import pytest
+
+from tests.conftest import REPO
+
+BASE = '[bus]\ninterface = "virtual"\nchannel = "cfg-test"\n'
+
+
+def run_daemon(tmp_path, text: str) -> subprocess.CompletedProcess:
+    cfg = tmp_path / "rig.toml"
+    cfg.write_text(text)
+    return subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "mrrig",
+            "run",
+            "--config",
+            str(cfg),
+            "--duration",
+            "0.5",
+            "--no-record",
+            "--no-telemetry",
+        ],
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+
+
+@pytest.mark.parametrize(
+    ("text", "expected"),
+    [
+        ('[bus]\ninterface = "virtual"\n', "bus.channel: missing required field"),
+        (BASE + '[loop]\ni_max_a = "two"\n', "loop.i_max_a: expected a number, got 'two'"),
+        (BASE + "[loop]\ni_max_a = 9.0\n", "loop.i_max_a: must be in (0, 5] A"),
+        (BASE + "[loop]\nperiod = 0.002\n", "loop.period: unknown field"),
+        (BASE + '[controller]\nname = "magic"\n', "controller.name: expected one of"),
+        (
+            BASE + '[controller]\nmodel = "no/such/model.json"\n',
+            "controller.model: no/such/model.json not found",
+        ),
+        (
+            BASE + '[controller]\nname = "supervised"\nmodel = "{forward}"\n',
+            "input_names: the supervised inverse needs a model",
+        ),
+        (BASE + "[loop\n", "not valid TOML"),
+    ],
+)
+def test_bad_config_or_model_stops_startup_with_one_line(tmp_path, sim_model, text, expected):
+    text = text.replace("{forward}", str(sim_model))
+    r = run_daemon(tmp_path, text)
+    assert r.returncode == 2
+    lines = r.stderr.strip().splitlines()
+    assert len(lines) == 1, r.stderr
+    assert lines[0].startswith("error: ")
+    assert expected in lines[0], lines[0]
+    source = str(sim_model) if "supervised" in text else str(tmp_path / "rig.toml")
+    assert source in lines[0]
+
+
+def test_a_bad_model_file_names_the_file_and_the_field(tmp_path):
+    bad = tmp_path / "model.json"
+    bad.write_text('{"format": "mrrig-mlp/1", "input_names": ["x"]}')
+    r = run_daemon(tmp_path, BASE + f'[controller]\nmodel = "{bad}"\n')
+    assert r.returncode == 2
+    line = r.stderr.strip()
+    assert "\n" not in line and str(bad) in line
