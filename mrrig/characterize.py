@@ -3,7 +3,7 @@
 For each run (amplitude x frequency x current, paper Table 1): constant current, actuator sine,
 arm, wait `settle_s` (actuator ramp, coil lag), keep `duration_s` of ARMED samples, disarm.
 Each finished run is written to `DIR/run-NNN.rrd`, appended to `DIR/matrix.csv` (tidy:
-`mrrig.training.TIDY_HEADER`) and then listed in `DIR/done.json` (written last, atomically):
+`mrrig.datasets.TIDY_HEADER`) and then listed in `DIR/done.json` (written last, atomically):
 a rerun skips the runs listed there and drops any rows of unlisted runs from matrix.csv, so a
 run interrupted midway is redone from scratch. A run with a fault or missing samples is tried
 again (`attempts`), then left for the next invocation (exit 1). Ctrl-C/SIGTERM: SAFE, actuator
@@ -36,7 +36,7 @@ import numpy as np
 from mrrig.config import DaemonConfig, load_config
 from mrrig.control import handle
 from mrrig.daemon import Daemon
-from mrrig.datasets import dataset_b_conditions
+from mrrig.datasets import TIDY_HEADER, dataset_b_conditions
 from mrrig.recording import Recorder
 from mrrig.samples import SAMPLE_DTYPE, RigState
 from mrrig.summary import summarize
@@ -60,18 +60,6 @@ RUN_OVERHEAD_S = 0.5  # requests and file writing per run, for the first time-le
 DONE_FILE = "done.json"
 MATRIX_FILE = "matrix.csv"
 EXIT_INTERRUPTED = 130
-# mrrig.training.TIDY_HEADER (a test pins them equal): importing mrrig.training would load
-# torch, and the daemon's mlockall would then lock its ~2 GB of mappings in this process.
-TIDY_HEADER = (
-    "run_id",
-    "t_s",
-    "x_m",
-    "xd_m_s",
-    "xdd_m_s",
-    "force_n",
-    "current_cmd_a",
-    "current_meas_a",
-)
 
 
 class RigError(RuntimeError):

@@ -25,6 +25,20 @@ DISPLACEMENT_LSB_M = 1e-6
 FORCE_LSB_N = 0.01
 
 
+# The tidy characterization data file (mrrig characterize writes it, mrrig train reads it):
+# x = the daemon's Kalman displacement, xd/xdd its estimates, force = the load cell.
+TIDY_HEADER = (
+    "run_id",
+    "t_s",
+    "x_m",
+    "xd_m_s",
+    "xdd_m_s",
+    "force_n",
+    "current_cmd_a",
+    "current_meas_a",
+)
+
+
 class DataError(ValueError):
     """A data file that cannot be read as a Series; the message is one line."""
 

@@ -23,7 +23,7 @@ from typing import Any
 import numpy as np
 from scipy import signal
 
-from mrrig.datasets import DataError, Series, load_csv
+from mrrig.datasets import TIDY_HEADER, DataError, Series, load_csv
 from mrrig.estimation import KalmanEstimator
 from mrrig.inversion import exact_inversion
 from mrrig.metrics import error_norm, percentiles, rmse
@@ -32,16 +32,6 @@ from mrrig.model.train import ProgressFn, train_lm
 
 log = logging.getLogger(__name__)
 
-TIDY_HEADER = (
-    "run_id",
-    "t_s",
-    "x_m",
-    "xd_m_s",
-    "xdd_m_s",
-    "force_n",
-    "current_cmd_a",
-    "current_meas_a",
-)
 PAPER_N_TRAIN = 12771  # the paper's split (spec/modeling.md 4 B)
 PAPER_N_VAL = 1419
 SMALL_DATA_VAL_FRACTION = 0.1

@@ -21,7 +21,6 @@ from firmware_sim.config import load_config as load_sim_config
 from firmware_sim.firmware import Firmware
 from firmware_sim.runner import RunStats
 from firmware_sim.runner import run as run_firmware
-from mrrig import training
 from mrrig.canbus import Codec
 from mrrig.characterize import (
     TIDY_HEADER,
@@ -95,7 +94,6 @@ def _samples(n: int, t0_s: float, current_a: float) -> np.ndarray:
 
 
 def test_tidy_rows_are_the_daemons_estimates_and_load_back_exactly(tmp_path):
-    assert TIDY_HEADER == training.TIDY_HEADER
     s = _samples(50, 12.5, 0.8)
     path = tmp_path / "m.csv"
     with path.open("w") as fh:
