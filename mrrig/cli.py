@@ -27,7 +27,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "characterize": ("mrrig.characterize", "run the characterization test matrix on the rig"),
     "train": ("mrrig.train_cli", "train the forward network from recorded data"),
     "validate": ("mrrig.validate", "force-tracking validation of a model on the rig"),
-    "bench": ("mrrig.bench.cli", "benchmarks: paper, estimation, inversion, loop"),
+    "bench": ("mrrig.bench.cli", "benchmarks: paper, loop, matrix, estimation, inversion"),
 }
 
 
