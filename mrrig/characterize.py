@@ -213,10 +213,8 @@ class RigSession:
 
         Older samples are dropped for good: windows come in time order.
         """
-        chunks = self.daemon._chunks  # appended by the loop thread only; a slice is atomic
-        n = len(chunks)
-        new = chunks[self._seen_chunks : n]
-        self._seen_chunks = n
+        new = self.daemon.handed_over(self._seen_chunks)
+        self._seen_chunks += len(new)
         events = self.daemon.events[self._seen_events :]
         self._seen_events += len(events)
         if not new:
@@ -225,7 +223,7 @@ class RigSession:
         return s[(s["t"] >= t0_s) & (s["t"] < t1_s)], events
 
     def latest_t(self) -> float:
-        chunks = self.daemon._chunks
+        chunks = self.daemon.handed_over(max(self._seen_chunks - 1, 0))
         return float(chunks[-1]["t"][-1]) if chunks else -math.inf
 
     def wait_samples(self, t_s: float, stop: threading.Event) -> None:

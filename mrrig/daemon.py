@@ -324,7 +324,16 @@ class Daemon:
         if self.link is not None and not self.link.send_samples(batch):
             self.counters["telemetry_dropped"] += len(batch)
 
+    def handed_over(self, start: int = 0) -> list[np.ndarray]:
+        """The sample batches completed so far, from batch `start` on.
+
+        Safe from another thread while the loop runs: the loop only appends whole batches,
+        and a list slice is atomic.
+        """
+        return self._chunks[start:]
+
     def samples(self) -> np.ndarray:
+        """All samples of the run (call after the loop has stopped)."""
         if self._n:
             self._flush_samples()
         if not self._chunks:
