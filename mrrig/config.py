@@ -32,8 +32,11 @@ class BusSection:
     send_timeout_s: float = 0.001
 
     def check(self) -> None:
-        if self.interface == "udp_multicast":
-            raise ValueError("interface: udp_multicast sends off this machine; not allowed")
+        if "multicast" in self.interface:
+            # traffic stays on this machine (127.0.0.1, the kernel's CAN, in-process)
+            raise ValueError(
+                f"interface: {self.interface} multicasts off this machine; not allowed"
+            )
         if not 0 < self.send_timeout_s <= 0.002:
             raise ValueError("send_timeout_s: must be in (0, 0.002] s (one sensor period)")
 

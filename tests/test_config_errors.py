@@ -73,3 +73,9 @@ def test_a_bad_model_file_names_the_file_and_the_field(tmp_path):
     assert r.returncode == 2
     line = r.stderr.strip()
     assert "\n" not in line and str(bad) in line
+
+
+def test_a_multicast_bus_interface_is_refused(tmp_path):
+    r = run_daemon(tmp_path, '[bus]\ninterface = "lan_multicast"\nchannel = "x"\n')
+    assert r.returncode == 2
+    assert "bus.interface" in r.stderr and "multicasts off this machine" in r.stderr

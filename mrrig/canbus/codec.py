@@ -310,6 +310,11 @@ class Parsed(NamedTuple):
     reason: str  # one line, empty when ok
 
 
+def _rejected(name: str | None, t_s: float, reason: str, counter: int | None = None) -> Parsed:
+    """A frame that failed its checks: no values, and the one-line reason."""
+    return Parsed(False, name, None, counter, 0, t_s, reason)
+
+
 @dataclass
 class MessageStats:
     """Validity record of one message: counts of each outcome and the last good frame."""
@@ -346,33 +351,19 @@ class Parser:
         lay = self._by_id.get(arbitration_id)
         if lay is None:
             self.unknown_id += 1
-            return Parsed(
-                False, None, None, None, 0, timestamp_s, f"0x{arbitration_id:x}: unknown id"
-            )
+            return _rejected(None, timestamp_s, f"0x{arbitration_id:x}: unknown id")
         name = lay.name
         stats = self.stats[name]
         if len(data) != lay.length:
             stats.wrong_length += 1
-            return Parsed(
-                False,
-                name,
-                None,
-                None,
-                0,
-                timestamp_s,
-                f"{name}: wrong length {len(data)} (want {lay.length})",
+            return _rejected(
+                name, timestamp_s, f"{name}: wrong length {len(data)} (want {lay.length})"
             )
         crc = profile2_crc(data, lay.data_id)
         if crc != data[0]:
             stats.bad_crc += 1
-            return Parsed(
-                False,
-                name,
-                None,
-                None,
-                0,
-                timestamp_s,
-                f"{name}: CRC mismatch (got 0x{data[0]:02x}, want 0x{crc:02x})",
+            return _rejected(
+                name, timestamp_s, f"{name}: CRC mismatch (got 0x{data[0]:02x}, want 0x{crc:02x})"
             )
         word = int.from_bytes(data, "little")
         counter = (word >> lay.counter_shift) & lay.counter_mask
@@ -382,15 +373,7 @@ class Parser:
             delta = (counter - previous) & lay.counter_mask
             if delta == 0:
                 stats.repeated_counter += 1
-                return Parsed(
-                    False,
-                    name,
-                    None,
-                    counter,
-                    0,
-                    timestamp_s,
-                    f"{name}: repeated counter {counter}",
-                )
+                return _rejected(name, timestamp_s, f"{name}: repeated counter {counter}", counter)
             lost = delta - 1
         values = {}
         for f in lay.fields:
@@ -399,14 +382,11 @@ class Parser:
                 raw -= f.mask + 1
             if not f.raw_min <= raw <= f.raw_max:
                 stats.decode_errors += 1
-                return Parsed(
-                    False,
+                return _rejected(
                     name,
-                    None,
-                    counter,
-                    0,
                     timestamp_s,
                     f"{name}: {f.name} raw {raw} outside DBC range [{f.raw_min}, {f.raw_max}]",
+                    counter,
                 )
             values[f.name] = raw * f.scale + f.offset
         self._last_counter[name] = counter
@@ -422,9 +402,7 @@ class Parser:
         if msg.is_extended_id or msg.is_remote_frame or msg.is_error_frame:
             self.unknown_id += 1
             kind = "error" if msg.is_error_frame else "remote" if msg.is_remote_frame else "29-bit"
-            return Parsed(
-                False, None, None, None, 0, t_s, f"0x{msg.arbitration_id:x}: {kind} frame"
-            )
+            return _rejected(None, t_s, f"0x{msg.arbitration_id:x}: {kind} frame")
         return self.parse(msg.arbitration_id, msg.data, t_s)
 
     def last(self, name: str) -> Parsed | None:
