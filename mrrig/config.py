@@ -10,6 +10,7 @@ from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
 from typing import Any, Literal
 
+from mrrig.inversion import DEFAULT_CONTINUITY
 from mrrig.typed_config import ConfigError, load_toml, parse
 
 __all__ = ["ConfigError", "DaemonConfig", "load_config", "reference_from_table"]
@@ -93,6 +94,7 @@ class ControllerSection:
     model: Path | None = None  # the forward model (network inversion) or the inverse MLP / RNN
     method: Literal["exact", "gradient"] = "exact"
     feedback_tau_s: float | None = None  # load-cell feedback correction; off when absent
+    continuity: float = DEFAULT_CONTINUITY  # exact solve's weight toward the previous command
     current_a: float = 0.0  # for the constant controller
 
     def check(self) -> None:
@@ -101,6 +103,8 @@ class ControllerSection:
             raise ValueError(f"model: controller {self.name} needs a model file")
         if self.feedback_tau_s is not None and not self.feedback_tau_s > 0:
             raise ValueError("feedback_tau_s: must be positive")
+        if not self.continuity >= 0:
+            raise ValueError("continuity: must be >= 0")
 
 
 @dataclass(frozen=True)

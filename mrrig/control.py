@@ -55,9 +55,8 @@ def _set_controller(d: Daemon, req: dict) -> dict:
         raise RequestError(
             f"name: unknown controller {name!r} (known: {', '.join(CONTROLLER_NAMES)})"
         )
-    table = {
-        k: v for k, v in req.items() if k in ("model", "method", "feedback_tau_s", "current_a")
-    }
+    keys = ("model", "method", "feedback_tau_s", "continuity", "current_a")
+    table = {k: v for k, v in req.items() if k in keys}
     table["name"] = name
     if "model" not in table and d.cfg.controller.model is not None:
         table["model"] = str(d.cfg.controller.model)

@@ -9,15 +9,39 @@ already clamped to [0, i_max]. Controllers are pure numerics: they know nothing 
 from __future__ import annotations
 
 import abc
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
 
-from mrrig.inversion import ScalarInverter, exact_inversion, gradient_inversion
+from mrrig.inversion import (
+    DEFAULT_CONTINUITY,
+    ScalarInverter,
+    exact_inversion,
+    gradient_inversion,
+)
 from mrrig.model.mlp import MLP
 
 FORWARD_INPUTS = ("x", "xd", "xdd", "current")
 SUPERVISED_INPUTS = ("x", "xd", "xdd", "f_des")
+HISTORY_SIGNALS = ("x", "xd", "xdd", "current")  # what a history input may be a past sample of
+
+
+def history_input_names(samples: int, signals: Sequence[str]) -> tuple[str, ...]:
+    """History input names, `SIGNAL_K` = SIGNAL K samples back, newest first: 2 samples of
+    (x, xd) are (x_1, xd_1, x_2, xd_2). Units are those of the signal."""
+    return tuple(f"{sig}_{k}" for k in range(1, samples + 1) for sig in signals)
+
+
+def parse_history_input(name: str) -> tuple[str, int]:
+    """(signal, samples back) of a history input name; a one-line ValueError for anything else."""
+    sig, sep, k = name.rpartition("_")
+    if sep and sig in HISTORY_SIGNALS and k.isascii() and k.isdigit() and not k.startswith("0"):
+        return sig, int(k)
+    raise ValueError(
+        f"input {name!r} is not a history input SIGNAL_K "
+        f"(SIGNAL one of {', '.join(HISTORY_SIGNALS)}, K >= 1 samples back)"
+    )
 
 
 @dataclass
@@ -54,6 +78,82 @@ class Controller(abc.ABC):
     def model_force(self, s: ControlInput, current: np.ndarray) -> np.ndarray:
         """The forward model's force for `current` (NaN for controllers without one)."""
         return np.full_like(np.asarray(current, dtype=float), np.nan)
+
+
+class ModelInputs:
+    """A model's input rows at each control instant, history inputs included.
+
+    The model's inputs must be `present` (this instant's values, in that order) followed by
+    history inputs `SIGNAL_K` (`history_input_names`, any order). Per lane it keeps the last
+    K instants that the history inputs need. `advance(s, prev_command)` once per instant,
+    before that instant's rows: it files the previous instant, with `prev_command` (the
+    command made for it) as its current, and makes `s` the present one. Until K instants
+    have been seen after `reset()`, the missing past ones are the first instant (at the first
+    instant, the present one itself), with the past command 0 A (the command before a run).
+    """
+
+    def __init__(self, names: Sequence[str], present: tuple[str, ...], what: str) -> None:
+        names = tuple(names)
+        n = len(present)
+        if names[:n] != present:
+            raise ValueError(
+                f"{what} needs a model whose inputs start with {', '.join(present)} (then "
+                f"history inputs such as x_1, xd_1), got {', '.join(names)}"
+            )
+        history = []
+        for name in names[n:]:
+            try:
+                history.append(parse_history_input(name))
+            except ValueError as exc:
+                raise ValueError(f"{what}: {exc}") from None
+        self.signals = tuple(dict.fromkeys(sig for sig, _ in history))
+        self.samples = max((k for _, k in history), default=0)
+        self.present = present
+        # history column j of a row = ring[lane, k - 1, signal index], flattened
+        self._take = np.array(
+            [(k - 1) * len(self.signals) + self.signals.index(sig) for sig, k in history],
+            dtype=int,
+        )
+        self.reset()
+
+    def reset(self) -> None:
+        """Forget the past: the next instant is the first of a run."""
+        self._ring: np.ndarray | None = None  # (lanes, samples, signals), newest first
+        self._last: np.ndarray | None = None  # the present instant's signals (lanes, signals)
+
+    def _now(self, s: ControlInput) -> np.ndarray:
+        """The history signals of instant `s` (lanes, signals); its current, not known yet, is
+        0 A until `advance` files the instant with the command made for it."""
+        values = {"x": s.x, "xd": s.xd, "xdd": s.xdd, "current": np.zeros(np.shape(s.x))}
+        return np.stack([values[sig] for sig in self.signals], axis=-1)
+
+    def _filled(self, s: ControlInput) -> np.ndarray:
+        """A ring whose every past instant is `s` (the start of a run)."""
+        return np.repeat(self._now(s)[:, None, :], self.samples, axis=1)
+
+    def advance(self, s: ControlInput, prev_command: np.ndarray) -> None:
+        """Make `s` the present instant; `prev_command` was the command for the previous one."""
+        if self.samples == 0:
+            return
+        if self._ring is None or self._last is None:
+            self._ring = self._filled(s)
+        else:
+            self._ring[:, 1:] = self._ring[:, :-1]
+            self._ring[:, 0] = self._last
+            if "current" in self.signals:
+                self._ring[:, 0, self.signals.index("current")] = prev_command
+        self._last = self._now(s)
+
+    def rows(self, s: ControlInput, current: np.ndarray | None = None) -> np.ndarray:
+        """Input rows (B, n) in the model's order; without the current column if current is
+        None (the inversion's features). Before the first `advance`, the history is `s`."""
+        values = {"x": s.x, "xd": s.xd, "xdd": s.xdd, "f_des": s.f_des, "current": current}
+        cols = [values[name] for name in self.present if values[name] is not None]
+        if self.samples == 0:
+            return np.stack(cols, axis=-1)
+        ring = self._filled(s) if self._ring is None else self._ring
+        past = ring.reshape(ring.shape[0], -1)[:, self._take]
+        return np.concatenate([np.stack(cols, axis=-1), past], axis=-1)
 
 
 class ConstantCurrent(Controller):
@@ -110,9 +210,14 @@ class NetworkInversion(Controller):
 
     `method="exact"` (default) is the bracketed safeguarded-Newton scalar solve;
     `method="gradient"` is the paper's eq. 2/14 gradient descent, kept as the reference.
+    `continuity` is the exact solve's weight mu toward the previous command (mrrig/inversion.py;
+    default 0 = the root itself; 1 = the smoothing of the paper's on-line gradient method).
     With `feedback_tau_s` set, the load cell corrects the model online: the residual
     r = f_meas - f_net(state, previous command) is low-passed with that time constant and the
     network is solved for f_des - r, so a steady model error does not become tracking error.
+    A forward model with history inputs (`FORWARD_INPUTS` then e.g. x_1, xd_1: `ModelInputs`)
+    gets them from the past instants of each lane, past currents being its own commands;
+    the unknown is still the present current alone, a scalar solve.
     """
 
     name = "network_inversion"
@@ -128,13 +233,10 @@ class NetworkInversion(Controller):
         gradient_rate: float = 1e-3,
         gradient_iterations: int = 1000,
         seed: int = 0,
+        continuity: float = DEFAULT_CONTINUITY,
     ) -> None:
         super().__init__(i_max)
-        if tuple(model.input_names) != FORWARD_INPUTS or model.output_name != "force":
-            raise ValueError(
-                f"network inversion needs a forward model {FORWARD_INPUTS} -> force, "
-                f"got {tuple(model.input_names)} -> {model.output_name}"
-            )
+        self._inputs = self._forward_inputs(model)
         if method not in ("exact", "gradient"):
             raise ValueError(f"unknown inversion method {method!r} (exact, gradient)")
         self.model = model
@@ -144,25 +246,38 @@ class NetworkInversion(Controller):
         self.gradient_rate = gradient_rate
         self.gradient_iterations = gradient_iterations
         self._rng = np.random.default_rng(seed)
-        self._scalar = ScalarInverter(model, i_max)
+        self.continuity = continuity
+        self._scalar = ScalarInverter(model, i_max, continuity=continuity)
+
+    @staticmethod
+    def _forward_inputs(model: MLP) -> ModelInputs:
+        """The model's inputs: `FORWARD_INPUTS`, then any history inputs; ValueError if not."""
+        if model.output_name != "force":
+            raise ValueError(
+                f"network inversion needs a forward model (output force), got output "
+                f"{model.output_name!r}"
+            )
+        return ModelInputs(model.input_names, FORWARD_INPUTS, "network inversion")
 
     def reset(self, batch: int = 1) -> None:
         super().reset(batch)
         self._prev = np.zeros(batch)
         self._residual = np.zeros(batch)
         self._first = True
+        self._inputs.reset()
 
     def _features(self, s: ControlInput, current: np.ndarray) -> np.ndarray:
-        return np.stack([s.x, s.xd, s.xdd, current], axis=-1)
+        return self._inputs.rows(s, current)
 
-    @staticmethod
-    def _state(s: ControlInput) -> np.ndarray:
-        return np.stack([s.x, s.xd, s.xdd], axis=-1)
+    def _state(self, s: ControlInput) -> np.ndarray:
+        """The model's inputs without the current (history included), in the model's order."""
+        return self._inputs.rows(s)
 
     def model_force(self, s: ControlInput, current: np.ndarray) -> np.ndarray:
         return self.model.predict(self._features(s, np.asarray(current, dtype=float)))
 
     def command(self, s: ControlInput) -> np.ndarray:
+        self._inputs.advance(s, self._prev)
         target = s.f_des
         if self.feedback_tau_s is not None:
             residual = s.f_meas - self.model_force(s, self._prev)
@@ -185,30 +300,48 @@ class NetworkInversion(Controller):
         elif self.batch == 1:
             i = np.array([self._scalar.solve(self._state(s)[0], float(target[0]), self._prev[0])])
         else:
-            i = exact_inversion(self.model, self._state(s), target, self._prev, i_max=self.i_max)
+            i = exact_inversion(
+                self.model,
+                self._state(s),
+                target,
+                self._prev,
+                i_max=self.i_max,
+                continuity=self.continuity,
+            )
         self._prev = np.clip(i, 0.0, self.i_max)
         self._first = False
         return self._prev.copy()
 
 
 class SupervisedInverse(Controller):
-    """Direct inverse MLP (x, xd, xdd, f_des) -> current, trained by supervised learning."""
+    """Direct inverse MLP (x, xd, xdd, f_des) -> current, trained by supervised learning.
+
+    The model may have history inputs of the motion (x_1, xd_1, ...: `ModelInputs`), not of
+    the current: its past outputs would feed back into it.
+    """
 
     name = "supervised"
     controller_id = 4
 
     def __init__(self, i_max: float, model: MLP) -> None:
         super().__init__(i_max)
-        if tuple(model.input_names) != SUPERVISED_INPUTS or model.output_name != "current":
+        if model.output_name != "current":
             raise ValueError(
-                f"the supervised inverse needs a model {SUPERVISED_INPUTS} -> current, "
-                f"got {tuple(model.input_names)} -> {model.output_name}"
+                f"the supervised inverse needs a model with output current, got output "
+                f"{model.output_name!r}"
             )
+        self._inputs = ModelInputs(model.input_names, SUPERVISED_INPUTS, "the supervised inverse")
+        if "current" in self._inputs.signals:
+            raise ValueError("the supervised inverse takes no past currents as inputs")
         self.model = model
 
+    def reset(self, batch: int = 1) -> None:
+        super().reset(batch)
+        self._inputs.reset()
+
     def command(self, s: ControlInput) -> np.ndarray:
-        X = np.stack([s.x, s.xd, s.xdd, s.f_des], axis=-1)
-        return np.clip(self.model.predict(X), 0.0, self.i_max)
+        self._inputs.advance(s, np.zeros(np.shape(s.x)))
+        return np.clip(self.model.predict(self._inputs.rows(s)), 0.0, self.i_max)
 
 
 RNN_INPUTS = ("f_des", "f_des_1", "x", "x_1") + tuple(f"v_{k}" for k in range(1, 7))

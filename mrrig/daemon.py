@@ -11,6 +11,7 @@ back the same way, polled between frames.
 from __future__ import annotations
 
 import argparse
+import array
 import gc
 import json
 import logging
@@ -40,6 +41,7 @@ from mrrig.controllers import (
     SupervisedInverse,
 )
 from mrrig.estimation import RealtimeKalman
+from mrrig.metrics import percentiles
 from mrrig.model.mlp import MLP, ModelError
 from mrrig.realtime import make_realtime
 from mrrig.safety import Fault, Limits, Supervisor
@@ -71,7 +73,12 @@ def build_controller(cfg: DaemonConfig, section=None) -> Controller:
     try:
         if c.name == "network_inversion":
             return NetworkInversion(
-                i_max, model, method=c.method, feedback_tau_s=c.feedback_tau_s, dt_s=dt
+                i_max,
+                model,
+                method=c.method,
+                feedback_tau_s=c.feedback_tau_s,
+                dt_s=dt,
+                continuity=c.continuity,
             )
         if c.name == "supervised":
             return SupervisedInverse(i_max, model)
@@ -104,7 +111,7 @@ def build_reference(r: ReferenceSection, dt_s: float) -> ref.ForceReference:
     return ref.External(r.timeout_s)
 
 
-def _realtime(cfg: DaemonConfig) -> None:
+def loop_realtime(cfg: DaemonConfig) -> None:
     """SCHED_FIFO, CPU affinity and locked memory where permitted; a warning where not."""
     make_realtime(
         50 if cfg.loop.realtime else 0,
@@ -160,6 +167,10 @@ class Daemon:
         }
         self.events: list[dict] = []
         self._chunks: list[np.ndarray] = []
+        # per answered frame, the two parts of latency_us: up to the bus's send() and inside it
+        self._send_call_s = math.nan
+        self._us_before_send = array.array("d")
+        self._us_send_call = array.array("d")
         self._buf = np.zeros(cfg.loop.telemetry_batch, dtype=SAMPLE_DTYPE)
         self._n = 0
         self._last_sensor_t = None
@@ -214,7 +225,9 @@ class Daemon:
     def _send(self, name: str, values: dict[str, Any]) -> bool:
         msg = self.packer.message(name, values)
         try:
+            t = time.perf_counter()
             self.bus.send(msg, timeout=self.cfg.bus.send_timeout_s)
+            self._send_call_s = time.perf_counter() - t
             return True
         except Exception as exc:  # noqa: BLE001 - any bus failure is a BUS_ERROR fault
             self.counters["send_failures"] += 1
@@ -295,6 +308,9 @@ class Daemon:
         if self._stop:
             self._safe_sent_at_stop = True
         latency_us = (time.perf_counter() - t_rx) * 1e6
+        self._us_send_call.append(self._send_call_s * 1e6)
+        self._us_before_send.append(latency_us - self._send_call_s * 1e6)
+        self._send_call_s = math.nan
         self.last_x = x
         f_model = math.nan
         try:
@@ -444,7 +460,7 @@ class Daemon:
             # SCHED_FIFO would starve the simulator and the bridge on a 2-core machine
             gc.collect()
             gc.freeze()
-            _realtime(cfg)
+            loop_realtime(cfg)
             self.t0 = time.perf_counter()
             self._cpu0 = time.process_time()
             self._arm_pending = cfg.loop.arm_on_start
@@ -523,6 +539,10 @@ class Daemon:
         self.counters["telemetry_dropped"] += self.link.dropped if self.link else 0
         self.summary = summarize(samples, self.events, dict(self.counters))
         self.summary["stop_reason"] = self.stop_reason
+        self.summary["latency_split_us"] = {
+            "before_send": _finite_percentiles(self._us_before_send),
+            "send_call": _finite_percentiles(self._us_send_call),
+        }
         if self.link is not None:
             self.link.send_summary(_jsonable(self.summary))
             self.link.send_stop()
@@ -537,6 +557,11 @@ class Daemon:
                 resource.getrusage(resource.RUSAGE_CHILDREN).ru_utime
                 + resource.getrusage(resource.RUSAGE_CHILDREN).ru_stime
             )
+
+
+def _finite_percentiles(values: array.array) -> dict[str, float]:
+    a = np.frombuffer(values, dtype=np.float64) if len(values) else np.empty(0)
+    return percentiles(a[np.isfinite(a)], qs=(50, 99, 99.9))
 
 
 def _jsonable(d: Any) -> Any:

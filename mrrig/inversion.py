@@ -10,6 +10,18 @@ Two methods:
 - `exact_inversion` (the default): bracket the roots of f(i) - f_d on a grid over [0, i_max],
   take the root nearest the previous command, refine it by safeguarded Newton with the same
   analytic derivative; saturate at the nearest bound when the force is out of reach.
+  With a continuity weight mu > 0 it solves, just as exactly, the regularised problem
+
+      min over i in [0, i_max] of  (f(i) - f_d)^2 / s_f^2 + mu (i - i_prev)^2 / s_i^2
+
+  (s_f, s_i: the model's force and current scalers). Where df/di is large the answer is the
+  root; where the force hardly depends on the current (velocity reversals) it stays near the
+  previous command instead of jumping across the range. mu = 1 matches the smoothing of the
+  paper's on-line gradient method (rate 0.001 x 1000 iterations = unit descent time in the
+  same standardised units): linearised, that method ends (i_prev - i*) exp(-g^2) from the
+  root, the regularised solve (i_prev - i*) / (1 + g^2 / mu), g = the standardised df/di.
+  The smoothing is per sample, so its time scale depends on the sample period: mu = 1 helps
+  the paper's 1 ms study and hurts the rig's 2 ms loop, whose default is the root (mu = 0).
 `ScalarInverter` is the one-sample path of both for the real-time loop.
 
 Features are the model's inputs without the current, in the model's order, physical units.
@@ -22,6 +34,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from mrrig.model.mlp import MLP
+
+DEFAULT_CONTINUITY = 0.0  # mu of the exact solve: the root itself (module docstring)
+PAPER_CONTINUITY = 1.0  # mu equivalent to the paper's on-line gradient method (module docstring)
 
 
 @dataclass(frozen=True)
@@ -150,6 +165,7 @@ def exact_inversion(
     grid_points: int = 33,
     xtol_a: float = 1e-6,
     max_iter: int = 60,
+    continuity: float = 0.0,
 ) -> np.ndarray:
     """Currents (N,) in [0, i_max] with f_net(features, i) = f_des, vectorised over samples.
 
@@ -157,14 +173,19 @@ def exact_inversion(
     (judged by the secant estimate in each bracket) is refined by Newton steps, bisecting
     when a step leaves the bracket, until a step is below `xtol_a`. Two roots inside one grid
     cell are not seen. No root: the bound whose force is nearest f_des (tie: nearest i_prev).
+    `continuity` > 0: the regularised problem of the module docstring instead (`_regularised`).
     """
     features, f_des = _as_batch(model, features, f_des)
     s = _Split.of(model)
     n = features.shape[0]
     i_prev = np.broadcast_to(np.asarray(i_prev, dtype=np.float64), (n,))
+    if continuity < 0:
+        raise ValueError(f"continuity must be >= 0, got {continuity}")
     grid = np.linspace(0.0, i_max, grid_points)
     k = s.features_part(features)
     c = s.f0 - f_des
+    if continuity > 0:
+        return _regularised(s, model, k, c, i_prev, grid, continuity, xtol_a, max_iter)
     g = np.tanh(k[:, None, :] + grid[:, None] * s.w) @ s.v + c[:, None]  # N x G
     g_lo, g_hi = g[:, :-1], g[:, 1:]
     bracket = g_lo * g_hi <= 0.0
@@ -211,10 +232,64 @@ def exact_inversion(
     return out
 
 
+def _objective_weights(s: _Split, model: MLP, continuity: float) -> tuple[float, float]:
+    """(a, b) of J(i) = a (f(i) - f_d)^2 + b (i - i_prev)^2, the module docstring's objective."""
+    return 1.0 / float(model.out_std) ** 2, continuity / s.c_std**2
+
+
+def _regularised(
+    s: _Split,
+    model: MLP,
+    k: np.ndarray,
+    c: np.ndarray,
+    i_prev: np.ndarray,
+    grid: np.ndarray,
+    continuity: float,
+    xtol_a: float,
+    max_iter: int,
+) -> np.ndarray:
+    """Minimise J over [0, i_max] for each row: the grid's best point, then safeguarded Newton
+    on J' = 2 (a g f' + b (i - i_prev)) inside its two neighbouring cells (bisecting on the sign
+    of J' when a step leaves the bracket or J'' <= 0), until a step is below xtol_a."""
+    a, b = _objective_weights(s, model, continuity)
+    t = np.tanh(k[:, None, :] + grid[:, None] * s.w)  # eqs 5, 7 on the grid, N x G x H
+    g = t @ s.v + c[:, None]
+    J = a * g * g + b * (grid - i_prev[:, None]) ** 2
+    j = np.argmin(J, axis=1)
+    last = grid.size - 1
+    lo = grid[np.maximum(j - 1, 0)]
+    hi = grid[np.minimum(j + 1, last)]
+    x = grid[j].copy()
+    active = np.ones(x.size, dtype=bool)
+    for _ in range(max_iter):
+        if not active.any():
+            break
+        r = np.flatnonzero(active)
+        th = np.tanh(k[r] + x[r, None] * s.w)  # eqs 5, 7
+        gx = th @ s.v + c[r]
+        sech2 = 1.0 - th * th
+        d1 = sech2 @ s.vw  # df/di: eq. 14 without the error factor
+        d2 = -2.0 * (th * sech2) @ (s.vw * s.w)  # d2f/di2
+        jp = a * gx * d1 + b * (x[r] - i_prev[r])  # J'/2
+        jpp = a * (d1 * d1 + gx * d2) + b  # J''/2
+        up = jp > 0.0
+        hi[r] = np.where(up, x[r], hi[r])
+        lo[r] = np.where(up, lo[r], x[r])
+        with np.errstate(divide="ignore", invalid="ignore"):
+            xn = np.where(jpp > 0.0, x[r] - jp / jpp, np.nan)
+        bad = ~((xn > lo[r]) & (xn < hi[r]))
+        xn = np.where(bad, 0.5 * (lo[r] + hi[r]), xn)
+        done = (np.abs(xn - x[r]) <= xtol_a) | (hi[r] - lo[r] <= xtol_a)
+        x[r] = xn
+        active[r[done]] = False
+    return x
+
+
 class ScalarInverter:
     """One sample at a time, for the real-time loop; same results as the batch functions.
 
-    method "exact" (default) or "gradient" (the paper's; random start from `seed`).
+    method "exact" (default) or "gradient" (the paper's; random start from `seed`);
+    `continuity` is the exact solve's weight mu (0: the root itself).
     """
 
     def __init__(
@@ -229,9 +304,12 @@ class ScalarInverter:
         rate: float = 1e-3,
         iterations: int = 1000,
         seed: int | None = None,
+        continuity: float = 0.0,
     ) -> None:
         if method not in ("exact", "gradient"):
             raise ValueError(f"unknown inversion method {method!r} (exact, gradient)")
+        if continuity < 0:
+            raise ValueError(f"continuity must be >= 0, got {continuity}")
         self.model = model
         self.method = method
         self.i_max = float(i_max)
@@ -248,6 +326,9 @@ class ScalarInverter:
         self._k = np.empty(model.hidden)
         self._buf_h = np.empty(model.hidden)
         self._vw_sum = float(s.vw.sum())
+        self.continuity = float(continuity)
+        self._a, self._b = _objective_weights(s, model, self.continuity)
+        self._vww = s.vw * s.w
 
     def solve(self, features: np.ndarray, f_des: float, i_prev: float) -> float:
         """Current in A for one sample; features = the model's inputs without the current."""
@@ -260,6 +341,8 @@ class ScalarInverter:
         c = s.f0 - f_des
         np.add(self._grid_w, k, out=buf_g)
         np.tanh(buf_g, out=buf_g)
+        if self.continuity > 0.0:
+            return self._regularised(k, c, buf_g @ s.v + c, i_prev)
         g = (buf_g @ s.v + c).tolist()
         grid, h = self._grid_list, self._h
         best = np.inf
@@ -296,6 +379,38 @@ class ScalarInverter:
             step = abs(xn - x)
             x = xn
             if step <= self.xtol_a:
+                break
+        return x
+
+    def _regularised(self, k: np.ndarray, c: float, g: np.ndarray, i_prev: float) -> float:
+        """`_regularised` of the batch path for one sample; g = f - f_d on the grid."""
+        s, a, b = self._s, self._a, self._b
+        J = a * g * g + b * (self._grid - i_prev) ** 2
+        j = int(np.argmin(J))
+        grid = self._grid_list
+        lo, hi = grid[max(j - 1, 0)], grid[min(j + 1, len(grid) - 1)]
+        x = grid[j]
+        th = self._buf_h
+        for _ in range(self.max_iter):
+            np.multiply(s.w, x, out=th)
+            th += k
+            np.tanh(th, out=th)  # eqs 5, 7
+            gx = float(th @ s.v) + c
+            sech2 = 1.0 - th * th
+            d1 = float(sech2 @ s.vw)  # df/di: eq. 14 without the error factor
+            d2 = -2.0 * float((th * sech2) @ self._vww)  # d2f/di2
+            jp = a * gx * d1 + b * (x - i_prev)  # J'/2
+            jpp = a * (d1 * d1 + gx * d2) + b  # J''/2
+            if jp > 0.0:
+                hi = x
+            else:
+                lo = x
+            xn = x - jp / jpp if jpp > 0.0 else np.nan
+            if not lo < xn < hi:
+                xn = 0.5 * (lo + hi)
+            step = abs(xn - x)
+            x = xn
+            if step <= self.xtol_a or hi - lo <= self.xtol_a:
                 break
         return x
 

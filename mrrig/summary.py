@@ -69,6 +69,13 @@ def _stats_line(d: Mapping[str, float], unit: str) -> str:
     return ", ".join(f"{k} {_fmt(v, unit)}" for k, v in d.items())
 
 
+def _nested(d: Mapping[str, Any]) -> str:
+    """One line of a mapping of percentile dicts (or plain values)."""
+    return "; ".join(
+        f"{k}: {_stats_line(v, '') if isinstance(v, Mapping) else _fmt(v)}" for k, v in d.items()
+    )
+
+
 def format_summary(d: Mapping[str, Any]) -> str:
     """Multi-line text of a `summarize` dict for a terminal."""
     lines = [
@@ -95,5 +102,8 @@ def format_summary(d: Mapping[str, Any]) -> str:
     if extra:
         lines.append("counters")
         width = max(len(k) for k in extra)
-        lines += [f"  {k:<{width}}  {_fmt(v)}" for k, v in extra.items()]
+        lines += [
+            f"  {k:<{width}}  " + (_nested(v) if isinstance(v, Mapping) else _fmt(v))
+            for k, v in extra.items()
+        ]
     return "\n".join(lines)

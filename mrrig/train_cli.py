@@ -2,7 +2,8 @@
 
 DATA are tidy characterization CSVs, daemon recordings (.rrd) or other CSVs with a column map
 (`--columns x=Pos,force=F,current=I,t=time`) and units (`--units x=cm,force=kN`). Writes the
-model file and prints the validation report (spec/modeling.md section 5).
+model file and prints the validation report (spec/modeling.md section 5). `--history N` adds
+the previous N samples of `--history-signals` (default x,xd) to the forward network's inputs.
 """
 
 from __future__ import annotations
@@ -18,8 +19,11 @@ from mrrig.datasets import DataError
 from mrrig.training import (
     COIL_LAG_TAU_S,
     CURRENT_INPUTS,
+    DEFAULT_HISTORY_SIGNALS,
+    HISTORY_SIGNALS,
     PAPER_N_TRAIN,
     PAPER_N_VAL,
+    check_history,
     load_training_data,
     train_and_validate,
 )
@@ -42,6 +46,22 @@ def _mapping(text: str | None, option: str) -> dict[str, str] | None:
     return out
 
 
+def _history(samples: int, signals_text: str | None) -> tuple[int, tuple[str, ...]]:
+    """--history and --history-signals as checked options; a one-line DataError if wrong."""
+    if samples < 0:
+        raise DataError(f"--history must be >= 0, got {samples}")
+    if signals_text is None:
+        return samples, DEFAULT_HISTORY_SIGNALS
+    if samples == 0:
+        raise DataError("--history-signals needs --history N with N >= 1")
+    signals = tuple(s.strip() for s in signals_text.split(","))
+    try:
+        check_history(samples, signals)
+    except ValueError as exc:
+        raise DataError(f"--history-signals: {exc}") from None
+    return samples, signals
+
+
 def _progress(epoch: int, train_mse: float, val_mse: float | None, mu: float) -> None:
     if epoch % PROGRESS_EVERY_EPOCHS == 0:
         val = f"{val_mse:.4g}" if val_mse is not None else "-"
@@ -60,6 +80,12 @@ def format_report(r: dict[str, Any]) -> str:
         f"split: {r['split']['rule']} (seed {r['split']['seed']})",
         f"current input: {r['current_input']}"
         + (f" (lag tau {r['lag_tau_s'] * 1e3:.2f} ms)" if r["lag_tau_s"] else ""),
+        "history inputs: "
+        + (
+            f"the previous {r['history_samples']} samples of {', '.join(r['history_signals'])}"
+            if r["history_samples"]
+            else "none"
+        ),
         f"forward network: {r['epochs']} epochs ({r['stop_reason']}), {r['seconds']:.1f} s",
         f"forward Et on the {r['n_val']} validation samples: {r['forward']['et']:.4f}"
         f" (RMSE {r['forward']['rmse_n']:.2f} N)",
@@ -101,6 +127,20 @@ def main(argv: list[str] | None = None) -> int:
         default=COIL_LAG_TAU_S,
         help=f"coil lag time constant for --current-input lagged (default {COIL_LAG_TAU_S:.6g} s)",
     )
+    ap.add_argument(
+        "--history",
+        type=int,
+        default=0,
+        metavar="N",
+        help="history inputs: the previous N samples of --history-signals (default 0: none)",
+    )
+    ap.add_argument(
+        "--history-signals",
+        metavar="S[,S...]",
+        help=f"signals of the history inputs, of {', '.join(HISTORY_SIGNALS)} (default "
+        f"{','.join(DEFAULT_HISTORY_SIGNALS)}; past currents only where the data varies the "
+        "current within a run)",
+    )
     ap.add_argument("--epochs", type=int, default=1000, help="LM epoch limit (default 1000)")
     ap.add_argument("--seed", type=int, default=0, help="split and initial weights")
     ap.add_argument("--n-train", type=int, default=PAPER_N_TRAIN)
@@ -116,6 +156,7 @@ def main(argv: list[str] | None = None) -> int:
         raise DataError(f"--epochs must be >= 1, got {args.epochs}")
     if args.no_supervised and args.supervised_out:
         raise DataError("--supervised-out needs the supervised model: drop --no-supervised")
+    history_samples, history_signals = _history(args.history, args.history_signals)
     series = load_training_data(
         args.data, _mapping(args.columns, "--columns"), _mapping(args.units, "--units")
     )
@@ -131,6 +172,8 @@ def main(argv: list[str] | None = None) -> int:
         max_epochs=args.epochs,
         i_max=args.i_max,
         supervised=not args.no_supervised,
+        history_samples=history_samples,
+        history_signals=history_signals,
     )
     fwd.meta["data_files"] = [str(p) for p in args.data]
     args.out.parent.mkdir(parents=True, exist_ok=True)

@@ -23,6 +23,7 @@ from typing import Any
 import numpy as np
 from scipy import signal
 
+from mrrig.controllers import HISTORY_SIGNALS, history_input_names
 from mrrig.datasets import TIDY_HEADER, DataError, Series, load_csv
 from mrrig.estimation import KalmanEstimator
 from mrrig.inversion import exact_inversion
@@ -40,8 +41,13 @@ KALMAN_WARMUP_S = 0.1  # dropped at the start of each run whose xd/xdd we estima
 CURRENT_INPUTS = ("commanded", "lagged")
 INPUT_NAMES = ("x", "xd", "xdd", "current")
 INPUT_UNITS = ("m", "m/s", "m/s^2", "A")
+CURRENT_COLUMN = INPUT_NAMES.index("current")
 SUPERVISED_INPUT_NAMES = ("x", "xd", "xdd", "f_des")
 SUPERVISED_INPUT_UNITS = ("m", "m/s", "m/s^2", "N")
+# The hysteresis state of the damper shows in its past motion. Past currents are no default:
+# where the current is constant per run (the characterization matrix) they are collinear with
+# the present current, and the force would no longer pin the present current down.
+DEFAULT_HISTORY_SIGNALS = ("x", "xd")
 TRACKING_QUANTILES = (50.0, 95.0)
 
 # plant_force(rows, current_a) -> force_n: the plant's force at sample rows of the series, had
@@ -267,20 +273,77 @@ def lagged_current(
     return u
 
 
+def check_history(history_samples: int, history_signals: Sequence[str]) -> tuple[str, ...]:
+    """The history signals as a tuple (empty without history); a one-line ValueError for
+    a negative sample count, an unknown or repeated signal, or no signal."""
+    if isinstance(history_samples, bool) or not isinstance(history_samples, int | np.integer):
+        raise ValueError(f"history samples must be an integer, got {history_samples!r}")
+    if history_samples < 0:
+        raise ValueError(f"history samples must be >= 0, got {history_samples}")
+    signals = tuple(history_signals)
+    for sig in signals:
+        if sig not in HISTORY_SIGNALS:
+            raise ValueError(f"history signal {sig!r}: unknown ({', '.join(HISTORY_SIGNALS)})")
+        if signals.count(sig) > 1:
+            raise ValueError(f"history signal {sig!r}: given twice")
+    if history_samples > 0 and not signals:
+        raise ValueError("history signals: none given")
+    return signals if history_samples > 0 else ()
+
+
+def feature_names(
+    history_samples: int = 0, history_signals: Sequence[str] = DEFAULT_HISTORY_SIGNALS
+) -> tuple[tuple[str, ...], tuple[str, ...]]:
+    """(names, units) of the forward network's inputs: `INPUT_NAMES`, then the history inputs
+    `SIGNAL_K` (K samples back, newest first; `controllers.history_input_names`)."""
+    signals = check_history(history_samples, history_signals)
+    hist = history_input_names(history_samples, signals)
+    unit = dict(zip(INPUT_NAMES, INPUT_UNITS, strict=True))
+    return INPUT_NAMES + hist, INPUT_UNITS + tuple(unit[n.rpartition("_")[0]] for n in hist)
+
+
+def feature_rows(series: Series, history_samples: int = 0) -> np.ndarray:
+    """Indices of the samples that have `history_samples` earlier samples in their own run:
+    all but the first `history_samples` of each run (a run that is not contiguous in the
+    series counts as one run per contiguous stretch). History never crosses a run boundary."""
+    run_id = series.run_id if series.run_id is not None else _runs_from_time(series.t)
+    n = len(series)
+    start = np.flatnonzero(np.concatenate([[True], run_id[1:] != run_id[:-1]]))
+    first = np.repeat(start, np.diff(np.append(start, n)))  # each row's stretch start
+    return np.flatnonzero(np.arange(n) - first >= history_samples)
+
+
 def features(
-    series: Series, current_input: str = "commanded", lag_tau_s: float = COIL_LAG_TAU_S
+    series: Series,
+    current_input: str = "commanded",
+    lag_tau_s: float = COIL_LAG_TAU_S,
+    history_samples: int = 0,
+    history_signals: Sequence[str] = DEFAULT_HISTORY_SIGNALS,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Forward-network rows X = (x, xd, xdd, current) (`INPUT_NAMES`, `INPUT_UNITS`) and the
-    target y = force. With current_input="lagged" the current column is `lagged_current`."""
+    """Forward-network rows X and the target y = force, at the samples `feature_rows` keeps.
+
+    The columns are `feature_names`: (x, xd, xdd, current), then the previous
+    `history_samples` samples of `history_signals`, default x and xd (the hysteresis state).
+    Past currents are no default: where the current is constant in each run (the
+    characterization matrix) a past current equals the present one, the network can take
+    the force from either, and its inversion for the present current becomes ill-posed; add
+    "current" only for data that varies the current within runs. With
+    current_input="lagged" the current column, and any past current, is `lagged_current`.
+    """
     if current_input not in CURRENT_INPUTS:
         raise ValueError(f"unknown current input {current_input!r} ({', '.join(CURRENT_INPUTS)})")
+    signals = check_history(history_samples, history_signals)
     if series.xd is None or series.xdd is None:
         raise ValueError(f"{series.name}: no velocity/acceleration: use estimate_derivatives")
     current = series.current
     if current_input == "lagged":
         run_id = series.run_id if series.run_id is not None else _runs_from_time(series.t)
         current = lagged_current(series.current, series.t, run_id, lag_tau_s)
-    return np.column_stack([series.x, series.xd, series.xdd, current]), series.force.copy()
+    base = {"x": series.x, "xd": series.xd, "xdd": series.xdd, "current": current}
+    rows = feature_rows(series, history_samples)
+    cols = [base[name][rows] for name in INPUT_NAMES]
+    cols += [base[sig][rows - k] for k in range(1, history_samples + 1) for sig in signals]
+    return np.column_stack(cols), series.force[rows]
 
 
 def series_fingerprint(series: Series) -> str:
@@ -327,18 +390,22 @@ def train_forward(
     current_input: str = "commanded",
     lag_tau_s: float = COIL_LAG_TAU_S,
     max_epochs: int = 1000,
+    history_samples: int = 0,
+    history_signals: Sequence[str] = DEFAULT_HISTORY_SIGNALS,
 ) -> tuple[MLP, dict[str, Any]]:
-    """The 4-30-1 forward network by Levenberg-Marquardt on the random split, early-stopped on
-    the validation part. The model's meta records the options, the split and the data's
-    fingerprint; the returned report has the training numbers and the split's rule."""
-    X, y = features(series, current_input, lag_tau_s)
+    """The 4-30-1 forward network (4 + history inputs) by Levenberg-Marquardt on the random
+    split of the `features` rows, early-stopped on the validation part. The model's meta
+    records the options, the split and the data's fingerprint; the returned report has the
+    training numbers and the split's rule."""
+    X, y = features(series, current_input, lag_tau_s, history_samples, history_signals)
+    names, units = feature_names(history_samples, history_signals)
     split = split_samples(len(y), n_train, n_val, seed)
     log.info("training the forward network (MSE in N^2): %s", split.rule)
     model, tr = train_lm(
         X[split.train],
         y[split.train],
-        INPUT_NAMES,
-        INPUT_UNITS,
+        names,
+        units,
         "force",
         "N",
         validation=(X[split.val], y[split.val]),
@@ -350,12 +417,14 @@ def train_forward(
     model.meta.update(
         current_input=current_input,
         lag_tau_s=lag_tau_s if current_input == "lagged" else None,
+        history_samples=history_samples,
+        history_signals=list(check_history(history_samples, history_signals)),
         split_rule=split.rule,
         split_seed=seed,
         n_samples=len(y),
         n_runs=int(np.unique(series.run_id).size) if series.run_id is not None else 1,
         data_fingerprint=series_fingerprint(series),
-        current_range_a=[float(X[:, 3].min()), float(X[:, 3].max())],
+        current_range_a=[float(X[:, CURRENT_COLUMN].min()), float(X[:, CURRENT_COLUMN].max())],
     )
     report = {
         "split": {"rule": split.rule, "n_train": tr.n_train, "n_val": tr.n_val, "seed": seed},
@@ -377,26 +446,64 @@ def train_supervised(
     current_input: str = "commanded",
     lag_tau_s: float = COIL_LAG_TAU_S,
     max_epochs: int = 1000,
+    history_samples: int = 0,
+    history_signals: Sequence[str] = DEFAULT_HISTORY_SIGNALS,
 ) -> tuple[MLP, dict[str, Any]]:
-    """The supervised inverse MLP (x, xd, xdd, f) -> current (paper Fig. 10), same split."""
-    X, y = features(series, current_input, lag_tau_s)
-    Xs = np.column_stack([X[:, :3], y])
+    """The supervised inverse MLP (x, xd, xdd, f) -> current (paper Fig. 10), same split of
+    the same `features` rows. It gets the forward network's history of the motion, not of
+    the current (`controllers.SupervisedInverse`)."""
+    X, y = features(series, current_input, lag_tau_s, history_samples, history_signals)
+    names, units = supervised_feature_names(history_samples, history_signals)
+    Xs = supervised_rows(X, y, feature_names(history_samples, history_signals)[0], names)
     log.info("training the supervised inverse MLP (MSE in A^2)")
     model, tr = train_lm(
         Xs[split.train],
-        X[split.train, 3],
-        SUPERVISED_INPUT_NAMES,
-        SUPERVISED_INPUT_UNITS,
+        X[split.train, CURRENT_COLUMN],
+        names,
+        units,
         "current",
         "A",
-        validation=(Xs[split.val], X[split.val, 3]),
+        validation=(Xs[split.val], X[split.val, CURRENT_COLUMN]),
         max_epochs=max_epochs,
         seed=seed,
         progress=progress,
         description=series.name,
     )
-    model.meta.update(current_input=current_input, data_fingerprint=series_fingerprint(series))
+    motion = [sig for sig in check_history(history_samples, history_signals) if sig != "current"]
+    model.meta.update(
+        current_input=current_input,
+        history_samples=history_samples if motion else 0,
+        history_signals=motion,
+        data_fingerprint=series_fingerprint(series),
+    )
     return model, {"epochs": tr.epochs, "stop_reason": tr.stop_reason, "seconds": tr.seconds}
+
+
+def supervised_feature_names(
+    history_samples: int = 0, history_signals: Sequence[str] = DEFAULT_HISTORY_SIGNALS
+) -> tuple[tuple[str, ...], tuple[str, ...]]:
+    """(names, units) of the supervised inverse's inputs: `SUPERVISED_INPUT_NAMES`, then the
+    forward network's history inputs of the motion (none of the current)."""
+    motion = [sig for sig in check_history(history_samples, history_signals) if sig != "current"]
+    names, units = feature_names(history_samples if motion else 0, motion)
+    n = len(INPUT_NAMES)
+    return SUPERVISED_INPUT_NAMES + names[n:], SUPERVISED_INPUT_UNITS + units[n:]
+
+
+def supervised_rows(
+    X: np.ndarray, f_des: np.ndarray, forward_names: Sequence[str], names: Sequence[str]
+) -> np.ndarray:
+    """Input rows of a supervised inverse (inputs `names`) from forward-network rows X (inputs
+    `forward_names`) and the desired force; a one-line ValueError for an input X lacks."""
+    cols = []
+    for name in names:
+        if name == "f_des":
+            cols.append(np.asarray(f_des, dtype=float))
+        elif name in forward_names and name != "current":
+            cols.append(X[:, list(forward_names).index(name)])
+        else:
+            raise ValueError(f"supervised input {name!r}: not among the forward model's inputs")
+    return np.column_stack(cols)
 
 
 # ---------------------------------------------------------------------------------- validation
@@ -414,10 +521,11 @@ def _inverse_metrics(
     i_max: float,
     plant_force: Callable[[np.ndarray], np.ndarray] | None,
 ) -> dict[str, Any]:
+    c = model.current_index
     Xi = X_val.copy()
-    Xi[:, 3] = current_a
+    Xi[:, c] = current_a
     out: dict[str, Any] = {
-        "current_rmse_a": rmse(current_a, X_val[:, 3]),
+        "current_rmse_a": rmse(current_a, X_val[:, c]),
         "at_bound_fraction": float(np.mean((current_a <= 0.0) | (current_a >= i_max))),
         "tracking_model_n": _tracking(model.predict(Xi) - f_des),
         "tracking_plant_n": None,
@@ -451,8 +559,12 @@ def validation_report(
     Each validation sample is inverted alone for its measured force by the exact scalar solve
     over [0, i_max]; offline there is no previous command, so i_prev = 0 (as at the start of a
     run) picks the smallest current where several give the force. `plant_force(current_a)`
-    gives the plant's force at the validation samples for the given currents.
+    gives the plant's force at the validation samples for the given currents. X_val's
+    columns are the model's inputs (history inputs included, as `features` gives them); the
+    supervised inverse's rows are taken from them by name (`supervised_rows`).
     """
+    if model.current_index is None:
+        raise ValueError("validation_report needs a forward model with an input named 'current'")
     X_val = np.asarray(X_val, dtype=float)
     y_val = np.asarray(y_val, dtype=float)
     f_fwd = model.predict(X_val)
@@ -466,7 +578,7 @@ def validation_report(
     i_ni = exact_inversion(model, features_val, y_val, 0.0, i_max=i_max)
     report["network_inversion"] = _inverse_metrics(model, X_val, y_val, i_ni, i_max, plant_force)
     if supervised is not None:
-        Xs = np.column_stack([X_val[:, :3], y_val])
+        Xs = supervised_rows(X_val, y_val, model.input_names, supervised.input_names)
         i_sup = np.clip(supervised.predict(Xs), 0.0, i_max)
         report["supervised"] = _inverse_metrics(model, X_val, y_val, i_sup, i_max, plant_force)
     return report
@@ -484,32 +596,39 @@ def train_and_validate(
     i_max: float | None = None,
     supervised: bool = True,
     plant_force: PlantForceFn | None = None,
+    history_samples: int = 0,
+    history_signals: Sequence[str] = DEFAULT_HISTORY_SIGNALS,
 ) -> tuple[MLP, MLP | None, dict[str, Any]]:
     """Forward network, supervised inverse (optional) and the validation report, one split.
 
     i_max (the inversion's bracket) defaults to the largest current in the data: beyond it the
     network is extrapolating. The report's numbers are also stored in the model's metrics.
+    With history inputs, the split is over the `feature_rows` (the first `history_samples` of
+    each run have no history and are left out).
     """
-    fwd, report = train_forward(
-        series, n_train, n_val, seed, progress, current_input, lag_tau_s, max_epochs
-    )
-    X, y = features(series, current_input, lag_tau_s)
+    # the trailing parameters that train_forward and train_supervised share, in their order
+    options = (current_input, lag_tau_s, max_epochs, history_samples, history_signals)
+    fwd, report = train_forward(series, n_train, n_val, seed, progress, *options)
+    X, y = features(series, current_input, lag_tau_s, history_samples, history_signals)
+    rows = feature_rows(series, history_samples)
     split = split_samples(len(y), n_train, n_val, seed)
-    i_max = float(X[:, 3].max()) if i_max is None else float(i_max)
+    i_max = float(X[:, CURRENT_COLUMN].max()) if i_max is None else float(i_max)
     if not i_max > 0.0:
         raise DataError(f"{series.name}: all currents are 0 A: nothing to invert")
     sup = None
     if supervised:
         sup, report["supervised_training"] = train_supervised(
-            series, split, seed, progress, current_input, lag_tau_s, max_epochs
+            series, split, seed, progress, *options
         )
     rows_plant = None
     if plant_force is not None:
-        rows_plant = lambda i: plant_force(split.val, i)  # noqa: E731
+        rows_plant = lambda i: plant_force(rows[split.val], i)  # noqa: E731
     val = validation_report(fwd, X[split.val], y[split.val], i_max, sup, rows_plant)
     report.update(val)
     report["current_input"] = current_input
     report["lag_tau_s"] = lag_tau_s if current_input == "lagged" else None
+    report["history_samples"] = history_samples
+    report["history_signals"] = list(check_history(history_samples, history_signals))
     fwd.metrics.update(
         val_et=val["forward"]["et"],
         inverse_current_rmse_a=val["network_inversion"]["current_rmse_a"],

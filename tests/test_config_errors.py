@@ -51,6 +51,10 @@ def run_daemon(tmp_path, text: str) -> subprocess.CompletedProcess:
             BASE + '[controller]\nname = "supervised"\nmodel = "{forward}"\n',
             "input_names: the supervised inverse needs a model",
         ),
+        (
+            BASE + '[controller]\nmodel = "{forward}"\ncontinuity = -0.5\n',
+            "controller.continuity: must be >= 0",
+        ),
         (BASE + "[loop\n", "not valid TOML"),
     ],
 )
@@ -62,7 +66,7 @@ def test_bad_config_or_model_stops_startup_with_one_line(tmp_path, sim_model, te
     assert len(lines) == 1, r.stderr
     assert lines[0].startswith("error: ")
     assert expected in lines[0], lines[0]
-    source = str(sim_model) if "supervised" in text else str(tmp_path / "rig.toml")
+    source = str(sim_model) if 'name = "supervised"' in text else str(tmp_path / "rig.toml")
     assert source in lines[0]
 
 

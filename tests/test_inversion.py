@@ -205,3 +205,71 @@ def test_scalar_gradient_path_equals_batch_with_the_same_seed() -> None:
     inv = ScalarInverter(model, I_MAX, method="gradient", iterations=200, seed=11)
     scalar = [inv.solve(features[n], f_des[n], 0.0) for n in range(20)]
     np.testing.assert_allclose(scalar, batch, rtol=0, atol=1e-9)
+
+
+def _objective(model: MLP, features: np.ndarray, f_des, i_prev, mu: float, i: np.ndarray):
+    """J(i) of the regularised solve on currents i (N x M), evaluated through model.predict."""
+    n, m = i.shape
+    X = np.repeat(np.column_stack([features, np.zeros(len(features))])[:, None, :], m, axis=1)
+    X[..., 3] = i
+    f = model.predict(X.reshape(-1, 4)).reshape(n, m)
+    c_std = model.in_std[model.current_index]
+    return (f - f_des[:, None]) ** 2 / model.out_std**2 + mu * (i - i_prev[:, None]) ** 2 / c_std**2
+
+
+@pytest.mark.parametrize("mu", [0.3, 1.0, 10.0])
+@pytest.mark.parametrize("monotone", [True, False])
+def test_continuity_solve_is_the_global_minimiser_of_its_objective(mu: float, monotone) -> None:
+    rng = np.random.default_rng(11)
+    model = random_model(rng, monotone=monotone)
+    features = random_features(rng, 120)
+    f_des = force(model, features, rng.uniform(0.0, I_MAX, 120)) + rng.normal(0.0, 50.0, 120)
+    i_prev = rng.uniform(0.0, I_MAX, 120)
+    got = exact_inversion(model, features, f_des, i_prev, i_max=I_MAX, continuity=mu)
+    fine = np.broadcast_to(np.linspace(0.0, I_MAX, 4001), (120, 4001))
+    J_fine = _objective(model, features, f_des, i_prev, mu, fine)
+    J_got = _objective(model, features, f_des, i_prev, mu, got[:, None])[:, 0]
+    assert np.all((got >= 0.0) & (got <= I_MAX))
+    # never worse than the best of 4001 currents (to rounding), and close to it in current
+    assert np.all(J_got <= J_fine.min(axis=1) + 1e-9)
+    best = fine[0][np.argmin(J_fine, axis=1)]
+    assert np.max(np.abs(got - best)) <= 2 * I_MAX / 4000
+
+
+def test_continuity_solve_lies_between_the_root_and_the_previous_command() -> None:
+    rng = np.random.default_rng(12)
+    model = random_model(rng, monotone=True)
+    features = random_features(rng, 300)
+    f_des = force(model, features, rng.uniform(0.1, 1.9, 300))
+    i_prev = rng.uniform(0.0, I_MAX, 300)
+    root = exact_inversion(model, features, f_des, i_prev, i_max=I_MAX)
+    reg = exact_inversion(model, features, f_des, i_prev, i_max=I_MAX, continuity=1.0)
+    lo, hi = np.minimum(root, i_prev), np.maximum(root, i_prev)
+    assert np.all((reg >= lo - 1e-9) & (reg <= hi + 1e-9))
+    # and it is a real pull: strictly inside where the root and the previous command differ
+    moved = np.abs(root - i_prev) > 0.1
+    assert np.all(np.abs(reg[moved] - root[moved]) > 0.0)
+    # a negligible weight gives the root back
+    tiny = exact_inversion(model, features, f_des, i_prev, i_max=I_MAX, continuity=1e-12)
+    np.testing.assert_allclose(tiny, root, atol=1e-5)
+
+
+@pytest.mark.parametrize("monotone", [True, False])
+def test_scalar_inverter_with_continuity_equals_batch(monotone: bool) -> None:
+    rng = np.random.default_rng(13)
+    model = random_model(rng, monotone=monotone)
+    features = random_features(rng, 300)
+    f_des = force(model, features, rng.uniform(0.0, I_MAX, 300)) + rng.normal(0.0, 30.0, 300)
+    i_prev = rng.uniform(0.0, I_MAX, 300)
+    batch = exact_inversion(model, features, f_des, i_prev, i_max=I_MAX, continuity=1.0)
+    inv = ScalarInverter(model, I_MAX, continuity=1.0)
+    scalar = [inv.solve(features[n], f_des[n], i_prev[n]) for n in range(300)]
+    np.testing.assert_allclose(scalar, batch, rtol=0, atol=1e-9)
+
+
+def test_negative_continuity_is_refused() -> None:
+    model = random_model(np.random.default_rng(14))
+    with pytest.raises(ValueError, match="continuity"):
+        exact_inversion(model, np.zeros((1, 3)), 0.0, 0.0, i_max=I_MAX, continuity=-1.0)
+    with pytest.raises(ValueError, match="continuity"):
+        ScalarInverter(model, I_MAX, continuity=-1.0)

@@ -2,9 +2,12 @@
 
 Starts the bridge, firmware_sim and the daemon (as the demo does) and runs for `--duration`
 seconds, once with telemetry (Zenoh) and recording (Rerun) off and once with both on, then
-prints per run: receive->send latency p50/p99/p99.9/max (the daemon's own measure, per frame),
-frames without a command (the simulator's count), the simulator's period jitter, CPU per
-process, and the on/off ratio of the latency p99.
+prints per run: receive->send latency p50/p99/p99.9/max (the daemon's own measure, per frame)
+split into the part before the bus's send() and the send() call itself, frames without a
+command (the simulator's count), the simulator's period jitter, CPU per process, and the on/off
+ratio of the latency p99. A first run replaces the daemon by `mrrig.bench.echo`, which answers
+every frame with a SAFE command and does nothing else: the floor that the transport (bridge,
+Python, this machine) sets, measured the same way in the same session.
 """
 
 from __future__ import annotations
@@ -46,7 +49,10 @@ def _wait_for_daemon(proc: subprocess.Popen, timeout_s: float = 60.0) -> None:
     raise RuntimeError("daemon did not settle in 60 s")
 
 
-def run_once(config: Path, sim_config: Path, duration_s: float, telemetry: bool) -> dict:
+MODES = ("echo", "off", "on")  # transport floor; daemon without / with telemetry+recording
+
+
+def run_once(config: Path, sim_config: Path, duration_s: float, mode: str) -> dict:
     work = Path(tempfile.mkdtemp(prefix="mrrig-bench-loop-"))
     port = find_free_port()
     channel = f"ws://127.0.0.1:{port}/"
@@ -55,23 +61,27 @@ def run_once(config: Path, sim_config: Path, duration_s: float, telemetry: bool)
     try:
         t_bridge0 = _cpu_s(bridge.pid)
         # the daemon first, so that every frame the simulator sends has a daemon to answer it
-        cmd = [
-            sys.executable,
-            "-m",
-            "mrrig",
-            "-q",
-            "run",
-            "--config",
-            str(config),
-            "--bus-channel",
-            channel,
-            "--arm",
-            "--summary-json",
-            str(work / "daemon.json"),
-        ]
-        if telemetry:
-            cmd += ["--record", str(work / "bench.rrd")]
+        if mode == "echo":
+            cmd = [sys.executable, "-m", "mrrig.bench.echo", "--config", str(config)]
+            cmd += ["--bus-channel", channel, "--summary-json", str(work / "daemon.json")]
         else:
+            cmd = [
+                sys.executable,
+                "-m",
+                "mrrig",
+                "-q",
+                "run",
+                "--config",
+                str(config),
+                "--bus-channel",
+                channel,
+                "--arm",
+                "--summary-json",
+                str(work / "daemon.json"),
+            ]
+        if mode == "on":
+            cmd += ["--record", str(work / "bench.rrd")]
+        elif mode == "off":
             cmd += ["--no-record", "--no-telemetry"]
         daemon = subprocess.Popen(cmd, stdout=subprocess.DEVNULL)
         _wait_for_daemon(daemon)
@@ -95,16 +105,22 @@ def run_once(config: Path, sim_config: Path, duration_s: float, telemetry: bool)
             raise RuntimeError(f"firmware_sim exited with code {sim.returncode}")
         wall = time.monotonic() - t0
         bridge_cpu = _cpu_s(bridge.pid) - t_bridge0
+        echo_cpu = _cpu_s(daemon.pid)
         daemon.send_signal(signal.SIGTERM)
         if daemon.wait(timeout=60) != 0:
             raise RuntimeError(f"daemon exited with code {daemon.returncode}")
         d = json.loads((work / "daemon.json").read_text())
         s = json.loads((work / "sim.json").read_text())
+        loop_cpu = (
+            100 * echo_cpu / wall if mode == "echo" else 100 * d["cpu_loop_s"] / d["loop_wall_s"]
+        )
         return {
-            "telemetry_and_recording": telemetry,
-            "duration_s": d["duration_s"],
+            "mode": mode,
+            "telemetry_and_recording": mode == "on",
+            "duration_s": d.get("duration_s", wall),
             "frames": d["frames"],
             "latency_us": d["latency_us"],
+            "latency_split_us": d.get("latency_split_us"),
             "sensor_frames_sent": s["sensor_frames_sent"],
             "frames_without_command": s["answers"]["unanswered"],
             "frames_answered_more_than_once": s["answers"]["answered_more_than_once"],
@@ -112,9 +128,9 @@ def run_once(config: Path, sim_config: Path, duration_s: float, telemetry: bool)
             "sim_jitter_us": s.get("period_jitter_us"),
             "sim_answer_latency_us": s.get("answer_latency_us"),
             "cpu_pct": {
-                "daemon_loop": 100 * d["cpu_loop_s"] / d["loop_wall_s"],
+                "daemon_loop" if mode != "echo" else "echo_process": loop_cpu,
                 # the sidecar's whole life, start-up included, over the loop's time
-                "telemetry_process": 100 * d.get("cpu_sidecar_s", 0.0) / d["loop_wall_s"],
+                "telemetry_process": 100 * d.get("cpu_sidecar_s", 0.0) / d.get("loop_wall_s", wall),
                 "firmware_sim": 100 * s.get("cpu_fraction", float("nan")),
                 "bridge": 100 * bridge_cpu / wall,
             },
@@ -134,15 +150,29 @@ def format_run(r: dict) -> str:
     lat = r["latency_us"]
     cpu = r["cpu_pct"]
     jit = r["sim_jitter_us"] or {}
-    on = "ON " if r["telemetry_and_recording"] else "OFF"
+    split = r.get("latency_split_us") or {}
+    title = {
+        "echo": "transport floor (echo process, no daemon)",
+        "off": "daemon, telemetry+recording OFF",
+        "on": "daemon, telemetry+recording ON",
+    }[r["mode"]]
     return "\n".join(
         [
-            f"telemetry+recording {on}: simulator sent {r['sensor_frames_sent']} sensor frames, "
-            f"daemon answered {r['frames']} in {r['duration_s']:.1f} s; faults "
+            f"{title}: simulator sent {r['sensor_frames_sent']} sensor frames, "
+            f"answered {r['frames']} in {r['duration_s']:.1f} s; faults "
             f"{[f['reason'] for f in r['faults'] or []]}; firmware watchdog trips "
             f"{r['watchdog_trips']}; tracking Et {r['et']}",
             f"  receive->send latency us: p50 {lat['p50']:.0f}  p99 {lat['p99']:.0f}  "
             f"p99.9 {lat['p99.9']:.0f}  max {lat['max']:.0f}",
+            *(
+                f"    {label:<14} p50 {q['p50']:.0f}  p99 {q['p99']:.0f}  "
+                f"p99.9 {q['p99.9']:.0f}  max {q['max']:.0f}"
+                for label, q in (
+                    ("before send():", split.get("before_send")),
+                    ("send() call:", split.get("send_call")),
+                )
+                if q
+            ),
             f"  frames without a command: {r['frames_without_command']}  "
             f"(answered twice: {r['frames_answered_more_than_once']}); "
             f"telemetry samples dropped: {r['telemetry_dropped']}",
@@ -157,25 +187,33 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--config", type=Path, default=Path("configs/rig.toml"))
     ap.add_argument("--sim-config", type=Path, default=Path("configs/sim.toml"))
     ap.add_argument("--duration", type=float, default=60.0, help="seconds per run (default 60)")
-    ap.add_argument("--only", choices=("on", "off"), help="one run instead of both")
+    ap.add_argument("--only", choices=MODES, help="one run instead of all three")
     ap.add_argument("--json", type=Path, help="also write the numbers here")
     args = ap.parse_args(argv)
     from mrrig.demo import SIM_MODEL, ensure_sim_model
 
     ensure_sim_model(SIM_MODEL)
-    modes = {"off": [False], "on": [True], None: [False, True]}[args.only]
-    runs = []
-    for telemetry in modes:
-        log.info(
-            "run with telemetry+recording %s, %.0f s", "on" if telemetry else "off", args.duration
-        )
-        runs.append(run_once(args.config, args.sim_config, args.duration, telemetry))
-        print(format_run(runs[-1]), flush=True)
-    result = {"runs": runs}
-    if len(runs) == 2:
-        ratio = runs[1]["latency_us"]["p99"] / runs[0]["latency_us"]["p99"]
+    runs = {}
+    for mode in [args.only] if args.only else MODES:
+        log.info("run %s, %.0f s", mode, args.duration)
+        runs[mode] = run_once(args.config, args.sim_config, args.duration, mode)
+        print(format_run(runs[mode]), flush=True)
+    result: dict = {"runs": list(runs.values())}
+    if "on" in runs and "off" in runs:
+        ratio = runs["on"]["latency_us"]["p99"] / runs["off"]["latency_us"]["p99"]
         result["p99_ratio_on_off"] = ratio
         print(f"latency p99 ratio on/off: {ratio:.2f}")
+    if "echo" in runs:
+        floor = runs["echo"]["latency_us"]
+        print(
+            f"transport floor (echo): p99 {floor['p99']:.0f} us, p99.9 {floor['p99.9']:.0f} us"
+            + "".join(
+                f"; daemon {m} p99 {runs[m]['latency_us']['p99']:.0f} us"
+                f" = floor x {runs[m]['latency_us']['p99'] / floor['p99']:.2f}"
+                for m in ("off", "on")
+                if m in runs
+            )
+        )
     print("budget (spec/system.md): p99 <= 300 us, p99.9 <= 1000 us, 0 frames without a command")
     if args.json:
         args.json.write_text(json.dumps(result, indent=2))

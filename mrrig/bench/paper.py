@@ -29,7 +29,12 @@ from mrrig.controllers import (
     rnn_features,
 )
 from mrrig.datasets import Series, dataset_a_training, dataset_a_validation
-from mrrig.inversion import ScalarInverter, exact_inversion, gradient_inversion
+from mrrig.inversion import (
+    PAPER_CONTINUITY,
+    ScalarInverter,
+    exact_inversion,
+    gradient_inversion,
+)
 from mrrig.metrics import error_norm
 from mrrig.model.mlp import MLP
 from mrrig.model.train import train_lm
@@ -133,6 +138,17 @@ def controllers(models: dict[str, MLP]) -> dict[str, Controller]:
         "network_inversion_feedback": NetworkInversion(
             VMAX_V, fwd, method="exact", feedback_tau_s=FEEDBACK_TAU_S, dt_s=DT_S
         ),
+        "network_inversion_continuity": NetworkInversion(
+            VMAX_V, fwd, method="exact", dt_s=DT_S, continuity=PAPER_CONTINUITY
+        ),
+        "network_inversion_continuity_feedback": NetworkInversion(
+            VMAX_V,
+            fwd,
+            method="exact",
+            feedback_tau_s=FEEDBACK_TAU_S,
+            dt_s=DT_S,
+            continuity=PAPER_CONTINUITY,
+        ),
     }
 
 
@@ -154,6 +170,9 @@ def inversion_cost(model: MLP, cases: list[Series], n: int = 1000, seed: int = 0
     t0 = time.perf_counter()
     i_exact = exact_inversion(model, X[:, :3], f, i_prev, i_max=VMAX_V)
     exact_batch_us = (time.perf_counter() - t0) / n * 1e6
+    t0 = time.perf_counter()
+    exact_inversion(model, X[:, :3], f, i_prev, i_max=VMAX_V, continuity=PAPER_CONTINUITY)
+    continuity_batch_us = (time.perf_counter() - t0) / n * 1e6
 
     def scalar_cost(inv: ScalarInverter, count: int) -> np.ndarray:
         us = np.empty(count)
@@ -164,6 +183,7 @@ def inversion_cost(model: MLP, cases: list[Series], n: int = 1000, seed: int = 0
         return us
 
     scalar_us = scalar_cost(ScalarInverter(model, VMAX_V), n)
+    continuity_us = scalar_cost(ScalarInverter(model, VMAX_V, continuity=PAPER_CONTINUITY), n)
     grad_scalar_us = scalar_cost(ScalarInverter(model, VMAX_V, method="gradient", seed=seed), 100)
 
     def force_err(i):
@@ -175,6 +195,10 @@ def inversion_cost(model: MLP, cases: list[Series], n: int = 1000, seed: int = 0
         "samples": n,
         "gradient_us_per_sample": grad_us,
         "exact_batch_us_per_sample": exact_batch_us,
+        "continuity": PAPER_CONTINUITY,
+        "continuity_batch_us_per_sample": continuity_batch_us,
+        "continuity_scalar_us_median": float(np.median(continuity_us)),
+        "continuity_scalar_us_p99": float(np.percentile(continuity_us, 99)),
         "exact_scalar_us_median": float(np.median(scalar_us)),
         "exact_scalar_us_p99": float(np.percentile(scalar_us, 99)),
         "gradient_scalar_us_median": float(np.median(grad_scalar_us)),
@@ -240,8 +264,10 @@ LABELS = {
     "rnn": "RNN (eq. 40)",
     "supervised": "Supervised inverse MLP",
     "network_inversion": "Network inversion (paper: gradient)",
-    "network_inversion_exact": "Network inversion, exact solve",
+    "network_inversion_exact": "NI, exact solve (default, the root)",
     "network_inversion_feedback": "  + load-cell feedback (ours)",
+    "network_inversion_continuity": f"NI, exact solve, continuity {PAPER_CONTINUITY:g}",
+    "network_inversion_continuity_feedback": "  + load-cell feedback (ours)",
 }
 
 
@@ -274,11 +300,16 @@ def format_report(r: dict) -> str:
         f"Inversion cost per sample ({c['samples']} validation samples, same run):",
         f"  gradient (eq. 14, rate 1e-3, 1000 it.)  {c['gradient_us_per_sample']:>10.1f} us"
         f"   model-force RMSE {c['gradient_model_force_rmse_n']:.2f} N",
-        f"  exact, batch                            {c['exact_batch_us_per_sample']:>10.2f} us"
+        f"  exact (default), batch                  {c['exact_batch_us_per_sample']:>10.2f} us"
         f"   model-force RMSE {c['exact_model_force_rmse_n']:.2f} N",
+        f"  exact, continuity {c['continuity']:g}, batch"
+        f"             {c['continuity_batch_us_per_sample']:>10.2f} us",
         f"  gradient, scalar (one sample)   median  {c['gradient_scalar_us_median']:>10.1f} us",
         f"  exact, scalar (real-time path)  median  {c['exact_scalar_us_median']:>10.2f} us"
         f"   p99 {c['exact_scalar_us_p99']:.2f} us",
+        f"  exact, continuity {c['continuity']:g}, scalar  median"
+        f"  {c['continuity_scalar_us_median']:>10.2f} us"
+        f"   p99 {c['continuity_scalar_us_p99']:.2f} us",
         f"  speed-up exact over gradient: batch {c['speedup_batch']:.0f}x,"
         f" one sample at a time (median) {c['speedup_scalar_median']:.0f}x",
     ]
