@@ -94,6 +94,14 @@ def format_report(r: dict[str, Any]) -> str:
         "  tracking error, forward model at the inverted current (N): "
         + _pct(ni["tracking_model_n"]),
     ]
+    on = r.get("network_inversion_online")
+    if on is not None:
+        lines += [
+            f"network inversion on-line (runs in time order, continuity {on['continuity']:g}"
+            f" chosen on the training rows): inverse-current RMSE {on['current_rmse_a']:.4f} A",
+            "  tracking error, forward model at the inverted current (N): "
+            + _pct(on["tracking_model_n"]),
+        ]
     sup = r.get("supervised")
     if sup is not None:
         lines += [

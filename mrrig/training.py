@@ -584,6 +584,59 @@ def validation_report(
     return report
 
 
+ONLINE_CONTINUITY_CANDIDATES = (0.0, 0.01, 0.03, 0.1, 0.3, 1.0)
+
+
+def online_inversion(
+    model: MLP, X: np.ndarray, f_des: np.ndarray, stretch: np.ndarray, i_max: float, continuity
+) -> np.ndarray:
+    """Inverse currents (N,) for every row as the real-time loop makes them: the rows of each
+    contiguous stretch (`stretch` ids, rows in time order) one after the other, each solved
+    exactly (`continuity`: mrrig/inversion.py) from the previous row's inverse current, 0 A
+    at a stretch's start; the stretches advance in lockstep as one batch. Only the motion
+    columns and the force are used, never the data's current (past currents among history
+    inputs excepted: they are the data's)."""
+    feats = np.delete(np.asarray(X, dtype=float), model.current_index, axis=1)
+    f_des = np.asarray(f_des, dtype=float)
+    first = np.flatnonzero(np.concatenate([[True], stretch[1:] != stretch[:-1]]))
+    length = np.diff(np.append(first, len(f_des)))
+    out = np.empty(len(f_des))
+    prev = np.zeros(first.size)
+    for k in range(int(length.max()) if first.size else 0):
+        live = length > k
+        rows = first[live] + k
+        out[rows] = prev[live] = exact_inversion(
+            model, feats[rows], f_des[rows], prev[live], i_max=i_max, continuity=continuity
+        )
+    return out
+
+
+def choose_continuity(
+    model: MLP,
+    X: np.ndarray,
+    f_des: np.ndarray,
+    stretch: np.ndarray,
+    i_max: float,
+    train_rows: np.ndarray,
+    candidates: Sequence[float] = ONLINE_CONTINUITY_CANDIDATES,
+) -> tuple[float, np.ndarray, dict[str, float]]:
+    """The continuity of the on-line inversion chosen on the TRAINING rows alone (smallest
+    inverse-current RMSE there); returns it, its inverse currents for every row, and the
+    training-row RMSE of each candidate. The validation rows play no part in the choice."""
+    c = model.current_index
+    scores: dict[str, float] = {}
+    best: tuple[float, float, np.ndarray] | None = None
+    for mu in candidates:
+        i = online_inversion(model, X, f_des, stretch, i_max, mu)
+        score = rmse(i[train_rows], X[train_rows, c])
+        scores[f"{mu:g}"] = score
+        log.info("on-line inversion, continuity %g: training-row current RMSE %.4f A", mu, score)
+        if best is None or score < best[1]:
+            best = (mu, score, i)
+    assert best is not None
+    return best[0], best[2], scores
+
+
 def train_and_validate(
     series: Series,
     n_train: int = PAPER_N_TRAIN,
@@ -624,6 +677,18 @@ def train_and_validate(
     if plant_force is not None:
         rows_plant = lambda i: plant_force(rows[split.val], i)  # noqa: E731
     val = validation_report(fwd, X[split.val], y[split.val], i_max, sup, rows_plant)
+    # the on-line inverse (as the daemon runs it), its continuity chosen on the training rows
+    run_id = series.run_id if series.run_id is not None else _runs_from_time(series.t)
+    stretch = np.cumsum(np.concatenate([[True], run_id[1:] != run_id[:-1]]))[rows]
+    mu, i_online, scores = choose_continuity(fwd, X, y, stretch, i_max, split.train)
+    online = _inverse_metrics(
+        fwd, X[split.val], y[split.val], i_online[split.val], i_max, rows_plant
+    )
+    val["network_inversion_online"] = {
+        **online,
+        "continuity": mu,
+        "training_rmse_by_continuity": scores,
+    }
     report.update(val)
     report["current_input"] = current_input
     report["lag_tau_s"] = lag_tau_s if current_input == "lagged" else None
@@ -633,8 +698,10 @@ def train_and_validate(
         val_et=val["forward"]["et"],
         inverse_current_rmse_a=val["network_inversion"]["current_rmse_a"],
         tracking_model_p95_n=val["network_inversion"]["tracking_model_n"]["p95"],
+        inverse_current_rmse_online_a=online["current_rmse_a"],
     )
     fwd.meta["i_max_a"] = i_max
+    fwd.meta["online_continuity"] = mu
     return fwd, sup, report
 
 

@@ -145,13 +145,18 @@ def test_small_matrix_report_has_every_number():
     assert (r["split"]["n_train"], r["split"]["n_val"]) == (810, 90)  # 90/10 of 6 x 150
     assert r["i_max_a"] == 1.2
     numbers = [r["forward"]["et"], r["forward"]["rmse_n"]]
-    for side in ("network_inversion", "supervised"):
+    for side in ("network_inversion", "network_inversion_online", "supervised"):
         numbers.append(r[side]["current_rmse_a"])
         for kind in ("tracking_model_n", "tracking_plant_n"):
             numbers += [r[side][kind][k] for k in ("p50", "p95", "max", "rms")]
     assert all(isinstance(v, float) and math.isfinite(v) for v in numbers)
     assert sup is not None and sup.input_names == ["x", "xd", "xdd", "f_des"]
     assert fwd.metrics["inverse_current_rmse_a"] == r["network_inversion"]["current_rmse_a"]
+    online = r["network_inversion_online"]
+    assert fwd.meta["online_continuity"] == online["continuity"]
+    assert online["training_rmse_by_continuity"][f"{online['continuity']:g}"] == min(
+        online["training_rmse_by_continuity"].values()
+    )
 
 
 def test_plant_force_at_the_data_currents_is_the_data_force(small_b):

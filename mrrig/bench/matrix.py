@@ -218,6 +218,7 @@ def _pct(d: dict | None) -> str:
 def format_report(r: dict) -> str:
     rep = r["report"]
     ni, sup = rep["network_inversion"], rep["supervised"]
+    on = rep["network_inversion_online"]
     tr, st = rep, rep["supervised_training"]
     lines = [
         f"Characterization matrix (150 runs, 0.5 kHz, noisy), current input {rep['current_input']}",
@@ -228,18 +229,27 @@ def format_report(r: dict) -> str:
         f"forward model on the {rep['n_val']} validation samples: Et {rep['forward']['et']:.4f},"
         f" RMSE {rep['forward']['rmse_n']:.1f} N",
         "",
-        f"{'':<28}{'network inversion':>22}{'supervised MLP':>18}{'paper NI / sup.':>18}",
-        f"{'inverse-current RMSE (A)':<28}{ni['current_rmse_a']:>22.4f}"
-        f"{sup['current_rmse_a']:>18.4f}{'0.09 / 0.20':>18}",
-        f"{'at 0 or i_max (fraction)':<28}{ni['at_bound_fraction']:>22.4f}"
-        f"{sup['at_bound_fraction']:>18.4f}",
+        f"{'':<28}{'NI, per sample':>16}{'NI, on-line':>14}{'supervised MLP':>16}"
+        f"{'paper NI / sup.':>18}",
+        f"{'inverse-current RMSE (A)':<28}{ni['current_rmse_a']:>16.4f}"
+        f"{on['current_rmse_a']:>14.4f}{sup['current_rmse_a']:>16.4f}{'0.09 / 0.20':>18}",
+        f"{'at 0 or i_max (fraction)':<28}{ni['at_bound_fraction']:>16.4f}"
+        f"{on['at_bound_fraction']:>14.4f}{sup['at_bound_fraction']:>16.4f}",
+        "NI per sample: each validation sample inverted alone (previous current 0 A).",
+        "NI on-line: every run inverted in time order as the daemon does, each sample from the"
+        f" previous inverse current, continuity {on['continuity']:g} chosen on the training rows"
+        " (training-row RMSE by continuity: "
+        + ", ".join(f"{k}: {v:.4f}" for k, v in on["training_rmse_by_continuity"].items())
+        + ")",
         "",
         "tracking error |f - f_des| (N), f_des = the sample's measured force; paper: p95 < 50 N",
         "  plant (steady state at the inverted current):",
-        f"    network inversion   {_pct(ni['tracking_plant_n'])}",
+        f"    NI, per sample      {_pct(ni['tracking_plant_n'])}",
+        f"    NI, on-line         {_pct(on['tracking_plant_n'])}",
         f"    supervised MLP      {_pct(sup['tracking_plant_n'])}",
         "  forward model at the inverted current:",
-        f"    network inversion   {_pct(ni['tracking_model_n'])}",
+        f"    NI, per sample      {_pct(ni['tracking_model_n'])}",
+        f"    NI, on-line         {_pct(on['tracking_model_n'])}",
         f"    supervised MLP      {_pct(sup['tracking_model_n'])}",
         f"  (check: plant at the data's own currents vs the data's true force, max"
         f" {r['plant_force_check_max_n']:.2e} N)",
