@@ -75,6 +75,14 @@ class Controller(abc.ABC):
     def command(self, s: ControlInput) -> np.ndarray:
         """The command for this instant, clamped to [0, i_max]."""
 
+    def command_one(self, x: float, xd: float, xdd: float, f_meas: float, f_des: float) -> float:
+        """`command` for a batch of one lane, in plain floats (the daemon's loop). The same
+        result and state; controllers override it where a float path is cheaper."""
+        s = ControlInput(
+            np.array([x]), np.array([xd]), np.array([xdd]), np.array([f_meas]), np.array([f_des])
+        )
+        return float(self.command(s)[0])
+
     def model_force(self, s: ControlInput, current: np.ndarray) -> np.ndarray:
         """The forward model's force for `current` (NaN for controllers without one)."""
         return np.full_like(np.asarray(current, dtype=float), np.nan)
@@ -248,6 +256,7 @@ class NetworkInversion(Controller):
         self._rng = np.random.default_rng(seed)
         self.continuity = continuity
         self._scalar = ScalarInverter(model, i_max, continuity=continuity)
+        self._feat = np.empty(model.n_in - 1)  # the float path's features, reused
 
     @staticmethod
     def _forward_inputs(model: MLP) -> ModelInputs:
@@ -311,6 +320,27 @@ class NetworkInversion(Controller):
         self._prev = np.clip(i, 0.0, self.i_max)
         self._first = False
         return self._prev.copy()
+
+    def command_one(self, x: float, xd: float, xdd: float, f_meas: float, f_des: float) -> float:
+        """The float path of `command` for one lane (exact method, no history inputs): the
+        same arithmetic without building arrays, for the real-time loop."""
+        if self.method != "exact" or self._inputs.samples or self.batch != 1:
+            return super().command_one(x, xd, xdd, f_meas, f_des)
+        feat = self._feat
+        feat[0], feat[1], feat[2] = x, xd, xdd
+        prev = float(self._prev[0])
+        target = f_des
+        if self.feedback_tau_s is not None:
+            residual = f_meas - self._scalar.force(feat, prev)
+            a = self.dt_s / (self.feedback_tau_s + self.dt_s)
+            r = float(self._residual[0])
+            r += a * (residual - r)
+            self._residual[0] = r
+            target = f_des - r
+        i = min(max(self._scalar.solve(feat, target, prev), 0.0), self.i_max)
+        self._prev[0] = i
+        self._first = False
+        return i
 
 
 class SupervisedInverse(Controller):

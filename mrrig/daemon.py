@@ -273,7 +273,7 @@ class Daemon:
         x_meas, f_meas = values["Displacement"], values["Force"]
         events = sup.sensors(t, values)
         x = xd = xdd = f_des = math.nan
-        i_cmd, s = 0.0, None
+        i_cmd = 0.0
         try:
             x, xd, xdd = self.kf.update(x_meas)
             if self._last_sensor_t is None:
@@ -287,14 +287,7 @@ class Daemon:
                     events += sup.trip(t, Fault.STALE_REFERENCE, f"stale force reference: {exc}")
             f_des = min(max(f_des, -DESIRED_FORCE_LIMIT_N), DESIRED_FORCE_LIMIT_N)
             if sup.active:
-                s = ControlInput(
-                    np.array([x]),
-                    np.array([xd]),
-                    np.array([xdd]),
-                    np.array([f_meas]),
-                    np.array([f_des]),
-                )
-                i = float(self.controller.command(s)[0])
+                i = self.controller.command_one(x, xd, xdd, f_meas, f_des)
                 events += sup.finite(t, f"the {self.controller.name} controller's command", i)
                 if sup.active:
                     i_cmd = min(max(i, 0.0), self.cfg.loop.i_max_a)
@@ -318,6 +311,13 @@ class Daemon:
             T = self.period_s
             self.reference.prepare(t + T, x + xd * T + 0.5 * xdd * T * T, xd + xdd * T)
             if active:
+                s = ControlInput(
+                    np.array([x]),
+                    np.array([xd]),
+                    np.array([xdd]),
+                    np.array([f_meas]),
+                    np.array([f_des]),
+                )
                 f_model = float(self.controller.model_force(s, np.array([i_cmd]))[0])
         except Exception as exc:  # noqa: BLE001
             log.exception("after-send work failed")

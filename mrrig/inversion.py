@@ -330,6 +330,15 @@ class ScalarInverter:
         self._a, self._b = _objective_weights(s, model, self.continuity)
         self._vww = s.vw * s.w
 
+    def force(self, features: np.ndarray, current_a: float) -> float:
+        """The model's force (N) for one sample at `current_a` (eqs 5, 7, 12)."""
+        s, k = self._s, self._buf_h
+        np.dot(s.A, features, out=k)
+        k += s.a0
+        k += s.w * current_a
+        np.tanh(k, out=k)
+        return float(k @ s.v) + s.f0
+
     def solve(self, features: np.ndarray, f_des: float, i_prev: float) -> float:
         """Current in A for one sample; features = the model's inputs without the current."""
         if self.method == "gradient":

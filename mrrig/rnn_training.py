@@ -37,7 +37,7 @@ from mrrig.controllers import RNN_INPUTS, rnn_features
 from mrrig.datasets import Series
 from mrrig.metrics import error_norm
 from mrrig.model.mlp import MLP
-from mrrig.model.train import train_lm
+from mrrig.model.train import _blas_threads, train_lm
 
 log = logging.getLogger(__name__)
 
@@ -128,9 +128,10 @@ def _parallel(
     """Run eq. 40 in parallel mode over the segments: v_hat (B, n), its first LAGS samples the
     recorded ones, then the clamped outputs fed back.
 
-    With `stride`, also the Jacobian rows d v_hat(k) / d w (standardised output units) at
-    k = LAGS, LAGS + stride, ... (row order: sample, then segment), by forward sensitivities:
-    S(k) = d y/d w |direct + sum_j d y/d v_hat(k-j) S(k-j), zero where the clamp is active.
+    With `stride`, also the transposed Jacobian Jt (n_params, rows): d v_hat(k) / d w in
+    standardised output units at k = LAGS, LAGS + stride, ... (columns: sample-major, then
+    segment), by forward sensitivities (real-time recurrent learning):
+    T(k) = d y/d w |direct + sum_j d y/d v_hat(k-j) T(k-j), zero where the clamp is active.
     """
     m = wt.model
     A, W2, b2 = wt.unpack(w)
@@ -142,31 +143,35 @@ def _parallel(
     static = (np.stack([seg.f, f_prev, seg.x, x_prev], axis=-1) - mean[:4]) / std[:4]
     v_hat = np.array(seg.v, dtype=float)
     z1 = np.ones((B, wt.n_in + 1))
-    rows: list[np.ndarray] = []
+    Jt = None
     if stride is not None:
-        S = np.zeros((LAGS, B, wt.n_params))  # ring buffer of d v_hat(k-j) / d w
-        dy = np.empty((B, wt.n_params))
-        A_lags = A[:, V_COLUMNS] / lag_std
+        sampled = range(LAGS, n, stride)
+        Jt = np.empty((wt.n_params, len(sampled) * B))
+        T = np.zeros((B, LAGS, wt.n_params))  # ring buffer: T(k) in slot k % LAGS
+        direct = np.empty((B, wt.n_params))
+        direct[:, -1] = 1.0
+        # d y_std / d v_hat(k-1-j) = D @ A_lags[:, j], with d v_hat = out_std d y_std
+        A_lags = A[:, V_COLUMNS] * (m.out_std / lag_std)
+        slots = np.arange(LAGS)
     for k in range(LAGS, n):
         z1[:, :4] = static[:, k]
         z1[:, V_COLUMNS] = (v_hat[:, k - LAGS : k][:, ::-1] - lag_mean) / lag_std
         o = np.tanh(z1 @ A.T)  # eqs 5, 7
         y = m.out_mean + m.out_std * (o @ W2 + b2)
         v_hat[:, k] = np.clip(y, 0.0, i_max)
-        if stride is None:
+        if Jt is None:
             continue
         D = (1.0 - o * o) * W2
-        dy[:, : wt.n_a] = (D[:, :, None] * z1[:, None, :]).reshape(B, wt.n_a)
-        dy[:, wt.n_a : -1] = o
-        dy[:, -1] = 1.0
-        g = D @ A_lags  # d y_std / d v_hat(k-1-j), (B, LAGS)
-        for j in range(LAGS):
-            dy += g[:, j : j + 1] * S[(k - 1 - j) % LAGS]
-        free = (y > 0.0) & (y < i_max)
-        S[k % LAGS] = np.where(free[:, None], m.out_std * dy, 0.0)
+        direct[:, : wt.n_a] = (D[:, :, None] * z1[:, None, :]).reshape(B, wt.n_a)
+        direct[:, wt.n_a : -1] = o
+        g_slots = (D @ A_lags)[:, (k - 1 - slots) % LAGS]  # lag of each ring slot
+        t_k = direct + np.matmul(g_slots[:, None, :], T)[:, 0, :]
+        t_k[(y <= 0.0) | (y >= i_max)] = 0.0
+        T[:, k % LAGS] = t_k
         if (k - LAGS) % stride == 0:
-            rows.append(S[k % LAGS] / m.out_std)
-    return v_hat, (np.concatenate(rows) if stride is not None else None)
+            r = (k - LAGS) // stride
+            Jt[:, r * B : (r + 1) * B] = t_k.T
+    return v_hat, Jt
 
 
 def rollout(model: MLP, seg: Segments, i_max: float = I_MAX_V) -> np.ndarray:
@@ -200,44 +205,46 @@ def parallel_lm(
         return float(np.mean((held.v[:, LAGS:] - v_hat[:, LAGS:]) ** 2))
 
     t0 = time.perf_counter()
-    best_w, best_mse, best_epoch, fails = w.copy(), held_mse(w), 0, 0
-    start_mse = best_mse
-    e = fit_error(w)
-    perf = float(e @ e) / e.size
-    mu, epoch, stop = mu0, 0, "max_epochs"
-    while epoch < max_epochs:
-        J = _parallel(wt, w, fit, i_max, stride)[1]
-        JtJ, g = J.T @ J, J.T @ e
-        accepted = False
-        while mu <= 1e10:
-            M = JtJ.copy()
-            M[np.diag_indices_from(M)] += mu
-            w_try = w + np.linalg.solve(M, g)
-            e_try = fit_error(w_try)
-            perf_try = float(e_try @ e_try) / e_try.size
-            if perf_try < perf:
-                w, e, perf, mu, accepted = w_try, e_try, perf_try, mu * 0.1, True
+    # one BLAS thread, as in train_lm: spinning OpenBLAS workers stall a busy 2-core machine
+    with _blas_threads(1):
+        best_w, best_mse, best_epoch, fails = w.copy(), held_mse(w), 0, 0
+        start_mse = best_mse
+        e = fit_error(w)
+        perf = float(e @ e) / e.size
+        mu, epoch, stop = mu0, 0, "max_epochs"
+        while epoch < max_epochs:
+            Jt = _parallel(wt, w, fit, i_max, stride)[1]
+            JtJ, g = Jt @ Jt.T, Jt @ e
+            accepted = False
+            while mu <= 1e10:
+                M = JtJ.copy()
+                M[np.diag_indices_from(M)] += mu
+                w_try = w + np.linalg.solve(M, g)
+                e_try = fit_error(w_try)
+                perf_try = float(e_try @ e_try) / e_try.size
+                if perf_try < perf:
+                    w, e, perf, mu, accepted = w_try, e_try, perf_try, mu * 0.1, True
+                    break
+                mu *= 10.0
+            if not accepted:
+                stop = "mu_max"
                 break
-            mu *= 10.0
-        if not accepted:
-            stop = "mu_max"
-            break
-        epoch += 1
-        mse = held_mse(w)
-        log.info(
-            "parallel LM epoch %d: fit MSE %.4g V^2, held-out MSE %.4g V^2, mu %.3g",
-            epoch,
-            perf * model.out_std**2,
-            mse,
-            mu,
-        )
-        if mse < best_mse:
-            best_w, best_mse, best_epoch, fails = w.copy(), mse, epoch, 0
-        else:
-            fails += 1
-            if fails >= max_fail:
-                stop = "validation"
-                break
+            epoch += 1
+            mse = held_mse(w)
+            log.info(
+                "parallel LM epoch %d: fit MSE %.4g V^2, held-out MSE %.4g V^2, mu %.3g",
+                epoch,
+                perf * model.out_std**2,
+                mse,
+                mu,
+            )
+            if mse < best_mse:
+                best_w, best_mse, best_epoch, fails = w.copy(), mse, epoch, 0
+            else:
+                fails += 1
+                if fails >= max_fail:
+                    stop = "validation"
+                    break
     return wt.model_with(best_w), {
         "epochs": epoch,
         "best_epoch": best_epoch,

@@ -12,6 +12,7 @@ import time
 import numpy as np
 import pytest
 
+from mrrig.controllers import Controller
 from mrrig.safety import Fault
 from mrrig.samples import RigState
 from tests.rig_harness import ScriptedRig
@@ -148,14 +149,11 @@ def test_firmware_watchdog_trip_faults_an_armed_daemon(tmp_path):
         assert "watchdog" in assert_fault(rig, Fault.FIRMWARE_FAULT)["reason"]
 
 
-class _NaNController:
+class _NaNController(Controller):
     """A controller that fails numerically (stands for a broken model)."""
 
     name = "nan"
     controller_id = 1
-
-    def reset(self, batch=1):
-        pass
 
     def command(self, s):
         return np.array([math.nan])
@@ -167,7 +165,7 @@ class _NaNController:
 def test_non_finite_controller_output_faults_within_the_frame(tmp_path):
     with ScriptedRig(tmp_path) as rig:
         assert rig.exchange()["Mode"] == ACTIVE
-        rig.daemon.controller = _NaNController()
+        rig.daemon.controller = _NaNController(2.0)
         assert_safe(rig.exchange())
         assert_fault(rig, Fault.NON_FINITE)
 

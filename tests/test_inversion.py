@@ -273,3 +273,13 @@ def test_negative_continuity_is_refused() -> None:
         exact_inversion(model, np.zeros((1, 3)), 0.0, 0.0, i_max=I_MAX, continuity=-1.0)
     with pytest.raises(ValueError, match="continuity"):
         ScalarInverter(model, I_MAX, continuity=-1.0)
+
+
+def test_scalar_inverter_force_is_the_models_force() -> None:
+    rng = np.random.default_rng(15)
+    model = random_model(rng)
+    features = random_features(rng, 50)
+    current = rng.uniform(0.0, I_MAX, 50)
+    inv = ScalarInverter(model, I_MAX)
+    got = [inv.force(features[n], current[n]) for n in range(50)]
+    np.testing.assert_allclose(got, force(model, features, current), rtol=1e-12, atol=1e-9)

@@ -1,0 +1,51 @@
+"""Controllers: the daemon's float path `command_one` is `command` on a batch of one."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from mrrig.controllers import (
+    ContinuousState,
+    ControlInput,
+    Controller,
+    Heaviside,
+    NetworkInversion,
+)
+from tests.test_inversion import I_MAX, random_model
+
+
+def _controllers() -> dict[str, Controller]:
+    model = random_model(np.random.default_rng(21), monotone=True)
+    return {
+        "heaviside": Heaviside(I_MAX),
+        "continuous_state": ContinuousState(I_MAX),
+        "ni_root": NetworkInversion(I_MAX, model),
+        "ni_feedback": NetworkInversion(I_MAX, model, feedback_tau_s=0.004),
+        "ni_continuity_feedback": NetworkInversion(
+            I_MAX, model, feedback_tau_s=0.004, continuity=1.0
+        ),
+    }
+
+
+@pytest.mark.parametrize("name", list(_controllers()))
+def test_float_path_equals_the_batch_of_one_over_a_run(name: str) -> None:
+    rng = np.random.default_rng(22)
+    n = 300
+    t = np.arange(n) * 0.002
+    x = 0.015 * np.sin(2 * np.pi * 3 * t)
+    xd = 0.015 * 2 * np.pi * 3 * np.cos(2 * np.pi * 3 * t)
+    xdd = -((2 * np.pi * 3) ** 2) * x
+    f_meas = 800 * np.sin(2 * np.pi * 3 * t + 0.2) + rng.normal(0, 20, n)
+    f_des = 600 * np.sin(2 * np.pi * 3 * t + 0.3)
+    a, b = _controllers()[name], _controllers()[name]
+    a.reset(1)
+    b.reset(1)
+    got, want = [], []
+    for k in range(n):
+        got.append(a.command_one(x[k], xd[k], xdd[k], f_meas[k], f_des[k]))
+        s = ControlInput(*(np.array([v[k]]) for v in (x, xd, xdd, f_meas, f_des)))
+        want.append(float(b.command(s)[0]))
+    assert all(isinstance(v, float) for v in got)
+    np.testing.assert_allclose(got, want, rtol=0, atol=1e-9)
+    assert 0.0 < np.ptp(want)  # the run exercises the controller
