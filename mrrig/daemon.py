@@ -43,7 +43,7 @@ from mrrig.controllers import (
 from mrrig.estimation import RealtimeKalman
 from mrrig.metrics import percentiles
 from mrrig.model.mlp import MLP, ModelError
-from mrrig.realtime import make_realtime
+from mrrig.realtime import keep_off_cpu, make_realtime
 from mrrig.safety import Fault, Limits, Supervisor
 from mrrig.samples import SAMPLE_DTYPE, RigState
 from mrrig.summary import format_summary, summarize
@@ -520,6 +520,7 @@ class Daemon:
             telemetry_hz=self.cfg.telemetry.rate_hz,
             live_url=self.cfg.recording.live_url,
         )
+        keep_off_cpu(self.sidecar.pid, self.cfg.loop.cpu, "telemetry process")
         self.link = LoopEnd(*fds.loop_fds())
 
     def _shutdown(self) -> None:

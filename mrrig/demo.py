@@ -21,6 +21,8 @@ import time
 from pathlib import Path
 
 from mrrig.canbus.bus import find_free_port, start_bridge, stop_bridge
+from mrrig.config import load_config
+from mrrig.realtime import keep_off_cpu
 
 log = logging.getLogger(__name__)
 
@@ -83,6 +85,10 @@ def main(argv: list[str] | None = None) -> int:
                 str(sim_stats),
             ],
         )
+        # the daemon's loop gets its CPU (loop.cpu) to itself
+        loop_cpu = load_config(args.config).loop.cpu
+        keep_off_cpu(bridge.pid, loop_cpu, "CAN bridge")
+        keep_off_cpu(sim.pid, loop_cpu, "firmware_sim")
         time.sleep(1.0)  # the simulator connects and starts streaming
         if sim.poll() is not None:
             raise RuntimeError(f"firmware_sim exited at start (code {sim.returncode})")

@@ -53,3 +53,16 @@ def make_realtime(
                 priority,
                 exc,
             )
+
+
+def keep_off_cpu(pid: int, cpu: int | None, who: str) -> None:
+    """Keep process `pid` off `cpu` (the control loop's own CPU): its affinity becomes every
+    other CPU this process may use. Nothing where `cpu` is None or no other CPU is left."""
+    if cpu is None:
+        return
+    try:
+        others = os.sched_getaffinity(0) - {cpu}
+        if others:
+            os.sched_setaffinity(pid, others)
+    except (OSError, AttributeError) as exc:
+        log.warning("%s: could not keep it off CPU %d: %s", who, cpu, exc)

@@ -24,6 +24,8 @@ import time
 from pathlib import Path
 
 from mrrig.canbus.bus import find_free_port, start_bridge, stop_bridge
+from mrrig.config import load_config
+from mrrig.realtime import keep_off_cpu
 
 log = logging.getLogger(__name__)
 
@@ -101,6 +103,10 @@ def run_once(config: Path, sim_config: Path, duration_s: float, mode: str) -> di
                 str(duration_s),
             ]
         )
+        # the loop's CPU (loop.cpu) to the daemon (or the echo process) alone
+        loop_cpu = load_config(config).loop.cpu
+        keep_off_cpu(bridge.pid, loop_cpu, "CAN bridge")
+        keep_off_cpu(sim.pid, loop_cpu, "firmware_sim")
         if sim.wait(timeout=duration_s + 120) != 0:
             raise RuntimeError(f"firmware_sim exited with code {sim.returncode}")
         wall = time.monotonic() - t0
