@@ -185,7 +185,7 @@ def dataset_b(
 
 
 # Units accepted per field, as factors to SI.
-_UNITS: dict[str, dict[str, float]] = {
+CSV_UNITS: dict[str, dict[str, float]] = {
     "t": {"s": 1.0, "ms": 1e-3},
     "x": {"m": 1.0, "mm": 1e-3, "cm": 1e-2},
     "xd": {"m/s": 1.0, "mm/s": 1e-3, "cm/s": 1e-2},
@@ -208,18 +208,18 @@ def load_csv(
     path = Path(path)
     units = units or {}
     for field in itertools.chain(columns, units):
-        if field not in _UNITS:
-            raise DataError(f"{path}: unknown field {field!r} (known: {', '.join(_UNITS)})")
+        if field not in CSV_UNITS:
+            raise DataError(f"{path}: unknown field {field!r} (known: {', '.join(CSV_UNITS)})")
     for field in _REQUIRED:
         if field not in columns:
             raise DataError(f"{path}: no column given for field {field!r}")
     scale = {}
     for field in columns:
-        unit = units.get(field, next(iter(_UNITS[field])))
-        if unit not in _UNITS[field]:
-            known = ", ".join(_UNITS[field])
+        unit = units.get(field, next(iter(CSV_UNITS[field])))
+        if unit not in CSV_UNITS[field]:
+            known = ", ".join(CSV_UNITS[field])
             raise DataError(f"{path}: field {field!r}: unknown unit {unit!r} (known: {known})")
-        scale[field] = _UNITS[field][unit]
+        scale[field] = CSV_UNITS[field][unit]
     try:
         with path.open(newline="", encoding="utf-8-sig") as fh:
             reader = csv.reader(fh)

@@ -4,6 +4,7 @@ DATA are tidy characterization CSVs, daemon recordings (.rrd) or other CSVs with
 (`--columns x=Pos,force=F,current=I,t=time`) and units (`--units x=cm,force=kN`). Writes the
 model file and prints the validation report (spec/modeling.md section 5). `--history N` adds
 the previous N samples of `--history-signals` (default x,xd) to the forward network's inputs.
+`--config FILE` (configs/train.toml) gives the defaults of the options; flags win over it.
 """
 
 from __future__ import annotations
@@ -16,13 +17,10 @@ from pathlib import Path
 from typing import Any
 
 from mrrig.datasets import DataError
+from mrrig.train_config import TrainConfig, load_train_config
 from mrrig.training import (
-    COIL_LAG_TAU_S,
     CURRENT_INPUTS,
-    DEFAULT_HISTORY_SIGNALS,
     HISTORY_SIGNALS,
-    PAPER_N_TRAIN,
-    PAPER_N_VAL,
     check_history,
     load_training_data,
     train_and_validate,
@@ -46,14 +44,19 @@ def _mapping(text: str | None, option: str) -> dict[str, str] | None:
     return out
 
 
-def _history(samples: int, signals_text: str | None) -> tuple[int, tuple[str, ...]]:
-    """--history and --history-signals as checked options; a one-line DataError if wrong."""
+def _history(
+    samples: int, signals_text: str | None, default_signals: tuple[str, ...]
+) -> tuple[int, tuple[str, ...]]:
+    """The history options (flags over the config's `default_signals`), checked; a one-line
+    DataError if wrong."""
     if samples < 0:
         raise DataError(f"--history must be >= 0, got {samples}")
     if signals_text is None:
-        return samples, DEFAULT_HISTORY_SIGNALS
+        return samples, default_signals
     if samples == 0:
-        raise DataError("--history-signals needs --history N with N >= 1")
+        raise DataError(
+            "--history-signals needs --history N (or features.history_samples) with N >= 1"
+        )
     signals = tuple(s.strip() for s in signals_text.split(","))
     try:
         check_history(samples, signals)
@@ -112,62 +115,121 @@ def format_report(r: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
-def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="mrrig train", description=__doc__.splitlines()[0])
+def _parser(cfg: TrainConfig) -> argparse.ArgumentParser:
+    """The flags, their defaults taken from `cfg` (the config file's, or the built-in ones)."""
+    f, t = cfg.features, cfg.training
+    ap = argparse.ArgumentParser(
+        prog="mrrig train",
+        description=__doc__.splitlines()[0],
+        epilog="With --config FILE the file's [features], [training] and [csv] tables give the "
+        "defaults (`--config FILE --help` shows them); a flag given on the command line wins "
+        "over the file.",
+    )
     ap.add_argument("data", nargs="+", type=Path, help="tidy CSV, .rrd recording or CSV")
+    ap.add_argument(
+        "--config",
+        type=Path,
+        metavar="FILE",
+        help="training config (TOML, e.g. configs/train.toml): the defaults of the options",
+    )
     ap.add_argument(
         "--out",
         type=Path,
         default=Path("models/forward.json"),
         help="the forward model file (default models/forward.json)",
     )
-    ap.add_argument("--columns", help="CSV column map, e.g. x=Pos,force=F,current=I,t=time")
-    ap.add_argument("--units", help="CSV units, e.g. x=cm,xd=cm/s,force=kN,current=mA,t=ms")
+    ap.add_argument(
+        "--columns",
+        help="CSV column map, e.g. x=Pos,force=F,current=I,t=time (replaces the config's "
+        "[csv] columns)",
+    )
+    ap.add_argument(
+        "--units",
+        help="CSV units, e.g. x=cm,xd=cm/s,force=kN,current=mA,t=ms (replaces the config's "
+        "[csv] units)",
+    )
     ap.add_argument(
         "--current-input",
         choices=CURRENT_INPUTS,
-        default="commanded",
-        help="current input of the network: as commanded, or through the coil lag",
+        default=f.current_input,
+        help="current input of the network: as commanded, or through the coil lag "
+        "(default %(default)s)",
     )
     ap.add_argument(
         "--lag-tau-s",
         type=float,
-        default=COIL_LAG_TAU_S,
-        help=f"coil lag time constant for --current-input lagged (default {COIL_LAG_TAU_S:.6g} s)",
+        default=f.lag_tau_s,
+        help="coil lag time constant for --current-input lagged (default %(default).6g s)",
     )
     ap.add_argument(
         "--history",
         type=int,
-        default=0,
+        default=f.history_samples,
         metavar="N",
-        help="history inputs: the previous N samples of --history-signals (default 0: none)",
+        help="history inputs: the previous N samples of --history-signals (default %(default)s; "
+        "0: none)",
     )
     ap.add_argument(
         "--history-signals",
         metavar="S[,S...]",
         help=f"signals of the history inputs, of {', '.join(HISTORY_SIGNALS)} (default "
-        f"{','.join(DEFAULT_HISTORY_SIGNALS)}; past currents only where the data varies the "
+        f"{','.join(f.history_signals)}; past currents only where the data varies the "
         "current within a run)",
     )
-    ap.add_argument("--epochs", type=int, default=1000, help="LM epoch limit (default 1000)")
-    ap.add_argument("--seed", type=int, default=0, help="split and initial weights")
-    ap.add_argument("--n-train", type=int, default=PAPER_N_TRAIN)
-    ap.add_argument("--n-val", type=int, default=PAPER_N_VAL)
-    ap.add_argument("--i-max", type=float, help="inversion bound, A (default: the data's largest)")
+    ap.add_argument(
+        "--epochs", type=int, default=t.epochs, help="LM epoch limit (default %(default)s)"
+    )
+    ap.add_argument(
+        "--seed", type=int, default=t.seed, help="split and initial weights (default %(default)s)"
+    )
+    ap.add_argument(
+        "--n-train",
+        type=int,
+        default=t.n_train,
+        help="training samples (default %(default)s; 90/10 of all samples where fewer)",
+    )
+    ap.add_argument(
+        "--n-val", type=int, default=t.n_val, help="validation samples (default %(default)s)"
+    )
+    ap.add_argument(
+        "--i-max",
+        type=float,
+        default=t.i_max_a,
+        help="inversion bound, A (default: "
+        + ("the data's largest" if t.i_max_a is None else f"{t.i_max_a:g}")
+        + ")",
+    )
     ap.add_argument("--supervised-out", type=Path, help="also write the supervised inverse MLP")
     ap.add_argument(
-        "--no-supervised", action="store_true", help="skip the supervised inverse MLP (faster)"
+        "--supervised",
+        action=argparse.BooleanOptionalAction,
+        default=t.supervised,
+        help="train the supervised inverse MLP (--no-supervised: skip it, faster)",
     )
     ap.add_argument("--report", type=Path, help="write the validation report as JSON")
-    args = ap.parse_args(argv)
+    return ap
+
+
+def main(argv: list[str] | None = None) -> int:
+    # the config first: its values become the flags' defaults, so a flag given wins over it
+    pre = argparse.ArgumentParser(add_help=False)
+    pre.add_argument("--config", type=Path)
+    config_path = pre.parse_known_args(argv)[0].config
+    cfg = TrainConfig() if config_path is None else load_train_config(config_path)
+    args = _parser(cfg).parse_args(argv)
     if args.epochs < 1:
         raise DataError(f"--epochs must be >= 1, got {args.epochs}")
-    if args.no_supervised and args.supervised_out:
-        raise DataError("--supervised-out needs the supervised model: drop --no-supervised")
-    history_samples, history_signals = _history(args.history, args.history_signals)
-    series = load_training_data(
-        args.data, _mapping(args.columns, "--columns"), _mapping(args.units, "--units")
+    if not args.supervised and args.supervised_out:
+        raise DataError(
+            "--supervised-out needs the supervised model: drop --no-supervised "
+            "(or training.supervised = false in the config)"
+        )
+    history_samples, history_signals = _history(
+        args.history, args.history_signals, cfg.features.history_signals
     )
+    columns = _mapping(args.columns, "--columns") if args.columns else dict(cfg.csv.columns)
+    units = _mapping(args.units, "--units") if args.units else dict(cfg.csv.units)
+    series = load_training_data(args.data, columns or None, units or None)
     log.info("training on %d samples from %d file(s)", len(series), len(args.data))
     fwd, sup, report = train_and_validate(
         series,
@@ -179,11 +241,13 @@ def main(argv: list[str] | None = None) -> int:
         lag_tau_s=args.lag_tau_s,
         max_epochs=args.epochs,
         i_max=args.i_max,
-        supervised=not args.no_supervised,
+        supervised=args.supervised,
         history_samples=history_samples,
         history_signals=history_signals,
     )
     fwd.meta["data_files"] = [str(p) for p in args.data]
+    if config_path is not None:
+        fwd.meta["train_config"] = str(config_path)
     args.out.parent.mkdir(parents=True, exist_ok=True)
     fwd.save(args.out)
     log.info("wrote %s", args.out)
