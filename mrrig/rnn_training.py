@@ -14,10 +14,10 @@ that without changing the network:
    the fed-back inputs becomes contracting. LM as `train_lm` (trainlm), early stop on a random
    noisy split.
 2. Parallel-mode fine-tune: LM on the unrolled error of the network run in parallel mode over
-   segments of the training signal (e = v_true - v_hat with v_hat fed back, as MATLAB's
-   closed-loop NARX training), with the exact Jacobian by forward sensitivities (real-time
-   recurrent learning) through the clamp to [0, i_max]; early stop on the parallel-mode error
-   of held-out blocks of the training signal.
+   1 s segments of the training signal (e = v_true - v_hat with v_hat fed back, as MATLAB's
+   closed-loop NARX training), each run from a zero history as the controller starts after
+   `reset`, with the exact Jacobian by forward sensitivities (real-time recurrent learning)
+   through the clamp to [0, i_max]; early stop on the parallel-mode error of held-out blocks.
 
 The held-out blocks (every `HOLDOUT_EVERY`-th block of `BLOCK_S`) are never fitted; they give
 the early stop of stage 2 and `held_out_et`. Hyper-parameters were chosen on held-out stretches
@@ -37,7 +37,7 @@ from mrrig.controllers import RNN_INPUTS, rnn_features
 from mrrig.datasets import Series
 from mrrig.metrics import error_norm
 from mrrig.model.mlp import MLP
-from mrrig.model.train import _blas_threads, train_lm
+from mrrig.model.train import limited_blas_threads, train_lm
 
 log = logging.getLogger(__name__)
 
@@ -54,8 +54,6 @@ PARALLEL_MAX_EPOCHS = 50
 N_TRAIN = 12771  # stage 1 rows, the paper's training and validation sizes
 N_VAL = 1419
 I_MAX_V = 12.0
-
-assert RNN_INPUTS[V_COLUMNS] == tuple(f"v_{j}" for j in range(1, LAGS + 1))
 
 
 @dataclass
@@ -125,11 +123,11 @@ class _Weights:
 def _parallel(
     wt: _Weights, w: np.ndarray, seg: Segments, i_max: float, stride: int | None
 ) -> tuple[np.ndarray, np.ndarray | None]:
-    """Run eq. 40 in parallel mode over the segments: v_hat (B, n), its first LAGS samples the
-    recorded ones, then the clamped outputs fed back.
+    """Run eq. 40 in parallel mode over the segments, as `RecurrentInverse` runs it: v_hat
+    (B, n), the clamped outputs fed back, a zero history before sample 0.
 
     With `stride`, also the transposed Jacobian Jt (n_params, rows): d v_hat(k) / d w in
-    standardised output units at k = LAGS, LAGS + stride, ... (columns: sample-major, then
+    standardised output units at k = 0, stride, 2 stride, ... (columns: sample-major, then
     segment), by forward sensitivities (real-time recurrent learning):
     T(k) = d y/d w |direct + sum_j d y/d v_hat(k-j) T(k-j), zero where the clamp is active.
     """
@@ -141,11 +139,11 @@ def _parallel(
     f_prev = np.concatenate([seg.f[:, :1], seg.f[:, :-1]], axis=1)
     x_prev = np.concatenate([seg.x[:, :1], seg.x[:, :-1]], axis=1)
     static = (np.stack([seg.f, f_prev, seg.x, x_prev], axis=-1) - mean[:4]) / std[:4]
-    v_hat = np.array(seg.v, dtype=float)
+    buf = np.zeros((B, LAGS + n))  # buf[:, LAGS + k] = v_hat(k); zeros before sample 0
     z1 = np.ones((B, wt.n_in + 1))
     Jt = None
     if stride is not None:
-        sampled = range(LAGS, n, stride)
+        sampled = range(0, n, stride)
         Jt = np.empty((wt.n_params, len(sampled) * B))
         T = np.zeros((B, LAGS, wt.n_params))  # ring buffer: T(k) in slot k % LAGS
         direct = np.empty((B, wt.n_params))
@@ -153,12 +151,12 @@ def _parallel(
         # d y_std / d v_hat(k-1-j) = D @ A_lags[:, j], with d v_hat = out_std d y_std
         A_lags = A[:, V_COLUMNS] * (m.out_std / lag_std)
         slots = np.arange(LAGS)
-    for k in range(LAGS, n):
+    for k in range(n):
         z1[:, :4] = static[:, k]
-        z1[:, V_COLUMNS] = (v_hat[:, k - LAGS : k][:, ::-1] - lag_mean) / lag_std
+        z1[:, V_COLUMNS] = (buf[:, k : k + LAGS][:, ::-1] - lag_mean) / lag_std  # eq. 40
         o = np.tanh(z1 @ A.T)  # eqs 5, 7
         y = m.out_mean + m.out_std * (o @ W2 + b2)
-        v_hat[:, k] = np.clip(y, 0.0, i_max)
+        buf[:, LAGS + k] = np.clip(y, 0.0, i_max)
         if Jt is None:
             continue
         D = (1.0 - o * o) * W2
@@ -168,15 +166,15 @@ def _parallel(
         t_k = direct + np.matmul(g_slots[:, None, :], T)[:, 0, :]
         t_k[(y <= 0.0) | (y >= i_max)] = 0.0
         T[:, k % LAGS] = t_k
-        if (k - LAGS) % stride == 0:
-            r = (k - LAGS) // stride
+        if k % stride == 0:
+            r = k // stride
             Jt[:, r * B : (r + 1) * B] = t_k.T
-    return v_hat, Jt
+    return buf[:, LAGS:], Jt
 
 
 def rollout(model: MLP, seg: Segments, i_max: float = I_MAX_V) -> np.ndarray:
-    """The network in parallel mode over the segments (its own clamped outputs fed back after
-    the first LAGS recorded commands): v_hat (B, n)."""
+    """The network in parallel mode over the segments, its own clamped outputs fed back from
+    a zero history (what `RecurrentInverse` commands after `reset`): v_hat (B, n)."""
     wt = _Weights(model)
     return _parallel(wt, wt.pack(), seg, i_max, None)[0]
 
@@ -198,15 +196,15 @@ def parallel_lm(
 
     def fit_error(w: np.ndarray) -> np.ndarray:
         v_hat = _parallel(wt, w, fit, i_max, None)[0]
-        return ((fit.v - v_hat)[:, LAGS::stride].T / model.out_std).ravel()
+        return ((fit.v - v_hat)[:, ::stride].T / model.out_std).ravel()
 
     def held_mse(w: np.ndarray) -> float:
         v_hat = _parallel(wt, w, held, i_max, None)[0]
-        return float(np.mean((held.v[:, LAGS:] - v_hat[:, LAGS:]) ** 2))
+        return float(np.mean((held.v - v_hat) ** 2))
 
     t0 = time.perf_counter()
     # one BLAS thread, as in train_lm: spinning OpenBLAS workers stall a busy 2-core machine
-    with _blas_threads(1):
+    with limited_blas_threads(1):
         best_w, best_mse, best_epoch, fails = w.copy(), held_mse(w), 0, 0
         start_mse = best_mse
         e = fit_error(w)
@@ -253,7 +251,7 @@ def parallel_lm(
         "held_out_mse_before_v2": start_mse,
         "held_out_mse_v2": best_mse,
         "segments": int(fit.f.shape[0]),
-        "jacobian_rows": int(fit.f.shape[0] * len(range(LAGS, fit.f.shape[1], stride))),
+        "jacobian_rows": int(fit.f.shape[0] * len(range(0, fit.f.shape[1], stride))),
     }
 
 
@@ -290,7 +288,7 @@ def train_rnn(
     pick = rng.permutation(len(y))
     n_val = min(N_VAL, len(y) // 10)
     tr, va = pick[n_val : n_val + N_TRAIN], pick[:n_val]
-    Xn = perturb_feedback(X, noise_v, rng) if noise_v > 0 else X
+    Xn = perturb_feedback(X, noise_v, rng)
     model, report = train_lm(
         Xn[tr],
         y[tr],
@@ -303,7 +301,9 @@ def train_rnn(
         seed=seed,
         description=f"RNN eq. 40, feedback noise {noise_v} V",
     )
+    procedure = "feedback-input noise" + (" + parallel-mode LM" if fine_tune else "")
     info: dict = {
+        "procedure": procedure,
         "noise_v": noise_v,
         "epochs": report.epochs,
         "stage1_seconds": report.seconds,
@@ -317,17 +317,10 @@ def train_rnn(
         )
     Xh, yh = held.rows()
     v_hat = rollout(model, held, i_max)
-    info["held_out_et"] = error_norm(held.v[:, LAGS:].ravel(), v_hat[:, LAGS:].ravel())
+    info["held_out_et"] = error_norm(held.v.ravel(), v_hat.ravel())
     info["teacher_forced_et"] = error_norm(yh, model.predict(Xh))
     info["seconds"] = time.perf_counter() - t0
-    model.meta.update(
-        {
-            "procedure": "feedback-input noise + parallel-mode LM"
-            if fine_tune
-            else "feedback-input noise",
-            "noise_v": noise_v,
-        }
-    )
+    model.meta.update({"procedure": procedure, "noise_v": noise_v})
     model.metrics.update({"parallel_held_out_et": info["held_out_et"]})
     log.info(
         "RNN (eq. 40): %.1f s, parallel-mode held-out Et %.4f, teacher-forced %.4f",

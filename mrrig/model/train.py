@@ -123,7 +123,7 @@ class _Net:
 
 
 @contextlib.contextmanager
-def _blas_threads(n: int | None) -> Iterator[None]:
+def limited_blas_threads(n: int | None) -> Iterator[None]:
     """Limit numpy's bundled OpenBLAS to n threads inside the block (no-op if n is None or
     numpy uses another BLAS)."""
     libs = sorted((Path(np.__file__).parent.parent / "numpy.libs").glob("libscipy_openblas*.so*"))
@@ -178,7 +178,7 @@ def train_lm(
     validation). `progress(epoch, train_mse, val_mse, mu)` is called after every epoch, MSEs
     in physical units squared. `blas_threads`: see the module docstring.
     """
-    with _blas_threads(blas_threads):
+    with limited_blas_threads(blas_threads):
         return _train_lm(
             X,
             y,
