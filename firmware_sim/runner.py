@@ -50,6 +50,10 @@ class RunStats:
         self.unanswered = 0
         self.answered_more_than_once = 0
         self.unmatched_answers = 0  # valid commands echoing no frame awaiting an answer
+        # SAFE commands repeating the counter of the last answered frame: the daemon's own SAFE
+        # after a sensor timeout (spec/system.md), not a second answer
+        self.safe_repeats = 0
+        self._last_echo: int | None = None
         self.resyncs = 0
         self.latency_us = array("d")
         self.jitter_us = array("d")
@@ -77,8 +81,12 @@ class RunStats:
         else:
             self.sensor_frames_faulted += 1
 
-    def on_command(self, echo: int, received_s: float) -> None:
+    def on_command(self, echo: int, received_s: float, safe: bool = False) -> None:
         """A valid DamperCommand echoing sensor counter `echo` arrived at received_s."""
+        if safe and echo == self._last_echo:
+            self.safe_repeats += 1
+            return
+        self._last_echo = echo
         for k in range(len(self._pending) - 1, -1, -1):
             entry = self._pending[k]
             if entry[0] == echo:
@@ -108,6 +116,7 @@ class RunStats:
                 "unanswered": self.unanswered,
                 "answered_more_than_once": self.answered_more_than_once,
                 "unmatched": self.unmatched_answers,
+                "safe_repeats": self.safe_repeats,
             },
             "answer_latency_us": _percentiles(self.latency_us),
             "period_jitter_us": _percentiles(self.jitter_us),
@@ -222,4 +231,5 @@ def _receive(
     parsed = firmware.on_frame(msg.arbitration_id, bytes(msg.data), t_s)
     if parsed is not None and parsed.ok and msg.arbitration_id == damper_id:
         assert parsed.values is not None
-        stats.on_command(int(parsed.values["SensorCounterEcho"]), t_s)
+        echo, safe = int(parsed.values["SensorCounterEcho"]), int(parsed.values["Mode"]) == 0
+        stats.on_command(echo, t_s, safe)

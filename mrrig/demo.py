@@ -127,14 +127,21 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def _sim_report(stats: dict) -> str:
-    keys = (
-        "sensor_frames_sent",
-        "commands_valid",
-        "answered_once",
-        "unanswered",
-        "answered_more_than_once",
-        "watchdog_trips",
-        "max_current_a",
+    """The simulator's own count of what it sent and what came back."""
+    a = stats["answers"]
+    parts = [
+        f"sensor frames sent {stats['sensor_frames_sent']}",
+        f"answered once {a['answered_once']}",
+        f"unanswered {a['unanswered']}",
+        f"answered twice {a['answered_more_than_once']}",
+        f"unmatched {a['unmatched']}",
+        f"daemon's own SAFE after a timeout {a['safe_repeats']}",
+        f"watchdog trips {stats['watchdog_trips']}",
+        f"max commanded current {stats['max_commanded_current_a']:.3f} A",
+    ]
+    return (
+        "firmware_sim: "
+        + ", ".join(parts)
+        + "\n  (it streams before the daemon starts and after it stops: frames then go"
+        " unanswered, and its watchdog trips once the daemon has stopped)"
     )
-    parts = [f"{k}={stats[k]}" for k in keys if k in stats]
-    return "firmware_sim: " + ", ".join(parts)

@@ -86,6 +86,7 @@ def test_run_stats_count_each_sensor_frame_answered_once_unanswered_or_more_than
     stats.on_sensor_sent(frames[3], 0.006, 0.0061)
     stats.on_command(2, 0.0065)  # late (after frame 3) but answered once, 2400 us
     stats.on_command(3, 0.0066)  # answered once, 500 us
+    stats.on_command(3, 0.0070, safe=True)  # the daemon's own SAFE after a timeout: no answer
     stats.on_sensor_sent(Frame(SENSORS_ID, b"", 9, False), 0.008, 0.0082)  # faulted frame
     stats.on_command(9, 0.0085)  # echoes a frame that awaits no answer
     stats.on_sensor_sent(frames[4], 0.010, 0.0101)  # still in flight at the end: not counted
@@ -93,6 +94,7 @@ def test_run_stats_count_each_sensor_frame_answered_once_unanswered_or_more_than
     assert (stats.answered_once, stats.unanswered, stats.answered_more_than_once) == (2, 1, 1)
     assert stats.answered_late == 1
     assert stats.unmatched_answers == 1 and stats.sensor_frames_faulted == 1
+    assert stats.safe_repeats == 1
     assert list(stats.latency_us) == pytest.approx([500.0, 2400.0, 500.0])
     assert list(stats.jitter_us) == pytest.approx([100.0, 100.0, 100.0, 100.0, 200.0, 100.0])
 

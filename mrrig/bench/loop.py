@@ -130,6 +130,7 @@ def run_once(config: Path, sim_config: Path, duration_s: float, mode: str) -> di
             "sensor_frames_sent": s["sensor_frames_sent"],
             "frames_without_command": s["answers"]["unanswered"],
             "frames_answered_more_than_once": s["answers"]["answered_more_than_once"],
+            "safe_repeats": s["answers"].get("safe_repeats", 0),
             "watchdog_trips": s["watchdog_trips"],
             "sim_jitter_us": s.get("period_jitter_us"),
             "sim_answer_latency_us": s.get("answer_latency_us"),
@@ -180,7 +181,8 @@ def format_run(r: dict) -> str:
                 if q
             ),
             f"  frames without a command: {r['frames_without_command']}  "
-            f"(answered twice: {r['frames_answered_more_than_once']}); "
+            f"(answered twice: {r['frames_answered_more_than_once']}; the daemon's own SAFE"
+            f" after a sensor timeout: {r['safe_repeats']}); "
             f"telemetry samples dropped: {r['telemetry_dropped']}",
             "  firmware_sim period jitter us: " + "  ".join(f"{k} {v:.0f}" for k, v in jit.items()),
             "  CPU % of one core: " + "  ".join(f"{k} {v:.1f}" for k, v in cpu.items()),
