@@ -53,10 +53,21 @@ def summarize(
             "std": float(i_cmd.std()) if i_cmd.size else math.nan,
         },
         "latency_us": percentiles(latency, qs=(50, 99, 99.9)),
+        "frame_gap_ms": frame_gaps(t),
     }
     for key, value in (counters or {}).items():
         out.setdefault(key, value)
     return out
+
+
+def frame_gaps(t_s: np.ndarray) -> dict[str, float | int]:
+    """The largest gap between consecutive sensor frames (ms), and how many exceed 10 ms: what
+    the transport and the machine did to the 2 ms stream."""
+    gaps = np.diff(np.asarray(t_s, dtype=float)) * 1e3
+    return {
+        "max": float(gaps.max()) if gaps.size else math.nan,
+        "over_10_ms": int((gaps > 10.0).sum()),
+    }
 
 
 def _fmt(value: Any, unit: str = "", digits: int = 4) -> str:
@@ -85,6 +96,7 @@ def format_summary(d: Mapping[str, Any]) -> str:
         f"|f_des-f_meas| {_stats_line(d['tracking_error_n'], ' N')}",
         f"i_cmd         {_stats_line(d['i_cmd_a'], ' A')}",
         f"latency       {_stats_line(d['latency_us'], ' us')}",
+        f"frame gaps    {_stats_line(d['frame_gap_ms'], ' ms')}",
         f"faults        {len(d['faults'])}",
     ]
     lines += [f"  t={_fmt(f['t'], ' s', 6)}  {f['reason']}" for f in d["faults"]]
@@ -96,6 +108,7 @@ def format_summary(d: Mapping[str, Any]) -> str:
         "tracking_error_n",
         "i_cmd_a",
         "latency_us",
+        "frame_gap_ms",
         "faults",
     }
     extra = {k: v for k, v in d.items() if k not in known}

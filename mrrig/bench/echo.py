@@ -28,6 +28,7 @@ from mrrig.canbus.codec import Codec
 from mrrig.config import load_config
 from mrrig.daemon import loop_realtime
 from mrrig.metrics import percentiles
+from mrrig.summary import frame_gaps
 
 log = logging.getLogger(__name__)
 
@@ -47,6 +48,7 @@ def run(config: Path, bus_channel: str | None, summary_json: Path) -> dict:
     signal.signal(signal.SIGINT, _stop)
     latency_us = array.array("d")
     send_us = array.array("d")
+    rx_s = array.array("d")
     answered = 0
     try:
         while bus.recv(timeout=0) is not None:  # stale frames, as the daemon discards them
@@ -76,6 +78,7 @@ def run(config: Path, bus_channel: str | None, summary_json: Path) -> dict:
             t_send = perf()
             send(out, timeout=cfg.bus.send_timeout_s)
             t_done = perf()
+            rx_s.append(t_rx)
             latency_us.append((t_done - t_rx) * 1e6)
             send_us.append((t_done - t_send) * 1e6)
             answered += 1
@@ -86,6 +89,8 @@ def run(config: Path, bus_channel: str | None, summary_json: Path) -> dict:
     snd = np.frombuffer(send_us, dtype=np.float64) if answered else np.empty(0)
     summary = {
         "frames": answered,
+        # receive gaps: what the transport did to a 2 ms stream (no work in this process)
+        "frame_gap_ms": frame_gaps(np.frombuffer(rx_s, dtype=np.float64) if answered else []),
         "latency_us": percentiles(lat, qs=(50, 99, 99.9)),
         "latency_split_us": {
             "before_send": percentiles(lat - snd, qs=(50, 99, 99.9)),

@@ -127,6 +127,7 @@ def run_once(config: Path, sim_config: Path, duration_s: float, mode: str) -> di
             "frames": d["frames"],
             "latency_us": d["latency_us"],
             "latency_split_us": d.get("latency_split_us"),
+            "frame_gap_ms": d.get("frame_gap_ms"),
             "sensor_frames_sent": s["sensor_frames_sent"],
             "frames_without_command": s["answers"]["unanswered"],
             "frames_answered_more_than_once": s["answers"]["answered_more_than_once"],
@@ -180,6 +181,9 @@ def format_run(r: dict) -> str:
                 )
                 if q
             ),
+            f"  largest gap between sensor frames at the receiver: "
+            f"{(r['frame_gap_ms'] or {}).get('max', float('nan')):.1f} ms "
+            f"({(r['frame_gap_ms'] or {}).get('over_10_ms')} over 10 ms)",
             f"  frames without a command: {r['frames_without_command']}  "
             f"(answered twice: {r['frames_answered_more_than_once']}; the daemon's own SAFE"
             f" after a sensor timeout: {r['safe_repeats']}); "
