@@ -42,6 +42,7 @@ def summarize(
     ]
     out: dict[str, Any] = {
         "duration_s": float(t[-1] - t[0]) if t.size else 0.0,
+        "last_frame_t_s": float(t[-1]) if t.size else math.nan,
         "frames": int(samples.size),
         "armed_frames": int(armed.sum()),
         "faults": faults,
@@ -102,6 +103,7 @@ def format_summary(d: Mapping[str, Any]) -> str:
     lines += [f"  t={_fmt(f['t'], ' s', 6)}  {f['reason']}" for f in d["faults"]]
     known = {
         "duration_s",
+        "last_frame_t_s",
         "frames",
         "armed_frames",
         "et",

@@ -14,8 +14,6 @@ import sys
 
 log = logging.getLogger(__name__)
 
-BRIDGE_SWITCH_INTERVAL_S = 1e-4
-
 
 def _interrupt(signum: int, frame: object) -> None:
     raise KeyboardInterrupt
@@ -40,9 +38,6 @@ def main(argv: list[str] | None = None) -> int:
     server.block_on_close = False
     signal.signal(signal.SIGTERM, _interrupt)
     make_realtime(0, who="bridge")  # locked memory; start_bridge sets its priority
-    # a frame crosses two of the server's threads: hand the GIL over within 0.1 ms, not the
-    # default 5 ms, or a busy thread holds the next frame back
-    sys.setswitchinterval(BRIDGE_SWITCH_INTERVAL_S)
     gc.collect()
     gc.freeze()
     log.info("bridge: virtual channel %r on ws://%s:%d/", args.channel, args.host, args.port)
