@@ -27,11 +27,10 @@ def summarize(
     armed = samples["state"] == RigState.ARMED
     f_des = samples["f_des"][armed]
     f_meas = samples["f_meas"][armed]
-    if f_des.size:
-        with np.errstate(divide="ignore", invalid="ignore"):
-            et = error_norm(f_des, f_meas)  # eqs 41-43
+    if f_des.size and np.ptp(f_des) > 0:
+        et = error_norm(f_des, f_meas)  # eqs 41-43
     else:
-        et = math.nan
+        et = math.nan  # no armed frame, or a constant target: Et is not defined
     t = samples["t"]
     i_cmd = samples["i_cmd"]
     latency = samples["latency_us"][np.isfinite(samples["latency_us"])]

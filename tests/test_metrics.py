@@ -1,7 +1,11 @@
+import math
+
 import numpy as np
 import pytest
 
 from mrrig.metrics import error_norm, percentiles, rmse
+from mrrig.samples import SAMPLE_DTYPE, RigState
+from mrrig.summary import summarize
 
 
 def test_error_norm_matches_hand_computed_example():
@@ -20,3 +24,17 @@ def test_rmse_and_percentiles():
     assert rmse([0, 0], [3, 4]) == pytest.approx(np.sqrt(12.5))
     p = percentiles(np.arange(101.0), (50, 99))
     assert p == {"p50": 50.0, "p99": 99.0, "max": 100.0}
+
+
+def test_summary_et_is_undefined_without_a_varying_armed_target():
+    s = np.zeros(4, dtype=SAMPLE_DTYPE)
+    s["t"] = [0.0, 0.002, 0.004, 0.006]
+    s["f_des"] = [100.0, 200.0, 300.0, 400.0]
+    s["f_meas"] = [110.0, 190.0, 310.0, 390.0]
+    s["state"] = RigState.IDLE
+    s["state"][2] = RigState.ARMED  # one armed frame: no spread to normalise by
+    assert math.isnan(summarize(s, [])["et"])
+    s["state"] = RigState.ARMED
+    assert summarize(s, [])["et"] == pytest.approx(error_norm(s["f_des"], s["f_meas"]))
+    s["f_des"] = 250.0  # a constant target
+    assert math.isnan(summarize(s, [])["et"])
