@@ -104,6 +104,7 @@ def format_report(r: dict[str, Any]) -> str:
             f" chosen on the training rows): inverse-current RMSE {on['current_rmse_a']:.4f} A",
             "  tracking error, forward model at the inverted current (N): "
             + _pct(on["tracking_model_n"]),
+            f"  (the daemon inverts this way with [controller] continuity = {on['continuity']:g})",
         ]
     sup = r.get("supervised")
     if sup is not None:
