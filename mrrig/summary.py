@@ -96,7 +96,8 @@ def format_summary(d: Mapping[str, Any]) -> str:
         f"|f_des-f_meas| {_stats_line(d['tracking_error_n'], ' N')}",
         f"i_cmd         {_stats_line(d['i_cmd_a'], ' A')}",
         f"latency       {_stats_line(d['latency_us'], ' us')}",
-        f"frame gaps    {_stats_line(d['frame_gap_ms'], ' ms')}",
+        f"frame gaps    max {_fmt(d['frame_gap_ms']['max'], ' ms')},"
+        f" {d['frame_gap_ms']['over_10_ms']} over 10 ms",
         f"faults        {len(d['faults'])}",
     ]
     lines += [f"  t={_fmt(f['t'], ' s', 6)}  {f['reason']}" for f in d["faults"]]
