@@ -13,8 +13,34 @@ import can
 import pytest
 
 from mrrig.canbus.bus import find_free_port, open_bus, start_bridge, stop_bridge
+from mrrig.datasets import Series, dataset_b
 
 REPO = Path(__file__).resolve().parents[1]
+
+
+SMALL = dict(amplitudes_m=(0.010, 0.020), freqs_hz=(2.0, 5.0), currents_a=(0.0, 0.6, 1.2))
+
+
+@pytest.fixture(scope="session")
+def small_b():
+    """A small characterization matrix (data set B: 2 x 2 x 3 runs of 0.4 s), simulated once."""
+    return dataset_b(duration_s=0.4, **SMALL)
+
+
+@pytest.fixture(scope="session")
+def small_truth(small_b):
+    """The small matrix with its exact kinematics (no estimation in the way)."""
+    b = small_b
+    return Series(
+        t=b.t,
+        x=b.x,
+        xd=b.xd,
+        xdd=b.xdd,
+        current=b.current,
+        force=b.force_meas,
+        name="small",
+        run_id=b.run_id,
+    )
 
 
 @pytest.fixture(scope="session")

@@ -13,7 +13,7 @@ import pytest
 from mrrig.cli import main as mrrig_main
 from mrrig.controllers import ControlInput, NetworkInversion, SupervisedInverse
 from mrrig.daemon import build_controller
-from mrrig.datasets import Series, dataset_b
+from mrrig.datasets import Series
 from mrrig.model.mlp import MLP
 from mrrig.samples import RigState
 from mrrig.training import (
@@ -29,23 +29,8 @@ from mrrig.training import (
 )
 from tests.rig_harness import ScriptedRig
 
-SMALL = dict(amplitudes_m=(0.010, 0.020), freqs_hz=(2.0, 5.0), currents_a=(0.0, 0.6, 1.2))
 EPOCHS = 15
 I_MAX_A = 1.2
-
-
-@pytest.fixture(scope="module")
-def small_b() -> Series:
-    return dataset_b(duration_s=0.4, **SMALL)
-
-
-@pytest.fixture(scope="module")
-def small_truth(small_b) -> Series:
-    """The small matrix with its exact kinematics."""
-    b = small_b
-    return Series(
-        t=b.t, x=b.x, xd=b.xd, xdd=b.xdd, current=b.current, force=b.force_meas, run_id=b.run_id
-    )
 
 
 @pytest.fixture(scope="module")

@@ -25,30 +25,9 @@ from mrrig.training import (
     train_forward,
     write_tidy,
 )
+from tests.conftest import SMALL
 
-SMALL = dict(amplitudes_m=(0.010, 0.020), freqs_hz=(2.0, 5.0), currents_a=(0.0, 0.6, 1.2))
 EPOCHS = 15
-
-
-@pytest.fixture(scope="module")
-def small_b() -> Series:
-    return dataset_b(duration_s=0.4, **SMALL)
-
-
-@pytest.fixture(scope="module")
-def small_truth(small_b) -> Series:
-    """The small matrix with its exact kinematics (no estimation in the way)."""
-    b = small_b
-    return Series(
-        t=b.t,
-        x=b.x,
-        xd=b.xd,
-        xdd=b.xdd,
-        current=b.current,
-        force=b.force_meas,
-        name="small",
-        run_id=b.run_id,
-    )
 
 
 def _write_csv(path, header, cols):
