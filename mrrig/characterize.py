@@ -142,7 +142,7 @@ class RigSession:
     """
 
     def __init__(self, cfg: DaemonConfig) -> None:
-        self.daemon = Daemon(cfg)
+        self.daemon = Daemon(cfg, keep_batches=True)
         self.period_s = cfg.loop.period_s
         self._thread = threading.Thread(target=self._run, name="mrrig-loop", daemon=True)
         self._error: BaseException | None = None

@@ -11,7 +11,6 @@ back the same way, polled between frames.
 from __future__ import annotations
 
 import argparse
-import array
 import gc
 import json
 import logging
@@ -41,12 +40,17 @@ from mrrig.controllers import (
     SupervisedInverse,
 )
 from mrrig.estimation import RealtimeKalman
-from mrrig.metrics import percentiles
 from mrrig.model.mlp import MLP, ModelError
 from mrrig.realtime import keep_off_cpu, make_realtime
 from mrrig.safety import Fault, Limits, Supervisor
 from mrrig.samples import SAMPLE_DTYPE, RigState
-from mrrig.summary import format_summary, summarize
+from mrrig.summary import (
+    LATENCY_BIN_US,
+    LATENCY_TOP_US,
+    Histogram,
+    SummaryAccumulator,
+    format_summary,
+)
 from mrrig.typed_config import ConfigError
 
 log = logging.getLogger(__name__)
@@ -124,7 +128,11 @@ def loop_realtime(cfg: DaemonConfig) -> None:
 class Daemon:
     """The loop and its state; `run()` until stopped, then a SAFE command and a summary."""
 
-    def __init__(self, cfg: DaemonConfig, record_path: Path | None = None) -> None:
+    def __init__(
+        self, cfg: DaemonConfig, record_path: Path | None = None, keep_batches: bool = False
+    ) -> None:
+        """`keep_batches`: keep every sample batch for `handed_over` (an in-process consumer
+        such as characterize); otherwise the loop keeps none and its memory stays fixed."""
         self.cfg = cfg
         self.period_s = cfg.loop.period_s
         self.codec = Codec()
@@ -166,11 +174,14 @@ class Daemon:
             "telemetry_dropped": 0,
         }
         self.events: list[dict] = []
-        self._chunks: list[np.ndarray] = []
+        self._keep_batches = keep_batches
+        self._chunks: list[np.ndarray] = []  # only with keep_batches
+        self._summary = SummaryAccumulator()  # the exit summary, built batch by batch
         # per answered frame, the two parts of latency_us: up to the bus's send() and inside it
         self._send_call_s = math.nan
-        self._us_before_send = array.array("d")
-        self._us_send_call = array.array("d")
+        self._split = np.full((cfg.loop.telemetry_batch, 2), np.nan)
+        self._before_send_us = Histogram(LATENCY_BIN_US, LATENCY_TOP_US)
+        self._send_call_us = Histogram(LATENCY_BIN_US, LATENCY_TOP_US)
         self._buf = np.zeros(cfg.loop.telemetry_batch, dtype=SAMPLE_DTYPE)
         self._n = 0
         self._last_sensor_t = None
@@ -301,8 +312,7 @@ class Daemon:
         if self._stop:
             self._safe_sent_at_stop = True
         latency_us = (time.perf_counter() - t_rx) * 1e6
-        self._us_send_call.append(self._send_call_s * 1e6)
-        self._us_before_send.append(latency_us - self._send_call_s * 1e6)
+        self._split[self._n] = (latency_us - self._send_call_s * 1e6, self._send_call_s * 1e6)
         self._send_call_s = math.nan
         self.last_x = x
         f_model = math.nan
@@ -335,26 +345,25 @@ class Daemon:
 
     def _flush_samples(self) -> None:
         batch = self._buf[: self._n].copy()
-        self._chunks.append(batch)
+        if self._keep_batches:
+            self._chunks.append(batch)
+        self._summary.add(batch)
+        self._before_send_us.add(self._split[: self._n, 0])
+        self._send_call_us.add(self._split[: self._n, 1])
+        self._split[:] = np.nan
         self._n = 0
         if self.link is not None and not self.link.send_samples(batch):
             self.counters["telemetry_dropped"] += len(batch)
 
     def handed_over(self, start: int = 0) -> list[np.ndarray]:
-        """The sample batches completed so far, from batch `start` on.
+        """The sample batches completed so far, from batch `start` on (needs keep_batches).
 
         Safe from another thread while the loop runs: the loop only appends whole batches,
         and a list slice is atomic.
         """
+        if not self._keep_batches:
+            raise RuntimeError("the daemon keeps no batches: construct it with keep_batches=True")
         return self._chunks[start:]
-
-    def samples(self) -> np.ndarray:
-        """All samples of the run (call after the loop has stopped)."""
-        if self._n:
-            self._flush_samples()
-        if not self._chunks:
-            return np.zeros(0, dtype=SAMPLE_DTYPE)
-        return np.concatenate(self._chunks)
 
     # ---- frames ------------------------------------------------------------------------
     def on_frame(self, msg, t_rx: float) -> None:
@@ -536,13 +545,15 @@ class Daemon:
                 self.bus.shutdown()
         self.counters["cpu_loop_s"] = time.process_time() - self._cpu0
         self.counters["loop_wall_s"] = self.now()
-        samples = self.samples()
+        if self._n:
+            self._flush_samples()
         self.counters["telemetry_dropped"] += self.link.dropped if self.link else 0
-        self.summary = summarize(samples, self.events, dict(self.counters))
+        self.summary = self._summary.result(self.events, dict(self.counters))
         self.summary["stop_reason"] = self.stop_reason
+        qs = (50, 99, 99.9)
         self.summary["latency_split_us"] = {
-            "before_send": _finite_percentiles(self._us_before_send),
-            "send_call": _finite_percentiles(self._us_send_call),
+            "before_send": self._before_send_us.percentiles(qs),
+            "send_call": self._send_call_us.percentiles(qs),
         }
         if self.link is not None:
             self.link.send_summary(_jsonable(self.summary))
@@ -558,11 +569,6 @@ class Daemon:
                 resource.getrusage(resource.RUSAGE_CHILDREN).ru_utime
                 + resource.getrusage(resource.RUSAGE_CHILDREN).ru_stime
             )
-
-
-def _finite_percentiles(values: array.array) -> dict[str, float]:
-    a = np.frombuffer(values, dtype=np.float64) if len(values) else np.empty(0)
-    return percentiles(a[np.isfinite(a)], qs=(50, 99, 99.9))
 
 
 def _jsonable(d: Any) -> Any:

@@ -8,56 +8,138 @@ from typing import Any
 
 import numpy as np
 
-from mrrig.metrics import error_norm, percentiles
 from mrrig.samples import RigState
 
 
-def summarize(
-    samples: np.ndarray,
-    events: Iterable[Mapping[str, Any]],
-    counters: Mapping[str, Any] | None = None,
-) -> dict[str, Any]:
-    """Metrics of one run from its SAMPLE_DTYPE records and events.
+class Histogram:
+    """Counts of non-negative values in fixed bins of `bin_width` up to `top` (above: one
+    overflow bin), with the exact max: percentiles to half a bin in fixed memory, however long
+    the run."""
 
-    Et and the tracking error use ARMED frames only (the others have no force to track);
-    current and latency use every frame. A fault is an event with `kind == "fault"`; its
-    reason is the `reason` field (else the text). `counters` (frames received, invalid
-    frames, commands sent, ...) are merged in; a counter never replaces a computed key.
-    """
-    armed = samples["state"] == RigState.ARMED
-    f_des = samples["f_des"][armed]
-    f_meas = samples["f_meas"][armed]
-    if f_des.size and np.ptp(f_des) > 0:
-        et = error_norm(f_des, f_meas)  # eqs 41-43
-    else:
-        et = math.nan  # no armed frame, or a constant target: Et is not defined
-    t = samples["t"]
-    i_cmd = samples["i_cmd"]
-    latency = samples["latency_us"][np.isfinite(samples["latency_us"])]
-    faults = [
-        {"t": ev.get("t"), "reason": ev.get("reason", ev.get("text"))}
-        for ev in events
-        if ev.get("kind") == "fault"
-    ]
-    out: dict[str, Any] = {
-        "duration_s": float(t[-1] - t[0]) if t.size else 0.0,
-        "last_frame_t_s": float(t[-1]) if t.size else math.nan,
-        "frames": int(samples.size),
-        "armed_frames": int(armed.sum()),
-        "faults": faults,
-        "et": et,
-        "tracking_error_n": percentiles(np.abs(f_des - f_meas), qs=(50, 95)),
-        "i_cmd_a": {
-            "mean": float(i_cmd.mean()) if i_cmd.size else math.nan,
-            "max": float(i_cmd.max()) if i_cmd.size else math.nan,
-            "std": float(i_cmd.std()) if i_cmd.size else math.nan,
-        },
-        "latency_us": percentiles(latency, qs=(50, 99, 99.9)),
-        "frame_gap_ms": frame_gaps(t),
-    }
-    for key, value in (counters or {}).items():
-        out.setdefault(key, value)
-    return out
+    def __init__(self, bin_width: float, top: float) -> None:
+        self.width = float(bin_width)
+        self.counts = np.zeros(int(math.ceil(top / bin_width)) + 1, dtype=np.int64)
+        self.n = 0
+        self.max = -math.inf
+
+    def add(self, values: np.ndarray) -> None:
+        v = np.asarray(values, dtype=float)
+        v = v[np.isfinite(v)]
+        if not v.size:
+            return
+        last = self.counts.size - 1
+        np.add.at(self.counts, np.minimum((np.maximum(v, 0.0) / self.width).astype(int), last), 1)
+        self.n += int(v.size)
+        self.max = max(self.max, float(v.max()))
+
+    def percentiles(self, qs: tuple[float, ...]) -> dict[str, float]:
+        """Like `metrics.percentiles`: `p50`, ... and `max`; a value is its bin's middle (the
+        max where that is smaller, or in the overflow bin); NaN without values."""
+        out = {}
+        cum = np.cumsum(self.counts) if self.n else None
+        for q in qs:
+            if cum is None:
+                out[f"p{q:g}"] = math.nan
+                continue
+            k = int(np.searchsorted(cum, q / 100.0 * (self.n - 1), side="right"))
+            mid = (k + 0.5) * self.width
+            out[f"p{q:g}"] = self.max if k >= self.counts.size - 1 else min(mid, self.max)
+        out["max"] = self.max if self.n else math.nan
+        return out
+
+
+class _Moments:
+    """Count, mean, sum of squared deviations, min and max, merged batch by batch (Chan et al.)."""
+
+    def __init__(self) -> None:
+        self.n, self.mean, self.m2 = 0, 0.0, 0.0
+        self.min, self.max = math.inf, -math.inf
+
+    def add(self, x: np.ndarray) -> None:
+        if not x.size:
+            return
+        nb, mb = x.size, float(x.mean())
+        m2b = float(((x - mb) ** 2).sum())
+        n = self.n + nb
+        delta = mb - self.mean
+        self.mean += delta * nb / n
+        self.m2 += m2b + delta * delta * self.n * nb / n
+        self.n = n
+        self.min, self.max = min(self.min, float(x.min())), max(self.max, float(x.max()))
+
+
+# the summary's percentile resolution: 0.5 us of latency, 0.05 N of tracking error
+LATENCY_BIN_US, LATENCY_TOP_US = 0.5, 100_000.0
+ERROR_BIN_N, ERROR_TOP_N = 0.05, 12_000.0
+
+
+class SummaryAccumulator:
+    """The run summary built batch by batch in fixed memory: the daemon adds each batch of
+    samples as it completes and keeps none of them; `summarize` adds a whole run at once.
+    Both give the same numbers (sums merged in another order differ by rounding only)."""
+
+    def __init__(self) -> None:
+        self.frames = 0
+        self.first_t = self.last_t = math.nan
+        self.f_des = _Moments()  # armed frames
+        self.sse = 0.0  # armed: sum of (f_des - f_meas)^2
+        self.error = Histogram(ERROR_BIN_N, ERROR_TOP_N)
+        self.i_cmd = _Moments()  # every frame
+        self.latency = Histogram(LATENCY_BIN_US, LATENCY_TOP_US)
+        self.max_gap_ms, self.gaps_over_10_ms = math.nan, 0
+
+    def add(self, samples: np.ndarray) -> None:
+        if not samples.size:
+            return
+        t = samples["t"].astype(float)
+        g = frame_gaps(t if math.isnan(self.last_t) else np.concatenate([[self.last_t], t]))
+        self.max_gap_ms = float(np.fmax(self.max_gap_ms, g["max"]))
+        self.gaps_over_10_ms += g["over_10_ms"]
+        if math.isnan(self.first_t):
+            self.first_t = float(t[0])
+        self.last_t = float(t[-1])
+        self.frames += int(samples.size)
+        armed = samples["state"] == RigState.ARMED
+        f_des, f_meas = samples["f_des"][armed], samples["f_meas"][armed]
+        self.f_des.add(f_des)
+        self.sse += float(((f_des - f_meas) ** 2).sum())
+        self.error.add(np.abs(f_des - f_meas))
+        self.i_cmd.add(samples["i_cmd"])
+        self.latency.add(samples["latency_us"])
+
+    def result(
+        self,
+        events: Iterable[Mapping[str, Any]],
+        counters: Mapping[str, Any] | None = None,
+    ) -> dict[str, Any]:
+        """The summary dict (see `summarize`)."""
+        fd = self.f_des
+        # eqs 41-43; undefined without an armed frame or for a constant target
+        et = math.sqrt(self.sse) / math.sqrt(fd.m2) if fd.n and fd.max > fd.min else math.nan
+        i = self.i_cmd
+        out: dict[str, Any] = {
+            "duration_s": self.last_t - self.first_t if self.frames else 0.0,
+            "last_frame_t_s": self.last_t,
+            "frames": self.frames,
+            "armed_frames": fd.n,
+            "faults": [
+                {"t": ev.get("t"), "reason": ev.get("reason", ev.get("text"))}
+                for ev in events
+                if ev.get("kind") == "fault"
+            ],
+            "et": et,
+            "tracking_error_n": self.error.percentiles((50, 95)),
+            "i_cmd_a": {
+                "mean": i.mean if i.n else math.nan,
+                "max": i.max if i.n else math.nan,
+                "std": math.sqrt(i.m2 / i.n) if i.n else math.nan,
+            },
+            "latency_us": self.latency.percentiles((50, 99, 99.9)),
+            "frame_gap_ms": {"max": self.max_gap_ms, "over_10_ms": self.gaps_over_10_ms},
+        }
+        for key, value in (counters or {}).items():
+            out.setdefault(key, value)
+        return out
 
 
 def frame_gaps(t_s: np.ndarray) -> dict[str, float | int]:
@@ -68,6 +150,24 @@ def frame_gaps(t_s: np.ndarray) -> dict[str, float | int]:
         "max": float(gaps.max()) if gaps.size else math.nan,
         "over_10_ms": int((gaps > 10.0).sum()),
     }
+
+
+def summarize(
+    samples: np.ndarray,
+    events: Iterable[Mapping[str, Any]],
+    counters: Mapping[str, Any] | None = None,
+) -> dict[str, Any]:
+    """Metrics of one run from its SAMPLE_DTYPE records and events.
+
+    Et and the tracking error use ARMED frames only (the others have no force to track);
+    current and latency use every frame. Percentiles are to half a bin (0.05 N, 0.5 us:
+    `SummaryAccumulator`). A fault is an event with `kind == "fault"`; its reason is the
+    `reason` field (else the text). `counters` (frames received, invalid frames, commands
+    sent, ...) are merged in; a counter never replaces a computed key.
+    """
+    acc = SummaryAccumulator()
+    acc.add(samples)
+    return acc.result(events, counters)
 
 
 def _fmt(value: Any, unit: str = "", digits: int = 4) -> str:

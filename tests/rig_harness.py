@@ -63,7 +63,7 @@ class ScriptedRig:
         self.packer = self.codec.packer("RIG")
         self.parser = self.codec.parser()
         self.bus = can.Bus(interface="virtual", channel=self.channel, receive_own_messages=False)
-        self.daemon = Daemon(self.cfg)
+        self.daemon = Daemon(self.cfg, keep_batches=True)
         self.thread = threading.Thread(target=self.daemon.run, daemon=True)
         self.counter = 0
 
