@@ -83,6 +83,11 @@ class Controller(abc.ABC):
         )
         return float(self.command(s)[0])
 
+    def prepare_one(self, x: float, xd: float, xdd: float, f_des: float) -> None:  # noqa: B027
+        """Work ahead for the next `command_one`, from a predicted state and target (the
+        daemon calls it after it has answered a frame, while it waits for the next one). It
+        changes no result beyond the solver's tolerance; most controllers have nothing to do."""
+
     def model_force(self, s: ControlInput, current: np.ndarray) -> np.ndarray:
         """The forward model's force for `current` (NaN for controllers without one)."""
         return np.full_like(np.asarray(current, dtype=float), np.nan)
@@ -257,6 +262,7 @@ class NetworkInversion(Controller):
         self.continuity = continuity
         self._scalar = ScalarInverter(model, i_max, continuity=continuity)
         self._feat = np.empty(model.n_in - 1)  # the float path's features, reused
+        self._feat_ahead = np.empty(model.n_in - 1)
 
     @staticmethod
     def _forward_inputs(model: MLP) -> ModelInputs:
@@ -274,6 +280,7 @@ class NetworkInversion(Controller):
         self._residual = np.zeros(batch)
         self._first = True
         self._inputs.reset()
+        self._scalar.discard_prepared()
 
     def _features(self, s: ControlInput, current: np.ndarray) -> np.ndarray:
         return self._inputs.rows(s, current)
@@ -341,6 +348,18 @@ class NetworkInversion(Controller):
         self._prev[0] = i
         self._first = False
         return i
+
+    def prepare_one(self, x: float, xd: float, xdd: float, f_des: float) -> None:
+        """Solve ahead on the predicted state (`ScalarInverter.prepare`), with the present
+        load-cell correction as the predicted one; the float path's cases only."""
+        if self.method != "exact" or self._inputs.samples or self.batch != 1:
+            return
+        feat = self._feat_ahead
+        feat[0], feat[1], feat[2] = x, xd, xdd
+        target = f_des
+        if self.feedback_tau_s is not None:
+            target = f_des - float(self._residual[0])
+        self._scalar.prepare(feat, target, float(self._prev[0]))
 
 
 class SupervisedInverse(Controller):

@@ -317,9 +317,9 @@ class Daemon:
         self.last_x = x
         f_model = math.nan
         try:
-            # off the latency path: the next instant's reference, from the predicted state
-            T = self.period_s
-            self.reference.prepare(t + T, x + xd * T + 0.5 * xdd * T * T, xd + xdd * T)
+            # off the latency path: the next frame's Kalman step, reference and controller
+            # work, from the predicted state
+            self._prepare_next(t + self.period_s, active)
             if active:
                 s = ControlInput(
                     np.array([x]),
@@ -342,6 +342,23 @@ class Daemon:
             self._flush_samples()
         if events:
             self._emit(events)
+
+    def _prepare_next(self, t_next: float, active: bool) -> None:
+        """What the next frame's cycle can know before the frame: the Kalman filter's
+        prediction, gain and covariance, the reference for the predicted state, and the
+        controller's solve on it (`Controller.prepare_one`)."""
+        kf = self.kf
+        kf.prepare()
+        xp, xdp, xddp = kf.prior
+        self.reference.prepare(t_next, xp, xdp)
+        if not active:
+            return
+        try:
+            f_next = float(self.reference.force(t_next, xp, xdp))
+        except ref.StaleReference:
+            return  # the frame itself will say so
+        f_next = min(max(f_next, -DESIRED_FORCE_LIMIT_N), DESIRED_FORCE_LIMIT_N)
+        self.controller.prepare_one(xp, xdp, xddp, f_next)
 
     def _flush_samples(self) -> None:
         batch = self._buf[: self._n].copy()

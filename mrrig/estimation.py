@@ -115,6 +115,13 @@ class RealtimeKalman(KalmanEstimator):
     filterpy's update costs 25-200 us in the daemon (array allocation, a 1x1 matrix inverse,
     the Joseph form); this one a few us. Equal to filterpy's to rounding (a test checks it);
     the covariance update is eq. 29's standard form P = (I - K H) P.
+
+    Everything of a step but the correction by the measurement itself is known before the
+    measurement arrives: the prediction (eqs 25-26), the gain (eq. 27, with R of eq. 24 from
+    the predicted x') and the updated covariance (eq. 29). `prepare()` computes them ahead
+    (the daemon calls it after it has answered a frame); `update` then only applies eq. 28,
+    and the estimate is affine in the measurement: `prior + gain * (x_meas - prior[0])`.
+    `update` prepares by itself when nobody did.
     """
 
     def reset(self, x0: float) -> None:
@@ -123,12 +130,16 @@ class RealtimeKalman(KalmanEstimator):
         p = self.kf.P
         self._p = [[float(p[i, j]) for j in range(3)] for i in range(3)]
         self._q = [[float(v) for v in row] for row in self.kf.Q]
+        self._prepared = False
 
-    def _predict(self) -> None:
+    def prepare(self) -> None:
+        """The next step's prediction, gain and updated covariance (idempotent until `update`)."""
+        if self._prepared:
+            return
         T = self.dt_s
         h = 0.5 * T * T
         x0, x1, x2 = self._x
-        self._x = [x0 + T * x1 + h * x2, x1 + T * x2, x2]  # eq. 25
+        self._prior = (x0 + T * x1 + h * x2, x1 + T * x2, x2)  # eq. 25
         P, Q = self._p, self._q
         # eq. 26: P = A P A^T + Q, A = [[1, T, T^2/2], [0, 1, T], [0, 0, 1]]
         ap = [
@@ -136,7 +147,7 @@ class RealtimeKalman(KalmanEstimator):
             [P[1][j] + T * P[2][j] for j in range(3)],
             [P[2][j] for j in range(3)],
         ]
-        self._p = [
+        Pp = [
             [
                 ap[i][0] + T * ap[i][1] + h * ap[i][2] + Q[i][0],
                 ap[i][1] + T * ap[i][2] + Q[i][1],
@@ -144,23 +155,42 @@ class RealtimeKalman(KalmanEstimator):
             ]
             for i in range(3)
         ]
+        self._p_prior = Pp
+        r = self.measurement_variance(self._prior[1])  # eq. 24 with the predicted x'
+        s = Pp[0][0] + r
+        k = (Pp[0][0] / s, Pp[1][0] / s, Pp[2][0] / s)  # eq. 27
+        self._gain = k
+        row0 = Pp[0]
+        self._p_post = [[Pp[i][j] - k[i] * row0[j] for j in range(3)] for i in range(3)]  # eq. 29
+        self._prepared = True
+
+    @property
+    def prior(self) -> tuple[float, float, float]:
+        """The prepared prediction (x, x', x'') of the next step."""
+        self.prepare()
+        return self._prior
+
+    @property
+    def gain(self) -> tuple[float, float, float]:
+        """The prepared Kalman gain of the next step (eq. 27)."""
+        self.prepare()
+        return self._gain
 
     def predict_only(self) -> tuple[float, float, float]:
-        self._predict()
-        return self._x[0], self._x[1], self._x[2]
+        return self.update(None)
 
     def update(self, x_meas: float | None) -> tuple[float, float, float]:
-        self._predict()
-        if x_meas is None:
-            return self._x[0], self._x[1], self._x[2]
-        P = self._p
-        r = self.measurement_variance(self._x[1])  # eq. 24 with the predicted x'
-        s = P[0][0] + r
-        k = [P[0][0] / s, P[1][0] / s, P[2][0] / s]  # eq. 27
-        y = x_meas - self._x[0]
-        self._x = [self._x[i] + k[i] * y for i in range(3)]  # eq. 28
-        row0 = P[0]
-        self._p = [[P[i][j] - k[i] * row0[j] for j in range(3)] for i in range(3)]  # eq. 29
+        self.prepare()
+        self._prepared = False
+        x = self._prior
+        if x_meas is None:  # the prediction is kept, with its covariance
+            self._x = list(x)
+            self._p = self._p_prior
+            return x
+        k = self._gain
+        y = x_meas - x[0]
+        self._x = [x[0] + k[0] * y, x[1] + k[1] * y, x[2] + k[2] * y]  # eq. 28
+        self._p = self._p_post
         return self._x[0], self._x[1], self._x[2]
 
 

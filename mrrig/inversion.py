@@ -290,7 +290,21 @@ class ScalarInverter:
 
     method "exact" (default) or "gradient" (the paper's; random start from `seed`);
     `continuity` is the exact solve's weight mu (0: the root itself).
+
+    Solving ahead: `prepare(features, f_des, i_prev)` runs the whole exact solve on a
+    predicted sample (the daemon predicts the next frame's state while it waits for it) and
+    keeps the answer and where it lies. The next `solve` with the same `i_prev` then starts
+    Newton from that answer on the measured sample and skips the grid: the two samples differ
+    by a Kalman innovation, so Newton converges in a step or two. It must converge (a step
+    below `xtol_a`) within `AHEAD_ITERATIONS` steps without leaving the answer's cell and
+    its two neighbours, and for the regularised problem with J'' > 0 throughout; otherwise
+    the full solve runs. A root is followed ahead only when it is alone in those cells and
+    nearer to `i_prev` than any other root by a grid cell, so that the small difference of
+    the two samples cannot change which root the full solve would pick.
+    `ahead_used` / `ahead_missed` count the solves that were and were not saved.
     """
+
+    AHEAD_ITERATIONS = 4
 
     def __init__(
         self,
@@ -329,6 +343,9 @@ class ScalarInverter:
         self.continuity = float(continuity)
         self._a, self._b = _objective_weights(s, model, self.continuity)
         self._vww = s.vw * s.w
+        self._ahead: tuple[float, float, float, float] | None = None  # i_prev, x, lo, hi
+        self.ahead_used = 0
+        self.ahead_missed = 0
 
     def force(self, features: np.ndarray, current_a: float) -> float:
         """The model's force (N) for one sample at `current_a` (eqs 5, 7, 12)."""
@@ -339,36 +356,71 @@ class ScalarInverter:
         np.tanh(k, out=k)
         return float(k @ s.v) + s.f0
 
+    def _features_part(self, features: np.ndarray) -> np.ndarray:
+        k = self._k
+        np.dot(self._s.A, features, out=k)
+        k += self._s.a0
+        return k
+
     def solve(self, features: np.ndarray, f_des: float, i_prev: float) -> float:
         """Current in A for one sample; features = the model's inputs without the current."""
         if self.method == "gradient":
             return self._gradient(features, f_des)
-        s = self._s
-        k, buf_g, buf_h = self._k, self._buf_g, self._buf_h
-        np.dot(s.A, features, out=k)
-        k += s.a0
-        c = s.f0 - f_des
+        k = self._features_part(features)
+        c = self._s.f0 - f_des
+        ahead, self._ahead = self._ahead, None
+        if ahead is not None and ahead[0] == i_prev:
+            x = self._newton_ahead(k, c, i_prev, ahead[1], ahead[2], ahead[3])
+            if x is not None:
+                self.ahead_used += 1
+                return x
+            self.ahead_missed += 1
+        return self._full(k, c, i_prev)[0]
+
+    def prepare(self, features: np.ndarray, f_des: float, i_prev: float) -> None:
+        """Solve ahead on a predicted sample (class docstring); replaces an unused one."""
+        self._ahead = None
+        if self.method == "gradient":
+            return
+        x, lo, hi = self._full(self._features_part(features), self._s.f0 - f_des, i_prev)
+        if lo < hi:
+            self._ahead = (i_prev, x, lo, hi)
+
+    def discard_prepared(self) -> None:
+        self._ahead = None
+
+    def _full(self, k: np.ndarray, c: float, i_prev: float) -> tuple[float, float, float]:
+        """(current, lo, hi): [lo, hi] is where a later Newton may follow this answer to a
+        nearby sample; lo == hi when it must not (out of reach: a bound; an ambiguous pick)."""
+        s, buf_g = self._s, self._buf_g
         np.add(self._grid_w, k, out=buf_g)
         np.tanh(buf_g, out=buf_g)
         if self.continuity > 0.0:
             return self._regularised(k, c, buf_g @ s.v + c, i_prev)
         g = (buf_g @ s.v + c).tolist()
         grid, h = self._grid_list, self._h
-        best = np.inf
+        best = second = np.inf
         cell = -1
+        cells = []
         for j in range(len(g) - 1):
             gl, gh = g[j], g[j + 1]
             if gl * gh <= 0.0:
+                cells.append(j)
                 rj = grid[j] + (gl / (gl - gh) if gl != gh else 0.0) * h
-                if abs(rj - i_prev) < best:
-                    best, cell, x, glo = abs(rj - i_prev), j, rj, gl
+                d = abs(rj - i_prev)
+                if d < best:
+                    second, best, cell, x, glo = best, d, j, rj, gl
+                elif d < second:
+                    second = d
         if cell < 0:
             e0, e1 = abs(g[0]), abs(g[-1])
             if e1 < e0 or (e1 == e0 and abs(self.i_max - i_prev) < abs(i_prev)):
-                return self.i_max
-            return 0.0
-        lo, hi = grid[cell], grid[cell + 1]
+                return self.i_max, self.i_max, self.i_max
+            return 0.0, 0.0, 0.0
+        cell_lo, cell_hi = grid[cell], grid[cell + 1]
+        lo, hi = cell_lo, cell_hi
         w, v, vw, vw_sum = s.w, s.v, s.vw, self._vw_sum
+        buf_h = self._buf_h
         for _ in range(self.max_iter):
             np.multiply(w, x, out=buf_h)
             buf_h += k
@@ -389,15 +441,58 @@ class ScalarInverter:
             x = xn
             if step <= self.xtol_a:
                 break
-        return x
+        # to be followed ahead, the root must be alone in its cell and the neighbouring ones,
+        # and clearly the nearest: otherwise a small change of the sample may change the pick
+        if second - best <= h or any(0 < abs(j - cell) <= 1 for j in cells):
+            return x, x, x
+        return x, max(cell_lo - h, 0.0), min(cell_hi + h, self.i_max)
 
-    def _regularised(self, k: np.ndarray, c: float, g: np.ndarray, i_prev: float) -> float:
-        """`_regularised` of the batch path for one sample; g = f - f_d on the grid."""
+    def _newton_ahead(
+        self, k: np.ndarray, c: float, i_prev: float, x: float, lo: float, hi: float
+    ) -> float | None:
+        """Newton from a prepared answer inside its cell; None when it does not converge there."""
+        s, th = self._s, self._buf_h
+        regularised = self.continuity > 0.0
+        for _ in range(self.AHEAD_ITERATIONS):
+            np.multiply(s.w, x, out=th)
+            th += k
+            np.tanh(th, out=th)  # eqs 5, 7
+            gx = float(th @ s.v) + c
+            if regularised:
+                sech2 = 1.0 - th * th
+                d1 = float(sech2 @ s.vw)  # df/di: eq. 14 without the error factor
+                d2 = -2.0 * float((th * sech2) @ self._vww)  # d2f/di2
+                jpp = self._a * (d1 * d1 + gx * d2) + self._b  # J''/2
+                if not jpp > 0.0:
+                    return None
+                xn = x - (self._a * gx * d1 + self._b * (x - i_prev)) / jpp  # J'/2 / (J''/2)
+            else:
+                if gx == 0.0:
+                    return x
+                np.multiply(th, th, out=th)
+                dg = self._vw_sum - float(th @ s.vw)  # df/di
+                if dg == 0.0:
+                    return None
+                xn = x - gx / dg
+            if not lo <= xn <= hi:
+                return None
+            if abs(xn - x) <= self.xtol_a:
+                return xn
+            x = xn
+        return None
+
+    def _regularised(
+        self, k: np.ndarray, c: float, g: np.ndarray, i_prev: float
+    ) -> tuple[float, float, float]:
+        """`_regularised` of the batch path for one sample; g = f - f_d on the grid.
+        Returns (current, lo, hi), [lo, hi] the four grid cells around the grid's best point
+        (on a nearby sample the best point may move by one)."""
         s, a, b = self._s, self._a, self._b
         J = a * g * g + b * (self._grid - i_prev) ** 2
         j = int(np.argmin(J))
         grid = self._grid_list
         lo, hi = grid[max(j - 1, 0)], grid[min(j + 1, len(grid) - 1)]
+        cell_lo, cell_hi = grid[max(j - 2, 0)], grid[min(j + 2, len(grid) - 1)]
         x = grid[j]
         th = self._buf_h
         for _ in range(self.max_iter):
@@ -421,7 +516,7 @@ class ScalarInverter:
             x = xn
             if step <= self.xtol_a or hi - lo <= self.xtol_a:
                 break
-        return x
+        return x, cell_lo, cell_hi
 
     def _gradient(self, features: np.ndarray, f_des: float) -> float:
         m, s = self.model, self._s

@@ -119,3 +119,26 @@ def test_realtime_kalman_equals_filterpy_kalman():
         meas = None if k % 97 == 50 else float(v)  # a few missing samples too
         a, b = ref.update(meas), fast.update(meas)
         assert np.allclose(a, b, rtol=1e-9, atol=1e-12), (k, a, b)
+
+
+def test_realtime_kalman_prepared_ahead_is_the_same_filter_and_affine_in_the_measurement():
+    from mrrig.estimation import RealtimeKalman
+
+    rng = np.random.default_rng(4)
+    t = np.arange(0, 1.0, 0.002)
+    x = 0.015 * np.sin(2 * np.pi * 4 * t) + rng.normal(0, 2e-5, t.size)
+    plain, ahead = RealtimeKalman(0.002), RealtimeKalman(0.002)
+    plain.reset(x[0])
+    ahead.reset(x[0])
+    for k, v in enumerate(x):
+        meas = None if k % 61 == 30 else float(v)
+        ahead.prepare()
+        ahead.prepare()  # idempotent until the update
+        prior, gain = ahead.prior, ahead.gain
+        got = ahead.update(meas)
+        assert got == plain.update(meas), k
+        if meas is None:
+            assert got == prior
+        else:
+            want = [p + g * (meas - prior[0]) for p, g in zip(prior, gain, strict=True)]
+            assert np.allclose(got, want, rtol=1e-12, atol=1e-15), k

@@ -283,3 +283,78 @@ def test_scalar_inverter_force_is_the_models_force() -> None:
     inv = ScalarInverter(model, I_MAX)
     got = [inv.force(features[n], current[n]) for n in range(50)]
     np.testing.assert_allclose(got, force(model, features, current), rtol=1e-12, atol=1e-9)
+
+
+def _track(model: MLP, continuity: float, ahead: bool, seed: int = 16) -> tuple[list, ScalarInverter]:
+    """Inversion along a smooth path of samples, each solved from the previous answer; with
+    `ahead`, every sample is first solved on a prediction of it (the sample plus a small
+    innovation-sized error), as the daemon does while it waits for the frame."""
+    rng = np.random.default_rng(seed)
+    n = 400
+    t = np.arange(n) * 0.002
+    features = np.column_stack(
+        [
+            0.01 * np.sin(2 * np.pi * 3 * t),
+            0.19 * np.cos(2 * np.pi * 3 * t),
+            -3.5 * np.sin(2 * np.pi * 3 * t),
+        ]
+    )
+    current = 0.9 + 0.6 * np.sin(2 * np.pi * 1.3 * t)
+    f_des = force(model, features, current)
+    predicted = features + rng.normal(0.0, [2e-5, 2e-3, 0.05], (n, 3))
+    inv = ScalarInverter(model, I_MAX, continuity=continuity)
+    out, i_prev = [], 0.0
+    for k in range(n):
+        if ahead:
+            inv.prepare(predicted[k], f_des[k] + rng.normal(0.0, 5.0), i_prev)
+        i_prev = inv.solve(features[k], f_des[k], i_prev)
+        out.append(i_prev)
+    return out, inv
+
+
+@pytest.mark.parametrize("continuity", [0.0, 1.0])
+@pytest.mark.parametrize("monotone", [True, False])
+def test_solving_ahead_gives_the_full_solves_answers(continuity: float, monotone: bool) -> None:
+    model = random_model(np.random.default_rng(17), monotone=monotone)
+    full, inv_full = _track(model, continuity, ahead=False)
+    ahead, inv = _track(model, continuity, ahead=True)
+    np.testing.assert_allclose(ahead, full, rtol=0, atol=1e-6)
+    assert inv_full.ahead_used == 0
+    # the prediction is close: nearly every sample skips the grid
+    assert inv.ahead_used >= 0.9 * len(ahead), (inv.ahead_used, inv.ahead_missed)
+
+
+def test_a_prepared_solve_is_used_once_and_only_for_its_previous_command() -> None:
+    model = random_model(np.random.default_rng(18), monotone=True)
+    inv = ScalarInverter(model, I_MAX)
+    feat = np.array([0.002, 0.05, -1.0])
+    f = float(force(model, feat[None], np.array([1.1]))[0])
+    inv.prepare(feat, f, 0.5)
+    inv.solve(feat, f, 0.7)  # another previous command: the full solve
+    assert (inv.ahead_used, inv.ahead_missed) == (0, 0)
+    inv.prepare(feat, f, 0.5)
+    assert inv.solve(feat, f, 0.5) == pytest.approx(1.1, abs=1e-6)
+    inv.solve(feat, f, 0.5)  # consumed by the first solve
+    assert (inv.ahead_used, inv.ahead_missed) == (1, 0)
+
+
+def test_a_wrong_prediction_falls_back_to_the_full_solve() -> None:
+    model = random_model(np.random.default_rng(19), monotone=True)
+    inv = ScalarInverter(model, I_MAX)
+    feat = np.array([0.002, 0.05, -1.0])
+    f_lo, f_hi = force(model, np.array([feat, feat]), np.array([0.5, 1.8]))
+    inv.prepare(feat, f_lo, 0.5)  # predicted: a root near 0.5 A; measured: one at 1.8 A
+    got = inv.solve(feat, f_hi, 0.5)
+    assert (inv.ahead_used, inv.ahead_missed) == (0, 1)
+    assert got == pytest.approx(exact_inversion(model, feat[None], f_hi, 0.5, i_max=I_MAX)[0])
+    assert got == pytest.approx(1.8, abs=1e-6)
+
+
+def test_an_ambiguous_root_is_not_followed_ahead() -> None:
+    model = bump_model()  # two roots, symmetric about 1 A, for a force below the peak
+    inv = ScalarInverter(model, I_MAX)
+    zero = np.zeros(3)
+    f_pk = float(force(model, zero[None], np.array([1.0]))[0])
+    inv.prepare(zero, 0.9 * f_pk, 1.0)  # both roots equally near the previous command
+    inv.solve(zero, 0.9 * f_pk, 1.0)
+    assert (inv.ahead_used, inv.ahead_missed) == (0, 0)
