@@ -285,7 +285,9 @@ def test_scalar_inverter_force_is_the_models_force() -> None:
     np.testing.assert_allclose(got, force(model, features, current), rtol=1e-12, atol=1e-9)
 
 
-def _track(model: MLP, continuity: float, ahead: bool, seed: int = 16) -> tuple[list, ScalarInverter]:
+def _track(
+    model: MLP, continuity: float, ahead: bool, seed: int = 16
+) -> tuple[list, ScalarInverter]:
     """Inversion along a smooth path of samples, each solved from the previous answer; with
     `ahead`, every sample is first solved on a prediction of it (the sample plus a small
     innovation-sized error), as the daemon does while it waits for the frame."""
