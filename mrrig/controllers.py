@@ -88,6 +88,10 @@ class Controller(abc.ABC):
         daemon calls it after it has answered a frame, while it waits for the next one). It
         changes no result beyond the solver's tolerance; most controllers have nothing to do."""
 
+    def solved_ahead(self) -> tuple[int, int]:
+        """(commands whose work `prepare_one` saved, prepared commands that needed it all)."""
+        return 0, 0
+
     def model_force(self, s: ControlInput, current: np.ndarray) -> np.ndarray:
         """The forward model's force for `current` (NaN for controllers without one)."""
         return np.full_like(np.asarray(current, dtype=float), np.nan)
@@ -291,6 +295,9 @@ class NetworkInversion(Controller):
 
     def model_force(self, s: ControlInput, current: np.ndarray) -> np.ndarray:
         return self.model.predict(self._features(s, np.asarray(current, dtype=float)))
+
+    def solved_ahead(self) -> tuple[int, int]:
+        return self._scalar.ahead_used, self._scalar.ahead_missed
 
     def command(self, s: ControlInput) -> np.ndarray:
         self._inputs.advance(s, self._prev)

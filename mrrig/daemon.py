@@ -561,6 +561,9 @@ class Daemon:
             finally:
                 self.bus.shutdown()
         self.counters["cpu_loop_s"] = time.process_time() - self._cpu0
+        ahead, missed = self.controller.solved_ahead()
+        self.counters["commands_solved_ahead"] = ahead
+        self.counters["commands_ahead_missed"] = missed
         self.counters["loop_wall_s"] = self.now()
         if self._n:
             self._flush_samples()
