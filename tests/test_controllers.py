@@ -17,6 +17,8 @@ from tests.test_inversion import I_MAX, random_model
 
 def _controllers() -> dict[str, Controller]:
     model = random_model(np.random.default_rng(21), monotone=True)
+    lagged = random_model(np.random.default_rng(21), monotone=True)
+    lagged.meta.update(current_input="lagged", lag_tau_s=1.0 / 190.0)
     return {
         "heaviside": Heaviside(I_MAX),
         "continuous_state": ContinuousState(I_MAX),
@@ -24,6 +26,9 @@ def _controllers() -> dict[str, Controller]:
         "ni_feedback": NetworkInversion(I_MAX, model, feedback_tau_s=0.004),
         "ni_continuity_feedback": NetworkInversion(
             I_MAX, model, feedback_tau_s=0.004, continuity=1.0
+        ),
+        "ni_lagged_ahead_feedback_0": NetworkInversion(
+            I_MAX, lagged, feedback_tau_s=0.0, continuity=0.03, ahead=True
         ),
     }
 
