@@ -234,8 +234,9 @@ class NetworkInversion(Controller):
     command is the one that takes u there within one period (eq. 36 inverted, below); u is
     tracked from the commands themselves. `ahead=True` solves for the instant the command
     first acts on: the state one period ahead (the Kalman filter's constant-acceleration
-    model, eq. 21) and `ControlInput.f_des_next`; without `f_des_next` it solves for the
-    present instant. Not with history inputs.
+    model, eq. 21), `ControlInput.f_des_next` and the feedback residual extrapolated at its
+    last rate of change; without `f_des_next` it solves for the present instant. Not with
+    history inputs.
 
     A forward model with history inputs (`FORWARD_INPUTS` then e.g. x_1, xd_1: `ModelInputs`)
     gets them from the past instants of each lane, past currents being its own commands;
@@ -343,9 +344,13 @@ class NetworkInversion(Controller):
         residual = 0.0
         if self.feedback_tau_s is not None:
             a = self.dt_s / (self.feedback_tau_s + self.dt_s)
+            last = self._residual.copy()
             self._residual += a * (s.f_meas - self.model_force(s, now) - self._residual)
             residual = self._residual
         solve_at = self._solved_instant(s)
+        if solve_at is not s and self.feedback_tau_s is not None and not self._first:
+            # the residual at the solved instant, one period on, at its last rate of change
+            residual = 2.0 * self._residual - last
         target = solve_at.f_des - residual
         if self.method == "gradient":
             # the paper's on-line inverse estimation: a random initial current, then each

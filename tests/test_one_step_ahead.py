@@ -148,3 +148,27 @@ def test_closed_loop_gives_the_controller_the_next_target():
     np.testing.assert_array_equal(now, f_des)
     np.testing.assert_array_equal(nxt[:, :-1], f_des[:, 1:])
     np.testing.assert_array_equal(nxt[:, -1], f_des[:, -1])
+
+
+def test_ahead_with_feedback_extrapolates_the_residual_to_the_next_instant():
+    model = random_model(np.random.default_rng(35), monotone=True)
+    ctrl = NetworkInversion(I_MAX, model, feedback_tau_s=0.0, dt_s=DT_S, ahead=True)
+    ctrl.reset(1)
+    x, xd, xdd = 0.002, 0.03, 0.0  # constant velocity: the state moves, eq. 21
+    T = DT_S
+
+    def at(k):
+        return np.array([[x + xd * k * T, xd, xdd]])
+
+    def residual(k, f_meas, current):
+        return f_meas - model.predict(np.append(at(k)[0], current)[None, :])[0]
+
+    i0 = ctrl.command(_input(*at(0)[0], 100.0, 90.0, 95.0))[0]
+    r0 = residual(0, 100.0, 0.0)  # the first instant: no rate yet
+    np.testing.assert_allclose(
+        i0, exact_inversion(model, at(1), 95.0 - r0, 0.0, i_max=I_MAX), atol=1e-9
+    )
+    i1 = ctrl.command(_input(*at(1)[0], 120.0, 95.0, 97.0))[0]
+    r1 = residual(1, 120.0, i0)
+    want = exact_inversion(model, at(2), 97.0 - (2 * r1 - r0), i0, i_max=I_MAX)
+    np.testing.assert_allclose(i1, want, atol=1e-9)
