@@ -92,7 +92,7 @@ class ControllerSection:
         "network_inversion", "heaviside", "continuous_state", "supervised", "rnn", "constant"
     ] = "network_inversion"
     model: Path | None = None  # the forward model (network inversion) or the inverse MLP / RNN
-    method: Literal["exact", "gradient"] = "exact"
+    method: Literal["exact", "gradient", "flow"] = "exact"
     # load-cell feedback correction, its residual's time constant (0: the last residual as it
     # is); off when absent
     feedback_tau_s: float | None = None

@@ -19,11 +19,13 @@ from mrrig.inversion import (
     DEFAULT_CONTINUITY,
     ScalarInverter,
     exact_inversion,
+    flow_inversion,
     gradient_inversion,
 )
 from mrrig.model.mlp import MLP
 
 FORWARD_INPUTS = ("x", "xd", "xdd", "current")
+INVERSION_METHODS = ("exact", "gradient", "flow")  # NetworkInversion's (mrrig/inversion.py)
 SUPERVISED_INPUTS = ("x", "xd", "xdd", "f_des")
 HISTORY_SIGNALS = ("x", "xd", "xdd", "current")  # what a history input may be a past sample of
 
@@ -220,7 +222,8 @@ class NetworkInversion(Controller):
     """The paper's inverse model: solve the frozen forward network for the current.
 
     `method="exact"` (default) is the bracketed safeguarded-Newton scalar solve;
-    `method="gradient"` is the paper's eq. 2/14 gradient descent, kept as the reference.
+    `method="gradient"` is the paper's eq. 2/14 gradient descent, kept as the reference;
+    `method="flow"` is that descent's end point in a few steps (`flow_inversion`).
     `continuity` is the exact solve's weight mu toward the previous command (mrrig/inversion.py;
     default 0 = the root itself; 1 = the smoothing of the paper's on-line gradient method).
     With `feedback_tau_s` set, the load cell corrects the model online: the residual
@@ -261,8 +264,10 @@ class NetworkInversion(Controller):
     ) -> None:
         super().__init__(i_max)
         self._inputs = self._forward_inputs(model)
-        if method not in ("exact", "gradient"):
-            raise ValueError(f"unknown inversion method {method!r} (exact, gradient)")
+        if method not in INVERSION_METHODS:
+            raise ValueError(
+                f"unknown inversion method {method!r} ({', '.join(INVERSION_METHODS)})"
+            )
         if feedback_tau_s is not None and not feedback_tau_s >= 0:
             raise ValueError(f"feedback_tau_s must be >= 0, got {feedback_tau_s}")
         if ahead and self._inputs.samples:
@@ -362,6 +367,16 @@ class NetworkInversion(Controller):
                 i_max=self.i_max,
                 rate=self.gradient_rate,
                 iterations=self.gradient_iterations,
+                i0=None if self._first else now,
+                rng=self._rng,
+            )
+        elif self.method == "flow":
+            i = flow_inversion(
+                self.model,
+                self._state(solve_at),
+                target,
+                i_max=self.i_max,
+                duration=self.gradient_rate * self.gradient_iterations,
                 i0=None if self._first else now,
                 rng=self._rng,
             )

@@ -10,7 +10,7 @@ import pytest
 
 from firmware_sim.plant import BoucWenParams
 from mrrig.controllers import ControlInput, Controller, NetworkInversion
-from mrrig.inversion import exact_inversion
+from mrrig.inversion import exact_inversion, flow_inversion, gradient_inversion
 from mrrig.model.mlp import MLP
 from mrrig.simulation import closed_loop
 from tests.test_inversion import I_MAX, random_model
@@ -172,3 +172,31 @@ def test_ahead_with_feedback_extrapolates_the_residual_to_the_next_instant():
     r1 = residual(1, 120.0, i0)
     want = exact_inversion(model, at(2), 97.0 - (2 * r1 - r0), i0, i_max=I_MAX)
     np.testing.assert_allclose(i1, want, atol=1e-9)
+
+
+def test_the_flow_ends_where_the_papers_1000_descent_steps_end():
+    model = random_model(np.random.default_rng(36), monotone=True)
+    rng = np.random.default_rng(37)
+    feats = rng.normal(size=(200, 3)) * [0.01, 0.1, 5.0]
+    f_des = rng.uniform(-400.0, 600.0, 200)
+    i0 = rng.uniform(0.0, I_MAX, 200)
+    want = gradient_inversion(model, feats, f_des, i_max=I_MAX, i0=i0)
+    err = {
+        n: np.abs(flow_inversion(model, feats, f_des, i_max=I_MAX, i0=i0, steps=n) - want)
+        for n in (1, 4, 64)
+    }
+    assert err[64].max() < 0.01 * I_MAX
+    assert err[1].mean() > err[4].mean() > err[64].mean()  # converges with the steps
+    with pytest.raises(ValueError, match="steps"):
+        flow_inversion(model, feats, f_des, i_max=I_MAX, steps=0)
+
+
+def test_network_inversion_by_the_flow_uses_it_from_the_current_now():
+    model = random_model(np.random.default_rng(38), monotone=True)
+    ctrl = NetworkInversion(I_MAX, model, method="flow", dt_s=DT_S)
+    ctrl.reset(1)
+    state = np.array([[0.001, 0.02, 0.5]])
+    first = ctrl.command(_input(*state[0], 0.0, 100.0))
+    got = ctrl.command(_input(*state[0], 0.0, 150.0))
+    want = flow_inversion(model, state, 150.0, i_max=I_MAX, i0=first)
+    np.testing.assert_allclose(got, want, atol=1e-12)

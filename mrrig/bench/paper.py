@@ -34,9 +34,11 @@ from mrrig.controllers import (
 )
 from mrrig.datasets import Series, dataset_a_training, dataset_a_validation
 from mrrig.inversion import (
+    FLOW_STEPS,
     PAPER_CONTINUITY,
     ScalarInverter,
     exact_inversion,
+    flow_inversion,
     gradient_inversion,
 )
 from mrrig.metrics import error_norm
@@ -223,6 +225,18 @@ def controllers(models: dict[str, MLP], choice: dict) -> dict[str, Controller]:
         "network_inversion_ahead_feedback": one_step_ahead(
             models["forward_lagged"], fb["feedback_tau_s"], fb["continuity"]
         ),
+        # the same loop with the paper's solver in place of the exact one, and its fast flow
+        **{
+            f"network_inversion_ahead_feedback_{method}": NetworkInversion(
+                VMAX_V,
+                models["forward_lagged"],
+                method=method,
+                feedback_tau_s=fb["feedback_tau_s"],
+                dt_s=DT_S,
+                ahead=True,
+            )
+            for method in ("gradient", "flow")
+        },
     }
 
 
@@ -245,6 +259,11 @@ def inversion_cost(
         model, X[:, :3], f, rate=1e-3, iterations=1000, rng=rng, i_max=VMAX_V
     )
     grad_us = (time.perf_counter() - t0) / n * 1e6
+    i0 = np.random.default_rng(seed).uniform(0.0, VMAX_V, n)
+    i_grad0 = gradient_inversion(model, X[:, :3], f, i_max=VMAX_V, i0=i0)
+    t0 = time.perf_counter()
+    i_flow = flow_inversion(model, X[:, :3], f, i_max=VMAX_V, i0=i0)
+    flow_us = (time.perf_counter() - t0) / n * 1e6
     t0 = time.perf_counter()
     i_exact = exact_inversion(model, X[:, :3], f, i_prev, i_max=VMAX_V)
     exact_batch_us = (time.perf_counter() - t0) / n * 1e6
@@ -278,6 +297,9 @@ def inversion_cost(
     fb = choice["feedback"]
     step_gradient_us = step_cost(NetworkInversion(VMAX_V, model, method="gradient"), 100)
     step_ahead_us = step_cost(one_step_ahead(lagged, fb["feedback_tau_s"], fb["continuity"]), n)
+    step_flow_us = step_cost(
+        NetworkInversion(VMAX_V, lagged, method="flow", feedback_tau_s=fb["feedback_tau_s"]), n
+    )
 
     def force_err(i):
         Xi = X.copy()
@@ -297,6 +319,12 @@ def inversion_cost(
         "gradient_scalar_us_median": float(np.median(grad_scalar_us)),
         "speedup_batch": grad_us / exact_batch_us,
         "speedup_scalar_median": float(np.median(grad_scalar_us) / np.median(scalar_us)),
+        "flow_us_per_sample": flow_us,
+        "flow_steps": FLOW_STEPS,
+        "flow_minus_gradient_rms_v": float(np.sqrt(np.mean((i_flow - i_grad0) ** 2))),
+        "flow_minus_gradient_max_v": float(np.max(np.abs(i_flow - i_grad0))),
+        "step_flow_us_median": float(np.median(step_flow_us)),
+        "speedup_step_flow_median": float(np.median(step_gradient_us) / np.median(step_flow_us)),
         "step_gradient_us_median": float(np.median(step_gradient_us)),
         "step_ahead_feedback_us_median": float(np.median(step_ahead_us)),
         "step_ahead_feedback_us_p99": float(np.percentile(step_ahead_us, 99)),
@@ -330,6 +358,10 @@ def run(seed: int = 0, epochs: int = 1000) -> dict:
         error_norm(c.force, fwd.predict(np.column_stack([c.x, c.xd, c.xdd, c.current])))
         for c in cases
     ]
+    open_loop_lagged = [
+        error_norm(c.force, models["forward_lagged"].predict(features(c, "lagged", LAG_TAU_S)[0]))
+        for c in cases
+    ]
     x = np.stack([c.x for c in cases])
     xd = np.stack([c.xd for c in cases])
     xdd = np.stack([c.xdd for c in cases])
@@ -354,6 +386,7 @@ def run(seed: int = 0, epochs: int = 1000) -> dict:
         "closed_loop_seconds": seconds,
         "training": training,
         "forward_open_loop_et": open_loop,
+        "forward_lagged_open_loop_et": open_loop_lagged,
         "one_step_ahead_choice": choice,
         "labels": labels(choice),
         "inversion_cost": inversion_cost(fwd, models["forward_lagged"], choice, cases, seed=seed),
@@ -381,6 +414,10 @@ def labels(choice: dict) -> dict[str, str]:
         "network_inversion_ahead_feedback": (
             f"  + feedback tau {fb['feedback_tau_s'] * 1e3:g} ms, mu {fb['continuity']:g} (ours)"
         ),
+        "network_inversion_ahead_feedback_gradient": "  the same, gradient solve (eq. 14)",
+        "network_inversion_ahead_feedback_flow": (
+            f"  the same, its flow in {FLOW_STEPS} steps (ours)"
+        ),
     }
 
 
@@ -401,8 +438,9 @@ def format_report(r: dict) -> str:
     blocks = ", ".join(f"{a:g}-{b:g}" for a, b in ch["blocks_s"])
     lines += [
         "NI 1 step ahead: the network of the lagged current u (eq. 36, eta from Table 3) solved",
-        "  for the next instant's force at the state predicted by eq. 21; the command takes u",
-        "  there in one period. Feedback tau and continuity mu: the smallest mean closed-loop Et",
+        "  for the next instant's force at the state predicted by eq. 21, the feedback residual",
+        "  extrapolated at its last rate; the command takes u there in one period (eq. 36",
+        "  inverted). Feedback tau and continuity mu: the smallest mean closed-loop Et",
         f"  on the training signal's held-out blocks ({blocks} s):",
         f"  {ch['open']['training_block_et']:.4f} without feedback,"
         f" {ch['feedback']['training_block_et']:.4f} with ({ch['seconds']:.1f} s)",
@@ -411,6 +449,10 @@ def format_report(r: dict) -> str:
     lines.append(
         "Forward model open-loop Et on the validation cases: "
         + " ".join(f"{e:.4f}" for e in r["forward_open_loop_et"])
+    )
+    lines.append(
+        "  the network of the lagged current:                "
+        + " ".join(f"{e:.4f}" for e in r["forward_lagged_open_loop_et"])
     )
     for name, t in r["training"].items():
         held_out = (
@@ -447,6 +489,13 @@ def format_report(r: dict) -> str:
         f"  NI, 1 step ahead + feedback (ours)      {c['step_ahead_feedback_us_median']:>10.2f} us"
         f"   p99 {c['step_ahead_feedback_us_p99']:.2f} us",
         f"  speed-up {c['speedup_step_ahead_median']:.0f}x",
+        f"  NI, 1 step ahead + feedback, flow        {c['step_flow_us_median']:>10.2f} us"
+        f"   speed-up {c['speedup_step_flow_median']:.0f}x",
+        f"Gradient flow in {c['flow_steps']} steps, batch: {c['flow_us_per_sample']:.2f} us"
+        f" per sample ({c['gradient_us_per_sample'] / c['flow_us_per_sample']:.0f}x faster than"
+        " the 1000 iterations);",
+        f"  its current minus theirs, same starts: rms {c['flow_minus_gradient_rms_v'] * 1e3:.1f}"
+        f" mV, max {c['flow_minus_gradient_max_v'] * 1e3:.0f} mV",
     ]
     return "\n".join(lines)
 
