@@ -398,9 +398,9 @@ class NetworkInversion(Controller):
         return self._prev.copy()
 
     def command_one(self, x: float, xd: float, xdd: float, f_meas: float, f_des: float) -> float:
-        """The float path of `command` for one lane (exact method, no history inputs): the
-        same arithmetic without building arrays, for the real-time loop (no `f_des_next`)."""
-        if self.method != "exact" or self._inputs.samples or self.batch != 1:
+        """The float path of `command` for one lane (exact or flow method, no history inputs):
+        the same arithmetic without building arrays, for the real-time loop (no `f_des_next`)."""
+        if self.method == "gradient" or self._inputs.samples or self.batch != 1:
             return super().command_one(x, xd, xdd, f_meas, f_des)
         feat = self._feat
         feat[0], feat[1], feat[2] = x, xd, xdd
@@ -418,7 +418,12 @@ class NetworkInversion(Controller):
             r += a * (residual - r)
             self._residual[0] = r
             target = f_des - r
-        i = self._scalar.solve(feat, target, now)
+        if self.method == "flow":
+            i0 = self._rng.uniform(0.0, self.i_max, 1)[0] if self._first else now
+            duration = self.gradient_rate * self.gradient_iterations
+            i = self._scalar.flow(feat, target, float(i0), duration)
+        else:
+            i = self._scalar.solve(feat, target, now)
         if lag is not None:
             i = now + (i - now) / lag  # eq. 36 inverted
         i = min(max(i, 0.0), self.i_max)

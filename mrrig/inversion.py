@@ -31,6 +31,7 @@ Features are the model's inputs without the current, in the model's order, physi
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -376,6 +377,8 @@ class ScalarInverter:
         self.continuity = float(continuity)
         self._a, self._b = _objective_weights(s, model, self.continuity)
         self._vww = s.vw * s.w
+        self._W1c = model.W1[:, s.c]
+        self._w_sum = self._W1c * model.W2
 
     def force(self, features: np.ndarray, current_a: float) -> float:
         """The model's force (N) for one sample at `current_a` (eqs 5, 7, 12)."""
@@ -469,6 +472,22 @@ class ScalarInverter:
             if step <= self.xtol_a or hi - lo <= self.xtol_a:
                 break
         return x
+
+    def flow(self, features: np.ndarray, f_des: float, i0: float, duration: float = 1.0) -> float:
+        """`flow_inversion` for one sample from i0, in plain floats."""
+        m, s = self.model, self._s
+        k_s = s.A @ features + s.a0 + s.w * s.c_mean
+        f_des_s = (f_des - m.out_mean) / m.out_std
+        W1c, w_sum, W2, b2 = self._W1c, self._w_sum, m.W2, float(m.b2)
+        i_s = (i0 - s.c_mean) / s.c_std
+        h = duration / FLOW_STEPS
+        for _ in range(FLOW_STEPS):
+            o = np.tanh(k_s + i_s * W1c)  # eqs 5, 7
+            e = float(o @ W2) + b2 - f_des_s
+            g = float((1.0 - o * o) @ w_sum)  # eq. 14 without the error factor
+            g2h = g * g * h
+            i_s -= -math.expm1(-g2h) * e / g if g2h > 1e-12 else e * g * h
+        return min(max(i_s * s.c_std + s.c_mean, 0.0), self.i_max)
 
     def _gradient(self, features: np.ndarray, f_des: float) -> float:
         m, s = self.model, self._s

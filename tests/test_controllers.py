@@ -27,6 +27,9 @@ def _controllers() -> dict[str, Controller]:
         "ni_continuity_feedback": NetworkInversion(
             I_MAX, model, feedback_tau_s=0.004, continuity=1.0
         ),
+        "ni_flow_lagged_feedback_0": NetworkInversion(
+            I_MAX, lagged, method="flow", feedback_tau_s=0.0, ahead=True
+        ),
         "ni_lagged_ahead_feedback_0": NetworkInversion(
             I_MAX, lagged, feedback_tau_s=0.0, continuity=0.03, ahead=True
         ),
