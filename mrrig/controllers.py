@@ -227,7 +227,7 @@ class NetworkInversion(Controller):
     `continuity` is the exact solve's weight mu toward the previous command (mrrig/inversion.py;
     default 0 = the root itself; 1 = the smoothing of the paper's on-line gradient method).
     With `feedback_tau_s` set, the load cell corrects the model online: the residual
-    r = f_meas - f_net(state, previous command) is low-passed with that time constant and the
+    r = f_meas - f_net(state, current now) is low-passed with that time constant and the
     network is solved for f_des - r, so a steady model error does not become tracking error;
     `feedback_tau_s=0` takes the last residual as it is (incremental inversion: the network
     supplies only how the force changes with the current and the motion).
@@ -235,11 +235,12 @@ class NetworkInversion(Controller):
     A model trained on the lagged current (meta `current_input = "lagged"`, `lag_tau_s`:
     mrrig/training.py) is solved for the lagged current u at the next instant, and the
     command is the one that takes u there within one period (eq. 36 inverted, below); u is
-    tracked from the commands themselves. `ahead=True` solves for the instant the command
-    first acts on: the state one period ahead (the Kalman filter's constant-acceleration
-    model, eq. 21), `ControlInput.f_des_next` and the feedback residual extrapolated at its
-    last rate of change; without `f_des_next` it solves for the present instant. Not with
-    history inputs.
+    tracked from the commands themselves (the current now of the feedback residual; for
+    other models the current now is the previous command). `ahead=True` solves for the
+    instant the command first acts on: the state one period ahead (the Kalman filter's
+    constant-acceleration model, eq. 21), `ControlInput.f_des_next` and the feedback
+    residual extrapolated at its last rate of change; without `f_des_next` it solves for the
+    present instant. Not with history inputs.
 
     A forward model with history inputs (`FORWARD_INPUTS` then e.g. x_1, xd_1: `ModelInputs`)
     gets them from the past instants of each lane, past currents being its own commands;
