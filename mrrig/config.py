@@ -92,8 +92,10 @@ class ControllerSection:
         "network_inversion", "heaviside", "continuous_state", "supervised", "rnn", "constant"
     ] = "network_inversion"
     model: Path | None = None  # the forward model (network inversion) or the inverse MLP / RNN
-    method: Literal["exact", "gradient"] = "exact"
-    feedback_tau_s: float | None = None  # load-cell feedback correction; off when absent
+    method: Literal["exact", "gradient", "flow"] = "exact"
+    # load-cell feedback correction, its residual's time constant (0: the last residual as it
+    # is); off when absent
+    feedback_tau_s: float | None = None
     continuity: float = DEFAULT_CONTINUITY  # exact solve's weight toward the previous command
     current_a: float = 0.0  # for the constant controller
 
@@ -101,8 +103,8 @@ class ControllerSection:
         needs_model = self.name in ("network_inversion", "supervised", "rnn")
         if needs_model and self.model is None:
             raise ValueError(f"model: controller {self.name} needs a model file")
-        if self.feedback_tau_s is not None and not self.feedback_tau_s > 0:
-            raise ValueError("feedback_tau_s: must be positive")
+        if self.feedback_tau_s is not None and not self.feedback_tau_s >= 0:
+            raise ValueError("feedback_tau_s: must be >= 0")
         if not self.continuity >= 0:
             raise ValueError("continuity: must be >= 0")
 

@@ -9,6 +9,7 @@ already clamped to [0, i_max]. Controllers are pure numerics: they know nothing 
 from __future__ import annotations
 
 import abc
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -18,11 +19,13 @@ from mrrig.inversion import (
     DEFAULT_CONTINUITY,
     ScalarInverter,
     exact_inversion,
+    flow_inversion,
     gradient_inversion,
 )
 from mrrig.model.mlp import MLP
 
 FORWARD_INPUTS = ("x", "xd", "xdd", "current")
+INVERSION_METHODS = ("exact", "gradient", "flow")  # NetworkInversion's (mrrig/inversion.py)
 SUPERVISED_INPUTS = ("x", "xd", "xdd", "f_des")
 HISTORY_SIGNALS = ("x", "xd", "xdd", "current")  # what a history input may be a past sample of
 
@@ -53,6 +56,8 @@ class ControlInput:
     xdd: np.ndarray  # acceleration, m/s^2
     f_meas: np.ndarray  # measured (load-cell) force, N
     f_des: np.ndarray  # desired force, N
+    # the desired force one period ahead, where the reference is known ahead (None: it is not)
+    f_des_next: np.ndarray | None = None
 
 
 class Controller(abc.ABC):
@@ -226,12 +231,26 @@ class NetworkInversion(Controller):
     """The paper's inverse model: solve the frozen forward network for the current.
 
     `method="exact"` (default) is the bracketed safeguarded-Newton scalar solve;
-    `method="gradient"` is the paper's eq. 2/14 gradient descent, kept as the reference.
+    `method="gradient"` is the paper's eq. 2/14 gradient descent, kept as the reference;
+    `method="flow"` is that descent's end point in a few steps (`flow_inversion`).
     `continuity` is the exact solve's weight mu toward the previous command (mrrig/inversion.py;
     default 0 = the root itself; 1 = the smoothing of the paper's on-line gradient method).
     With `feedback_tau_s` set, the load cell corrects the model online: the residual
-    r = f_meas - f_net(state, previous command) is low-passed with that time constant and the
-    network is solved for f_des - r, so a steady model error does not become tracking error.
+    r = f_meas - f_net(state, current now) is low-passed with that time constant and the
+    network is solved for f_des - r, so a steady model error does not become tracking error;
+    `feedback_tau_s=0` takes the last residual as it is (incremental inversion: the network
+    supplies only how the force changes with the current and the motion).
+
+    A model trained on the lagged current (meta `current_input = "lagged"`, `lag_tau_s`:
+    mrrig/training.py) is solved for the lagged current u at the next instant, and the
+    command is the one that takes u there within one period (eq. 36 inverted, below); u is
+    tracked from the commands themselves (the current now of the feedback residual; for
+    other models the current now is the previous command). `ahead=True` solves for the
+    instant the command first acts on: the state one period ahead (the Kalman filter's
+    constant-acceleration model, eq. 21), `ControlInput.f_des_next` and the feedback
+    residual extrapolated at its last rate of change; without `f_des_next` it solves for the
+    present instant. Not with history inputs.
+
     A forward model with history inputs (`FORWARD_INPUTS` then e.g. x_1, xd_1: `ModelInputs`)
     gets them from the past instants of each lane, past currents being its own commands;
     the unknown is still the present current alone, a scalar solve.
@@ -251,11 +270,23 @@ class NetworkInversion(Controller):
         gradient_iterations: int = 1000,
         seed: int = 0,
         continuity: float = DEFAULT_CONTINUITY,
+        ahead: bool = False,
     ) -> None:
         super().__init__(i_max)
         self._inputs = self._forward_inputs(model)
-        if method not in ("exact", "gradient"):
-            raise ValueError(f"unknown inversion method {method!r} (exact, gradient)")
+        if method not in INVERSION_METHODS:
+            raise ValueError(
+                f"unknown inversion method {method!r} ({', '.join(INVERSION_METHODS)})"
+            )
+        if feedback_tau_s is not None and not feedback_tau_s >= 0:
+            raise ValueError(f"feedback_tau_s must be >= 0, got {feedback_tau_s}")
+        if ahead and self._inputs.samples:
+            raise ValueError("the one-step-ahead solve needs a model without history inputs")
+        self.ahead = ahead
+        self.lag_tau_s = self._lag_tau_s(model)
+        # the share of a step of the command that the lagged current makes in one period:
+        # u(k+1) = u(k) + lag (v(k) - u(k)), eq. 36 solved exactly for v held over the period
+        self._lag = None if self.lag_tau_s is None else -math.expm1(-dt_s / self.lag_tau_s)
         self.model = model
         self.method = method
         self.feedback_tau_s = feedback_tau_s
@@ -278,9 +309,20 @@ class NetworkInversion(Controller):
             )
         return ModelInputs(model.input_names, FORWARD_INPUTS, "network inversion")
 
+    @staticmethod
+    def _lag_tau_s(model: MLP) -> float | None:
+        """The coil lag the model's current input went through (None: the command itself)."""
+        if model.meta.get("current_input", "commanded") != "lagged":
+            return None
+        tau = model.meta.get("lag_tau_s")
+        if not (isinstance(tau, int | float) and tau > 0):
+            raise ValueError(f"a model of the lagged current needs lag_tau_s > 0, got {tau!r}")
+        return float(tau)
+
     def reset(self, batch: int = 1) -> None:
         super().reset(batch)
         self._prev = np.zeros(batch)
+        self._u = np.zeros(batch)  # the lagged current now (models of the lagged current)
         self._residual = np.zeros(batch)
         self._first = True
         self._inputs.reset()
@@ -299,59 +341,107 @@ class NetworkInversion(Controller):
     def solved_ahead(self) -> tuple[int, int]:
         return self._scalar.ahead_used, self._scalar.ahead_missed
 
+    def _solved_instant(self, s: ControlInput) -> ControlInput:
+        """The instant the command is solved for: with `ahead` and a known next target, one
+        period ahead (the state at constant acceleration, eq. 21); else the present one."""
+        if not self.ahead or s.f_des_next is None:
+            return s
+        T = self.dt_s
+        return ControlInput(
+            x=s.x + s.xd * T + 0.5 * s.xdd * T * T,
+            xd=s.xd + s.xdd * T,
+            xdd=s.xdd,
+            f_meas=s.f_meas,
+            f_des=s.f_des_next,
+        )
+
     def command(self, s: ControlInput) -> np.ndarray:
-        self._inputs.advance(s, self._prev)
-        target = s.f_des
+        lag = self._lag
+        self._inputs.advance(s, self._prev if lag is None else self._u)
+        if lag is not None:
+            self._u = self._u + lag * (self._prev - self._u)  # eq. 36, the held command
+        now = self._prev if lag is None else self._u  # what the model's current input is now
+        residual = 0.0
         if self.feedback_tau_s is not None:
-            residual = s.f_meas - self.model_force(s, self._prev)
             a = self.dt_s / (self.feedback_tau_s + self.dt_s)
-            self._residual += a * (residual - self._residual)
-            target = s.f_des - self._residual
+            last = self._residual.copy()
+            self._residual += a * (s.f_meas - self.model_force(s, now) - self._residual)
+            residual = self._residual
+        solve_at = self._solved_instant(s)
+        if solve_at is not s and self.feedback_tau_s is not None and not self._first:
+            # the residual at the solved instant, one period on, at its last rate of change
+            residual = 2.0 * self._residual - last
+        target = solve_at.f_des - residual
         if self.method == "gradient":
             # the paper's on-line inverse estimation: a random initial current, then each
-            # sample's descent starts from the previous sample's current
+            # sample's descent starts from the current now
             i = gradient_inversion(
                 self.model,
-                self._state(s),
+                self._state(solve_at),
                 target,
                 i_max=self.i_max,
                 rate=self.gradient_rate,
                 iterations=self.gradient_iterations,
-                i0=None if self._first else self._prev,
+                i0=None if self._first else now,
+                rng=self._rng,
+            )
+        elif self.method == "flow":
+            i = flow_inversion(
+                self.model,
+                self._state(solve_at),
+                target,
+                i_max=self.i_max,
+                duration=self.gradient_rate * self.gradient_iterations,
+                i0=None if self._first else now,
                 rng=self._rng,
             )
         elif self.batch == 1:
-            i = np.array([self._scalar.solve(self._state(s)[0], float(target[0]), self._prev[0])])
+            i = np.array([self._scalar.solve(self._state(solve_at)[0], float(target[0]), now[0])])
         else:
             i = exact_inversion(
                 self.model,
-                self._state(s),
+                self._state(solve_at),
                 target,
-                self._prev,
+                now,
                 i_max=self.i_max,
                 continuity=self.continuity,
             )
+        if lag is not None:
+            i = now + (i - now) / lag  # eq. 36 inverted: u reaches i one period on
         self._prev = np.clip(i, 0.0, self.i_max)
         self._first = False
         return self._prev.copy()
 
     def command_one(self, x: float, xd: float, xdd: float, f_meas: float, f_des: float) -> float:
-        """The float path of `command` for one lane (exact method, no history inputs): the
-        same arithmetic without building arrays, for the real-time loop."""
-        if self.method != "exact" or self._inputs.samples or self.batch != 1:
+        """The float path of `command` for one lane (exact or flow method, no history inputs):
+        the same arithmetic without building arrays, for the real-time loop (no `f_des_next`)."""
+        if self.method == "gradient" or self._inputs.samples or self.batch != 1:
             return super().command_one(x, xd, xdd, f_meas, f_des)
         feat = self._feat
         feat[0], feat[1], feat[2] = x, xd, xdd
-        prev = float(self._prev[0])
+        lag = self._lag
+        now = float(self._prev[0])
+        if lag is not None:
+            u = float(self._u[0])
+            now = u + lag * (now - u)  # eq. 36, the held command
+            self._u[0] = now
         target = f_des
         if self.feedback_tau_s is not None:
-            residual = f_meas - self._scalar.force(feat, prev)
+            residual = f_meas - self._scalar.force(feat, now)
             a = self.dt_s / (self.feedback_tau_s + self.dt_s)
             r = float(self._residual[0])
             r += a * (residual - r)
             self._residual[0] = r
             target = f_des - r
-        i = min(max(self._scalar.solve(feat, target, prev), 0.0), self.i_max)
+        if self.method == "flow":
+            i0 = self._rng.uniform(0.0, self.i_max, 1)[0] if self._first else now
+            duration = self.gradient_rate * self.gradient_iterations
+            i = self._scalar.flow(feat, target, float(i0), duration)
+        else:
+            i = self._scalar.solve(feat, target, now)
+        if lag is not None:
+            i = now + (i - now) / lag  # eq. 36 inverted
+        i = min(max(i, 0.0), self.i_max)
         self._prev[0] = i
         self._first = False
         return i
@@ -363,10 +453,14 @@ class NetworkInversion(Controller):
             return
         feat = self._feat_ahead
         feat[0], feat[1], feat[2] = x, xd, xdd
+        now = float(self._prev[0])  # what command_one will solve from
+        if self._lag is not None:
+            u = float(self._u[0])
+            now = u + self._lag * (now - u)  # eq. 36, the held command
         target = f_des
         if self.feedback_tau_s is not None:
             target = f_des - float(self._residual[0])
-        self._scalar.prepare(feat, target, float(self._prev[0]))
+        self._scalar.prepare(feat, target, now)
 
 
 class SupervisedInverse(Controller):

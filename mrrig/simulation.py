@@ -35,7 +35,8 @@ def closed_loop(
 
     At sample k the controller sees the state and the damper's force f_a(k) (the load cell,
     fed back every sample) and its command is held over [k, k+1]; f_a(k) is compared with
-    f_des(k), as in the paper's Table 6.
+    f_des(k), as in the paper's Table 6. The reference is known ahead: the controller also
+    gets f_des(k+1) (`ControlInput.f_des_next`; at the last sample f_des(k)).
     """
     x, xd, xdd, f_des = (np.atleast_2d(np.asarray(a, dtype=float)) for a in (x, xd, xdd, f_des))
     batch, n = f_des.shape
@@ -49,7 +50,14 @@ def closed_loop(
     command = np.empty((batch, n))
     for k in range(n):
         f_act[:, k] = f_a
-        s = ControlInput(x=x[:, k], xd=xd[:, k], xdd=xdd[:, k], f_meas=f_a, f_des=f_des[:, k])
+        s = ControlInput(
+            x=x[:, k],
+            xd=xd[:, k],
+            xdd=xdd[:, k],
+            f_meas=f_a,
+            f_des=f_des[:, k],
+            f_des_next=f_des[:, min(k + 1, n - 1)],
+        )
         command[:, k] = controller.command(s)
         if k + 1 < n:
             cmd = command[:, k].tolist()

@@ -84,7 +84,7 @@ def _setup(cfg) -> str:
         )
     elif r.kind == "sine":
         ref += f" ({r.offset_n:g} N + {r.amplitude_n:g} N at {r.freq_hz:g} Hz)"
-    fb = f", feedback tau {c.feedback_tau_s:g} s" if c.feedback_tau_s else ""
+    fb = f", feedback tau {c.feedback_tau_s:g} s" if c.feedback_tau_s is not None else ""
     return (
         f"{ref}; actuator {a.waveform} {a.amplitude_m * 1e3:g} mm {a.frequency_hz:g} Hz; "
         f"inversion {c.method}{fb}"

@@ -55,6 +55,10 @@ def run_daemon(tmp_path, text: str) -> subprocess.CompletedProcess:
             BASE + '[controller]\nmodel = "{forward}"\ncontinuity = -0.5\n',
             "controller.continuity: must be >= 0",
         ),
+        (
+            BASE + '[controller]\nmodel = "{forward}"\nfeedback_tau_s = -0.001\n',
+            "controller.feedback_tau_s: must be >= 0",
+        ),
         (BASE + "[loop\n", "not valid TOML"),
     ],
 )
