@@ -124,6 +124,28 @@ def eq14_gradient(
     return grad_s * model.out_std**2 / model.in_std[c]
 
 
+def _descent_start(
+    model: MLP,
+    features: np.ndarray,
+    f_des: np.ndarray,
+    i_max: float,
+    i0: np.ndarray | None,
+    rng: np.random.Generator | None,
+) -> tuple[_Split, np.ndarray, np.ndarray, np.ndarray]:
+    """The paper's descent in standardised units, as its MATLAB network (normalised inputs and
+    output) ran it: (split, start current i_s, feature part k_s, target f_des_s), so that
+    pre = k_s + W1c * i_s and f_s = W2 . o + b2. The start is uniform on [0, i_max] without i0.
+    """
+    features, f_des = _as_batch(model, features, f_des)
+    s = _Split.of(model)
+    n = features.shape[0]
+    if i0 is None:
+        i0 = (rng if rng is not None else np.random.default_rng()).uniform(0.0, i_max, n)
+    i_s = (np.broadcast_to(np.asarray(i0, dtype=np.float64), (n,)) - s.c_mean) / s.c_std
+    k_s = s.features_part(features) + s.w * s.c_mean
+    return s, i_s, k_s, (f_des - model.out_mean) / model.out_std
+
+
 def gradient_inversion(
     model: MLP,
     features: np.ndarray,
@@ -141,16 +163,8 @@ def gradient_inversion(
     (normalised inputs and output) did: rate 0.001 on E in N^2 w.r.t. amperes would diverge.
     The result is clipped to [0, i_max]. Returns currents (N,) in A.
     """
-    features, f_des = _as_batch(model, features, f_des)
-    s = _Split.of(model)
-    n = features.shape[0]
-    if i0 is None:
-        i0 = (rng if rng is not None else np.random.default_rng()).uniform(0.0, i_max, n)
-    i_s = (np.broadcast_to(np.asarray(i0, dtype=np.float64), (n,)) - s.c_mean) / s.c_std
-    # Standardised units: pre = k_s + W1c * i_s, f_s = W2 . o + b2.
+    s, i_s, k_s, f_des_s = _descent_start(model, features, f_des, i_max, i0, rng)
     W1c = model.W1[:, s.c]
-    k_s = s.features_part(features) + s.w * s.c_mean
-    f_des_s = (f_des - model.out_mean) / model.out_std
     w_sum = W1c * model.W2
     for _ in range(iterations):
         o = np.tanh(k_s + np.multiply.outer(i_s, W1c))  # eqs 5, 7
@@ -181,15 +195,8 @@ def flow_inversion(
     """
     if steps < 1:
         raise ValueError(f"steps must be >= 1, got {steps}")
-    features, f_des = _as_batch(model, features, f_des)
-    s = _Split.of(model)
-    n = features.shape[0]
-    if i0 is None:
-        i0 = (rng if rng is not None else np.random.default_rng()).uniform(0.0, i_max, n)
-    i_s = (np.broadcast_to(np.asarray(i0, dtype=np.float64), (n,)) - s.c_mean) / s.c_std
+    s, i_s, k_s, f_des_s = _descent_start(model, features, f_des, i_max, i0, rng)
     W1c = model.W1[:, s.c]
-    k_s = s.features_part(features) + s.w * s.c_mean
-    f_des_s = (f_des - model.out_mean) / model.out_std
     w_sum = W1c * model.W2
     h = duration / steps
     for _ in range(steps):

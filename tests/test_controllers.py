@@ -36,21 +36,32 @@ def _controllers() -> dict[str, Controller]:
     }
 
 
-@pytest.mark.parametrize("name", list(_controllers()))
-def test_float_path_equals_the_batch_of_one_over_a_run(name: str) -> None:
-    rng = np.random.default_rng(22)
-    n = 300
+def _run(seed: int, n: int = 300) -> tuple[np.ndarray, ...]:
+    """(x, xd, xdd, f_meas, f_des) of a 3 Hz run at 2 ms, the load cell noisy."""
+    rng = np.random.default_rng(seed)
     t = np.arange(n) * 0.002
     x = 0.015 * np.sin(2 * np.pi * 3 * t)
     xd = 0.015 * 2 * np.pi * 3 * np.cos(2 * np.pi * 3 * t)
     xdd = -((2 * np.pi * 3) ** 2) * x
     f_meas = 800 * np.sin(2 * np.pi * 3 * t + 0.2) + rng.normal(0, 20, n)
     f_des = 600 * np.sin(2 * np.pi * 3 * t + 0.3)
+    return x, xd, xdd, f_meas, f_des
+
+
+def _pair(name: str) -> tuple[Controller, Controller]:
+    """Two fresh, reset instances of the same controller."""
     a, b = _controllers()[name], _controllers()[name]
     a.reset(1)
     b.reset(1)
+    return a, b
+
+
+@pytest.mark.parametrize("name", list(_controllers()))
+def test_float_path_equals_the_batch_of_one_over_a_run(name: str) -> None:
+    x, xd, xdd, f_meas, f_des = _run(22)
+    a, b = _pair(name)
     got, want = [], []
-    for k in range(n):
+    for k in range(len(x)):
         got.append(a.command_one(x[k], xd[k], xdd[k], f_meas[k], f_des[k]))
         s = ControlInput(*(np.array([v[k]]) for v in (x, xd, xdd, f_meas, f_des)))
         want.append(float(b.command(s)[0]))
@@ -63,19 +74,10 @@ def test_float_path_equals_the_batch_of_one_over_a_run(name: str) -> None:
 def test_working_ahead_on_a_predicted_state_changes_no_command(name: str) -> None:
     """The daemon calls prepare_one with the predicted next state and target while it waits
     for a frame; the command for the measured frame is the same as without it."""
-    rng = np.random.default_rng(23)
-    n = 300
-    t = np.arange(n) * 0.002
-    x = 0.015 * np.sin(2 * np.pi * 3 * t)
-    xd = 0.015 * 2 * np.pi * 3 * np.cos(2 * np.pi * 3 * t)
-    xdd = -((2 * np.pi * 3) ** 2) * x
-    f_meas = 800 * np.sin(2 * np.pi * 3 * t + 0.2) + rng.normal(0, 20, n)
-    f_des = 600 * np.sin(2 * np.pi * 3 * t + 0.3)
-    a, b = _controllers()[name], _controllers()[name]
-    a.reset(1)
-    b.reset(1)
+    x, xd, xdd, f_meas, f_des = _run(23)
+    a, b = _pair(name)
     got, want = [], []
-    for k in range(n):
+    for k in range(len(x)):
         if k:  # the prediction misses the frame by an innovation and the target by a little
             a.prepare_one(x[k] + 2e-5, xd[k] - 3e-3, xdd[k] + 0.1, f_des[k] + 4.0)
         got.append(a.command_one(x[k], xd[k], xdd[k], f_meas[k], f_des[k]))
