@@ -421,6 +421,49 @@ def labels(choice: dict) -> dict[str, str]:
     }
 
 
+FEEDBACK_ROWS = {
+    "network_inversion_feedback": "exact root + feedback",
+    "network_inversion_continuity_feedback": "exact, continuity 1 + feedback",
+    "network_inversion_ahead_feedback": "1 step ahead + feedback, exact",
+    "network_inversion_ahead_feedback_gradient": "1 step ahead + feedback, gradient",
+    "network_inversion_ahead_feedback_flow": "1 step ahead + feedback, flow",
+}
+# (the default exact solve, the paper's gradient solve, the loop both run in)
+SAME_LOOP_PAIRS = (
+    ("network_inversion_exact", "network_inversion", "the paper's loop, no feedback"),
+    (
+        "network_inversion_ahead_feedback",
+        "network_inversion_ahead_feedback_gradient",
+        "1 step ahead + feedback",
+    ),
+)
+
+
+def acceptance_lines(table: dict[str, list[float]], paper_ni: list[float]) -> list[str]:
+    """How the rows stand in the two comparisons the project is judged by: the feedback rows
+    against the paper's network inversion, and the default exact solve against the gradient
+    solve in the same loop (cases at or below, and the worst ratio)."""
+
+    def against(row: list[float], ref: list[float]) -> str:
+        at_or_below = sum(e <= p for e, p in zip(row, ref, strict=True))
+        worst = max(e / p for e, p in zip(row, ref, strict=True))
+        return f"{at_or_below} of {len(ref)} cases at or below, worst ratio {worst:.2f}"
+
+    lines = ["Against the paper's network inversion, with the load-cell feedback:"]
+    lines += [
+        f"  {label:<38} {against(table[n], paper_ni)}"
+        for n, label in FEEDBACK_ROWS.items()
+        if n in table
+    ]
+    lines.append("The default exact solve against the gradient solve in the same loop:")
+    lines += [
+        f"  {loop:<38} {against(table[e], table[g])}"
+        for e, g, loop in SAME_LOOP_PAIRS
+        if e in table and g in table
+    ]
+    return lines
+
+
 def format_report(r: dict) -> str:
     cases = r["cases"]
     head = f"{'controller':<38}" + "".join(f"{c:>9}" for c in cases)
@@ -445,6 +488,7 @@ def format_report(r: dict) -> str:
         f"  {ch['open']['training_block_et']:.4f} without feedback,"
         f" {ch['feedback']['training_block_et']:.4f} with ({ch['seconds']:.1f} s)",
     ]
+    lines += acceptance_lines(r["table6"], r["paper_table6"]["network_inversion"])
     lines.append("")
     lines.append(
         "Forward model open-loop Et on the validation cases: "
