@@ -90,6 +90,17 @@ def format_report(r: dict[str, Any]) -> str:
             else "none"
         ),
         f"forward network: {r['epochs']} epochs ({r['stop_reason']}), {r['seconds']:.1f} s",
+        *(
+            [
+                f"  kept start {st['kept'] + 1} of {len(st['init_seeds'])} (initial weights"
+                f" seeds {', '.join(map(str, st['init_seeds']))}): on-line inverse current RMSE"
+                " on the training rows "
+                + " / ".join(f"{e:.4f}" for e in st["training_rmse_a"])
+                + " A"
+            ]
+            if (st := r.get("starts"))
+            else []
+        ),
         f"forward Et on the {r['n_val']} validation samples: {r['forward']['et']:.4f}"
         f" (RMSE {r['forward']['rmse_n']:.2f} N)",
         f"network inversion: inverse-current RMSE {ni['current_rmse_a']:.4f} A (paper 0.09 A),"
@@ -184,6 +195,13 @@ def _parser(cfg: TrainConfig) -> argparse.ArgumentParser:
         "--seed", type=int, default=t.seed, help="split and initial weights (default %(default)s)"
     )
     ap.add_argument(
+        "--restarts",
+        type=int,
+        default=t.restarts,
+        help="forward-network starts from different initial weights; the one with the best "
+        "on-line inverse on the training rows is kept (default %(default)s)",
+    )
+    ap.add_argument(
         "--n-train",
         type=int,
         default=t.n_train,
@@ -220,6 +238,8 @@ def main(argv: list[str] | None = None) -> int:
     args = _parser(cfg).parse_args(argv)
     if args.epochs < 1:
         raise DataError(f"--epochs must be >= 1, got {args.epochs}")
+    if args.restarts < 1:
+        raise DataError(f"--restarts must be >= 1, got {args.restarts}")
     if not args.supervised and args.supervised_out:
         raise DataError(
             "--supervised-out needs the supervised model: drop --no-supervised "
@@ -245,6 +265,7 @@ def main(argv: list[str] | None = None) -> int:
         supervised=args.supervised,
         history_samples=history_samples,
         history_signals=history_signals,
+        restarts=args.restarts,
     )
     fwd.meta["data_files"] = [str(p) for p in args.data]
     if config_path is not None:

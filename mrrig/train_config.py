@@ -15,6 +15,7 @@ from mrrig.training import (
     COIL_LAG_TAU_S,
     CURRENT_INPUTS,
     DEFAULT_HISTORY_SIGNALS,
+    DEFAULT_RESTARTS,
     PAPER_N_TRAIN,
     PAPER_N_VAL,
     check_history,
@@ -65,6 +66,7 @@ class TrainingSection:
 
     epochs: int = 1000
     seed: int = 0  # the split and the initial weights
+    restarts: int = DEFAULT_RESTARTS  # forward-network starts; the best on-line inverse is kept
     n_train: int = PAPER_N_TRAIN  # 90/10 of all samples where the data has fewer
     n_val: int = PAPER_N_VAL
     i_max_a: float | None = None  # the inversion bound; absent: the data's largest current
@@ -75,6 +77,8 @@ class TrainingSection:
             raise ValueError(f"epochs: must be >= 1, got {self.epochs}")
         if self.seed < 0:
             raise ValueError(f"seed: must be >= 0, got {self.seed}")
+        if self.restarts < 1:
+            raise ValueError(f"restarts: must be >= 1, got {self.restarts}")
         if self.n_train < 1:
             raise ValueError(f"n_train: must be >= 1, got {self.n_train}")
         if self.n_val < 1:

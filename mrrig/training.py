@@ -392,11 +392,13 @@ def train_forward(
     max_epochs: int = 1000,
     history_samples: int = 0,
     history_signals: Sequence[str] = DEFAULT_HISTORY_SIGNALS,
+    init_seed: int | None = None,
 ) -> tuple[MLP, dict[str, Any]]:
     """The 4-30-1 forward network (4 + history inputs) by Levenberg-Marquardt on the random
-    split of the `features` rows, early-stopped on the validation part. The model's meta
-    records the options, the split and the data's fingerprint; the returned report has the
-    training numbers and the split's rule."""
+    split of the `features` rows, early-stopped on the validation part. `seed` draws the
+    split and, unless `init_seed` is given, the initial weights. The model's meta records the
+    options, the split and the data's fingerprint; the returned report has the training
+    numbers and the split's rule."""
     X, y = features(series, current_input, lag_tau_s, history_samples, history_signals)
     names, units = feature_names(history_samples, history_signals)
     split = split_samples(len(y), n_train, n_val, seed)
@@ -410,11 +412,12 @@ def train_forward(
         "N",
         validation=(X[split.val], y[split.val]),
         max_epochs=max_epochs,
-        seed=seed,
+        seed=seed if init_seed is None else init_seed,
         progress=progress,
         description=series.name,
     )
     model.meta.update(
+        init_seed=seed if init_seed is None else init_seed,
         current_input=current_input,
         lag_tau_s=lag_tau_s if current_input == "lagged" else None,
         history_samples=history_samples,
@@ -585,6 +588,7 @@ def validation_report(
 
 
 ONLINE_CONTINUITY_CANDIDATES = (0.0, 0.01, 0.03, 0.1, 0.3, 1.0)
+DEFAULT_RESTARTS = 3  # forward-network starts of train_and_validate
 
 
 def online_inversion(
@@ -651,6 +655,7 @@ def train_and_validate(
     plant_force: PlantForceFn | None = None,
     history_samples: int = 0,
     history_signals: Sequence[str] = DEFAULT_HISTORY_SIGNALS,
+    restarts: int = DEFAULT_RESTARTS,
 ) -> tuple[MLP, MLP | None, dict[str, Any]]:
     """Forward network, supervised inverse (optional) and the validation report, one split.
 
@@ -658,16 +663,45 @@ def train_and_validate(
     network is extrapolating. The report's numbers are also stored in the model's metrics.
     With history inputs, the split is over the `feature_rows` (the first `history_samples` of
     each run have no history and are left out).
+
+    The forward network is trained `restarts` times on the same split from different initial
+    weights (seeds seed, seed + 1, ...), and the one whose on-line inverse (with its own best
+    continuity, `choose_continuity`) gives the smallest current RMSE on the TRAINING rows is
+    kept. A good force fit does not make a good inverse: with a few current levels in the
+    data, a network can fit the force well and still wiggle between the levels, so that
+    another current gives the same force. The validation rows play no part in the choice.
     """
+    if restarts < 1:
+        raise ValueError(f"restarts must be >= 1, got {restarts}")
     # the trailing parameters that train_forward and train_supervised share, in their order
     options = (current_input, lag_tau_s, max_epochs, history_samples, history_signals)
-    fwd, report = train_forward(series, n_train, n_val, seed, progress, *options)
     X, y = features(series, current_input, lag_tau_s, history_samples, history_signals)
     rows = feature_rows(series, history_samples)
     split = split_samples(len(y), n_train, n_val, seed)
     i_max = float(X[:, CURRENT_COLUMN].max()) if i_max is None else float(i_max)
     if not i_max > 0.0:
         raise DataError(f"{series.name}: all currents are 0 A: nothing to invert")
+    run_id = series.run_id if series.run_id is not None else _runs_from_time(series.t)
+    stretch = np.cumsum(np.concatenate([[True], run_id[1:] != run_id[:-1]]))[rows]
+    starts = []
+    for k in range(restarts):
+        fwd_k, report_k = train_forward(
+            series, n_train, n_val, seed, progress, *options, init_seed=seed + k
+        )
+        mu_k, i_k, scores_k = choose_continuity(fwd_k, X, y, stretch, i_max, split.train)
+        starts.append((scores_k[f"{mu_k:g}"], k, fwd_k, report_k, mu_k, i_k, scores_k))
+        log.info(
+            "start %d of %d: on-line inverse, training-row current RMSE %.4f A",
+            k + 1,
+            restarts,
+            starts[-1][0],
+        )
+    _, kept, fwd, report, mu, i_online, scores = min(starts, key=lambda st: (st[0], st[1]))
+    report["starts"] = {
+        "init_seeds": [seed + k for k in range(restarts)],
+        "training_rmse_a": [st[0] for st in starts],
+        "kept": kept,
+    }
     sup = None
     if supervised:
         sup, report["supervised_training"] = train_supervised(
@@ -678,9 +712,6 @@ def train_and_validate(
         rows_plant = lambda i: plant_force(rows[split.val], i)  # noqa: E731
     val = validation_report(fwd, X[split.val], y[split.val], i_max, sup, rows_plant)
     # the on-line inverse (as the daemon runs it), its continuity chosen on the training rows
-    run_id = series.run_id if series.run_id is not None else _runs_from_time(series.t)
-    stretch = np.cumsum(np.concatenate([[True], run_id[1:] != run_id[:-1]]))[rows]
-    mu, i_online, scores = choose_continuity(fwd, X, y, stretch, i_max, split.train)
     online = _inverse_metrics(
         fwd, X[split.val], y[split.val], i_online[split.val], i_max, rows_plant
     )
@@ -702,6 +733,7 @@ def train_and_validate(
     )
     fwd.meta["i_max_a"] = i_max
     fwd.meta["online_continuity"] = mu
+    fwd.meta["starts"] = restarts
     return fwd, sup, report
 
 

@@ -68,9 +68,10 @@ def test_built_in_defaults_are_the_librarys():
         lib["history_samples"],
         lib["history_signals"],
     )
-    assert (t.epochs, t.seed, t.n_train, t.n_val, t.i_max_a, t.supervised) == (
+    assert (t.epochs, t.seed, t.restarts, t.n_train, t.n_val, t.i_max_a, t.supervised) == (
         lib["max_epochs"],
         lib["seed"],
+        lib["restarts"],
         lib["n_train"],
         lib["n_val"],
         lib["i_max"],
@@ -159,6 +160,7 @@ def test_supervised_flag_wins_over_a_config_without_it(tmp_path, data):
 
 # -------------------------------------------------------------------------------- bad files
 BAD = [
+    ("[training]\nrestarts = 0\n", "training.restarts: ", ">= 1"),
     ("[features]\nhistory_samples = -1\n", "features.history_samples: ", ">= 0"),
     ('[features]\nhistory_samples = "two"\n', "features.history_samples: ", "an integer"),
     ('[features]\nhistory_signals = ["x", "force"]\n', "features.history_signals: ", "unknown"),

@@ -225,3 +225,23 @@ def test_recording_gives_x_est_i_cmd_f_meas_without_fault_samples_and_splits_run
     # IDLE and ARMED are one run; after the FAULT stretch a new run starts (lag filters restart)
     np.testing.assert_array_equal(np.unique(got.run_id[:150]), [0])
     np.testing.assert_array_equal(np.unique(got.run_id[150:]), [1])
+
+
+def test_the_start_with_the_best_online_inverse_on_the_training_rows_is_kept():
+    b = dataset_b(duration_s=0.3, **TINY)
+    s = Series(
+        t=b.t, x=b.x, xd=b.xd, xdd=b.xdd, current=b.current, force=b.force_meas, run_id=b.run_id
+    )
+    fwd, _, r = train_and_validate(s, seed=3, max_epochs=EPOCHS, supervised=False, restarts=3)
+    st = r["starts"]
+    assert st["init_seeds"] == [3, 4, 5]
+    assert st["kept"] == int(np.argmin(st["training_rmse_a"]))
+    assert fwd.meta["init_seed"] == 3 + st["kept"] and fwd.meta["starts"] == 3
+    # the kept start is the one trained alone from that seed
+    alone, _ = train_forward(s, seed=3, max_epochs=EPOCHS, init_seed=3 + st["kept"])
+    np.testing.assert_array_equal(alone.W1, fwd.W1)
+    # one start is the seed's own network, as before restarts existed
+    one, _, r1 = train_and_validate(s, seed=3, max_epochs=EPOCHS, supervised=False, restarts=1)
+    plain, _ = train_forward(s, seed=3, max_epochs=EPOCHS)
+    np.testing.assert_array_equal(one.W1, plain.W1)
+    assert r1["starts"]["init_seeds"] == [3]
