@@ -101,16 +101,13 @@ def train_models(train: Series, seed: int, epochs: int) -> tuple[dict[str, MLP],
     x, xd, xdd, v, f = train.x, train.xd, train.xdd, train.current, train.force
     units = ["m", "m/s", "m/s^2"]
     models, info = {}, {}
-    models["forward"], info["forward"] = _fit(
-        "forward 4-30-1",
-        np.column_stack([x, xd, xdd, v]),
-        f,
-        ["x", "xd", "xdd", "current"],
-        units + ["V"],
-        "force",
-        "N",
-        seed,
-        epochs,
+
+    def fit_forward(name: str, X: np.ndarray) -> tuple[MLP, dict]:
+        inputs = ["x", "xd", "xdd", "current"]
+        return _fit(name, X, f, inputs, units + ["V"], "force", "N", seed, epochs)
+
+    models["forward"], info["forward"] = fit_forward(
+        "forward 4-30-1", np.column_stack([x, xd, xdd, v])
     )
     models["supervised"], info["supervised"] = _fit(
         "supervised inverse",
@@ -124,16 +121,8 @@ def train_models(train: Series, seed: int, epochs: int) -> tuple[dict[str, MLP],
         epochs,
     )
     # the same network of the lagged current (mrrig/training.py), same split
-    models["forward_lagged"], info["forward_lagged"] = _fit(
-        "forward 4-30-1, lagged current",
-        features(train, "lagged", LAG_TAU_S)[0],
-        f,
-        ["x", "xd", "xdd", "current"],
-        units + ["V"],
-        "force",
-        "N",
-        seed,
-        epochs,
+    models["forward_lagged"], info["forward_lagged"] = fit_forward(
+        "forward 4-30-1, lagged current", features(train, "lagged", LAG_TAU_S)[0]
     )
     models["forward_lagged"].meta.update(current_input="lagged", lag_tau_s=LAG_TAU_S)
     # noise on the fed-back voltages, then a parallel-mode fine-tune (mrrig/rnn_training.py):
