@@ -13,7 +13,9 @@ Then the closed-loop check: for a few runs the plant (preset rig-current) is dri
 each controller tracking the run's measured force, the controller seeing Kalman estimates of the
 noisy displacement and the plant the true motion (the loop of `mrrig.simulation.closed_loop`
 with that one difference). The loop starts settle_s before the run at rest; the desired force
-there is the plant's own open-loop force, and only the run's own second is scored.
+there is the plant's own open-loop force, and only the run's own second is scored. Network
+inversion runs without the load-cell feedback, with it (residual time constant
+`FEEDBACK_TAU_S`) and incremental (the last residual as it is).
 """
 
 from __future__ import annotations
@@ -193,6 +195,11 @@ def run(seed: int = 0, epochs: int = 1000, current_input: str = "commanded") -> 
         "network_inversion_feedback": NetworkInversion(
             i_max, fwd, method="exact", feedback_tau_s=FEEDBACK_TAU_S, dt_s=DT_S
         ),
+        # the last residual as it is (feedback_tau_s = 0): the network gives only how the
+        # force changes with the current and the motion
+        "network_inversion_incremental": NetworkInversion(
+            i_max, fwd, method="exact", feedback_tau_s=0.0, dt_s=DT_S
+        ),
         "supervised": SupervisedInverse(i_max, sup),
     }
     closed = closed_loop_check(b, ctrls, params, seed)
@@ -259,7 +266,7 @@ def format_report(r: dict) -> str:
     ]
     for name, c in r["closed_loop"]["controllers"].items():
         lines.append(
-            f"  {name:<28} {_pct(c['tracking_n'])}   Et " + " ".join(f"{e:.3f}" for e in c["et"])
+            f"  {name:<30} {_pct(c['tracking_n'])}   Et " + " ".join(f"{e:.3f}" for e in c["et"])
         )
     return "\n".join(lines)
 
