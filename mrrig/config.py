@@ -10,7 +10,6 @@ from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
 from typing import Any, Literal
 
-from mrrig.inversion import DEFAULT_CONTINUITY
 from mrrig.typed_config import ConfigError, load_toml, parse
 
 __all__ = ["ConfigError", "DaemonConfig", "load_config", "reference_from_table"]
@@ -96,7 +95,9 @@ class ControllerSection:
     # load-cell feedback correction, its residual's time constant (0: the last residual as it
     # is); off when absent
     feedback_tau_s: float | None = None
-    continuity: float = DEFAULT_CONTINUITY  # exact solve's weight toward the previous command
+    # the exact solve's weight toward the previous command; absent: the model's own
+    # (`online_continuity`, chosen by `mrrig train` on its training rows), else 0 (the root)
+    continuity: float | None = None
     current_a: float = 0.0  # for the constant controller
 
     def check(self) -> None:
@@ -105,7 +106,7 @@ class ControllerSection:
             raise ValueError(f"model: controller {self.name} needs a model file")
         if self.feedback_tau_s is not None and not self.feedback_tau_s >= 0:
             raise ValueError("feedback_tau_s: must be >= 0")
-        if not self.continuity >= 0:
+        if self.continuity is not None and not self.continuity >= 0:
             raise ValueError("continuity: must be >= 0")
 
 

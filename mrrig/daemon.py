@@ -40,6 +40,7 @@ from mrrig.controllers import (
     SupervisedInverse,
 )
 from mrrig.estimation import RealtimeKalman
+from mrrig.inversion import DEFAULT_CONTINUITY
 from mrrig.model.mlp import MLP, ModelError
 from mrrig.realtime import keep_off_cpu, make_realtime
 from mrrig.safety import Fault, Limits, Supervisor
@@ -76,19 +77,33 @@ def build_controller(cfg: DaemonConfig, section=None) -> Controller:
     model = load_model(c.model, cfg.source)
     try:
         if c.name == "network_inversion":
+            continuity = c.continuity
+            if continuity is None:
+                continuity = model_continuity(model, c.model)
+                log.info("%s: continuity %g, the model's own", c.model, continuity)
             return NetworkInversion(
                 i_max,
                 model,
                 method=c.method,
                 feedback_tau_s=c.feedback_tau_s,
                 dt_s=dt,
-                continuity=c.continuity,
+                continuity=continuity,
             )
         if c.name == "supervised":
             return SupervisedInverse(i_max, model)
         return RecurrentInverse(i_max, model)
     except ValueError as exc:
         raise ModelError(f"{c.model}: input_names: {exc}") from None
+
+
+def model_continuity(model: MLP, path: Path | None) -> float:
+    """The continuity `mrrig train` chose for the model on its training rows (the on-line
+    inversion's smallest current RMSE there: `training.choose_continuity`); for a model
+    without one, `DEFAULT_CONTINUITY` (the root)."""
+    mu = model.meta.get("online_continuity", DEFAULT_CONTINUITY)
+    if isinstance(mu, bool) or not isinstance(mu, int | float) or not 0 <= mu < math.inf:
+        raise ModelError(f"{path}: meta.online_continuity: expected a number >= 0, got {mu!r}")
+    return float(mu)
 
 
 def load_model(path: Path | None, source: str) -> MLP:

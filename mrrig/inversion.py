@@ -23,7 +23,9 @@ Three methods:
   same standardised units): linearised, that method ends (i_prev - i*) exp(-g^2) from the
   root, the regularised solve (i_prev - i*) / (1 + g^2 / mu), g = the standardised df/di.
   The smoothing is per sample, so its time scale depends on the sample period: mu = 1 helps
-  the paper's 1 ms study and hurts the rig's 2 ms loop, whose default is the root (mu = 0).
+  the paper's 1 ms study and hurts the rig's 2 ms loop. The daemon's default is the model's
+  own mu, chosen on its training rows by `mrrig train` (`training.choose_continuity`), and
+  the root (mu = 0) for a model without one.
 `ScalarInverter` is the one-sample path of both for the real-time loop.
 
 Features are the model's inputs without the current, in the model's order, physical units.
@@ -38,7 +40,7 @@ import numpy as np
 
 from mrrig.model.mlp import MLP
 
-DEFAULT_CONTINUITY = 0.0  # mu of the exact solve: the root itself (module docstring)
+DEFAULT_CONTINUITY = 0.0  # mu of the exact solve without another choice: the root itself
 PAPER_CONTINUITY = 1.0  # mu equivalent to the paper's on-line gradient method (module docstring)
 FLOW_STEPS = 4  # flow_inversion: within 2 mV rms of the 1000 iterations (bench paper)
 

@@ -68,9 +68,13 @@ class _Moments:
         self.min, self.max = min(self.min, float(x.min())), max(self.max, float(x.max()))
 
 
-# the summary's percentile resolution: 0.5 us of latency, 0.05 N of tracking error
+# the summary's percentile resolution: 0.5 us of latency, 0.05 N of tracking error, 1 mA of
+# command step
 LATENCY_BIN_US, LATENCY_TOP_US = 0.5, 100_000.0
 ERROR_BIN_N, ERROR_TOP_N = 0.05, 12_000.0
+STEP_BIN_A, STEP_TOP_A = 0.001, 10.0
+# a command step counted as a jump: an eighth of a 2 A coil driver's range within one frame
+COMMAND_JUMP_A = 0.25
 
 
 class SummaryAccumulator:
@@ -85,6 +89,10 @@ class SummaryAccumulator:
         self.sse = 0.0  # armed: sum of (f_des - f_meas)^2
         self.error = Histogram(ERROR_BIN_N, ERROR_TOP_N)
         self.i_cmd = _Moments()  # every frame
+        # |i_cmd(k) - i_cmd(k-1)| where frames k-1 and k are both armed
+        self.step = Histogram(STEP_BIN_A, STEP_TOP_A)
+        self.jumps = 0
+        self._last_cmd: tuple[float, bool] | None = None  # the previous batch's last frame
         self.latency = Histogram(LATENCY_BIN_US, LATENCY_TOP_US)
         self.max_gap_ms, self.gaps_over_10_ms = math.nan, 0
 
@@ -105,7 +113,17 @@ class SummaryAccumulator:
         self.sse += float(((f_des - f_meas) ** 2).sum())
         self.error.add(np.abs(f_des - f_meas))
         self.i_cmd.add(samples["i_cmd"])
+        self._add_steps(samples["i_cmd"].astype(float), armed)
         self.latency.add(samples["latency_us"])
+
+    def _add_steps(self, i_cmd: np.ndarray, armed: np.ndarray) -> None:
+        if self._last_cmd is not None:
+            i_cmd = np.concatenate([[self._last_cmd[0]], i_cmd])
+            armed = np.concatenate([[self._last_cmd[1]], armed])
+        self._last_cmd = (float(i_cmd[-1]), bool(armed[-1]))
+        steps = np.abs(np.diff(i_cmd))[armed[1:] & armed[:-1]]
+        self.step.add(steps)
+        self.jumps += int((steps > COMMAND_JUMP_A).sum())
 
     def result(
         self,
@@ -134,6 +152,10 @@ class SummaryAccumulator:
                 "max": i.max if i.n else math.nan,
                 "std": math.sqrt(i.m2 / i.n) if i.n else math.nan,
             },
+            "i_cmd_step_a": {
+                **self.step.percentiles((99,)),
+                f"over_{COMMAND_JUMP_A:g}_a": self.jumps,
+            },
             "latency_us": self.latency.percentiles((50, 99, 99.9)),
             "frame_gap_ms": {"max": self.max_gap_ms, "over_10_ms": self.gaps_over_10_ms},
         }
@@ -160,7 +182,9 @@ def summarize(
     """Metrics of one run from its SAMPLE_DTYPE records and events.
 
     Et and the tracking error use ARMED frames only (the others have no force to track);
-    current and latency use every frame. Percentiles are to half a bin (0.05 N, 0.5 us:
+    current and latency use every frame; the command steps |i_cmd(k) - i_cmd(k-1)| those
+    pairs of frames that are both armed (arming and disarming are not steps of the controller),
+    with how many exceed `COMMAND_JUMP_A`. Percentiles are to half a bin (0.05 N, 0.5 us:
     `SummaryAccumulator`). A fault is an event with `kind == "fault"`; its reason is the
     `reason` field (else the text). `counters` (frames received, invalid frames, commands
     sent, ...) are merged in; a counter never replaces a computed key.
@@ -187,6 +211,14 @@ def _nested(d: Mapping[str, Any]) -> str:
     )
 
 
+def _step_line(d: Mapping[str, Any]) -> str:
+    jumps = f"over_{COMMAND_JUMP_A:g}_a"
+    return (
+        f"p99 {_fmt(d['p99'], ' A')}, max {_fmt(d['max'], ' A')},"
+        f" {d[jumps]} over {COMMAND_JUMP_A:g} A"
+    )
+
+
 def format_summary(d: Mapping[str, Any]) -> str:
     """Multi-line text of a `summarize` dict for a terminal."""
     lines = [
@@ -195,6 +227,7 @@ def format_summary(d: Mapping[str, Any]) -> str:
         f"Et            {_fmt(d['et'])} (armed frames)",
         f"|f_des-f_meas| {_stats_line(d['tracking_error_n'], ' N')}",
         f"i_cmd         {_stats_line(d['i_cmd_a'], ' A')}",
+        f"i_cmd steps   {_step_line(d['i_cmd_step_a'])} (between armed frames)",
         f"latency       {_stats_line(d['latency_us'], ' us')}",
         f"frame gaps    max {_fmt(d['frame_gap_ms']['max'], ' ms')},"
         f" {d['frame_gap_ms']['over_10_ms']} over 10 ms",
@@ -209,6 +242,7 @@ def format_summary(d: Mapping[str, Any]) -> str:
         "et",
         "tracking_error_n",
         "i_cmd_a",
+        "i_cmd_step_a",
         "latency_us",
         "frame_gap_ms",
         "faults",

@@ -115,7 +115,8 @@ def format_report(r: dict[str, Any]) -> str:
             f" chosen on the training rows): inverse-current RMSE {on['current_rmse_a']:.4f} A",
             "  tracking error, forward model at the inverted current (N): "
             + _pct(on["tracking_model_n"]),
-            f"  (the daemon inverts this way with [controller] continuity = {on['continuity']:g})",
+            f"  (the model file keeps continuity {on['continuity']:g}: the daemon inverts this"
+            " way unless [controller] continuity is set)",
         ]
     sup = r.get("supervised")
     if sup is not None:

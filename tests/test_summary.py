@@ -17,6 +17,7 @@ from mrrig.summary import (
     LATENCY_BIN_US,
     Histogram,
     SummaryAccumulator,
+    format_summary,
     summarize,
 )
 from tests.rig_harness import ScriptedRig, write_config
@@ -45,7 +46,7 @@ def test_batches_give_the_numbers_of_the_whole_run():
     for key in ("duration_s", "last_frame_t_s", "frames", "armed_frames", "frame_gap_ms"):
         assert parts[key] == whole[key], key
     assert parts["et"] == pytest.approx(whole["et"], rel=1e-9)
-    for group in ("tracking_error_n", "latency_us"):
+    for group in ("tracking_error_n", "latency_us", "i_cmd_step_a"):
         assert parts[group] == whole[group], group  # integer counts: exactly equal
     for k, v in whole["i_cmd_a"].items():
         assert parts["i_cmd_a"][k] == pytest.approx(v, rel=1e-9), k
@@ -72,6 +73,26 @@ def test_numbers_match_the_exact_ones_to_the_bins():
             rank = float(name[1:]) / 100.0 * (v.size - 1)
             lo, hi = v[math.floor(rank)], v[math.ceil(rank)]
             assert lo - width / 2 <= p <= hi + width / 2, (name, p, lo, hi)
+
+
+def test_command_steps_count_only_between_armed_frames():
+    s = np.zeros(8, dtype=SAMPLE_DTYPE)
+    s["t"] = np.arange(8) * 0.002
+    s["i_cmd"] = [0.0, 0.8, 0.9, 0.3, 1.9, 0.0, 1.2, 1.25]
+    armed, idle = RigState.ARMED, RigState.IDLE
+    s["state"] = [idle, armed, armed, armed, armed, idle, armed, armed]
+    # armed pairs: 0.8->0.9, 0.9->0.3, 0.3->1.9, 1.2->1.25; arming (0 -> 0.8, 0 -> 1.2) and
+    # disarming (1.9 -> 0) are not steps of the controller
+    whole = summarize(s, [])["i_cmd_step_a"]
+    assert whole["max"] == pytest.approx(1.6)
+    assert whole["over_0.25_a"] == 2
+    acc = SummaryAccumulator()
+    for k in range(s.size):
+        acc.add(s[k : k + 1])  # one frame a batch: the pairs across batches count the same
+    assert acc.result([])["i_cmd_step_a"] == whole
+    assert 0.6 <= whole["p99"] <= 1.6 + 0.0005  # between the two largest steps, to half a bin
+    text = format_summary(summarize(s, []))
+    assert f"i_cmd steps   p99 {whole['p99']:.4g} A, max 1.6 A, 2 over 0.25 A" in text
 
 
 def test_histogram_overflow_reports_the_exact_max():

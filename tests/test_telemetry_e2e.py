@@ -230,7 +230,7 @@ def test_telemetry_control_recording_and_review(tmp_path, bridge, procs, sim_mod
     review = json.loads(out.read_text())
     for key in ("duration_s", "frames", "armed_frames", "et"):
         assert review[key] == pytest.approx(daemon_summary[key], abs=1e-6), key
-    for group in ("tracking_error_n", "latency_us", "i_cmd_a", "frame_gap_ms"):
+    for group in ("tracking_error_n", "latency_us", "i_cmd_a", "i_cmd_step_a", "frame_gap_ms"):
         for k, v in daemon_summary[group].items():
             assert review[group][k] == pytest.approx(v, abs=1e-6), (group, k)
     assert [f["reason"] for f in review["faults"]] == [
