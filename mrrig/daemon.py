@@ -321,7 +321,11 @@ class Daemon:
             log.exception("cycle failed")
             events += sup.trip(t, Fault.INTERNAL_ERROR, f"{type(exc).__name__}: {exc}")
             i_cmd = 0.0
-        active = sup.active and not self._stop
+        if self._stop and sup.active:
+            # the stop answers this frame SAFE: the rig is disarmed from this frame on, and the
+            # frame is recorded so (not as an armed frame whose command fell to 0 A)
+            events += sup.disarm(t, f"stopping: {self.stop_reason}")
+        active = sup.active
         safe_f = f_des if math.isfinite(f_des) else 0.0
         self._send_command(active, i_cmd if active else 0.0, safe_f, counter)
         if self._stop:

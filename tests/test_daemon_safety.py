@@ -210,3 +210,23 @@ def test_rearm_after_fault_is_explicit(tmp_path):
 
         assert handle(rig.daemon, {"cmd": "arm"})["ok"]
         assert rig.exchange()["Mode"] == ACTIVE
+
+
+def test_the_stop_answers_safe_and_disarms_from_that_frame(tmp_path):
+    """A stop (duration, signal, bus error) answers the next frame SAFE; that frame is recorded
+    disarmed, so the summary's armed frames are the ACTIVE commands and the command's fall to
+    0 A is not a step of the controller."""
+    rig = ScriptedRig(tmp_path)
+    with rig:
+        for _ in range(20):
+            assert rig.exchange()["Mode"] == ACTIVE
+        rig.daemon.request_stop("test stop")
+        assert_safe(rig.exchange())
+        rig.thread.join(timeout=5)
+    d = rig.daemon
+    samples = np.concatenate(d.handed_over())
+    assert samples["state"][-1] == RigState.IDLE and samples["i_cmd"][-1] == 0.0
+    assert (samples["state"][:-1] == RigState.ARMED).all()
+    assert d.summary["armed_frames"] == d.counters["commands_active"] == 20
+    assert d.summary["i_cmd_step_a"]["max"] == 0.0  # a constant 1.25 A until the stop
+    assert any(e["text"] == "state: stopping: test stop (was ARMED)" for e in d.events), d.events
