@@ -14,8 +14,9 @@ each controller tracking the run's measured force, the controller seeing Kalman 
 noisy displacement and the plant the true motion (the loop of `mrrig.simulation.closed_loop`
 with that one difference). The loop starts settle_s before the run at rest; the desired force
 there is the plant's own open-loop force, and only the run's own second is scored. Network
-inversion runs without the load-cell feedback, with it (residual time constant
-`FEEDBACK_TAU_S`) and incremental (the last residual as it is).
+inversion (with the continuity `mrrig train` keeps in the model file, the daemon's default)
+runs without the load-cell feedback, with it (residual time constant `FEEDBACK_TAU_S`) and
+incremental (the last residual as it is); the root (continuity 0) without feedback beside them.
 """
 
 from __future__ import annotations
@@ -190,19 +191,22 @@ def run(seed: int = 0, epochs: int = 1000, current_input: str = "commanded") -> 
     plant_check_n = float(np.max(np.abs(check)))
     assert isinstance(sup, MLP)
     i_max = float(report["i_max_a"])
+    mu = float(fwd.meta["online_continuity"])  # the daemon's default for this model
     ctrls: dict[str, Controller] = {
-        "network_inversion": NetworkInversion(i_max, fwd, method="exact", dt_s=DT_S),
+        "network_inversion": NetworkInversion(i_max, fwd, method="exact", dt_s=DT_S, continuity=mu),
         "network_inversion_feedback": NetworkInversion(
-            i_max, fwd, method="exact", feedback_tau_s=FEEDBACK_TAU_S, dt_s=DT_S
+            i_max, fwd, method="exact", feedback_tau_s=FEEDBACK_TAU_S, dt_s=DT_S, continuity=mu
         ),
         # the last residual as it is (feedback_tau_s = 0): the network gives only how the
         # force changes with the current and the motion
         "network_inversion_incremental": NetworkInversion(
-            i_max, fwd, method="exact", feedback_tau_s=0.0, dt_s=DT_S
+            i_max, fwd, method="exact", feedback_tau_s=0.0, dt_s=DT_S, continuity=mu
         ),
+        "network_inversion_root": NetworkInversion(i_max, fwd, method="exact", dt_s=DT_S),
         "supervised": SupervisedInverse(i_max, sup),
     }
     closed = closed_loop_check(b, ctrls, params, seed)
+    closed["continuity"] = mu
     return {
         "seed": seed,
         "epochs_limit": epochs,
@@ -263,6 +267,8 @@ def format_report(r: dict) -> str:
         "",
         "closed loop, 0.5 kHz, Kalman estimates, runs (amplitude m, Hz, A): "
         + ", ".join(str(tuple(c)) for c in r["closed_loop"]["runs"]),
+        f"  network inversion with the model file's continuity {r['closed_loop']['continuity']:g}"
+        " (the daemon's default), and the root:",
     ]
     for name, c in r["closed_loop"]["controllers"].items():
         lines.append(
