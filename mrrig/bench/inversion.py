@@ -158,7 +158,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     n = len(yv)
     mu = args.continuity
     if mu is None:
-        mu = float(model.meta.get("online_continuity") or DEMO_CONTINUITY)
+        mu = float(model.meta.get("online_continuity", DEMO_CONTINUITY))
     i_prev = np.zeros(n)
     gc.collect()
     gc.disable()
