@@ -35,4 +35,17 @@ def test_bench_paper_counts_the_cases_at_or_below_each_reference() -> None:
     assert "root" not in text  # rows the table lacks are left out
     # 0.08 and 0.07 and 0.08 at or below 0.08; 0.2 / 0.08 = 2.5
     assert "no feedback          3 of 7 cases at or below, worst ratio 2.50" in text
+    # over all the cases at once: mean 0.72 / 7 against 0.08, largest 0.2 against 0.08
+    assert "mean Et 0.1029 against 0.0800, largest 0.2000 against 0.0800" in text
     assert "flow" not in text  # rows the table lacks are left out
+
+
+def test_bench_paper_continuity_sweep_lines_count_and_take_the_smallest_per_case() -> None:
+    from mrrig.bench.paper import sweep_lines
+
+    gradient = [0.05, 0.05, 0.05]
+    lines = sweep_lines({"0": [0.04, 0.06, 0.05], "1": [0.06, 0.03, 0.07]}, gradient)
+    assert lines[1].startswith("  mu 0 ") and lines[1].endswith("2 of 3")
+    assert lines[2].startswith("  mu 1 ") and lines[2].endswith("1 of 3")
+    assert lines[3].split()[-3:] == ["0.0400", "0.0300", "0.0500"]
+    assert lines[4].split()[-3:] == ["0.0500", "0.0500", "0.0500"]

@@ -62,6 +62,8 @@ LAG_TAU_S = 1.0 / BoucWenParams.preset("paper-volt").eta  # the coil lag 1/eta (
 FEEDBACK_TAU_CANDIDATES_S = (0.0, FEEDBACK_TAU_S)
 CONTINUITY_STRETCH_S = 5.0  # default_continuity: the training signal in 20 stretches
 CHOICE_WARMUP_S = 0.2  # not scored: each block's loop starts at rest, the training damper did not
+# --continuity-sweep: the exact solve's reach on the validation cases over its one knob
+CONTINUITY_SWEEP = (0.0, 0.01, 0.03, 0.1, 0.3, 0.5, 1.0, 2.0, 3.0, 5.0, 10.0)
 
 # spec/modeling.md section 6; columns in the order of dataset_a_validation()
 PAPER_TABLE_6 = {
@@ -365,7 +367,40 @@ def inversion_cost(
     }
 
 
-def run(seed: int = 0, epochs: int = 1000) -> dict:
+def continuity_sweep(fwd: MLP, params: BoucWenParams, loop: tuple) -> dict[str, list[float]]:
+    """The default exact solve (the paper's loop, no feedback) at every continuity of
+    `CONTINUITY_SWEEP`: what its one knob can reach on the validation cases. A diagnostic,
+    chosen on nothing; the default's continuity stays the one of the training rows.
+    `loop`: the cases' stacked (x, xd, xdd, f_des)."""
+    sweep = {}
+    for mu in CONTINUITY_SWEEP:
+        ctrl = NetworkInversion(VMAX_V, fwd, method="exact", dt_s=DT_S, continuity=mu)
+        res = closed_loop(ctrl, params, DT_S, *loop)
+        sweep[f"{mu:g}"] = row = [
+            error_norm(d, a) for d, a in zip(res.f_des, res.f_act, strict=True)
+        ]
+        log.info("continuity sweep, mu %g: Et %s", mu, " ".join(f"{e:.4f}" for e in row))
+    return sweep
+
+
+def sweep_lines(sweep: dict[str, list[float]], gradient: list[float]) -> list[str]:
+    """The sweep against the gradient solve in the same loop: each continuity's cases at or
+    below it, and each case's smallest Et over the sweep."""
+    lines = ["The exact solve at each continuity, paper loop (a diagnostic, chosen on nothing):"]
+    for mu, row in sweep.items():
+        at_or_below = sum(e <= g for e, g in zip(row, gradient, strict=True))
+        lines.append(
+            f"  {'mu ' + mu:<38}"
+            + "".join(f"{e:>9.4f}" for e in row)
+            + f"   {at_or_below} of {len(row)}"
+        )
+    best = np.min(np.array(list(sweep.values())), axis=0)
+    lines.append(f"  {'smallest over the sweep':<38}" + "".join(f"{e:>9.4f}" for e in best))
+    lines.append(f"  {'the gradient solve':<38}" + "".join(f"{e:>9.4f}" for e in gradient))
+    return lines
+
+
+def run(seed: int = 0, epochs: int = 1000, sweep: bool = False) -> dict:
     """The whole benchmark; returns every number it prints."""
     params = BoucWenParams.preset("paper-volt")
     t0 = time.perf_counter()
@@ -394,21 +429,19 @@ def run(seed: int = 0, epochs: int = 1000) -> dict:
         error_norm(c.force, models["forward_lagged"].predict(features(c, "lagged", LAG_TAU_S)[0]))
         for c in cases
     ]
-    x = np.stack([c.x for c in cases])
-    xd = np.stack([c.xd for c in cases])
-    xdd = np.stack([c.xdd for c in cases])
-    fd = np.stack([c.force for c in cases])
+    loop = tuple(np.stack([getattr(c, a) for c in cases]) for a in ("x", "xd", "xdd", "force"))
     table: dict[str, list[float]] = {}
     seconds: dict[str, float] = {}
     for name, ctrl in controllers(models, choice, mu).items():
         t0 = time.perf_counter()
-        res = closed_loop(ctrl, params, DT_S, x, xd, xdd, fd)
+        res = closed_loop(ctrl, params, DT_S, *loop)
         seconds[name] = time.perf_counter() - t0
         table[name] = [error_norm(res.f_des[b], res.f_act[b]) for b in range(len(cases))]
         log.info(
             "%s: Et %s (%.1f s)", name, " ".join(f"{e:.4f}" for e in table[name]), seconds[name]
         )
     return {
+        **({"continuity_sweep": continuity_sweep(fwd, params, loop)} if sweep else {}),
         "cases": [c.name for c in cases],
         "vmax_v": VMAX_V,
         "dt_s": DT_S,
@@ -495,12 +528,19 @@ def acceptance_lines(table: dict[str, list[float]], paper_ni: list[float]) -> li
         if n in table
     ]
     lines.append("The default exact solve against the gradient solve in the same loop:")
-    lines += [
-        f"  {loop:<38} {against(table[e], table[g])}"
-        for e, g, loop in SAME_LOOP_PAIRS
-        if e in table and g in table
-    ]
+    for e, g, loop in SAME_LOOP_PAIRS:
+        if e in table and g in table:
+            lines.append(f"  {loop:<38} {against(table[e], table[g])}")
+            lines.append(f"  {'':<38} {over_cases(table[e], table[g])}")
     return lines
+
+
+def over_cases(row: list[float], ref: list[float]) -> str:
+    """The row against its reference over all the cases at once: mean and largest Et."""
+    return (
+        f"mean Et {np.mean(row):.4f} against {np.mean(ref):.4f},"
+        f" largest {max(row):.4f} against {max(ref):.4f}"
+    )
 
 
 def format_report(r: dict) -> str:
@@ -536,6 +576,8 @@ def format_report(r: dict) -> str:
         + f" V; {d['seconds']:.1f} s)",
     ]
     lines += acceptance_lines(r["table6"], r["paper_table6"]["network_inversion"])
+    if "continuity_sweep" in r:
+        lines += sweep_lines(r["continuity_sweep"], r["table6"]["network_inversion"])
     lines.append("")
     lines.append(
         "Forward model open-loop Et on the validation cases: "
@@ -597,8 +639,13 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--json", type=Path, help="also write the numbers to this JSON file")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--epochs", type=int, default=1000, help="LM epoch limit (default 1000)")
+    ap.add_argument(
+        "--continuity-sweep",
+        action="store_true",
+        help="also run the default exact solve at continuities 0 to 10 (about 40 s more)",
+    )
     args = ap.parse_args(argv)
-    result = run(seed=args.seed, epochs=args.epochs)
+    result = run(seed=args.seed, epochs=args.epochs, sweep=args.continuity_sweep)
     print(format_report(result))
     if args.json:
         args.json.write_text(json.dumps(result, indent=2))
