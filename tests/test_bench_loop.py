@@ -27,7 +27,8 @@ def test_bench_paper_counts_the_cases_at_or_below_each_reference() -> None:
         "network_inversion_exact": [0.08, 0.07, 0.2, 0.08, 0.1, 0.1, 0.09],
         "network_inversion_feedback": [0.04, 0.03, 0.17, 0.01, 0.03, 0.03, 0.02],
     }
-    text = "\n".join(acceptance_lines(table, paper))
+    starts = {"network_inversion": {"mean": [0.07] * 7, "min": [0.06] * 7, "max": [0.09] * 7}}
+    text = "\n".join(acceptance_lines(table, paper, starts))
     # by hand: 0.17 > 0.04 is the one case above, 0.17 / 0.04 = 4.25
     assert (
         "exact (default) + feedback             6 of 7 cases at or below, worst ratio 4.25" in text
@@ -37,6 +38,8 @@ def test_bench_paper_counts_the_cases_at_or_below_each_reference() -> None:
     assert "no feedback          3 of 7 cases at or below, worst ratio 2.50" in text
     # over all the cases at once: mean 0.72 / 7 against 0.08, largest 0.2 against 0.08
     assert "mean Et 0.1029 against 0.0800, largest 0.2000 against 0.0800" in text
+    # against the mean of the random starts: only 0.07 <= 0.07; 0.2 / 0.07 = 2.86
+    assert "the mean of its random starts        1 of 7 cases at or below, worst ratio 2.86" in text
     assert "flow" not in text  # rows the table lacks are left out
 
 
