@@ -415,9 +415,15 @@ class ScalarInverter:
         self._vw_sum = float(s.vw.sum())
         self.continuity = float(continuity)
         self._a, self._b = _objective_weights(s, model, self.continuity)
-        self._vww = s.vw * s.w
-        self._v_vww = np.stack([s.v, self._vww])  # 2 x H: one product for f and for d2f/di2
-        self._buf_h2 = np.empty(model.hidden)
+        # Newton's f, f' and f'' (`_at`): tanh, tanh^2 and tanh^3 of the hidden units in the
+        # rows of one buffer, times [v, vw, vw w] in one product
+        self._powers = np.empty((3, model.hidden))
+        self._th, self._th2, self._th3 = self._powers
+        self._weights = np.column_stack([s.v, s.vw, s.vw * s.w])
+        # the grid part of J / a: (f - f_d)^2 + (b / a) (i - i_prev)^2 = hypot(g, d)^2 with
+        # d = sqrt(b / a) (grid - i_prev); the same argmin and vertex as J
+        self._root_ba = math.sqrt(self._b / self._a)
+        self._grid_ba = self._grid * self._root_ba
         self._ahead: tuple[float, float, float, float] | None = None  # i_prev, x, lo, hi
         self.ahead_used = 0
         self.ahead_missed = 0
@@ -496,17 +502,11 @@ class ScalarInverter:
             return 0.0, 0.0, 0.0
         cell_lo, cell_hi = grid[cell], grid[cell + 1]
         lo, hi = cell_lo, cell_hi
-        w, v, vw, vw_sum = s.w, s.v, s.vw, self._vw_sum
-        buf_h = self._buf_h
         for _ in range(self.max_iter):
-            np.multiply(w, x, out=buf_h)
-            buf_h += k
-            np.tanh(buf_h, out=buf_h)  # eqs 5, 7
-            gx = float(buf_h @ v) + c
+            fx, dg, _ = self._at(k, x)
+            gx = fx + c
             if gx == 0.0:
                 break
-            np.multiply(buf_h, buf_h, out=buf_h)
-            dg = vw_sum - float(buf_h @ vw)
             if (gx > 0.0) == (glo > 0.0) and glo != 0.0:
                 lo, glo = x, gx
             else:
@@ -524,21 +524,28 @@ class ScalarInverter:
             return x, x, x
         return x, max(cell_lo - h, 0.0), min(cell_hi + h, self.i_max)
 
+    def _at(self, k: np.ndarray, x: float) -> tuple[float, float, float]:
+        """(f - f0, df/di, d2f/di2) of the network at the current x, k its feature part."""
+        th, th2 = self._th, self._th2
+        np.multiply(self._s.w, x, out=th)
+        th += k
+        np.tanh(th, out=th)  # eqs 5, 7
+        np.multiply(th, th, out=th2)
+        np.multiply(th2, th, out=self._th3)
+        # rows tanh^p, columns v, vw, vww
+        (fv, _, fvww), (_, t2vw, _), (_, _, t3vww) = (self._powers @ self._weights).tolist()
+        # df/di: eq. 14 without the error factor; d2f/di2 = -2 sum vww (tanh - tanh^3)
+        return fv, self._vw_sum - t2vw, -2.0 * (fvww - t3vww)
+
     def _newton_ahead(
         self, k: np.ndarray, c: float, i_prev: float, x: float, lo: float, hi: float
     ) -> float | None:
         """Newton from a prepared answer inside its cell; None when it does not converge there."""
-        s, th = self._s, self._buf_h
         regularised = self.continuity > 0.0
         for _ in range(self.AHEAD_ITERATIONS):
-            np.multiply(s.w, x, out=th)
-            th += k
-            np.tanh(th, out=th)  # eqs 5, 7
-            gx = float(th @ s.v) + c
+            fx, d1, d2 = self._at(k, x)
+            gx = fx + c
             if regularised:
-                sech2 = 1.0 - th * th
-                d1 = float(sech2 @ s.vw)  # df/di: eq. 14 without the error factor
-                d2 = -2.0 * float((th * sech2) @ self._vww)  # d2f/di2
                 jpp = self._a * (d1 * d1 + gx * d2) + self._b  # J''/2
                 if not jpp > 0.0:
                     return None
@@ -546,11 +553,9 @@ class ScalarInverter:
             else:
                 if gx == 0.0:
                     return x
-                np.multiply(th, th, out=th)
-                dg = self._vw_sum - float(th @ s.vw)  # df/di
-                if dg == 0.0:
+                if d1 == 0.0:
                     return None
-                xn = x - gx / dg
+                xn = x - gx / d1
             if not lo <= xn <= hi:
                 return None
             if abs(xn - x) <= self.xtol_a:
@@ -564,30 +569,21 @@ class ScalarInverter:
         """`_regularised` of the batch path for one sample; g = f - f_d on the grid.
         Returns (current, lo, hi), [lo, hi] the four grid cells around the grid's best point
         (on a nearby sample the best point may move by one)."""
-        s, a, b = self._s, self._a, self._b
-        J = a * g * g + b * (self._grid - i_prev) ** 2
-        j = int(np.argmin(J))
+        a, b = self._a, self._b
+        r = np.hypot(g, self._grid_ba - i_prev * self._root_ba)  # sqrt(J / a) on the grid
+        j = int(np.argmin(r))
         grid = self._grid_list
         lo, hi = grid[max(j - 1, 0)], grid[min(j + 1, len(grid) - 1)]
         cell_lo, cell_hi = grid[max(j - 2, 0)], grid[min(j + 2, len(grid) - 1)]
         x = grid[j]
         if 0 < j < len(grid) - 1:  # the parabola's vertex, as `_vertex`
-            left, mid, right = float(J[j - 1]), float(J[j]), float(J[j + 1])
+            left, mid, right = (v * v for v in r[j - 1 : j + 2].tolist())
             curv = left - 2.0 * mid + right
             if curv > 0.0:
                 x += 0.5 * self._h * (left - right) / curv
-        th, t2 = self._buf_h, self._buf_h2
-        v_vww, vw, vww, vw_sum = self._v_vww, s.vw, self._vww, self._vw_sum
         for _ in range(self.max_iter):
-            np.multiply(s.w, x, out=th)
-            th += k
-            np.tanh(th, out=th)  # eqs 5, 7
-            gx, d2 = (v_vww @ th).tolist()  # f - f0 and sum vww tanh
-            gx += c
-            np.multiply(th, th, out=t2)
-            d1 = vw_sum - float(t2 @ vw)  # df/di: eq. 14 without the error factor
-            np.multiply(t2, th, out=t2)
-            d2 = -2.0 * (d2 - float(t2 @ vww))  # d2f/di2 = -2 sum vww (tanh - tanh^3)
+            fx, d1, d2 = self._at(k, x)
+            gx = fx + c  # f - f_d
             jp = a * gx * d1 + b * (x - i_prev)  # J'/2
             jpp = a * (d1 * d1 + gx * d2) + b  # J''/2
             if jp > 0.0:
