@@ -171,21 +171,27 @@ def test_telemetry_control_recording_and_review(tmp_path, bridge, procs, sim_mod
         )  # constant uses no model
         assert _query(session, json.dumps({"cmd": "status"}))["status"]["controller"] == "constant"
 
-        # -- an external force reference that goes stale faults
+        # -- an external force reference that goes stale faults. A bridge stall while armed
+        # faults first with a transport fault (seen in CI on a busy VM): then re-arm and try
+        # again; any other fault fails at once, and the stale reference must come in the end
         ok = _query(session, json.dumps({"cmd": "set_profile", "kind": "zenoh", "timeout_s": 0.1}))
         assert ok["ok"]
         pub = session.declare_publisher(f"mrrig/{RIG}/force_ref")
-        for _ in range(20):
-            pub.put(json.dumps({"force_n": 100.0}))
-            time.sleep(0.01)
-        assert _query(session, json.dumps({"cmd": "arm"}))["ok"]
-        for _ in range(50):
-            pub.put(json.dumps({"force_n": 100.0}))
-            time.sleep(0.01)
-        time.sleep(0.5)  # no more force_ref
+        for _attempt in range(3):
+            for _ in range(20):
+                pub.put(json.dumps({"force_n": 100.0}))
+                time.sleep(0.01)
+            assert _query(session, json.dumps({"cmd": "arm"}))["ok"]
+            for _ in range(50):
+                pub.put(json.dumps({"force_n": 100.0}))
+                time.sleep(0.01)
+            time.sleep(0.5)  # no more force_ref
+            st = _query(session, json.dumps({"cmd": "status"}))["status"]
+            assert st["state"] == "FAULT" and st["fault"] in (*transport, "stale_reference"), st
+            if st["fault"] == "stale_reference":
+                break
         pub.undeclare()
-        st = _query(session, json.dumps({"cmd": "status"}))["status"]
-        assert st["state"] == "FAULT" and st["fault"] == "stale_reference", st
+        assert st["fault"] == "stale_reference", st
         evs = _drain(events)
         assert any(e.get("fault") == "stale_reference" for e in evs), evs
 
