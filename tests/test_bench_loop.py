@@ -52,3 +52,18 @@ def test_bench_paper_continuity_sweep_lines_count_and_take_the_smallest_per_case
     assert lines[2].startswith("  mu 1 ") and lines[2].endswith("1 of 3")
     assert lines[3].split()[-3:] == ["0.0400", "0.0300", "0.0500"]
     assert lines[4].split()[-3:] == ["0.0500", "0.0500", "0.0500"]
+
+
+def test_bench_help_is_the_named_benchmarks_own(capsys) -> None:
+    import pytest
+
+    from mrrig.bench.cli import main
+
+    with pytest.raises(SystemExit) as done:
+        main(["loop", "--help"])
+    assert done.value.code == 0
+    assert "usage: mrrig bench loop" in capsys.readouterr().out
+    with pytest.raises(SystemExit) as done:
+        main(["fly"])
+    assert done.value.code == 2
+    assert "invalid choice: 'fly'" in capsys.readouterr().err

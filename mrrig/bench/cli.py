@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import sys
 
 BENCHES = {
     "paper": "mrrig.bench.paper",
@@ -15,7 +16,12 @@ BENCHES = {
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="mrrig bench")
-    ap.add_argument("name", choices=sorted(BENCHES))
-    args, rest = ap.parse_known_args(argv)
-    return int(importlib.import_module(BENCHES[args.name]).main(rest) or 0)
+    argv = sys.argv[1:] if argv is None else list(argv)
+    if argv and argv[0] in BENCHES:  # the rest, --help included, is the benchmark's own
+        return int(importlib.import_module(BENCHES[argv[0]]).main(argv[1:]) or 0)
+    ap = argparse.ArgumentParser(prog="mrrig bench", description=__doc__)
+    ap.add_argument(
+        "name", choices=sorted(BENCHES), help="then its own options (mrrig bench NAME --help)"
+    )
+    ap.parse_args(argv)  # no benchmark named: help, or the error and exit code 2
+    return 2

@@ -142,7 +142,9 @@ def _print_table(res: dict) -> None:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(
+        prog="mrrig bench estimation", description=__doc__.splitlines()[0]
+    )
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--noise-um", type=float, default=20.0, help="displacement noise std")
     parser.add_argument("--duration-s", type=float, default=2.0, help="length of each run")
