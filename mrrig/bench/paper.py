@@ -4,7 +4,9 @@ Trains the forward network, the supervised inverse MLP and the RNN on data set A
 section 4 A) by Levenberg-Marquardt, runs every controller in closed loop against the Bouc-Wen
 plant at 1 ms on the seven validation cases, and prints our Et beside the paper's, together with
 the forward model's Et, the training time and the inversion cost per sample of the paper's
-gradient method and of the default exact solve, measured in the same run. The default exact
+gradient method and of the default exact solve, measured in the same run. The gradient's
+descent starts from a random current, so its rows run from `RANDOM_STARTS` starts side by side:
+the table keeps the first, with the mean, smallest and largest beneath. The default exact
 solve is the daemon's: its continuity is the model's own, chosen on the training rows as
 `mrrig train` chooses it (`default_continuity`); the root (continuity 0) runs beside it.
 
