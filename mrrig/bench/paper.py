@@ -439,8 +439,10 @@ def run(seed: int = 0, epochs: int = 1000, sweep: bool = False) -> dict:
     starts: dict[str, dict[str, list[float]]] = {}
     seconds: dict[str, float] = {}
     for name, ctrl in controllers(models, choice, mu).items():
-        # a random start per lane: the first len(cases) lanes are the single run's
-        lanes = RANDOM_STARTS if getattr(ctrl, "method", "exact") != "exact" else 1
+        # the descents (gradient, flow) from a random start per lane: the first len(cases)
+        # lanes draw the single run's starts
+        descent = isinstance(ctrl, NetworkInversion) and ctrl.method != "exact"
+        lanes = RANDOM_STARTS if descent else 1
         t0 = time.perf_counter()
         res = closed_loop(ctrl, params, DT_S, *(np.tile(a, (lanes, 1)) for a in loop))
         seconds[name] = time.perf_counter() - t0
