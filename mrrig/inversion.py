@@ -408,18 +408,29 @@ class ScalarInverter:
         self._grid = np.linspace(0.0, self.i_max, grid_points)
         self._h = float(self._grid[1] - self._grid[0])
         self._grid_list = self._grid.tolist()
-        self._grid_w = self._grid[:, None] * s.w  # G x H
+        # The hidden layer gets one extra unit, so that one product does what took two calls:
+        # its pre-activation is 40 on the grid (tanh exactly 1) with output weight f0 - f_d
+        # (`_v_c`), so the grid's product is f - f_d; it is 0 (tanh 0) in `_at`.
+        # `_kw`: rows k (this sample's feature part, eq. 5) and w, so [1, x] . _kw = k + w x.
+        self._grid_w = np.column_stack([self._grid[:, None] * s.w, np.full(grid_points, 40.0)])
         self._buf_g = np.empty_like(self._grid_w)
-        self._k = np.empty(model.hidden)
+        self._g = np.empty(grid_points)
+        self._d = np.empty(grid_points)
+        self._kw = np.zeros((2, model.hidden + 1))
+        self._kw[1, :-1] = s.w
+        self._k_ext = self._kw[0]
+        self._k = self._k_ext[:-1]
+        self._one_x = np.array([1.0, 0.0])
+        self._v_c = np.append(s.v, 0.0)
         self._buf_h = np.empty(model.hidden)
         self._vw_sum = float(s.vw.sum())
         self.continuity = float(continuity)
         self._a, self._b = _objective_weights(s, model, self.continuity)
         # Newton's f, f' and f'' (`_at`): tanh, tanh^2 and tanh^3 of the hidden units in the
-        # rows of one buffer, times [v, vw, vw w] in one product
-        self._powers = np.empty((3, model.hidden))
+        # rows of one buffer, times [v, vw, vw w] (0 for the extra unit) in one product
+        self._powers = np.empty((3, model.hidden + 1))
         self._th, self._th2, self._th3 = self._powers
-        self._weights = np.column_stack([s.v, s.vw, s.vw * s.w])
+        self._weights = np.vstack([np.column_stack([s.v, s.vw, s.vw * s.w]), np.zeros(3)])
         # the grid part of J / a: (f - f_d)^2 + (b / a) (i - i_prev)^2 = hypot(g, d)^2 with
         # d = sqrt(b / a) (grid - i_prev); the same argmin and vertex as J
         self._root_ba = math.sqrt(self._b / self._a)
@@ -439,48 +450,52 @@ class ScalarInverter:
         np.tanh(k, out=k)
         return float(k @ s.v) + s.f0
 
-    def _features_part(self, features: np.ndarray) -> np.ndarray:
+    def _features_part(self, features: np.ndarray) -> None:
+        """Write the sample's feature part k of the pre-activations (eq. 5) where `_full` and
+        `_at` read it."""
         k = self._k
         np.dot(self._s.A, features, out=k)
         k += self._s.a0
-        return k
 
     def solve(self, features: np.ndarray, f_des: float, i_prev: float) -> float:
         """Current in A for one sample; features = the model's inputs without the current."""
         if self.method == "gradient":
             return self._gradient(features, f_des)
-        k = self._features_part(features)
+        self._features_part(features)
         c = self._s.f0 - f_des
         ahead, self._ahead = self._ahead, None
         if ahead is not None and ahead[0] == i_prev:
-            x = self._newton_ahead(k, c, i_prev, ahead[1], ahead[2], ahead[3])
+            x = self._newton_ahead(c, i_prev, ahead[1], ahead[2], ahead[3])
             if x is not None:
                 self.ahead_used += 1
                 return x
             self.ahead_missed += 1
-        return self._full(k, c, i_prev)[0]
+        return self._full(c, i_prev)[0]
 
     def prepare(self, features: np.ndarray, f_des: float, i_prev: float) -> None:
         """Solve ahead on a predicted sample (class docstring); replaces an unused one."""
         self._ahead = None
         if self.method == "gradient":
             return
-        x, lo, hi = self._full(self._features_part(features), self._s.f0 - f_des, i_prev)
+        self._features_part(features)
+        x, lo, hi = self._full(self._s.f0 - f_des, i_prev)
         if lo < hi:
             self._ahead = (i_prev, x, lo, hi)
 
     def discard_prepared(self) -> None:
         self._ahead = None
 
-    def _full(self, k: np.ndarray, c: float, i_prev: float) -> tuple[float, float, float]:
+    def _full(self, c: float, i_prev: float) -> tuple[float, float, float]:
         """(current, lo, hi): [lo, hi] is where a later Newton may follow this answer to a
         nearby sample; lo == hi when it must not (out of reach: a bound; an ambiguous pick)."""
-        s, buf_g = self._s, self._buf_g
-        np.add(self._grid_w, k, out=buf_g)
+        buf_g, g = self._buf_g, self._g
+        np.add(self._grid_w, self._k_ext, out=buf_g)
         np.tanh(buf_g, out=buf_g)
+        self._v_c[-1] = c
+        np.dot(buf_g, self._v_c, out=g)  # f - f_d on the grid
         if self.continuity > 0.0:
-            return self._regularised(k, c, buf_g @ s.v + c, i_prev)
-        g = (buf_g @ s.v + c).tolist()
+            return self._regularised(c, g, i_prev)
+        g = g.tolist()
         grid, h = self._grid_list, self._h
         best = second = np.inf
         cell = -1
@@ -503,7 +518,7 @@ class ScalarInverter:
         cell_lo, cell_hi = grid[cell], grid[cell + 1]
         lo, hi = cell_lo, cell_hi
         for _ in range(self.max_iter):
-            fx, dg, _ = self._at(k, x)
+            fx, dg, _ = self._at(x)
             gx = fx + c
             if gx == 0.0:
                 break
@@ -524,11 +539,12 @@ class ScalarInverter:
             return x, x, x
         return x, max(cell_lo - h, 0.0), min(cell_hi + h, self.i_max)
 
-    def _at(self, k: np.ndarray, x: float) -> tuple[float, float, float]:
-        """(f - f0, df/di, d2f/di2) of the network at the current x, k its feature part."""
+    def _at(self, x: float) -> tuple[float, float, float]:
+        """(f - f0, df/di, d2f/di2) of the network at the current x, for the sample whose
+        feature part `_features_part` last wrote."""
         th, th2 = self._th, self._th2
-        np.multiply(self._s.w, x, out=th)
-        th += k
+        self._one_x[1] = x
+        np.dot(self._one_x, self._kw, out=th)  # k + w x (k: this sample's, in self._kw)
         np.tanh(th, out=th)  # eqs 5, 7
         np.multiply(th, th, out=th2)
         np.multiply(th2, th, out=self._th3)
@@ -538,12 +554,12 @@ class ScalarInverter:
         return fv, self._vw_sum - t2vw, -2.0 * (fvww - t3vww)
 
     def _newton_ahead(
-        self, k: np.ndarray, c: float, i_prev: float, x: float, lo: float, hi: float
+        self, c: float, i_prev: float, x: float, lo: float, hi: float
     ) -> float | None:
         """Newton from a prepared answer inside its cell; None when it does not converge there."""
         regularised = self.continuity > 0.0
         for _ in range(self.AHEAD_ITERATIONS):
-            fx, d1, d2 = self._at(k, x)
+            fx, d1, d2 = self._at(x)
             gx = fx + c
             if regularised:
                 jpp = self._a * (d1 * d1 + gx * d2) + self._b  # J''/2
@@ -563,15 +579,15 @@ class ScalarInverter:
             x = xn
         return None
 
-    def _regularised(
-        self, k: np.ndarray, c: float, g: np.ndarray, i_prev: float
-    ) -> tuple[float, float, float]:
+    def _regularised(self, c: float, g: np.ndarray, i_prev: float) -> tuple[float, float, float]:
         """`_regularised` of the batch path for one sample; g = f - f_d on the grid.
         Returns (current, lo, hi), [lo, hi] the four grid cells around the grid's best point
         (on a nearby sample the best point may move by one)."""
         a, b = self._a, self._b
-        r = np.hypot(g, self._grid_ba - i_prev * self._root_ba)  # sqrt(J / a) on the grid
-        j = int(np.argmin(r))
+        r = self._d
+        np.subtract(self._grid_ba, i_prev * self._root_ba, out=r)
+        np.hypot(g, r, out=r)  # sqrt(J / a) on the grid
+        j = int(r.argmin())
         grid = self._grid_list
         lo, hi = grid[max(j - 1, 0)], grid[min(j + 1, len(grid) - 1)]
         cell_lo, cell_hi = grid[max(j - 2, 0)], grid[min(j + 2, len(grid) - 1)]
@@ -582,7 +598,7 @@ class ScalarInverter:
             if curv > 0.0:
                 x += 0.5 * self._h * (left - right) / curv
         for _ in range(self.max_iter):
-            fx, d1, d2 = self._at(k, x)
+            fx, d1, d2 = self._at(x)
             gx = fx + c  # f - f_d
             jp = a * gx * d1 + b * (x - i_prev)  # J'/2
             jpp = a * (d1 * d1 + gx * d2) + b  # J''/2
