@@ -258,11 +258,3 @@ def load_csv(
         force=data["force"],
         name=path.stem,
     )
-
-
-def train_validation_split(n: int, n_validation: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
-    """Random disjoint sorted index sets (train, validation) covering range(n)."""
-    if not 0 <= n_validation <= n:
-        raise ValueError(f"n_validation must be in [0, {n}], got {n_validation}")
-    perm = np.random.default_rng(seed).permutation(n)
-    return np.sort(perm[n_validation:]), np.sort(perm[:n_validation])

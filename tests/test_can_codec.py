@@ -324,14 +324,6 @@ def test_bad_crc_never_updates_last_good_values(codec: Codec) -> None:
     assert nxt.ok and nxt.lost_frames == 1
 
 
-def test_timed_out_until_first_frame_and_after_timeout(codec: Codec) -> None:
-    packer, parser = codec.packer("RIG"), codec.parser()
-    assert parser.timed_out("RigSensors", 0.0, 0.02)
-    parser.parse(0x110, packer.encode("RigSensors", SENSORS), 1.0)
-    assert not parser.timed_out("RigSensors", 1.019, 0.02)
-    assert parser.timed_out("RigSensors", 1.021, 0.02)
-
-
 def test_parse_message_rejects_29_bit_ids(codec: Codec) -> None:
     parser = codec.parser()
     msg = codec.packer("RIG").message("RigSensors", SENSORS)

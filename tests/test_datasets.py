@@ -11,7 +11,6 @@ from mrrig.datasets import (
     dataset_b,
     dataset_b_conditions,
     load_csv,
-    train_validation_split,
 )
 
 
@@ -216,16 +215,3 @@ def test_series_rejects_unequal_lengths():
         Series(
             t=np.zeros(3), x=np.zeros(3), xd=None, xdd=None, current=np.zeros(3), force=np.zeros(2)
         )
-
-
-def test_train_validation_split_is_random_disjoint_and_complete():
-    tr, va = train_validation_split(14190, 1419, seed=5)
-    assert va.size == 1419 and tr.size == 14190 - 1419
-    assert np.intersect1d(tr, va).size == 0
-    np.testing.assert_array_equal(np.sort(np.concatenate([tr, va])), np.arange(14190))
-    tr2, va2 = train_validation_split(14190, 1419, seed=5)
-    np.testing.assert_array_equal(va, va2)
-    assert not np.array_equal(va, train_validation_split(14190, 1419, seed=6)[1])
-    assert not np.array_equal(va, np.arange(1419))
-    with pytest.raises(ValueError):
-        train_validation_split(10, 11, seed=0)

@@ -25,8 +25,8 @@ from mrrig.training import (
     measured_series,
     train_and_validate,
     train_forward,
-    write_tidy,
 )
+from tests.data_files import write_tidy
 from tests.rig_harness import ScriptedRig
 
 EPOCHS = 15

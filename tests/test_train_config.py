@@ -18,9 +18,9 @@ from mrrig.training import (
     load_training_data,
     series_fingerprint,
     train_and_validate,
-    write_tidy,
 )
 from tests.conftest import REPO
+from tests.data_files import write_tidy
 
 TINY = dict(amplitudes_m=(0.015,), freqs_hz=(2.0, 5.0), currents_a=(0.0, 0.6, 1.2))
 FAST = ["--epochs", "3", "--no-supervised"]

@@ -23,9 +23,9 @@ from mrrig.training import (
     split_samples,
     train_and_validate,
     train_forward,
-    write_tidy,
 )
 from tests.conftest import SMALL
+from tests.data_files import write_tidy
 
 EPOCHS = 15
 

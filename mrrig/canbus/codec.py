@@ -408,8 +408,3 @@ class Parser:
     def last(self, name: str) -> Parsed | None:
         """Last valid frame of `name`, or None if none arrived yet."""
         return self.stats[name].last
-
-    def timed_out(self, name: str, now_s: float, timeout_s: float) -> bool:
-        """True if no valid `name` frame arrived within `timeout_s` before `now_s` (or ever)."""
-        last = self.stats[name].last
-        return last is None or now_s - last.timestamp_s > timeout_s
