@@ -33,4 +33,6 @@ wait "$daemon" || { echo "daemon exit $?"; tail -20 "$out/daemon.log"; exit 1; }
 kill -TERM "$dump"
 wait "$dump" || true
 tail -3 "$out/sim.log"
+# the daemon's arming and faults, so that a low count of ACTIVE commands has its reason here
+grep -E "armed|fault" "$out/daemon.log" | head -8 || true
 python tests/vm/check_candump.py "$out/candump.log" --i-max 2.0 --min-frames 1000
