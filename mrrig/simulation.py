@@ -30,6 +30,7 @@ def closed_loop(
     xdd: np.ndarray,
     f_des: np.ndarray,
     substep_s: float = 1e-4,
+    u0: np.ndarray | float = 0.0,
 ) -> ClosedLoopResult:
     """Track `f_des` (B, n) on dampers moved along `x` (B, n), one command per sample.
 
@@ -37,6 +38,9 @@ def closed_loop(
     fed back every sample) and its command is held over [k, k+1]; f_a(k) is compared with
     f_des(k), as in the paper's Table 6. The reference is known ahead: the controller also
     gets f_des(k+1) (`ControlInput.f_des_next`; at the last sample f_des(k)).
+    The dampers start at rest with the coil state u0 (B,) (command units; the controllers are
+    not told it). A reference made by `simulate` starts at rest with u = its first command:
+    with that u0, a controller that commands the reference's own voltages tracks it exactly.
     """
     x, xd, xdd, f_des = (np.atleast_2d(np.asarray(a, dtype=float)) for a in (x, xd, xdd, f_des))
     batch, n = f_des.shape
@@ -44,7 +48,8 @@ def closed_loop(
     # batch (the plant's step is dominated by per-operation overhead)
     plants = [BoucWenDamper(params, substep_s=substep_s) for _ in range(batch)]
     xs, xds = x.tolist(), xd.tolist()
-    f_a = np.array([p.reset(xs[b][0], xds[b][0], 0.0) for b, p in enumerate(plants)])
+    u0s = np.broadcast_to(np.asarray(u0, dtype=float), (batch,)).tolist()
+    f_a = np.array([p.reset(xs[b][0], xds[b][0], u0s[b]) for b, p in enumerate(plants)])
     controller.reset(batch)
     f_act = np.empty((batch, n))
     command = np.empty((batch, n))
