@@ -237,6 +237,21 @@ def test_interrupted_matrix_resumes_without_repeating_finished_runs(tmp_path):
     assert f1 > 2 * f0  # the current reached the damper
 
 
+TRANSPORT_FAULTS = ("firmware watchdog tripped", "no sensor frame")
+
+
+def clean_window(session: RigSession) -> dict:
+    """A tracking window, run again (3 tries at most) while only a transport stall faulted
+    it: the in-process rig shares this 2-core VM with the daemon, and a stall of over 20 ms
+    trips the firmware's watchdog (seen once in CI). Any other fault is returned as it is."""
+    for _ in range(3):
+        r = track(session, 0.6, 1.0, threading.Event())
+        faults = r["faults"]
+        if not (faults and all(f["reason"].startswith(TRANSPORT_FAULTS) for f in faults)):
+            return r
+    return r
+
+
 def test_validate_switches_models_with_set_model_while_disarmed(tmp_path, sim_model):
     other = tmp_path / "other-model.json"
     shutil.copy(sim_model, other)
@@ -247,14 +262,14 @@ def test_validate_switches_models_with_set_model_while_disarmed(tmp_path, sim_mo
             actuator={"waveform": "sine", "amplitude_m": 0.015, "frequency_hz": 2.0},
         )
         with RigSession(cfg) as session:
-            first = track(session, 0.6, 1.0, threading.Event())
+            first = clean_window(session)
             session.request(cmd="arm")
             refused = session.daemon.handle_request({"cmd": "set_model", "path": str(other)})
             assert not refused["ok"] and "not armed" in refused["error"]
             session.request(cmd="disarm")
             session.request(cmd="set_model", path=str(other))
             assert session.daemon.cfg.controller.model == other
-            second = track(session, 0.6, 1.0, threading.Event())
+            second = clean_window(session)
     print(f"Et with the model: {first['et']:.4f}; after set_model: {second['et']:.4f}")
     for r in (first, second):
         assert r["armed_frames"] >= 450
