@@ -98,8 +98,9 @@ class RunStats:
         self.unmatched_answers += 1
 
     def finish(self) -> None:
-        """Count the frames still pending, but for the newest (its answer may be in flight)."""
-        while len(self._pending) > 1:
+        """Count the frames still pending, once their answers have had the time a frame's
+        answer has while the run goes on (`run` listens PENDING periods after the last frame)."""
+        while self._pending:
             self._close(self._pending.popleft())
 
     def summary(self, firmware: Firmware, wall_s: float, cpu_s: float) -> dict[str, Any]:
@@ -219,6 +220,9 @@ def run(
                 logger.warning("loop %.1f ms late: skipping %d periods", late_s * 1e3, skipped)
                 stats.resyncs += 1
                 k += skipped
+        # answers still in flight when the last frame left: listen as long as an answer to an
+        # earlier frame is waited for, then `stats.finish()` counts every frame
+        receive_until(clock() + RunStats.PENDING * period_s)
     finally:
         gc.unfreeze()
 

@@ -89,14 +89,16 @@ def test_run_stats_count_each_sensor_frame_answered_once_unanswered_or_more_than
     stats.on_command(3, 0.0070, safe=True)  # the daemon's own SAFE after a timeout: no answer
     stats.on_sensor_sent(Frame(SENSORS_ID, b"", 9, False), 0.008, 0.0082)  # faulted frame
     stats.on_command(9, 0.0085)  # echoes a frame that awaits no answer
-    stats.on_sensor_sent(frames[4], 0.010, 0.0101)  # still in flight at the end: not counted
-    stats.finish()
-    assert (stats.answered_once, stats.unanswered, stats.answered_more_than_once) == (2, 1, 1)
+    stats.on_sensor_sent(frames[4], 0.010, 0.0101)  # the last frame
+    stats.on_command(4, 0.0108)  # its answer, while `run` listens after the last frame
+    stats.on_sensor_sent(Frame(SENSORS_ID, b"", 5, True), 0.012, 0.0121)
+    stats.finish()  # the last frame is without an answer: unanswered
+    assert (stats.answered_once, stats.unanswered, stats.answered_more_than_once) == (3, 2, 1)
     assert stats.answered_late == 1
     assert stats.unmatched_answers == 1 and stats.sensor_frames_faulted == 1
     assert stats.safe_repeats == 1
-    assert list(stats.latency_us) == pytest.approx([500.0, 2400.0, 500.0])
-    assert list(stats.jitter_us) == pytest.approx([100.0, 100.0, 100.0, 100.0, 200.0, 100.0])
+    assert list(stats.latency_us) == pytest.approx([500.0, 2400.0, 500.0, 700.0])
+    assert list(stats.jitter_us) == pytest.approx([100.0, 100.0, 100.0, 100.0, 200.0, 100.0, 100.0])
 
 
 def test_sim_streams_sensors_at_500_hz_answers_are_matched_watchdog_trips_and_sigterm_exits_0(
