@@ -42,7 +42,7 @@ from mrrig.samples import SAMPLE_DTYPE, RigState
 from mrrig.training import load_tidy
 from mrrig.typed_config import ConfigError
 from mrrig.validate import track
-from tests.conftest import REPO, rig_config
+from tests.conftest import REPO, TRANSPORT_FAULT_REASONS, rig_config
 
 _channels = itertools.count()
 
@@ -237,9 +237,6 @@ def test_interrupted_matrix_resumes_without_repeating_finished_runs(tmp_path):
     assert f1 > 2 * f0  # the current reached the damper
 
 
-TRANSPORT_FAULTS = ("firmware watchdog tripped", "no sensor frame")
-
-
 def clean_window(session: RigSession) -> dict:
     """A tracking window, run again (3 tries at most) while only a transport stall faulted
     it: the in-process rig shares this 2-core VM with the daemon, and a stall of over 20 ms
@@ -247,7 +244,7 @@ def clean_window(session: RigSession) -> dict:
     for _ in range(3):
         r = track(session, 0.6, 1.0, threading.Event())
         faults = r["faults"]
-        if not (faults and all(f["reason"].startswith(TRANSPORT_FAULTS) for f in faults)):
+        if not (faults and all(f["reason"].startswith(TRANSPORT_FAULT_REASONS) for f in faults)):
             return r
     return r
 

@@ -9,7 +9,7 @@ import time
 import pytest
 
 from mrrig.canbus.codec import Codec
-from tests.conftest import rig_config
+from tests.conftest import TRANSPORT_FAULT_REASONS, rig_config
 
 pytestmark = pytest.mark.slow
 
@@ -92,5 +92,4 @@ def test_ten_seconds_of_force_tracking_one_command_per_sensor_frame(
     faults = s["faults"]
     if faults and faults[-1]["reason"].startswith("no sensor frame"):
         faults = faults[:-1]  # the simulator stopped first
-    transport = ("firmware watchdog tripped", "no sensor frame")
-    assert [f for f in faults if not f["reason"].startswith(transport)] == []
+    assert [f for f in faults if not f["reason"].startswith(TRANSPORT_FAULT_REASONS)] == []
