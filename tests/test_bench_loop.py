@@ -47,11 +47,16 @@ def test_bench_paper_continuity_sweep_lines_count_and_take_the_smallest_per_case
     from mrrig.bench.paper import sweep_lines
 
     gradient = [0.05, 0.05, 0.05]
-    lines = sweep_lines({"0": [0.04, 0.06, 0.05], "1": [0.06, 0.03, 0.07]}, gradient)
+    sweep = {"mu 0": [0.04, 0.06, 0.05], "mu 1": [0.06, 0.03, 0.07]}
+    lines = sweep_lines("title", sweep, gradient)
+    assert lines[0] == "title"
     assert lines[1].startswith("  mu 0 ") and lines[1].endswith("2 of 3")
     assert lines[2].startswith("  mu 1 ") and lines[2].endswith("1 of 3")
     assert lines[3].split()[-3:] == ["0.0400", "0.0300", "0.0500"]
     assert lines[4].split()[-3:] == ["0.0500", "0.0500", "0.0500"]
+    # without the smallest row (the descent sweep): the rows, then the gradient
+    lines = sweep_lines("title", sweep, gradient, smallest=False)
+    assert len(lines) == 4 and lines[3].startswith("  the gradient solve")
 
 
 def test_bench_help_is_the_named_benchmarks_own(capsys) -> None:

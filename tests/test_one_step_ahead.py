@@ -10,7 +10,7 @@ import pytest
 
 from firmware_sim.plant import BoucWenParams
 from mrrig.controllers import ControlInput, Controller, NetworkInversion
-from mrrig.inversion import exact_inversion, flow_inversion, gradient_inversion
+from mrrig.inversion import ScalarInverter, exact_inversion, flow_inversion, gradient_inversion
 from mrrig.model.mlp import MLP
 from mrrig.simulation import closed_loop
 from tests.test_inversion import I_MAX, random_model
@@ -189,6 +189,30 @@ def test_the_flow_ends_where_the_papers_1000_descent_steps_end():
     assert err[1].mean() > err[4].mean() > err[64].mean()  # converges with the steps
     with pytest.raises(ValueError, match="steps"):
         flow_inversion(model, feats, f_des, i_max=I_MAX, steps=0)
+
+
+def test_the_descent_run_longer_stays_on_the_flow_and_ends_at_the_root():
+    """`bench paper --descent-sweep`'s rows: the flow at longer descent times is the paper's
+    descent with more iterations, and at descent time 100 it is the exact root."""
+    model = random_model(np.random.default_rng(36), monotone=True)
+    rng = np.random.default_rng(37)
+    feats = rng.normal(size=(200, 3)) * [0.01, 0.1, 5.0]
+    f_des = rng.uniform(-400.0, 600.0, 200)
+    i0 = rng.uniform(0.0, I_MAX, 200)
+    longer = gradient_inversion(model, feats, f_des, i_max=I_MAX, i0=i0, iterations=10_000)
+    flow = flow_inversion(model, feats, f_des, i_max=I_MAX, i0=i0, duration=10.0)
+    assert np.abs(flow - longer).max() < 1e-3 * I_MAX
+    # 4 steps for the whole of it overshoot where the force bends: the steps grow with it
+    few = flow_inversion(model, feats, f_des, i_max=I_MAX, i0=i0, duration=100.0, steps=4)
+    root = exact_inversion(model, feats, f_des, i0, i_max=I_MAX)
+    end = flow_inversion(model, feats, f_des, i_max=I_MAX, i0=i0, duration=100.0)
+    np.testing.assert_allclose(end, root, atol=1e-9)
+    assert np.abs(few - root).max() > 0.1 * I_MAX
+    # the scalar path takes the same steps
+    inv = ScalarInverter(model, I_MAX)
+    rows = zip(feats[:20], f_des[:20], i0[:20], strict=True)
+    one = [inv.flow(f, d, s, 100.0) for f, d, s in rows]
+    np.testing.assert_allclose(one, root[:20], atol=1e-9)
 
 
 def test_network_inversion_by_the_flow_uses_it_from_the_current_now():

@@ -71,6 +71,9 @@ CHOICE_WARMUP_S = 0.2  # not scored: each block's loop starts at rest, the train
 RANDOM_STARTS = 8
 # --continuity-sweep: the exact solve's reach on the validation cases over its one knob
 CONTINUITY_SWEEP = (0.0, 0.01, 0.03, 0.1, 0.3, 0.5, 1.0, 2.0, 3.0, 5.0, 10.0)
+# --descent-sweep: the paper's descent run longer, towards the root it solves for; descent
+# time = rate x iterations (1 = the paper's 0.001 x 1000)
+DESCENT_TIMES = (1.0, 3.0, 10.0, 100.0)
 
 # spec/modeling.md section 6; columns in the order of dataset_a_validation()
 PAPER_TABLE_6 = {
@@ -374,42 +377,65 @@ def inversion_cost(
     }
 
 
+def _loop_et(ctrl: Controller, params: BoucWenParams, loop: tuple, u0: np.ndarray) -> list[float]:
+    """Each case's Et of one controller in the paper's loop (`loop`: the cases' stacked x, xd,
+    xdd, f_des; u0: the dampers' initial coil state)."""
+    res = closed_loop(ctrl, params, DT_S, *loop, u0=u0)
+    return [error_norm(d, a) for d, a in zip(res.f_des, res.f_act, strict=True)]
+
+
 def continuity_sweep(
     fwd: MLP, params: BoucWenParams, loop: tuple, u0: np.ndarray
 ) -> dict[str, list[float]]:
     """The default exact solve (the paper's loop, no feedback) at every continuity of
     `CONTINUITY_SWEEP`: what its one knob can reach on the validation cases. A diagnostic,
-    chosen on nothing; the default's continuity stays the one of the training rows.
-    `loop`: the cases' stacked (x, xd, xdd, f_des); u0: the dampers' initial coil state."""
+    chosen on nothing; the default's continuity stays the one of the training rows."""
     sweep = {}
     for mu in CONTINUITY_SWEEP:
         ctrl = NetworkInversion(VMAX_V, fwd, method="exact", dt_s=DT_S, continuity=mu)
-        res = closed_loop(ctrl, params, DT_S, *loop, u0=u0)
-        sweep[f"{mu:g}"] = row = [
-            error_norm(d, a) for d, a in zip(res.f_des, res.f_act, strict=True)
-        ]
+        sweep[f"mu {mu:g}"] = row = _loop_et(ctrl, params, loop, u0)
         log.info("continuity sweep, mu %g: Et %s", mu, " ".join(f"{e:.4f}" for e in row))
     return sweep
 
 
-def sweep_lines(sweep: dict[str, list[float]], gradient: list[float]) -> list[str]:
-    """The sweep against the gradient solve in the same loop: each continuity's cases at or
-    below it, and each case's smallest Et over the sweep."""
-    lines = ["The exact solve at each continuity, paper loop (a diagnostic, chosen on nothing):"]
-    for mu, row in sweep.items():
-        at_or_below = sum(e <= g for e, g in zip(row, gradient, strict=True))
-        lines.append(
-            f"  {'mu ' + mu:<38}"
-            + "".join(f"{e:>9.4f}" for e in row)
-            + f"   {at_or_below} of {len(row)}"
+def descent_sweep(
+    fwd: MLP, params: BoucWenParams, loop: tuple, u0: np.ndarray
+) -> dict[str, list[float]]:
+    """The paper's descent run for each descent time of `DESCENT_TIMES` (its flow,
+    `flow_inversion`, from the same random first start as the table's gradient row), then
+    the root it solves for: how its Et moves as it gets nearer to solving f_net(i) = f_d.
+    A diagnostic of what the gradient's Et owes to the descent stopping short."""
+    sweep = {}
+    for t in DESCENT_TIMES:
+        iterations = round(t / 1e-3)
+        ctrl = NetworkInversion(
+            VMAX_V, fwd, method="flow", dt_s=DT_S, gradient_iterations=iterations
         )
-    best = np.min(np.array(list(sweep.values())), axis=0)
-    lines.append(f"  {'smallest over the sweep':<38}" + "".join(f"{e:>9.4f}" for e in best))
+        sweep[f"descent time {t:g} ({iterations} it.)"] = row = _loop_et(ctrl, params, loop, u0)
+        log.info("descent sweep, time %g: Et %s", t, " ".join(f"{e:.4f}" for e in row))
+    root = NetworkInversion(VMAX_V, fwd, method="exact", dt_s=DT_S)
+    sweep["the root (the descent's end)"] = _loop_et(root, params, loop, u0)
+    return sweep
+
+
+def sweep_lines(
+    title: str, sweep: dict[str, list[float]], gradient: list[float], smallest: bool = True
+) -> list[str]:
+    """A sweep against the gradient solve in the same loop: each row's cases at or below it,
+    and (`smallest`) each case's smallest Et over the sweep."""
+    lines = [title]
+    for label, row in sweep.items():
+        at_or_below = sum(e <= g for e, g in zip(row, gradient, strict=True))
+        cells = "".join(f"{e:>9.4f}" for e in row)
+        lines.append(f"  {label:<38}{cells}   {at_or_below} of {len(row)}")
+    if smallest:
+        best = np.min(np.array(list(sweep.values())), axis=0)
+        lines.append(f"  {'smallest over the sweep':<38}" + "".join(f"{e:>9.4f}" for e in best))
     lines.append(f"  {'the gradient solve':<38}" + "".join(f"{e:>9.4f}" for e in gradient))
     return lines
 
 
-def run(seed: int = 0, epochs: int = 1000, sweep: bool = False) -> dict:
+def run(seed: int = 0, epochs: int = 1000, sweep: bool = False, descent: bool = False) -> dict:
     """The whole benchmark; returns every number it prints."""
     params = BoucWenParams.preset("paper-volt")
     t0 = time.perf_counter()
@@ -464,6 +490,7 @@ def run(seed: int = 0, epochs: int = 1000, sweep: bool = False) -> dict:
         )
     return {
         **({"continuity_sweep": continuity_sweep(fwd, params, loop, u0)} if sweep else {}),
+        **({"descent_sweep": descent_sweep(fwd, params, loop, u0)} if descent else {}),
         "cases": [c.name for c in cases],
         "vmax_v": VMAX_V,
         "dt_s": DT_S,
@@ -612,8 +639,13 @@ def format_report(r: dict) -> str:
     lines += acceptance_lines(
         r["table6"], r["paper_table6"]["network_inversion"], r["random_starts"]
     )
+    gradient = r["table6"]["network_inversion"]
     if "continuity_sweep" in r:
-        lines += sweep_lines(r["continuity_sweep"], r["table6"]["network_inversion"])
+        title = "The exact solve at each continuity, paper loop (a diagnostic, chosen on nothing):"
+        lines += sweep_lines(title, r["continuity_sweep"], gradient)
+    if "descent_sweep" in r:
+        title = "The paper's descent run longer, paper loop (its flow; a diagnostic):"
+        lines += sweep_lines(title, r["descent_sweep"], gradient, smallest=False)
     lines.append("")
     lines.append(
         "Forward model open-loop Et on the validation cases: "
@@ -680,8 +712,15 @@ def main(argv: list[str] | None = None) -> int:
         action="store_true",
         help="also run the default exact solve at continuities 0 to 10 (about 40 s more)",
     )
+    ap.add_argument(
+        "--descent-sweep",
+        action="store_true",
+        help="also run the paper's descent for longer descent times, and the root it ends at",
+    )
     args = ap.parse_args(argv)
-    result = run(seed=args.seed, epochs=args.epochs, sweep=args.continuity_sweep)
+    result = run(
+        seed=args.seed, epochs=args.epochs, sweep=args.continuity_sweep, descent=args.descent_sweep
+    )
     print(format_report(result))
     if args.json:
         args.json.write_text(json.dumps(result, indent=2))
