@@ -441,7 +441,9 @@ def sweep_lines(
     return lines
 
 
-def run(seed: int = 0, epochs: int = 1000, sweep: bool = False, descent: bool = False) -> dict:
+def run(
+    seed: int = 0, epochs: int = 1000, sweep_continuity: bool = False, sweep_descent: bool = False
+) -> dict:
     """The whole benchmark; returns every number it prints."""
     params = BoucWenParams.preset("paper-volt")
     t0 = time.perf_counter()
@@ -480,8 +482,8 @@ def run(seed: int = 0, epochs: int = 1000, sweep: bool = False, descent: bool = 
     for name, ctrl in controllers(models, choice, mu).items():
         # the descents (gradient, flow) from a random start per lane: the first len(cases)
         # lanes draw the single run's starts
-        descent = isinstance(ctrl, NetworkInversion) and ctrl.method != "exact"
-        lanes = RANDOM_STARTS if descent else 1
+        random_start = isinstance(ctrl, NetworkInversion) and ctrl.method != "exact"
+        lanes = RANDOM_STARTS if random_start else 1
         t0 = time.perf_counter()
         tiled = (np.tile(a, (lanes, 1)) for a in loop)
         res = closed_loop(ctrl, params, DT_S, *tiled, u0=np.tile(u0, lanes))
@@ -495,8 +497,12 @@ def run(seed: int = 0, epochs: int = 1000, sweep: bool = False, descent: bool = 
             "%s: Et %s (%.1f s)", name, " ".join(f"{e:.4f}" for e in table[name]), seconds[name]
         )
     return {
-        **({"continuity_sweep": continuity_sweep(fwd, params, loop, u0)} if sweep else {}),
-        **({"descent_sweep": descent_sweep(fwd, params, loop, u0)} if descent else {}),
+        **(
+            {"continuity_sweep": continuity_sweep(fwd, params, loop, u0)}
+            if sweep_continuity
+            else {}
+        ),
+        **({"descent_sweep": descent_sweep(fwd, params, loop, u0)} if sweep_descent else {}),
         "cases": [c.name for c in cases],
         "vmax_v": VMAX_V,
         "dt_s": DT_S,
@@ -726,7 +732,10 @@ def main(argv: list[str] | None = None) -> int:
     )
     args = ap.parse_args(argv)
     result = run(
-        seed=args.seed, epochs=args.epochs, sweep=args.continuity_sweep, descent=args.descent_sweep
+        seed=args.seed,
+        epochs=args.epochs,
+        sweep_continuity=args.continuity_sweep,
+        sweep_descent=args.descent_sweep,
     )
     print(format_report(result))
     if args.json:
