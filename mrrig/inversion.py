@@ -43,7 +43,7 @@ from mrrig.model.mlp import MLP
 DEFAULT_CONTINUITY = 0.0  # mu of the exact solve without another choice: the root itself
 PAPER_CONTINUITY = 1.0  # mu equivalent to the paper's on-line gradient method (module docstring)
 # flow_inversion: steps per unit of descent time; within 2 mV rms of the paper's 1000
-# iterations (bench paper), the root to 1e-12 A at descent time 100 (tests)
+# iterations (bench paper), the root to 1e-9 A at descent time 100 (tests)
 FLOW_STEPS = 4
 
 

@@ -408,9 +408,9 @@ def descent_sweep(
     fwd: MLP, params: BoucWenParams, loop: tuple, u0: np.ndarray
 ) -> dict[str, list[float]]:
     """The paper's descent run for each descent time of `DESCENT_TIMES` (its flow,
-    `flow_inversion`, from the same random first start as the table's gradient row), then
-    the root it solves for: how its Et moves as it gets nearer to solving f_net(i) = f_d.
-    A diagnostic of what the gradient's Et owes to the descent stopping short."""
+    `flow_inversion`, from the same random first start as the table's gradient row): how its
+    Et moves as it gets nearer to solving f_net(i) = f_d (`run` adds the root it ends at, the
+    table's row). A diagnostic of what the gradient's Et owes to the descent stopping short."""
     sweep = {}
     for t in DESCENT_TIMES:
         iterations = round(t / 1e-3)
@@ -419,8 +419,6 @@ def descent_sweep(
         )
         sweep[f"descent time {t:g} ({iterations} it.)"] = row = _loop_et(ctrl, params, loop, u0)
         log.info("descent sweep, time %g: Et %s", t, " ".join(f"{e:.4f}" for e in row))
-    root = NetworkInversion(VMAX_V, fwd, method="exact", dt_s=DT_S)
-    sweep["the root (the descent's end)"] = _loop_et(root, params, loop, u0)
     return sweep
 
 
@@ -502,7 +500,16 @@ def run(
             if sweep_continuity
             else {}
         ),
-        **({"descent_sweep": descent_sweep(fwd, params, loop, u0)} if sweep_descent else {}),
+        **(
+            {
+                "descent_sweep": {
+                    **descent_sweep(fwd, params, loop, u0),
+                    "the root (the descent's end)": table["network_inversion_root"],
+                }
+            }
+            if sweep_descent
+            else {}
+        ),
         "cases": [c.name for c in cases],
         "vmax_v": VMAX_V,
         "dt_s": DT_S,
