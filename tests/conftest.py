@@ -20,6 +20,15 @@ REPO = Path(__file__).resolve().parents[1]
 # scheduler of this 2-core VM now and then hold frames for over 20 ms, which trips the
 # firmware's watchdog or the daemon's sensor timeout
 TRANSPORT_FAULT_REASONS = ("firmware watchdog tripped", "no sensor frame")
+# a valid RigSensors message's signals (a machine at rest, actuator on, no fault)
+SENSORS = {
+    "ActuatorEnabled": 1,
+    "LimitTripped": 0,
+    "EStop": 0,
+    "SensorFault": 0,
+    "Displacement": 0.001,
+    "Force": 10.0,
+}
 
 
 SMALL = dict(amplitudes_m=(0.010, 0.020), freqs_hz=(2.0, 5.0), currents_a=(0.0, 0.6, 1.2))

@@ -6,22 +6,14 @@ import subprocess
 import sys
 import textwrap
 import uuid
-from collections.abc import Iterator
 
 import can
 import pytest
 
 from mrrig.canbus.bus import BusError, find_free_port, open_bus, start_bridge, stop_bridge
 from mrrig.canbus.codec import Codec
+from tests.conftest import SENSORS
 
-SENSORS = {
-    "ActuatorEnabled": 1,
-    "LimitTripped": 0,
-    "EStop": 0,
-    "SensorFault": 0,
-    "Displacement": 0.001,
-    "Force": 10.0,
-}
 RECV_TIMEOUT_S = 5.0
 
 # The firmware's side, in its own process: answer each valid RigSensors with a DamperCommand
@@ -51,16 +43,6 @@ ECHO_CHILD = textwrap.dedent("""
 """)
 
 
-@pytest.fixture
-def bridge_url() -> Iterator[str]:
-    port = find_free_port()
-    proc = start_bridge(port)
-    try:
-        yield f"ws://127.0.0.1:{port}/"
-    finally:
-        stop_bridge(proc)
-
-
 def _frame(arbitration_id: int = 0x110, fill: int = 1) -> can.Message:
     return can.Message(arbitration_id=arbitration_id, is_extended_id=False, data=[fill] * 8)
 
@@ -86,15 +68,15 @@ def test_open_bus_failure_names_interface_and_channel() -> None:
         open_bus("no-such-interface", "x")
 
 
-def test_start_bridge_refuses_a_port_in_use(bridge_url: str) -> None:
-    port = int(bridge_url.rsplit(":", 1)[1].strip("/"))
+def test_start_bridge_refuses_a_port_in_use(bridge: str) -> None:
+    port = int(bridge.rsplit(":", 1)[1].strip("/"))
     with pytest.raises(BusError, match=f"port 127.0.0.1:{port} already in use"):
         start_bridge(port)
 
 
-def test_bridge_broadcasts_to_other_clients_not_back_to_the_sender(bridge_url: str) -> None:
-    a, b, c = (open_bus("remote", bridge_url) for _ in range(3))
-    own = open_bus("remote", bridge_url, receive_own_messages=True)
+def test_bridge_broadcasts_to_other_clients_not_back_to_the_sender(bridge: str) -> None:
+    a, b, c = (open_bus("remote", bridge) for _ in range(3))
+    own = open_bus("remote", bridge, receive_own_messages=True)
     try:
         a.send(_frame(0x110, 1))
         for bus in (b, c, own):
@@ -110,12 +92,12 @@ def test_bridge_broadcasts_to_other_clients_not_back_to_the_sender(bridge_url: s
             bus.shutdown()
 
 
-def test_two_processes_exchange_frames_through_the_bridge(bridge_url: str) -> None:
+def test_two_processes_exchange_frames_through_the_bridge(bridge: str) -> None:
     n_frames = 30
     codec = Codec()
     packer, parser = codec.packer("RIG"), codec.parser()
     child = subprocess.Popen(
-        [sys.executable, "-c", ECHO_CHILD, bridge_url, str(n_frames)],
+        [sys.executable, "-c", ECHO_CHILD, bridge, str(n_frames)],
         stdout=subprocess.PIPE,
         text=True,
     )
@@ -123,7 +105,7 @@ def test_two_processes_exchange_frames_through_the_bridge(bridge_url: str) -> No
     try:
         assert child.stdout is not None
         assert child.stdout.readline().strip() == "ready"
-        bus = open_bus("remote", bridge_url)
+        bus = open_bus("remote", bridge)
         echoes = []
         for i in range(n_frames):
             sent = packer.encode("RigSensors", dict(SENSORS, Force=float(i)))

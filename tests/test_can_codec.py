@@ -16,6 +16,7 @@ from mrrig.canbus.codec import (
     EncodeError,
     profile2_crc,
 )
+from tests.conftest import SENSORS
 
 # The contract's test vectors: (message, counter, values, payload).
 VECTORS = [
@@ -94,15 +95,6 @@ CONTRACT_IDS = {  # message: (CAN ID, Data ID, sender)
     "RigStatus": (0x111, 0x52, "RIG"),
     "DamperCommand": (0x210, 0x61, "DAEMON"),
     "ActuatorCommand": (0x211, 0x62, "DAEMON"),
-}
-
-SENSORS = {
-    "ActuatorEnabled": 1,
-    "LimitTripped": 0,
-    "EStop": 0,
-    "SensorFault": 0,
-    "Displacement": 0.001,
-    "Force": 10.0,
 }
 
 
