@@ -25,6 +25,7 @@ from firmware_sim.config import FAULT_KINDS, ConfigError, FaultSpec, load_config
 from firmware_sim.firmware import Firmware
 from firmware_sim.runner import RunStats, run, tune_process
 from mrrig.canbus import DEFAULT_DBC_PATH, BusError, Codec, open_bus
+from mrrig.cli_args import positive
 
 logger = logging.getLogger("firmware_sim")
 
@@ -51,7 +52,7 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="KIND@START_S[:DUR_S]",
         help=f"inject a fault (repeatable); KIND: {', '.join(FAULT_KINDS)}",
     )
-    ap.add_argument("--duration", type=float, metavar="S", help="stop after S seconds")
+    ap.add_argument("--duration", type=positive, metavar="S", help="stop after S seconds")
     ap.add_argument("--stats", type=Path, metavar="FILE", help="write run statistics (JSON)")
     return ap
 

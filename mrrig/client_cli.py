@@ -13,6 +13,7 @@ import sys
 from pathlib import Path
 
 from mrrig import client
+from mrrig.cli_args import finite, positive
 
 DEFAULT_ZENOH = Path("configs/zenoh-client.json5")
 
@@ -20,7 +21,7 @@ DEFAULT_ZENOH = Path("configs/zenoh-client.json5")
 def _common(ap: argparse.ArgumentParser) -> None:
     ap.add_argument("--rig", default="sim", help="rig name (the Zenoh key prefix mrrig/<rig>)")
     ap.add_argument("--zenoh-config", type=Path, default=DEFAULT_ZENOH)
-    ap.add_argument("--timeout", type=float, default=2.0, help="seconds to wait for the daemon")
+    ap.add_argument("--timeout", type=positive, default=2.0, help="seconds to wait for the daemon")
 
 
 def _print_reply(reply: dict) -> int:
@@ -35,13 +36,13 @@ def main(argv: list[str]) -> int:
     if command == "control":
         ap.add_argument("request", help='a JSON request, e.g. \'{"cmd": "status"}\'')
     elif command == "watch":
-        ap.add_argument("--duration", type=float, help="seconds (default: until Ctrl-C)")
+        ap.add_argument("--duration", type=positive, help="seconds (default: until Ctrl-C)")
     elif command == "send-force":
         src = ap.add_mutually_exclusive_group(required=True)
         src.add_argument("--csv", type=Path, help="profile file with columns t_s,force_n")
-        src.add_argument("--sine", nargs=3, type=float, metavar=("OFFSET_N", "AMP_N", "FREQ_HZ"))
-        ap.add_argument("--rate", type=float, default=100.0, help="puts per second")
-        ap.add_argument("--duration", type=float, help="seconds (default: the CSV's length)")
+        src.add_argument("--sine", nargs=3, type=finite, metavar=("OFFSET_N", "AMP_N", "FREQ_HZ"))
+        ap.add_argument("--rate", type=positive, default=100.0, help="puts per second")
+        ap.add_argument("--duration", type=positive, help="seconds (default: the CSV's length)")
     args = ap.parse_args(rest)
     zc = args.zenoh_config
     if command == "status":

@@ -28,6 +28,7 @@ import numpy as np
 from mrrig import reference as ref
 from mrrig.canbus.bus import open_bus
 from mrrig.canbus.codec import Codec
+from mrrig.cli_args import positive
 from mrrig.config import DaemonConfig, ReferenceSection, load_config
 from mrrig.controllers import (
     ConstantCurrent,
@@ -625,7 +626,7 @@ def _jsonable(d: Any) -> Any:
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="mrrig run", description="Run the rig daemon.")
     ap.add_argument("--config", required=True, type=Path, help="daemon config (TOML)")
-    ap.add_argument("--duration", type=float, help="stop after this many seconds")
+    ap.add_argument("--duration", type=positive, help="stop after this many seconds")
     ap.add_argument("--arm", action="store_true", help="arm at start (commands ACTIVE)")
     ap.add_argument(
         "--record", type=Path, help="recording file (default: recordings/<rig>-<UTC>.rrd)"

@@ -21,6 +21,7 @@ import time
 from pathlib import Path
 
 from mrrig.canbus.bus import find_free_port, start_bridge, stop_bridge
+from mrrig.cli_args import positive
 from mrrig.config import load_config
 from mrrig.realtime import keep_off_cpu
 
@@ -57,7 +58,7 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="mrrig demo", description=__doc__)
     ap.add_argument("--config", type=Path, default=Path("configs/rig.toml"))
     ap.add_argument("--sim-config", type=Path, default=Path("configs/sim.toml"))
-    ap.add_argument("--duration", type=float, default=20.0, help="force-tracking time, s")
+    ap.add_argument("--duration", type=positive, default=20.0, help="force-tracking time, s")
     ap.add_argument("--model", type=Path, default=SIM_MODEL)
     ap.add_argument(
         "--record", type=Path, help="recording path (default recordings/<rig>-<UTC>.rrd)"

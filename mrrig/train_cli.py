@@ -16,6 +16,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
+from mrrig.cli_args import COUNT, SEED, int_at_least, positive
 from mrrig.datasets import DataError
 from mrrig.train_config import TrainConfig, load_train_config
 from mrrig.training import (
@@ -170,13 +171,13 @@ def _parser(cfg: TrainConfig) -> argparse.ArgumentParser:
     )
     ap.add_argument(
         "--lag-tau-s",
-        type=float,
+        type=positive,
         default=f.lag_tau_s,
         help="coil lag time constant for --current-input lagged (default %(default).6g s)",
     )
     ap.add_argument(
         "--history",
-        type=int,
+        type=int_at_least(0),
         default=f.history_samples,
         metavar="N",
         help="history inputs: the previous N samples of --history-signals (default %(default)s; "
@@ -190,30 +191,30 @@ def _parser(cfg: TrainConfig) -> argparse.ArgumentParser:
         "current within a run)",
     )
     ap.add_argument(
-        "--epochs", type=int, default=t.epochs, help="LM epoch limit (default %(default)s)"
+        "--epochs", type=COUNT, default=t.epochs, help="LM epoch limit (default %(default)s)"
     )
     ap.add_argument(
-        "--seed", type=int, default=t.seed, help="split and initial weights (default %(default)s)"
+        "--seed", type=SEED, default=t.seed, help="split and initial weights (default %(default)s)"
     )
     ap.add_argument(
         "--restarts",
-        type=int,
+        type=COUNT,
         default=t.restarts,
         help="forward-network starts from different initial weights; the one with the best "
         "on-line inverse on the training rows is kept (default %(default)s)",
     )
     ap.add_argument(
         "--n-train",
-        type=int,
+        type=COUNT,
         default=t.n_train,
         help="training samples (default %(default)s; 90/10 of all samples where fewer)",
     )
     ap.add_argument(
-        "--n-val", type=int, default=t.n_val, help="validation samples (default %(default)s)"
+        "--n-val", type=COUNT, default=t.n_val, help="validation samples (default %(default)s)"
     )
     ap.add_argument(
         "--i-max",
-        type=float,
+        type=positive,
         default=t.i_max_a,
         help="inversion bound, A (default: "
         + ("the data's largest" if t.i_max_a is None else f"{t.i_max_a:g}")
@@ -237,10 +238,6 @@ def main(argv: list[str] | None = None) -> int:
     config_path = pre.parse_known_args(argv)[0].config
     cfg = TrainConfig() if config_path is None else load_train_config(config_path)
     args = _parser(cfg).parse_args(argv)
-    if args.epochs < 1:
-        raise DataError(f"--epochs must be >= 1, got {args.epochs}")
-    if args.restarts < 1:
-        raise DataError(f"--restarts must be >= 1, got {args.restarts}")
     if not args.supervised and args.supervised_out:
         raise DataError(
             "--supervised-out needs the supervised model: drop --no-supervised "

@@ -27,6 +27,7 @@ from mrrig.characterize import (
     rig_overrides,
     stop_on_signals,
 )
+from mrrig.cli_args import non_negative, positive
 from mrrig.config import load_config
 from mrrig.daemon import build_controller
 from mrrig.recording import to_json
@@ -95,14 +96,12 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="mrrig validate", description=__doc__.splitlines()[0])
     ap.add_argument("model", nargs="+", type=Path, help="forward model file(s) (mrrig train)")
     ap.add_argument("--rig-config", type=Path, default=Path("configs/rig.toml"))
-    ap.add_argument("--duration", type=float, default=10.0, help="kept per model, s")
-    ap.add_argument("--settle", type=float, default=1.0, help="after arming, not kept, s")
+    ap.add_argument("--duration", type=positive, default=10.0, help="kept per model, s")
+    ap.add_argument("--settle", type=non_negative, default=1.0, help="after arming, not kept, s")
     ap.add_argument("--bus-channel", help="override bus.channel of the rig config")
     ap.add_argument("--no-telemetry", action="store_true", help="no Zenoh telemetry")
     ap.add_argument("--json", type=Path, help="write the reports (a list) as JSON")
     args = ap.parse_args(argv)
-    if not (args.duration > 0 and args.settle >= 0):
-        raise ConfigError("--duration must be > 0 and --settle >= 0")
     overrides = rig_overrides(
         args.bus_channel,
         args.no_telemetry,

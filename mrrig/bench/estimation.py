@@ -16,6 +16,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
+from mrrig.cli_args import SEED, non_negative, positive
 from mrrig.estimation import Q_VAR, KalmanEstimator, finite_difference
 from mrrig.metrics import percentiles, rmse
 
@@ -145,9 +146,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser = argparse.ArgumentParser(
         prog="mrrig bench estimation", description=__doc__.splitlines()[0]
     )
-    parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--noise-um", type=float, default=20.0, help="displacement noise std")
-    parser.add_argument("--duration-s", type=float, default=2.0, help="length of each run")
+    parser.add_argument("--seed", type=SEED, default=0)
+    parser.add_argument(
+        "--noise-um", type=non_negative, default=20.0, help="displacement noise std"
+    )
+    parser.add_argument("--duration-s", type=positive, default=2.0, help="length of each run")
     parser.add_argument("-v", "--verbose", action="store_true", help="log progress")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING)

@@ -21,6 +21,7 @@ from collections.abc import Callable, Sequence
 
 import numpy as np
 
+from mrrig.cli_args import COUNT, SEED, non_negative
 from mrrig.inversion import ScalarInverter, exact_inversion, gradient_inversion
 from mrrig.metrics import error_norm, percentiles, rmse
 from mrrig.model.mlp import MLP
@@ -102,17 +103,17 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="mrrig bench inversion", description=__doc__.split("\n")[0])
     ap.add_argument("--data", choices=("a", "b", "synthetic"), default="a")
     ap.add_argument("--model", help="a saved forward model (skips training)")
-    ap.add_argument("--epochs", type=int, default=1000, help="LM max epochs (default 1000)")
-    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--epochs", type=COUNT, default=1000, help="LM max epochs (default 1000)")
+    ap.add_argument("--seed", type=SEED, default=0)
     ap.add_argument(
         "--gradient-scalar-samples",
-        type=int,
+        type=COUNT,
         default=50,
         help="samples for the slow scalar gradient path (default 50)",
     )
     ap.add_argument(
         "--continuity",
-        type=float,
+        type=non_negative,
         help="the regularised solve's weight to time as well (default: the model's own"
         f" online_continuity, as the daemon solves; {DEMO_CONTINUITY:g} for a model without one)",
     )

@@ -31,6 +31,7 @@ import numpy as np
 
 from firmware_sim.plant import BoucWenDamper, BoucWenParams, simulate
 from firmware_sim.signals import sine
+from mrrig.cli_args import COUNT, SEED
 from mrrig.controllers import ControlInput, Controller, NetworkInversion, SupervisedInverse
 from mrrig.datasets import DISPLACEMENT_LSB_M, Series, dataset_b, dataset_b_conditions
 from mrrig.estimation import KalmanEstimator
@@ -280,8 +281,8 @@ def format_report(r: dict) -> str:
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="mrrig bench matrix", description=__doc__.splitlines()[0])
     ap.add_argument("--json", type=Path, help="also write the numbers to this JSON file")
-    ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--epochs", type=int, default=1000, help="LM epoch limit (default 1000)")
+    ap.add_argument("--seed", type=SEED, default=0)
+    ap.add_argument("--epochs", type=COUNT, default=1000, help="LM epoch limit (default 1000)")
     ap.add_argument("--current-input", choices=("commanded", "lagged"), default="commanded")
     args = ap.parse_args(argv)
     result = run(seed=args.seed, epochs=args.epochs, current_input=args.current_input)

@@ -12,6 +12,8 @@ import logging
 import signal
 import sys
 
+from mrrig.cli_args import port
+
 log = logging.getLogger(__name__)
 
 
@@ -21,7 +23,7 @@ def _interrupt(signum: int, frame: object) -> None:
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="mrrig bridge", description=__doc__.splitlines()[0])
-    ap.add_argument("--port", type=int, default=54701)
+    ap.add_argument("--port", type=port, default=54701)
     ap.add_argument("--channel", default="rig", help="virtual channel name")
     ap.add_argument("--host", default="127.0.0.1", help="listen address (loopback only)")
     args = ap.parse_args(argv)

@@ -1,0 +1,37 @@
+"""A bad number on the command line stops the command at parsing: exit 2 and one line naming
+the flag, before a bus, a process or a training run starts."""
+
+from __future__ import annotations
+
+import pytest
+
+from mrrig.cli import main
+
+CASES = [
+    (["bench", "paper", "--epochs", "-3"], "argument --epochs: must be >= 1, got -3"),
+    (["bench", "matrix", "--seed", "-1"], "argument --seed: must be >= 0, got -1"),
+    (["bench", "inversion", "--continuity", "-1"], "argument --continuity: must be >= 0, got -1"),
+    (["bench", "estimation", "--duration-s", "0"], "argument --duration-s: must be > 0, got 0"),
+    (["bench", "loop", "--duration", "nan"], "argument --duration: must be finite, got nan"),
+    (["demo", "--duration", "-20"], "argument --duration: must be > 0, got -20"),
+    (["run", "--config", "rig.toml", "--duration", "0"], "argument --duration: must be > 0"),
+    (["sim", "--duration", "inf"], "argument --duration: must be finite, got inf"),
+    (["bridge", "--port", "70000"], "argument --port: must be <= 65535, got 70000"),
+    (["train", "d.csv", "--n-train", "0"], "argument --n-train: must be >= 1, got 0"),
+    (["train", "d.csv", "--epochs", "ten"], "argument --epochs: expected an integer, got 'ten'"),
+    (["train", "d.csv", "--i-max", "-2"], "argument --i-max: must be > 0, got -2"),
+    (["validate", "m.json", "--settle", "-1"], "argument --settle: must be >= 0, got -1"),
+    (["send-force", "--sine", "0", "100", "inf"], "argument --sine: must be finite, got inf"),
+    (["send-force", "--csv", "p.csv", "--rate", "0"], "argument --rate: must be > 0, got 0"),
+    (["watch", "--timeout", "-1"], "argument --timeout: must be > 0, got -1"),
+]
+
+
+@pytest.mark.parametrize(("argv", "expected"), CASES, ids=[" ".join(a) for a, _ in CASES])
+def test_a_bad_number_stops_the_command_with_one_line(argv, expected, capsys) -> None:
+    with pytest.raises(SystemExit) as stop:
+        main(argv)
+    assert stop.value.code == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert expected in err[-1], err
+    assert "Traceback" not in "\n".join(err)
