@@ -114,12 +114,12 @@ def main(argv: list[str] | None = None) -> int:
         summary = stats.summary(firmware, wall_s, cpu_s)
         if args.stats is not None:
             args.stats.write_text(json.dumps(summary, indent=2) + "\n")
-        jitter = summary["period_jitter_us"]
+        p99 = summary["period_jitter_us"]["p99"]  # None: under two frames sent
         logger.info(
-            "%d sensor frames in %.1f s, jitter p99 %s us, CPU %.0f %%",
+            "%d sensor frames in %.1f s, jitter p99 %s, CPU %.0f %%",
             stats.sensor_frames_sent,
             wall_s,
-            jitter["p99"],
+            "n/a" if p99 is None else f"{p99:.1f} us",
             100.0 * summary["cpu_fraction"],
         )
         return rc
