@@ -143,17 +143,28 @@ def watch(
 
 
 def load_force_csv(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
-    """A force profile CSV: columns time (s) and force (N); non-numeric lines (a header) are
-    skipped. Returns (t_s, force_n) with t increasing."""
+    """A force profile CSV: columns time (s) and force (N), an optional header line first,
+    blank lines skipped. Returns (t_s, force_n) with t increasing. Any other line that is not
+    two finite numbers is an error naming it: a dropped row would be bridged by interpolation
+    and streamed as if it were the profile."""
     rows = []
-    for line in Path(path).read_text().splitlines():
+    for number, line in enumerate(Path(path).read_text().splitlines(), start=1):
+        if not line.strip():
+            continue
         cells = line.split(",")
         try:
-            rows.append((float(cells[0]), float(cells[1])))
+            row = (float(cells[0]), float(cells[1]))
         except (ValueError, IndexError):
-            continue
+            if number == 1:
+                continue  # the header
+            raise ValueError(
+                f"{path}:{number}: expected t_s,force_n numbers, got {line!r}"
+            ) from None
+        if not all(map(math.isfinite, row)):
+            raise ValueError(f"{path}:{number}: t_s and force_n must be finite, got {line!r}")
+        rows.append(row)
     if len(rows) < 2:
-        raise ValueError(f"{path}: a force profile needs at least two numeric rows t_s,force_n")
+        raise ValueError(f"{path}: a force profile needs at least two rows t_s,force_n")
     data = np.array(rows)
     if not np.all(np.diff(data[:, 0]) > 0):
         raise ValueError(f"{path}: time column must be strictly increasing")

@@ -320,6 +320,30 @@ def test_send_force_streams_the_csv_profile(rig: Rig, tmp_path: Path):
     assert forces == pytest.approx([0, 20, 40, 60, 80, 100])
 
 
+@pytest.mark.parametrize(
+    ("text", "expected"),
+    [
+        ("t_s,force_n\n0,0\n0.1,abc\n0.2,100\n", r"profile\.csv:3: expected t_s,force_n"),
+        ("0,0\n0.1\n0.2,100\n", r"profile\.csv:2: expected t_s,force_n"),
+        ("t_s,force_n\n0,0\n0.1,nan\n", r"profile\.csv:3: t_s and force_n must be finite"),
+        ("t_s,force_n\n0,0\n", "needs at least two rows"),
+        ("t_s,force_n\n0,0\n0,5\n", "strictly increasing"),
+    ],
+)
+def test_a_bad_force_profile_row_is_named_not_skipped(tmp_path: Path, text: str, expected: str):
+    csv = tmp_path / "profile.csv"
+    csv.write_text(text)
+    with pytest.raises(ValueError, match=expected):
+        client.load_force_csv(csv)
+
+
+def test_a_force_profile_may_have_a_header_and_blank_lines(tmp_path: Path):
+    csv = tmp_path / "profile.csv"
+    csv.write_text("t_s,force_n\n0,0\n\n0.1,100\n")
+    t_s, force_n = client.load_force_csv(csv)
+    assert t_s.tolist() == [0.0, 0.1] and force_n.tolist() == [0.0, 100.0]
+
+
 def test_request_without_a_daemon_is_a_clear_error(tmp_path: Path):
     port = _free_port()
     with pytest.raises(client.ClientError, match="daemon"):
