@@ -25,7 +25,7 @@ from firmware_sim.config import FAULT_KINDS, ConfigError, FaultSpec, load_config
 from firmware_sim.firmware import Firmware
 from firmware_sim.runner import RunStats, run, tune_process
 from mrrig.canbus import DEFAULT_DBC_PATH, BusError, Codec, open_bus
-from mrrig.cli_args import positive
+from mrrig.cli_args import output_file, positive
 
 logger = logging.getLogger("firmware_sim")
 
@@ -53,7 +53,7 @@ def build_parser() -> argparse.ArgumentParser:
         help=f"inject a fault (repeatable); KIND: {', '.join(FAULT_KINDS)}",
     )
     ap.add_argument("--duration", type=positive, metavar="S", help="stop after S seconds")
-    ap.add_argument("--stats", type=Path, metavar="FILE", help="write run statistics (JSON)")
+    ap.add_argument("--stats", type=output_file, metavar="FILE", help="write run statistics (JSON)")
     return ap
 
 

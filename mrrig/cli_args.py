@@ -1,12 +1,14 @@
-"""argparse types for the numeric flags: a bad value stops the command at parsing with a
-one-line error naming the flag (`argument --epochs: must be >= 1, got -3`), before anything
-starts or trains."""
+"""argparse types for the numeric and output-file flags: a bad value stops the command at
+parsing with a one-line error naming the flag (`argument --epochs: must be >= 1, got -3`),
+before anything starts or trains, so a long run does not end in an error about its report."""
 
 from __future__ import annotations
 
 import argparse
 import math
+import os
 from collections.abc import Callable
+from pathlib import Path
 
 
 def int_at_least(low: int) -> Callable[[str], int]:
@@ -22,6 +24,23 @@ def int_at_least(low: int) -> Callable[[str], int]:
         return value
 
     return parse
+
+
+def output_file(text: str) -> Path:
+    """A file to write at the end (a report, a model, a figure): its folder is made now, and a
+    path that cannot be written stops the command before its work, not after it."""
+    path = Path(text)
+    if path.is_dir():
+        raise argparse.ArgumentTypeError(f"{text} is a folder, not a file")
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise argparse.ArgumentTypeError(
+            f"cannot make the folder {path.parent}: {exc.strerror}"
+        ) from None
+    if not os.access(path if path.exists() else path.parent, os.W_OK):
+        raise argparse.ArgumentTypeError(f"{text}: not writable")
+    return path
 
 
 def port(text: str) -> int:

@@ -28,7 +28,7 @@ import numpy as np
 from mrrig import reference as ref
 from mrrig.canbus.bus import open_bus
 from mrrig.canbus.codec import Codec
-from mrrig.cli_args import positive
+from mrrig.cli_args import output_file, positive
 from mrrig.config import DaemonConfig, ReferenceSection, load_config
 from mrrig.controllers import (
     ConstantCurrent,
@@ -632,7 +632,7 @@ def main(argv: list[str] | None = None) -> int:
         "--record", type=Path, help="recording file (default: recordings/<rig>-<UTC>.rrd)"
     )
     ap.add_argument("--no-record", action="store_true", help="no Rerun recording")
-    ap.add_argument("--summary-json", type=Path, help="also write the summary to this file")
+    ap.add_argument("--summary-json", type=output_file, help="also write the summary to this file")
     ap.add_argument("--bus-interface", help="override bus.interface")
     ap.add_argument("--bus-channel", help="override bus.channel")
     ap.add_argument("--no-telemetry", action="store_true", help="no Zenoh telemetry")

@@ -6,6 +6,7 @@ import argparse
 import json
 from pathlib import Path
 
+from mrrig.cli_args import output_file
 from mrrig.review import plot_recording, read_recording, verify_rrd
 from mrrig.summary import format_summary, summarize
 
@@ -13,8 +14,8 @@ from mrrig.summary import format_summary, summarize
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="mrrig review", description=__doc__)
     ap.add_argument("file", type=Path, help="a recording (.rrd) written by the daemon")
-    ap.add_argument("--plot", type=Path, help="also write a figure (PNG) of the run")
-    ap.add_argument("--json", type=Path, help="also write the metrics as JSON")
+    ap.add_argument("--plot", type=output_file, help="also write a figure (PNG) of the run")
+    ap.add_argument("--json", type=output_file, help="also write the metrics as JSON")
     ap.add_argument("--verify", action="store_true", help="run `rerun rrd verify` first")
     args = ap.parse_args(argv)
     if args.verify:

@@ -16,7 +16,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from mrrig.cli_args import COUNT, SEED, int_at_least, positive
+from mrrig.cli_args import COUNT, SEED, output_file, positive
 from mrrig.datasets import DataError
 from mrrig.train_config import TrainConfig, load_train_config
 from mrrig.training import (
@@ -148,8 +148,8 @@ def _parser(cfg: TrainConfig) -> argparse.ArgumentParser:
     )
     ap.add_argument(
         "--out",
-        type=Path,
-        default=Path("models/forward.json"),
+        type=output_file,
+        default="models/forward.json",
         help="the forward model file (default models/forward.json)",
     )
     ap.add_argument(
@@ -177,7 +177,7 @@ def _parser(cfg: TrainConfig) -> argparse.ArgumentParser:
     )
     ap.add_argument(
         "--history",
-        type=int_at_least(0),
+        type=int,
         default=f.history_samples,
         metavar="N",
         help="history inputs: the previous N samples of --history-signals (default %(default)s; "
@@ -220,14 +220,16 @@ def _parser(cfg: TrainConfig) -> argparse.ArgumentParser:
         + ("the data's largest" if t.i_max_a is None else f"{t.i_max_a:g}")
         + ")",
     )
-    ap.add_argument("--supervised-out", type=Path, help="also write the supervised inverse MLP")
+    ap.add_argument(
+        "--supervised-out", type=output_file, help="also write the supervised inverse MLP"
+    )
     ap.add_argument(
         "--supervised",
         action=argparse.BooleanOptionalAction,
         default=t.supervised,
         help="train the supervised inverse MLP (--no-supervised: skip it, faster)",
     )
-    ap.add_argument("--report", type=Path, help="write the validation report as JSON")
+    ap.add_argument("--report", type=output_file, help="write the validation report as JSON")
     return ap
 
 
@@ -268,11 +270,9 @@ def main(argv: list[str] | None = None) -> int:
     fwd.meta["data_files"] = [str(p) for p in args.data]
     if config_path is not None:
         fwd.meta["train_config"] = str(config_path)
-    args.out.parent.mkdir(parents=True, exist_ok=True)
     fwd.save(args.out)
     log.info("wrote %s", args.out)
     if sup is not None and args.supervised_out:
-        args.supervised_out.parent.mkdir(parents=True, exist_ok=True)
         sup.save(args.supervised_out)
         log.info("wrote %s", args.supervised_out)
     if args.report:

@@ -27,7 +27,7 @@ from mrrig.characterize import (
     rig_overrides,
     stop_on_signals,
 )
-from mrrig.cli_args import non_negative, positive
+from mrrig.cli_args import non_negative, output_file, positive
 from mrrig.config import load_config
 from mrrig.daemon import build_controller
 from mrrig.recording import to_json
@@ -100,7 +100,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--settle", type=non_negative, default=1.0, help="after arming, not kept, s")
     ap.add_argument("--bus-channel", help="override bus.channel of the rig config")
     ap.add_argument("--no-telemetry", action="store_true", help="no Zenoh telemetry")
-    ap.add_argument("--json", type=Path, help="write the reports (a list) as JSON")
+    ap.add_argument("--json", type=output_file, help="write the reports (a list) as JSON")
     args = ap.parse_args(argv)
     overrides = rig_overrides(
         args.bus_channel,

@@ -6,6 +6,7 @@ from __future__ import annotations
 import pytest
 
 from mrrig.cli import main
+from mrrig.cli_args import output_file
 
 CASES = [
     (["bench", "paper", "--epochs", "-3"], "argument --epochs: must be >= 1, got -3"),
@@ -35,3 +36,23 @@ def test_a_bad_number_stops_the_command_with_one_line(argv, expected, capsys) ->
     err = capsys.readouterr().err.strip().splitlines()
     assert expected in err[-1], err
     assert "Traceback" not in "\n".join(err)
+
+
+def test_an_output_file_gets_its_folder_before_the_work(tmp_path) -> None:
+    out = tmp_path / "results" / "run1" / "metrics.json"
+    assert output_file(str(out)) == out
+    assert out.parent.is_dir() and not out.exists()
+
+
+def test_an_output_that_cannot_be_written_stops_the_command_at_parsing(tmp_path, capsys) -> None:
+    blocker = tmp_path / "a-file"
+    blocker.write_text("")
+    for out, expected in [
+        (tmp_path, "is a folder, not a file"),
+        (blocker / "metrics.json", f"cannot make the folder {blocker}"),
+    ]:
+        # the recording does not exist: the output is checked first, before any reading
+        with pytest.raises(SystemExit) as stop:
+            main(["review", str(tmp_path / "none.rrd"), "--json", str(out)])
+        assert stop.value.code == 2
+        assert expected in capsys.readouterr().err.strip().splitlines()[-1]

@@ -25,6 +25,7 @@ import numpy as np
 
 from mrrig.canbus.bus import open_bus
 from mrrig.canbus.codec import Codec
+from mrrig.cli_args import output_file
 from mrrig.config import load_config
 from mrrig.daemon import loop_realtime
 from mrrig.metrics import percentiles
@@ -107,7 +108,7 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="python -m mrrig.bench.echo", description=__doc__)
     ap.add_argument("--config", type=Path, default=Path("configs/rig.toml"))
     ap.add_argument("--bus-channel", help="override the config's bus channel")
-    ap.add_argument("--summary-json", type=Path, required=True)
+    ap.add_argument("--summary-json", type=output_file, required=True)
     args = ap.parse_args(argv)
     run(args.config, args.bus_channel, args.summary_json)
     return 0

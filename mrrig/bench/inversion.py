@@ -21,7 +21,7 @@ from collections.abc import Callable, Sequence
 
 import numpy as np
 
-from mrrig.cli_args import COUNT, SEED, non_negative
+from mrrig.cli_args import COUNT, SEED, non_negative, output_file
 from mrrig.inversion import ScalarInverter, exact_inversion, gradient_inversion
 from mrrig.metrics import error_norm, percentiles, rmse
 from mrrig.model.mlp import MLP
@@ -117,7 +117,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         help="the regularised solve's weight to time as well (default: the model's own"
         f" online_continuity, as the daemon solves; {DEMO_CONTINUITY:g} for a model without one)",
     )
-    ap.add_argument("--save", help="write the trained model here")
+    ap.add_argument("--save", type=output_file, help="write the trained model here")
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.WARNING)
 

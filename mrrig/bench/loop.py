@@ -24,7 +24,7 @@ import time
 from pathlib import Path
 
 from mrrig.canbus.bus import find_free_port, start_bridge, stop_bridge
-from mrrig.cli_args import positive
+from mrrig.cli_args import output_file, positive
 from mrrig.config import load_config
 from mrrig.realtime import keep_off_cpu
 
@@ -234,7 +234,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--sim-config", type=Path, default=Path("configs/sim.toml"))
     ap.add_argument("--duration", type=positive, default=60.0, help="seconds per run (default 60)")
     ap.add_argument("--only", choices=MODES, help="one run instead of all three")
-    ap.add_argument("--json", type=Path, help="also write the numbers here")
+    ap.add_argument("--json", type=output_file, help="also write the numbers here")
     args = ap.parse_args(argv)
     from mrrig.demo import SIM_MODEL, ensure_sim_model
 

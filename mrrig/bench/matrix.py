@@ -25,13 +25,12 @@ import argparse
 import json
 import logging
 import time
-from pathlib import Path
 
 import numpy as np
 
 from firmware_sim.plant import BoucWenDamper, BoucWenParams, simulate
 from firmware_sim.signals import sine
-from mrrig.cli_args import COUNT, SEED
+from mrrig.cli_args import COUNT, SEED, output_file
 from mrrig.controllers import ControlInput, Controller, NetworkInversion, SupervisedInverse
 from mrrig.datasets import DISPLACEMENT_LSB_M, Series, dataset_b, dataset_b_conditions
 from mrrig.estimation import KalmanEstimator
@@ -280,7 +279,7 @@ def format_report(r: dict) -> str:
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="mrrig bench matrix", description=__doc__.splitlines()[0])
-    ap.add_argument("--json", type=Path, help="also write the numbers to this JSON file")
+    ap.add_argument("--json", type=output_file, help="also write the numbers to this JSON file")
     ap.add_argument("--seed", type=SEED, default=0)
     ap.add_argument("--epochs", type=COUNT, default=1000, help="LM epoch limit (default 1000)")
     ap.add_argument("--current-input", choices=("commanded", "lagged"), default="commanded")

@@ -25,12 +25,11 @@ import argparse
 import json
 import logging
 import time
-from pathlib import Path
 
 import numpy as np
 
 from firmware_sim.plant import BoucWenParams
-from mrrig.cli_args import COUNT, SEED
+from mrrig.cli_args import COUNT, SEED, output_file
 from mrrig.controllers import (
     ContinuousState,
     Controller,
@@ -725,7 +724,7 @@ def format_report(r: dict) -> str:
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="mrrig bench paper", description=__doc__)
-    ap.add_argument("--json", type=Path, help="also write the numbers to this JSON file")
+    ap.add_argument("--json", type=output_file, help="also write the numbers to this JSON file")
     ap.add_argument("--seed", type=SEED, default=0)
     ap.add_argument("--epochs", type=COUNT, default=1000, help="LM epoch limit (default 1000)")
     ap.add_argument(
