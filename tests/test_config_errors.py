@@ -60,6 +60,8 @@ def run_daemon(tmp_path, text: str) -> subprocess.CompletedProcess:
             "controller.feedback_tau_s: must be >= 0",
         ),
         (BASE + "[loop\n", "not valid TOML"),
+        (BASE + "[reference]\ncurrent_a = nan\n", "reference.current_a: expected a finite number"),
+        (BASE + "[loop]\narm_settle_s = inf\n", "loop.arm_settle_s: expected a finite number"),
     ],
 )
 def test_bad_config_or_model_stops_startup_with_one_line(tmp_path, sim_model, text, expected):

@@ -473,3 +473,6 @@ def test_shipped_config_loads_and_a_bad_field_is_named(tmp_path):
     bad.write_text('[[faults]]\nkind = "melt"\nstart_s = 1.0\n')
     with pytest.raises(ConfigError, match=r"faults\[0\].kind"):
         load_config(bad)
+    bad.write_text("[thermal]\ncoil_resistance_ohm = nan\n")
+    with pytest.raises(ConfigError, match=r"thermal.coil_resistance_ohm: expected a finite number"):
+        load_config(bad)
