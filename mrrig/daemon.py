@@ -153,6 +153,7 @@ class Daemon:
         self.period_s = cfg.loop.period_s
         self.codec = Codec()
         self.packer = self.codec.packer("DAEMON")
+        self._own_messages = frozenset(self.packer.messages)
         self.parser = self.codec.parser()
         self.controller = build_controller(cfg)
         self.reference = build_reference(cfg.reference, self.period_s)
@@ -186,6 +187,7 @@ class Daemon:
             "commands_active": 0,
             "safe_commands_unprompted": 0,
             "send_failures": 0,
+            "foreign_commands": 0,
             "lost_frames": 0,
             "telemetry_dropped": 0,
         }
@@ -434,6 +436,9 @@ class Daemon:
                     t_rx - self.t0, state, code, label, int(v["CommandTimeouts"])
                 )
             )
+        elif p.name in self._own_messages:
+            self.counters["foreign_commands"] += 1
+            self._emit(self.supervisor.foreign_command(t_rx - self.t0, p.name))
         elif not p.ok and p.name is None:
             log.debug("ignored frame: %s", p.reason)
 

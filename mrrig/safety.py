@@ -15,6 +15,10 @@ from dataclasses import dataclass
 
 from mrrig.samples import RigState
 
+# after another sender's command was last seen, arming stays refused this long: a second
+# controller on the rig's bus may send only now and then (its own IDLE SAFE commands)
+FOREIGN_HOLD_S = 1.0
+
 
 class Fault(enum.Enum):
     BAD_FRAMES = "bad_frames"  # CRC mismatch / repeated counter beyond the budget
@@ -29,6 +33,7 @@ class Fault(enum.Enum):
     LIMIT_TRIPPED = "limit_tripped"
     SENSOR_FAULT = "sensor_fault"
     BUS_ERROR = "bus_error"
+    FOREIGN_COMMAND = "foreign_command"  # a command the DBC has only the daemon send, not ours
     INTERNAL_ERROR = "internal_error"  # an unexpected exception in the cycle
 
 
@@ -55,6 +60,8 @@ class Supervisor:
         self._lost_sum = 0
         self.firmware_blocking: str = ""  # why the firmware status forbids arming, if it does
         self._timeouts: int | None = None  # the firmware's CommandTimeouts, last seen
+        self._foreign_t = -math.inf  # when another sender's command was last seen
+        self._foreign_name = ""
 
     @property
     def active(self) -> bool:
@@ -83,6 +90,13 @@ class Supervisor:
     def arm(self, t_s: float) -> tuple[bool, str, list[dict]]:
         if self.firmware_blocking:
             return False, f"cannot arm: {self.firmware_blocking}", []
+        if t_s - self._foreign_t < FOREIGN_HOLD_S:
+            return (
+                False,
+                f"cannot arm: another sender's {self._foreign_name} on the bus "
+                f"{t_s - self._foreign_t:.3f} s ago (a second daemon on this rig?)",
+                [],
+            )
         if self.state is RigState.ARMED:
             return True, "already armed", []
         was = self.state
@@ -181,6 +195,19 @@ class Supervisor:
                     "firmware watchdog tripped (no valid command for 20 ms)",
                 )
         return events
+
+    def foreign_command(self, t_s: float, name: str) -> list[dict]:
+        """A frame of a message that the DBC has only the daemon send, and a bus does not hand
+        a sender its own frames: another controller commands this rig. FAULT (SAFE 0 A from
+        here), and arming is refused until it has been quiet for FOREIGN_HOLD_S."""
+        self._foreign_t, self._foreign_name = t_s, name
+        if self.state is RigState.FAULT:
+            return []
+        return self.trip(
+            t_s,
+            Fault.FOREIGN_COMMAND,
+            f"another sender's {name} on the bus (a second daemon on this rig?)",
+        )
 
     def finite(self, t_s: float, what: str, *values: float) -> list[dict]:
         if all(math.isfinite(v) for v in values) or self.state is RigState.FAULT:

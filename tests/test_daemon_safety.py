@@ -9,11 +9,13 @@ from __future__ import annotations
 import math
 import time
 
+import can
 import numpy as np
 import pytest
 
+from mrrig.canbus.codec import Codec
 from mrrig.controllers import Controller
-from mrrig.safety import Fault
+from mrrig.safety import FOREIGN_HOLD_S, Fault
 from mrrig.samples import RigState
 from tests.rig_harness import ScriptedRig
 
@@ -208,6 +210,41 @@ def test_rearm_after_fault_is_explicit(tmp_path):
         assert_safe(rig.exchange())
         from mrrig.control import handle
 
+        assert handle(rig.daemon, {"cmd": "arm"})["ok"]
+        assert rig.exchange()["Mode"] == ACTIVE
+
+
+def test_another_senders_command_on_the_bus_faults_and_blocks_arming(tmp_path):
+    """A DamperCommand the daemon did not send (a second daemon on the rig's bus): FAULT, SAFE
+    from the next frame, and arming refused until that sender has been quiet for a while."""
+    from mrrig.control import handle
+
+    with ScriptedRig(tmp_path) as rig:
+        assert rig.exchange()["Mode"] == ACTIVE
+        other = can.Bus(interface="virtual", channel=rig.channel, receive_own_messages=False)
+        try:
+            values = {
+                "Mode": "SAFE",
+                "CurrentSetpoint": 0.0,
+                "SensorCounterEcho": 0,
+                "ControllerId": 0,
+                "DesiredForce": 0.0,
+            }
+            other.send(Codec().packer("DAEMON").message("DamperCommand", values))
+        finally:
+            other.shutdown()
+        time.sleep(0.05)
+        rig.drain()  # the other sender's frame reached the scripted rig as well
+        assert_safe(rig.exchange())
+        ev = assert_fault(rig, Fault.FOREIGN_COMMAND)
+        assert "another sender's DamperCommand" in ev["reason"]
+        assert rig.daemon.counters["foreign_commands"] == 1
+        reply = handle(rig.daemon, {"cmd": "arm"})
+        assert not reply["ok"] and "second daemon" in reply["error"], reply
+        assert_safe(rig.exchange())
+
+        time.sleep(FOREIGN_HOLD_S)  # quiet since: arming is allowed again
+        rig.drain()
         assert handle(rig.daemon, {"cmd": "arm"})["ok"]
         assert rig.exchange()["Mode"] == ACTIVE
 
