@@ -199,9 +199,12 @@ class Supervisor:
     def foreign_command(self, t_s: float, name: str) -> list[dict]:
         """A frame of a message that the DBC has only the daemon send, and a bus does not hand
         a sender its own frames: another controller commands this rig. FAULT (SAFE 0 A from
-        here), and arming is refused until it has been quiet for FOREIGN_HOLD_S."""
+        here), and arming is refused until it has been quiet for FOREIGN_HOLD_S. One event per
+        episode: a fault already there (the firmware's watchdog, tripped by the doubled
+        commands) gets this reason too, the sender's next frames add none."""
+        new = t_s - self._foreign_t >= FOREIGN_HOLD_S
         self._foreign_t, self._foreign_name = t_s, name
-        if self.state is RigState.FAULT:
+        if self.state is RigState.FAULT and not new:
             return []
         return self.trip(
             t_s,

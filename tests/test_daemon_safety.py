@@ -15,7 +15,7 @@ import pytest
 
 from mrrig.canbus.codec import Codec
 from mrrig.controllers import Controller
-from mrrig.safety import FOREIGN_HOLD_S, Fault
+from mrrig.safety import FOREIGN_HOLD_S, Fault, Limits, Supervisor
 from mrrig.samples import RigState
 from tests.rig_harness import ScriptedRig
 
@@ -247,6 +247,16 @@ def test_another_senders_command_on_the_bus_faults_and_blocks_arming(tmp_path):
         rig.drain()
         assert handle(rig.daemon, {"cmd": "arm"})["ok"]
         assert rig.exchange()["Mode"] == ACTIVE
+
+
+def test_a_foreign_command_is_one_event_per_episode_even_over_another_fault():
+    sup = Supervisor(Limits((-0.05, 0.05), (-1e4, 1e4), 5, 5, 1.0))
+    sup.trip(0.0, Fault.FIRMWARE_FAULT, "firmware watchdog tripped")  # the doubled commands
+    assert sup.foreign_command(0.100, "DamperCommand")  # recorded over the fault already there
+    assert sup.fault is Fault.FOREIGN_COMMAND
+    assert sup.foreign_command(0.102, "DamperCommand") == []  # the same sender, same episode
+    assert not sup.arm(0.102 + FOREIGN_HOLD_S - 0.01)[0]
+    assert sup.arm(0.102 + FOREIGN_HOLD_S)[0]
 
 
 def test_the_stop_answers_safe_and_disarms_from_that_frame(tmp_path):
