@@ -39,6 +39,11 @@ class BusSection:
             )
         if not 0 < self.send_timeout_s <= 0.002:
             raise ValueError("send_timeout_s: must be in (0, 0.002] s (one sensor period)")
+        if self.options.get("receive_own_messages"):
+            # the daemon takes a command it did not send for a second daemon on the rig
+            raise ValueError(
+                "options.receive_own_messages: the daemon must not receive its own frames"
+            )
 
 
 @dataclass(frozen=True)

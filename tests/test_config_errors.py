@@ -61,6 +61,10 @@ def run_daemon(tmp_path, text: str) -> subprocess.CompletedProcess:
         ),
         (BASE + "[loop\n", "not valid TOML"),
         (BASE + "[reference]\ncurrent_a = nan\n", "reference.current_a: expected a finite number"),
+        (
+            BASE + "[bus.options]\nreceive_own_messages = true\n",
+            "bus.options.receive_own_messages: the daemon must not receive its own frames",
+        ),
         (BASE + "[loop]\narm_settle_s = inf\n", "loop.arm_settle_s: expected a finite number"),
     ],
 )
