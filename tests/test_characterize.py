@@ -6,6 +6,7 @@ from __future__ import annotations
 import itertools
 import json
 import math
+import re
 import shutil
 import signal
 import subprocess
@@ -285,6 +286,12 @@ SHORT = REPO / "configs/characterize-short.toml"
 N_SHORT = len(matrix_runs(load_characterize_config(SHORT).matrix))
 
 
+def _only_transport_faults(log: str) -> bool:
+    """The failed attempts in a characterize log, all of them transport stalls (and some)."""
+    reasons = re.findall(r"attempt \d+: fault: (.*)$", log, flags=re.MULTILINE)
+    return bool(reasons) and all(r.startswith(TRANSPORT_FAULT_REASONS) for r in reasons)
+
+
 def _sim(procs, bridge: str) -> subprocess.Popen:
     sim = procs(["-m", "firmware_sim", "--config", "configs/sim.toml", "--bus-channel", bridge])
     time.sleep(1.0)
@@ -363,10 +370,17 @@ def test_interrupted_characterize_command_resumes_without_repeating_runs(tmp_pat
     first = json.loads(done_path.read_text())["runs"]
     assert 1 <= len(first) < N_SHORT
     mtimes = {k: (out / f"run-{int(k):03d}.rrd").stat().st_mtime_ns for k in first}
-    p = _mrrig(procs, *args, "--out", str(out))
-    log, _ = p.communicate(timeout=120)
+    logs = []
+    for _ in range(3):
+        p = _mrrig(procs, *args, "--out", str(out))
+        log, _ = p.communicate(timeout=120)
+        logs.append(log)
+        # a run whose attempts all met a transport stall of this VM is left for the next
+        # invocation (exit 1): resuming again is what the user does, and is resume once more
+        if p.returncode == 0 or not _only_transport_faults(log):
+            break
     assert p.returncode == 0, log
-    assert f"{len(first)} of {N_SHORT} runs already recorded" in log
+    assert f"{len(first)} of {N_SHORT} runs already recorded" in logs[0]
     runs = json.loads(done_path.read_text())["runs"]
     assert set(runs) == {str(k) for k in range(N_SHORT)}
     for k, entry in first.items():
