@@ -31,6 +31,7 @@ from mrrig.samples import SAMPLE_DTYPE, RigState
 log = logging.getLogger(__name__)
 
 _DATASET = "run"
+RRD_MAGIC = b"RRF2"  # the FourCC an .rrd file starts with (rerun-sdk 0.41, as pinned)
 
 
 class ReviewError(ValueError):
@@ -115,6 +116,11 @@ def read_recording(path: str | Path) -> Recording:
     path = Path(path)
     if not path.is_file():
         raise ReviewError(f"{path}: no such file")
+    with path.open("rb") as f:
+        head = f.read(len(RRD_MAGIC))
+    if head != RRD_MAGIC:
+        # before the reader, which would log its own warning besides this error
+        raise ReviewError(f"{path}: not an .rrd file (it starts {head!r}, not {RRD_MAGIC!r})")
     try:
         server = rr.server.Server(host="127.0.0.1", datasets={_DATASET: [path]})
     except Exception as e:

@@ -165,14 +165,17 @@ def test_summary_of_read_back_equals_summary_of_original(run, read_back) -> None
     )
 
 
-def test_read_recording_rejects_missing_and_non_rrd_files(tmp_path: Path) -> None:
+def test_read_recording_rejects_missing_and_non_rrd_files(tmp_path: Path, capfd) -> None:
     with pytest.raises(ReviewError, match="absent.rrd"):
         read_recording(tmp_path / "absent.rrd")
-    bad = tmp_path / "junk.rrd"
-    bad.write_bytes(b"\x00" * 4096)
-    with pytest.raises(ReviewError, match="junk.rrd") as e:
-        read_recording(bad)
-    assert "\n" not in str(e.value)
+    for name, content in (("junk.rrd", b"\x00" * 4096), ("notes.rrd", b"# mrrig notes\n")):
+        bad = tmp_path / name
+        bad.write_bytes(content)
+        with pytest.raises(ReviewError, match=f"{name}: not an .rrd file") as e:
+            read_recording(bad)
+        assert "\n" not in str(e.value)
+    # the one-line error alone: the reader was not started, so it logged no warning of its own
+    assert capfd.readouterr().err == ""
 
 
 def _socket_fds() -> int:
