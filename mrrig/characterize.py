@@ -93,7 +93,7 @@ class MatrixSection:
             raise ValueError("amplitudes_m: each must be in (0, 0.04] m")
         if not all(0 < f <= 20 for f in self.freqs_hz):
             raise ValueError("freqs_hz: each must be in (0, 20] Hz")
-        if not all(i >= 0 and math.isfinite(i) for i in self.currents_a):
+        if not all(i >= 0 for i in self.currents_a):
             raise ValueError("currents_a: each must be >= 0 A")
         if not (self.settle_s >= 0 and self.duration_s > 0):
             raise ValueError("settle_s, duration_s: settle_s >= 0 and duration_s > 0")

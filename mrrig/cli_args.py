@@ -51,7 +51,8 @@ def port(text: str) -> int:
     return value
 
 
-def _number(text: str) -> float:
+def finite(text: str) -> float:
+    """Any finite number (an offset, an amplitude)."""
     try:
         value = float(text)
     except ValueError:
@@ -61,14 +62,9 @@ def _number(text: str) -> float:
     return value
 
 
-def finite(text: str) -> float:
-    """Any finite number (an offset, an amplitude)."""
-    return _number(text)
-
-
 def positive(text: str) -> float:
     """A finite number > 0 (a duration, a rate, a time constant)."""
-    value = _number(text)
+    value = finite(text)
     if value <= 0:
         raise argparse.ArgumentTypeError(f"must be > 0, got {text}")
     return value
@@ -76,7 +72,7 @@ def positive(text: str) -> float:
 
 def non_negative(text: str) -> float:
     """A finite number >= 0 (a settling time, a noise level)."""
-    value = _number(text)
+    value = finite(text)
     if value < 0:
         raise argparse.ArgumentTypeError(f"must be >= 0, got {text}")
     return value

@@ -6,7 +6,6 @@ Every section and field is optional; absent ones keep the command line's built-i
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -47,7 +46,7 @@ class FeaturesSection:
             raise ValueError(
                 f"current_input: expected one of {choices}, got {self.current_input!r}"
             )
-        if not (self.lag_tau_s > 0 and math.isfinite(self.lag_tau_s)):
+        if not self.lag_tau_s > 0:
             raise ValueError(f"lag_tau_s: must be positive, got {self.lag_tau_s}")
         # the library's rules, the sample count alone first so the error names the right field
         try:
@@ -83,7 +82,7 @@ class TrainingSection:
             raise ValueError(f"n_train: must be >= 1, got {self.n_train}")
         if self.n_val < 1:
             raise ValueError(f"n_val: must be >= 1, got {self.n_val}")
-        if self.i_max_a is not None and not (self.i_max_a > 0 and math.isfinite(self.i_max_a)):
+        if self.i_max_a is not None and not self.i_max_a > 0:
             raise ValueError(f"i_max_a: must be positive, got {self.i_max_a}")
 
 
