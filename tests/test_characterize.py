@@ -287,7 +287,7 @@ N_SHORT = len(matrix_runs(load_characterize_config(SHORT).matrix))
 
 
 def _only_transport_faults(log: str) -> bool:
-    """The failed attempts in a characterize log, all of them transport stalls (and some)."""
+    """A characterize log has failed attempts, and every one of them met a transport stall."""
     reasons = re.findall(r"attempt \d+: fault: (.*)$", log, flags=re.MULTILINE)
     return bool(reasons) and all(r.startswith(TRANSPORT_FAULT_REASONS) for r in reasons)
 

@@ -1,5 +1,5 @@
-"""A bad number on the command line stops the command at parsing: exit 2 and one line naming
-the flag, before a bus, a process or a training run starts."""
+"""A bad number or output path on the command line stops the command at parsing: exit 2 and
+one line naming the flag, before a bus, a process or a training run starts."""
 
 from __future__ import annotations
 
