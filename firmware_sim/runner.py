@@ -39,6 +39,10 @@ class RunStats:
 
     # An answer may arrive after later sensor frames (transport delay); it is matched to the
     # newest frame with its counter among the last PENDING frames (counters wrap at 16).
+    # Answers come in frame order (one per frame as soon as computed, over a FIFO bus), so a second
+    # answer to a frame after at least PENDING other commands is that frame's own answer: the
+    # first was the late answer to the frame 16 periods before it, gone from the window (a
+    # transport stall over 30 ms), and is counted unmatched instead.
     PENDING = 15
 
     def __init__(self) -> None:
@@ -54,10 +58,12 @@ class RunStats:
         # after a sensor timeout (spec/system.md), not a second answer
         self.safe_repeats = 0
         self._last_echo: int | None = None
+        self._commands_seen = 0  # valid commands taken by on_command, SAFE repeats aside
         self.resyncs = 0
         self.latency_us = array("d")
         self.jitter_us = array("d")
-        # [counter, send time, answers, answered late] of the frames awaiting answers
+        # [counter, send time, answers, answered late, number of the first answer's command,
+        #  its index in latency_us] of the frames awaiting answers
         self._pending: collections.deque[list] = collections.deque()
 
     def _close(self, entry: list) -> None:
@@ -75,7 +81,7 @@ class RunStats:
         self.sensor_frames_sent += 1
         self.jitter_us.append((sent_s - ideal_s) * 1e6)
         if frame.expect_answer:
-            self._pending.append([frame.counter, sent_s, 0, False])
+            self._pending.append([frame.counter, sent_s, 0, False, 0, 0])
             if len(self._pending) > self.PENDING:
                 self._close(self._pending.popleft())
         else:
@@ -87,14 +93,24 @@ class RunStats:
             self.safe_repeats += 1
             return
         self._last_echo = echo
+        self._commands_seen += 1
         for k in range(len(self._pending) - 1, -1, -1):
             entry = self._pending[k]
-            if entry[0] == echo:
-                if entry[2] == 0:
-                    self.latency_us.append((received_s - entry[1]) * 1e6)
-                    entry[3] = k < len(self._pending) - 1
+            if entry[0] != echo:
+                continue
+            latency_us = (received_s - entry[1]) * 1e6
+            late = k < len(self._pending) - 1
+            if entry[2] == 0:
+                entry[2:] = [1, late, self._commands_seen, len(self.latency_us)]
+                self.latency_us.append(latency_us)
+            elif self._commands_seen - entry[4] >= self.PENDING:
+                # the first answer was an older frame's (see PENDING): this one is the frame's
+                self.unmatched_answers += 1
+                entry[3:] = [late, self._commands_seen, entry[5]]
+                self.latency_us[entry[5]] = latency_us
+            else:
                 entry[2] += 1
-                return
+            return
         self.unmatched_answers += 1
 
     def finish(self) -> None:

@@ -101,6 +101,22 @@ def test_run_stats_count_each_sensor_frame_answered_once_unanswered_or_more_than
     assert list(stats.jitter_us) == pytest.approx([100.0, 100.0, 100.0, 100.0, 200.0, 100.0, 100.0])
 
 
+def test_run_stats_take_answers_after_a_stall_over_the_window_as_unmatched_not_twice():
+    # a 34 ms stall: frames 0..16 leave (counter 0 twice) before the first answer arrives
+    stats = RunStats()
+    for i in range(17):
+        stats.on_sensor_sent(Frame(SENSORS_ID, b"", i % 16, True), 0.002 * i, 0.002 * i)
+    for i in range(17):  # then the daemon's answers to frames 0..16 come in order
+        stats.on_command(i % 16, 0.0341 + 1e-5 * i)
+    stats.finish()
+    # frames 0 and 1 left the window unanswered; the answer to 0 first meets frame 16 (same
+    # counter), the answer to 1 meets nothing; frame 16's own answer comes 16 commands later
+    assert (stats.answered_once, stats.unanswered, stats.answered_more_than_once) == (15, 2, 0)
+    assert stats.unmatched_answers == 2 and stats.answered_late == 14
+    # frame 16's latency (the first recorded) is its own answer's, not the stale one's 2100 us
+    assert len(stats.latency_us) == 15 and stats.latency_us[0] == pytest.approx(2260.0)
+
+
 def test_sim_streams_sensors_at_500_hz_answers_are_matched_watchdog_trips_and_sigterm_exits_0(
     bridge, tmp_path
 ):
