@@ -3,6 +3,7 @@ separate processes (issue: telemetry, recording and review)."""
 
 from __future__ import annotations
 
+import collections
 import json
 import math
 import signal
@@ -47,11 +48,22 @@ def _query(session: zenoh.Session, payload: bytes | str, timeout_s: float = 3.0)
     raise AssertionError("no reply from the daemon")
 
 
-def _drain(sub) -> list[dict]:
-    out = []
-    while (s := sub.try_recv()) is not None:
-        out.append(json.loads(s.payload.to_bytes()))
-    return out
+class _Collect:
+    """A subscriber callback keeping the decoded samples until drained. Zenoh's default
+    handler is a FIFO of 256 samples that blocks the session's receiving thread when full:
+    5 s of telemetry not drained would hold up the replies to control queries as well."""
+
+    def __init__(self) -> None:
+        self._samples: collections.deque[dict] = collections.deque()
+
+    def __call__(self, sample: zenoh.Sample) -> None:
+        self._samples.append(json.loads(sample.payload.to_bytes()))
+
+    def drain(self) -> list[dict]:
+        out = []
+        while self._samples:
+            out.append(self._samples.popleft())
+        return out
 
 
 def test_telemetry_control_recording_and_review(tmp_path, bridge, procs, sim_model, capsys):
@@ -91,8 +103,11 @@ def test_telemetry_control_recording_and_review(tmp_path, bridge, procs, sim_mod
     )
     session = _open_when_up(port)
     try:
-        telemetry = session.declare_subscriber(f"mrrig/{RIG}/telemetry")
-        events = session.declare_subscriber(f"mrrig/{RIG}/events")
+        telemetry, events = _Collect(), _Collect()
+        subscribers = [
+            session.declare_subscriber(f"mrrig/{RIG}/{key}", collect)
+            for key, collect in (("telemetry", telemetry), ("events", events))
+        ]
         deadline = time.monotonic() + 30
         status = None
         while time.monotonic() < deadline:
@@ -112,12 +127,12 @@ def test_telemetry_control_recording_and_review(tmp_path, bridge, procs, sim_mod
         assert any(r.ok is not None for r in alive), "no liveliness token"
 
         # -- telemetry at the configured rate
-        _drain(telemetry)
+        telemetry.drain()
         time.sleep(1.0)  # past any start-up backlog
-        _drain(telemetry)
+        telemetry.drain()
         t0 = time.monotonic()
         time.sleep(2.0)
-        batches = _drain(telemetry)
+        batches = telemetry.drain()
         elapsed = time.monotonic() - t0
         rate = len(batches) / elapsed
         n_samples = sum(len(b["fields"]["t"]) for b in batches)
@@ -192,14 +207,14 @@ def test_telemetry_control_recording_and_review(tmp_path, bridge, procs, sim_mod
                 break
         pub.undeclare()
         assert st["fault"] == "stale_reference", st
-        evs = _drain(events)
+        evs = events.drain()
         assert any(e.get("fault") == "stale_reference" for e in evs), evs
 
         # -- everything the subscriber got must be in the recording
         time.sleep(0.5)
-        batches += _drain(telemetry)
-        telemetry.undeclare()
-        events.undeclare()
+        batches += telemetry.drain()
+        for sub in subscribers:
+            sub.undeclare()
     finally:
         session.close()
     daemon.send_signal(signal.SIGTERM)
