@@ -3,8 +3,12 @@
 State (z, y, u): the evolutionary variable z, the internal displacement y and u, the lagged
 effect of the command v (volts or amperes, depending on the preset). The integrator is
 fixed-step RK4 with sub-steps of at most `substep_s` (the system is stiff: its fastest
-eigenvalue is about -4e3 1/s, so 1-2 ms steps are unstable). The displacement inside a step is
-the cubic Hermite interpolant of the step's end points and velocities.
+eigenvalue is about -4e3 1/s, so 1-2 ms steps are unstable). That eigenvalue, d(z')/dz at the
+saturated z, grows with the speed: a step faster than its sub-steps are stable for (0.35 m/s
+for 0.25 ms sub-steps, paper parameters) takes more sub-steps. (Before, a velocity spike of the
+estimate after a bus stall made the daemon's Bouc-Wen reference give NaN from 0.8 m/s.)
+The displacement inside a step is the cubic Hermite interpolant of the step's end points and
+velocities.
 
 The same code runs on Python floats (one damper, the 0.5 kHz simulator: operators and abs()
 only, so no numpy overhead) and on numpy arrays of equal shape (a batch of independent dampers).
@@ -24,6 +28,13 @@ Num = Any
 # Up to this many dampers, one Python-float run per damper beats one numpy batch run
 # (measured: 41 us per scalar 2-ms step against 1.3-1.7 ms per batch step of 7-150 dampers).
 _SCALAR_BATCH_MAX = 32
+
+# RK4 is stable for h * lambda down to -2.785 on the real axis; keep h * lambda >= -2.
+_RK4_STABLE_H_LAMBDA = 2.0
+# At most this many sub-steps per step, whatever the speed (17 m/s in a 2 ms step, paper
+# parameters): past it, a speed no damper reaches gives a non-finite force, which the caller
+# checks, instead of holding up a real-time loop.
+_MAX_SUBSTEPS = 400
 
 _PAPER_TABLE_3 = dict(
     c0a=784.0,
@@ -113,6 +124,13 @@ def damper_force(state: np.ndarray, x: Num, xd: Num, params: BoucWenParams) -> N
     return _force(z, y, u, x, xd, astuple(params))
 
 
+def _speed_bound(x0: Num, v0: Num, x1: Num, v1: Num, dt_s: float) -> float:
+    """The largest of the end speeds and the mean speed of a step (of all dampers of a batch)."""
+    if isinstance(x1, float) and isinstance(x0, float):
+        return max(abs(v0), abs(v1), abs(x1 - x0) / dt_s)
+    return float(np.max(np.maximum(np.maximum(np.abs(v0), np.abs(v1)), np.abs(x1 - x0) / dt_s)))
+
+
 def _hermite_nodes(dt_s: float, m: int) -> tuple[tuple[float, ...], ...]:
     """Weights (a0..a3, b0..b3) per node s = j/(2m), j = 0..2m, of the cubic Hermite
     interpolant: x(s) = a0*x0 + a1*v0 + a2*x1 + a3*v1, x'(s) = b0*x0 + ... (dt folded in)."""
@@ -144,9 +162,15 @@ class BoucWenDamper:
         self.params = params
         self.substep_s = substep_s
         self._k = astuple(params)
+        # |d(z')/dz| per m/s of relative velocity at the saturated |z| = (A / (gamma + beta))^(1/n)
+        # (eq. 31): a sub-step may cover this much travel and stay stable
+        g = params.gamma + params.beta
+        stiffness_per_m = g * params.n * (params.A / g) ** ((params.n - 1.0) / params.n)
+        self._max_substep_travel_m = _RK4_STABLE_H_LAMBDA / stiffness_per_m
         self._dt_s = -1.0
         self._m = 0
         self._nodes: tuple[tuple[float, ...], ...] = ()
+        self._fast_nodes: dict[int, tuple[tuple[float, ...], ...]] = {}  # more sub-steps, same dt
         self.reset(0.0)
 
     @property
@@ -174,14 +198,21 @@ class BoucWenDamper:
                 raise ValueError(f"dt_s must be positive, got {dt_s}")
             self._m = max(1, math.ceil(dt_s / self.substep_s - 1e-9))
             self._nodes = _hermite_nodes(dt_s, self._m)
+            self._fast_nodes = {}
             self._dt_s = dt_s
         k = self._k
-        h = dt_s / self._m
-        h2, h6 = 0.5 * h, h / 6.0
         x0, v0, x1, v1 = self._x, self._xd, x_m, xd_m_s
+        m, nodes = self._m, self._nodes
+        travel_m = _speed_bound(x0, v0, x1, v1, dt_s) * dt_s
+        if travel_m > m * self._max_substep_travel_m and math.isfinite(travel_m):
+            m = min(math.ceil(travel_m / self._max_substep_travel_m), _MAX_SUBSTEPS)
+            if m not in self._fast_nodes:
+                self._fast_nodes[m] = _hermite_nodes(dt_s, m)
+            nodes = self._fast_nodes[m]
+        h = dt_s / m
+        h2, h6 = 0.5 * h, h / 6.0
         z, y, u = self._z, self._y, self._u
-        nodes = self._nodes
-        for j in range(self._m):
+        for j in range(m):
             a = nodes[2 * j]
             xa = a[0] * x0 + a[1] * v0 + a[2] * x1 + a[3] * v1
             va = a[4] * x0 + a[5] * v0 + a[6] * x1 + a[7] * v1
@@ -215,9 +246,10 @@ def simulate(
 
     Arrays run along the last axis (t_s is 1-D, the time of each sample); leading axes are a
     batch of independent dampers (one numpy batch run, or one float run per damper for small
-    batches, which is faster; the results are the same). The damper starts at rest at the first
-    sample (z = 0, y = x, u = command) and command[k] is held over [t_k, t_k+1] (zero-order
-    hold, as a sampled controller applies it).
+    batches, which is faster; the results are the same, unless a step is fast enough to need
+    more sub-steps: a batch then takes as many as its fastest damper). The damper starts at
+    rest at the first sample (z = 0, y = x, u = command) and command[k] is held over
+    [t_k, t_k+1] (zero-order hold, as a sampled controller applies it).
     """
     t_s = np.asarray(t_s, dtype=float)
     x_m, xd_m_s, command = np.broadcast_arrays(

@@ -136,6 +136,27 @@ def test_simulate_holds_the_previous_command_over_each_interval():
     assert f[2] == f_zero[2]  # the command at the last sample never acts
 
 
+@pytest.mark.parametrize("speed_m_s", [0.8, 2.0, 10.0])
+def test_a_step_faster_than_its_substeps_are_stable_for_takes_more_of_them(speed_m_s):
+    # the daemon's Bouc-Wen reference steps with 0.25 ms sub-steps, stable to about 0.35 m/s;
+    # a velocity spike of the estimate after a bus stall (0.8 m/s) used to give NaN
+    rig = BoucWenParams.preset("rig-current")
+    forces = []
+    for substep_s in (2.5e-4, 1e-5):
+        damper, x = BoucWenDamper(rig, substep_s), -0.012
+        damper.reset(x, 0.06, 0.5)
+        for _ in range(100):
+            x += 0.06 * 2e-3
+            damper.step(x, 0.06, 0.5, 2e-3)
+        f = []
+        for _ in range(5):
+            x += speed_m_s * 2e-3
+            f.append(damper.step(x, speed_m_s, 0.5, 2e-3))
+        forces.append(f)
+    assert np.all(np.isfinite(forces[0]))
+    np.testing.assert_allclose(forces[0], forces[1], atol=1.0)
+
+
 def test_step_rejects_non_positive_interval():
     with pytest.raises(ValueError, match="dt_s"):
         BoucWenDamper(PAPER).step(0.0, 0.0, 0.0, 0.0)
