@@ -314,6 +314,8 @@ class Daemon:
                 f_des = 0.0
                 if sup.active:
                     events += sup.trip(t, Fault.STALE_REFERENCE, f"stale force reference: {exc}")
+            # the clamp below passes NaN, and a controller may map it to a finite current
+            events += sup.finite(t, f"the {self.reference.kind} force reference", f_des)
             f_des = min(max(f_des, -DESIRED_FORCE_LIMIT_N), DESIRED_FORCE_LIMIT_N)
             if sup.active:
                 i = self.controller.command_one(x, xd, xdd, f_meas, f_des)
@@ -417,6 +419,8 @@ class Daemon:
             if p.lost_frames:
                 self.counters["lost_frames"] += p.lost_frames
                 self._emit(self.supervisor.lost_frames(t_rx - self.t0, p.lost_frames))
+                for _ in range(p.lost_frames):  # the estimate goes on through the missing periods
+                    self.kf.predict_only()
             if self._last_sensor_t is None:
                 self._first_sensor_t = t_rx
             if self._arm_pending and t_rx - self._first_sensor_t >= self.cfg.loop.arm_settle_s:

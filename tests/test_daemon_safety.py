@@ -13,6 +13,7 @@ import can
 import numpy as np
 import pytest
 
+from mrrig import reference as ref
 from mrrig.canbus.codec import Codec
 from mrrig.controllers import Controller
 from mrrig.safety import FOREIGN_HOLD_S, Fault, Limits, Supervisor
@@ -172,10 +173,46 @@ def test_non_finite_controller_output_faults_within_the_frame(tmp_path):
         assert_fault(rig, Fault.NON_FINITE)
 
 
+class _NaNReference(ref.ForceReference):
+    kind = "broken"
+
+    def force(self, t_s, x_m, xd_m_s):
+        return math.nan
+
+
+def test_non_finite_force_reference_faults_within_the_frame(tmp_path):
+    # the command is computed from the desired force: a controller may map NaN to a finite
+    # current (network inversion gave 0.0625 A), so the reference is checked on its own
+    with ScriptedRig(tmp_path) as rig:
+        assert rig.exchange()["Mode"] == ACTIVE
+        rig.daemon.reference = _NaNReference()
+        assert_safe(rig.exchange())
+        assert "broken force reference" in assert_fault(rig, Fault.NON_FINITE)["reason"]
+
+
+def test_the_estimate_goes_on_through_lost_frames(tmp_path):
+    # x ramps at 50 mm/s; three frames go missing: the velocity estimate must not read the
+    # four periods of travel as one (it read 0.10-0.12 m/s before)
+    speed_m_s, period_s = 0.05, 2e-3
+    with ScriptedRig(tmp_path) as rig:
+        x = 0.001
+        for _ in range(150):
+            rig.exchange(x=x)
+            x += speed_m_s * period_s
+        rig.counter = (rig.counter + 3) & 0xF
+        x += 3 * speed_m_s * period_s
+        for _ in range(3):
+            rig.exchange(x=x)
+            x += speed_m_s * period_s
+        assert rig.daemon.counters["lost_frames"] == 3
+        assert rig.daemon.supervisor.state is RigState.ARMED
+    samples = np.concatenate(rig.daemon.handed_over())
+    xd_after = samples["xd"][-3:]
+    assert np.all(np.abs(xd_after - speed_m_s) < 0.01), xd_after
+
+
 def test_stale_external_force_reference_faults(tmp_path):
     with ScriptedRig(tmp_path) as rig:
-        from mrrig import reference as ref
-
         rig.daemon.reference = ref.External(timeout_s=0.05)
         rig.daemon.on_force_ref(400.0, time.monotonic())
         cmd = rig.exchange()
