@@ -10,7 +10,6 @@ log), 2 for a config that cannot be used.
 from __future__ import annotations
 
 import argparse
-import json
 import logging
 import signal
 import sys
@@ -24,6 +23,7 @@ from can_remote.websocket import WebsocketClosed
 from firmware_sim.config import FAULT_KINDS, ConfigError, FaultSpec, load_config
 from firmware_sim.firmware import Firmware
 from firmware_sim.runner import RunStats, run, tune_process
+from mrrig import json_text
 from mrrig.canbus import DEFAULT_DBC_PATH, BusError, Codec, open_bus
 from mrrig.cli_args import output_file, positive
 
@@ -113,7 +113,7 @@ def main(argv: list[str] | None = None) -> int:
         stats.finish()
         summary = stats.summary(firmware, wall_s, cpu_s)
         if args.stats is not None:
-            args.stats.write_text(json.dumps(summary, indent=2) + "\n")
+            args.stats.write_text(json_text.dumps(summary, indent=2) + "\n")
         p99 = summary["period_jitter_us"]["p99"]  # None: under two frames sent
         logger.info(
             "%d sensor frames in %.1f s, jitter p99 %s, CPU %.0f %%",

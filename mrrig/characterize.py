@@ -33,6 +33,7 @@ from typing import Any, TextIO
 
 import numpy as np
 
+from mrrig import json_text
 from mrrig.config import DaemonConfig, load_config
 from mrrig.control import handle
 from mrrig.daemon import Daemon
@@ -405,7 +406,7 @@ class MatrixStore:
             "runs": {str(k): v for k, v in sorted(self.done.items())},
         }
         tmp = self.done_path.with_suffix(".json.part")
-        tmp.write_text(json.dumps(data, indent=1), encoding="utf-8")
+        tmp.write_text(json_text.dumps(data, indent=1), encoding="utf-8")
         os.replace(tmp, self.done_path)
 
     def rrd_path(self, run: Run) -> Path:

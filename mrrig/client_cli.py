@@ -12,7 +12,7 @@ import math
 import sys
 from pathlib import Path
 
-from mrrig import client
+from mrrig import client, json_text
 from mrrig.cli_args import finite, positive
 
 DEFAULT_ZENOH = Path("configs/zenoh-client.json5")
@@ -25,7 +25,7 @@ def _common(ap: argparse.ArgumentParser) -> None:
 
 
 def _print_reply(reply: dict) -> int:
-    print(json.dumps(reply, indent=2, sort_keys=True))
+    print(json_text.dumps(reply, indent=2, sort_keys=True))
     return 0 if reply.get("ok") else 1
 
 

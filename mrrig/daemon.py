@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import argparse
 import gc
-import json
 import logging
 import math
 import resource
@@ -25,6 +24,7 @@ from typing import Any
 
 import numpy as np
 
+from mrrig import json_text
 from mrrig import reference as ref
 from mrrig.canbus.bus import open_bus
 from mrrig.canbus.codec import Codec
@@ -605,7 +605,7 @@ class Daemon:
             "send_call": self._send_call_us.percentiles(qs),
         }
         if self.link is not None:
-            self.link.send_summary(_jsonable(self.summary))
+            self.link.send_summary(self.summary)
             self.link.send_stop()
             self.link.close()
         if self.sidecar is not None:
@@ -618,18 +618,6 @@ class Daemon:
                 resource.getrusage(resource.RUSAGE_CHILDREN).ru_utime
                 + resource.getrusage(resource.RUSAGE_CHILDREN).ru_stime
             )
-
-
-def _jsonable(d: Any) -> Any:
-    if isinstance(d, dict):
-        return {k: _jsonable(v) for k, v in d.items()}
-    if isinstance(d, list | tuple):
-        return [_jsonable(v) for v in d]
-    if isinstance(d, np.generic):
-        return d.item()
-    if isinstance(d, float) and not math.isfinite(d):
-        return None
-    return d
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -682,5 +670,5 @@ def main(argv: list[str] | None = None) -> int:
     if record is not None:
         print(f"recording: {record}")
     if args.summary_json:
-        args.summary_json.write_text(json.dumps(_jsonable(summary), indent=2))
+        args.summary_json.write_text(json_text.dumps(summary, indent=2))
     return 0

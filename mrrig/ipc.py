@@ -24,6 +24,7 @@ from typing import Any
 
 import numpy as np
 
+from mrrig import json_text
 from mrrig.samples import SAMPLE_DTYPE
 
 log = logging.getLogger(__name__)
@@ -119,7 +120,7 @@ def decode_json(payload: bytes) -> dict[str, Any]:
 
 
 def _encode_json(obj: dict[str, Any]) -> bytes:
-    return json.dumps(obj, separators=(",", ":")).encode()
+    return json_text.dumps(obj, separators=(",", ":")).encode()
 
 
 class _Writer:

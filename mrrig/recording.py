@@ -23,7 +23,6 @@ from __future__ import annotations
 
 import contextlib
 import datetime as dt
-import json
 import logging
 import signal
 import threading
@@ -36,6 +35,7 @@ import numpy as np
 import rerun as rr
 import rerun.blueprint as rrb
 
+from mrrig import json_text
 from mrrig.samples import SAMPLE_DTYPE
 
 log = logging.getLogger(__name__)
@@ -82,21 +82,6 @@ def recording_path(directory: str | Path, rig: str, now: dt.datetime | None = No
     """`<directory>/<rig>-<UTC time>.rrd`, e.g. `rig1-20250114T093012Z.rrd`."""
     now = dt.datetime.now(dt.UTC) if now is None else now.astimezone(dt.UTC)
     return Path(directory) / f"{rig}-{now:%Y%m%dT%H%M%SZ}.rrd"
-
-
-def _json_default(obj: Any) -> Any:
-    if isinstance(obj, np.generic):
-        return obj.item()
-    if isinstance(obj, np.ndarray):
-        return obj.tolist()
-    if isinstance(obj, Path):
-        return str(obj)
-    raise TypeError(f"{type(obj).__name__} is not JSON serializable")
-
-
-def to_json(d: dict[str, Any]) -> str:
-    """JSON text of a summary/event dict; numpy scalars and arrays become plain numbers/lists."""
-    return json.dumps(d, default=_json_default)
 
 
 def default_blueprint() -> rrb.Blueprint:
@@ -224,7 +209,7 @@ class Recorder:
             self._rec.log(
                 EVENTS_ENTITY,
                 rr.TextLog(text, level=level),
-                rr.AnyValues(t_s=float(t_s), fields=to_json(fields)),
+                rr.AnyValues(t_s=float(t_s), fields=json_text.dumps(fields)),
             )
             self._rec.reset_time()
             self._events += 1
@@ -235,7 +220,7 @@ class Recorder:
             if self._closed:
                 self._drop(1)
                 return
-            self._rec.log(SUMMARY_ENTITY, rr.TextDocument(to_json(d)), static=True)
+            self._rec.log(SUMMARY_ENTITY, rr.TextDocument(json_text.dumps(d)), static=True)
 
     def flush(self) -> None:
         """Send everything buffered now."""

@@ -3,9 +3,9 @@
 from __future__ import annotations
 
 import argparse
-import json
 from pathlib import Path
 
+from mrrig import json_text
 from mrrig.cli_args import output_file
 from mrrig.review import plot_recording, read_recording, verify_rrd
 from mrrig.summary import format_summary, summarize
@@ -29,5 +29,5 @@ def main(argv: list[str] | None = None) -> int:
         plot_recording(rec, args.plot)
         print(f"figure: {args.plot}")
     if args.json:
-        args.json.write_text(json.dumps(metrics, indent=2, default=float))
+        args.json.write_text(json_text.dumps(metrics, indent=2))
     return 0

@@ -34,6 +34,7 @@ from typing import Any, Protocol
 import numpy as np
 import zenoh
 
+from mrrig import json_text
 from mrrig.ipc import ChannelFds, Msg, SidecarEnd, decode_json, decode_samples
 from mrrig.samples import FIELDS, SAMPLE_DTYPE
 from mrrig.zenoh_config import ZenohConfigError, load_zenoh_config
@@ -238,7 +239,7 @@ class Sidecar:
 
     def _reply(self, query: zenoh.Query, reply: dict[str, Any]) -> None:
         try:
-            query.reply(self._keys["control"], json.dumps(reply), encoding=JSON)
+            query.reply(self._keys["control"], json_text.dumps(reply), encoding=JSON)
         except zenoh.ZError as exc:
             log.warning("could not reply to a control query: %s", exc)
         query.drop()  # sends the final answer now instead of at garbage collection
@@ -298,7 +299,7 @@ class Sidecar:
         self._reply(pending.query, reply)
 
     def _event(self, event: dict[str, Any], raw: bytes | None = None) -> None:
-        self._publish("events", raw if raw is not None else json.dumps(event))
+        self._publish("events", raw if raw is not None else json_text.dumps(event))
         fields = {k: v for k, v in event.items() if k not in ("t", "level", "text")}
         self._record(
             "add_event",
@@ -336,7 +337,7 @@ class Sidecar:
             self._close_recorder()
             self._publish(
                 "events",
-                json.dumps(
+                json_text.dumps(
                     {
                         "t": self._last_t_s,
                         "level": "error",

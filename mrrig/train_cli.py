@@ -10,12 +10,12 @@ the previous N samples of `--history-signals` (default x,xd) to the forward netw
 from __future__ import annotations
 
 import argparse
-import json
 import logging
 import sys
 from pathlib import Path
 from typing import Any
 
+from mrrig import json_text
 from mrrig.cli_args import COUNT, SEED, output_file, positive
 from mrrig.datasets import DataError
 from mrrig.train_config import TrainConfig, load_train_config
@@ -276,7 +276,7 @@ def main(argv: list[str] | None = None) -> int:
         sup.save(args.supervised_out)
         log.info("wrote %s", args.supervised_out)
     if args.report:
-        args.report.write_text(json.dumps(report, indent=2), encoding="utf-8")
+        args.report.write_text(json_text.dumps(report, indent=2), encoding="utf-8")
         log.info("wrote %s", args.report)
     print(format_report(report))
     return 0

@@ -18,6 +18,7 @@ from typing import Any
 
 import numpy as np
 
+from mrrig import json_text
 from mrrig.characterize import (
     EXIT_INTERRUPTED,
     FLUSH_MARGIN_S,
@@ -30,7 +31,6 @@ from mrrig.characterize import (
 from mrrig.cli_args import non_negative, output_file, positive
 from mrrig.config import load_config
 from mrrig.daemon import build_controller
-from mrrig.recording import to_json
 from mrrig.samples import RigState
 from mrrig.summary import format_summary, summarize
 from mrrig.typed_config import ConfigError
@@ -131,7 +131,7 @@ def main(argv: list[str] | None = None) -> int:
             print(f"error: {exc}", file=sys.stderr)
             return 1
     if args.json:
-        args.json.write_text(to_json({"reports": reports}), encoding="utf-8")
+        args.json.write_text(json_text.dumps({"reports": reports}), encoding="utf-8")
     faulted = [r["model"] for r in reports if r["faults"]]
     if faulted:
         print(f"faults during the validation of: {', '.join(faulted)}", file=sys.stderr)

@@ -15,7 +15,6 @@ from __future__ import annotations
 import argparse
 import array
 import gc
-import json
 import logging
 import signal
 import time
@@ -23,6 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
+from mrrig import json_text
 from mrrig.canbus.bus import open_bus
 from mrrig.canbus.codec import Codec
 from mrrig.cli_args import output_file
@@ -98,7 +98,7 @@ def run(config: Path, bus_channel: str | None, summary_json: Path) -> dict:
             "send_call": percentiles(snd, qs=(50, 99, 99.9)),
         },
     }
-    summary_json.write_text(json.dumps(summary, indent=2))
+    summary_json.write_text(json_text.dumps(summary, indent=2))
     p99 = summary["latency_us"]["p99"]
     log.info("echo: answered %d frames, latency p99 %.0f us", answered, p99)
     return summary

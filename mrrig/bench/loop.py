@@ -23,6 +23,7 @@ import tempfile
 import time
 from pathlib import Path
 
+from mrrig import json_text
 from mrrig.canbus.bus import find_free_port, start_bridge, stop_bridge
 from mrrig.cli_args import output_file, positive
 from mrrig.config import load_config
@@ -265,5 +266,5 @@ def main(argv: list[str] | None = None) -> int:
         " 0 frames without a command"
     )
     if args.json:
-        args.json.write_text(json.dumps(result, indent=2))
+        args.json.write_text(json_text.dumps(result, indent=2))
     return 0

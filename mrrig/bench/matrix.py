@@ -22,7 +22,6 @@ incremental (the last residual as it is); the root (continuity 0) without feedba
 from __future__ import annotations
 
 import argparse
-import json
 import logging
 import time
 
@@ -30,6 +29,7 @@ import numpy as np
 
 from firmware_sim.plant import BoucWenDamper, BoucWenParams, simulate
 from firmware_sim.signals import sine
+from mrrig import json_text
 from mrrig.cli_args import COUNT, SEED, output_file
 from mrrig.controllers import ControlInput, Controller, NetworkInversion, SupervisedInverse
 from mrrig.datasets import DISPLACEMENT_LSB_M, Series, dataset_b, dataset_b_conditions
@@ -287,7 +287,7 @@ def main(argv: list[str] | None = None) -> int:
     result = run(seed=args.seed, epochs=args.epochs, current_input=args.current_input)
     print(format_report(result))
     if args.json:
-        args.json.write_text(json.dumps(result, indent=2, default=float))
+        args.json.write_text(json_text.dumps(result, indent=2))
         log.info("wrote %s", args.json)
     return 0
 

@@ -22,13 +22,13 @@ the validation cases.
 from __future__ import annotations
 
 import argparse
-import json
 import logging
 import time
 
 import numpy as np
 
 from firmware_sim.plant import BoucWenParams
+from mrrig import json_text
 from mrrig.cli_args import COUNT, SEED, output_file
 from mrrig.controllers import (
     ContinuousState,
@@ -746,6 +746,6 @@ def main(argv: list[str] | None = None) -> int:
     )
     print(format_report(result))
     if args.json:
-        args.json.write_text(json.dumps(result, indent=2))
+        args.json.write_text(json_text.dumps(result, indent=2))
         log.info("wrote %s", args.json)
     return 0
