@@ -37,13 +37,15 @@ _RESYNC_PERIODS = 10
 class RunStats:
     """What the loop measured: frames, answers per sensor frame, latency, jitter, CPU."""
 
-    # An answer may arrive after later sensor frames (transport delay); it is matched to the
-    # newest frame with its counter among the last PENDING frames (counters wrap at 16).
-    # Answers come in frame order (one per frame as soon as computed, over a FIFO bus), so a second
-    # answer to a frame after at least PENDING other commands is that frame's own answer: the
-    # first was the late answer to the frame 16 periods before it, gone from the window (a
-    # transport stall over 30 ms), and is counted unmatched instead.
-    PENDING = 15
+    # Answers come in frame order (one per frame as soon as computed, over a FIFO bus): an
+    # answer is for the first frame after the last answered one that has its counter (counters
+    # wrap at 16), so a transport stall of up to WINDOW periods delays answers without mixing
+    # them up. After RESYNC_S without any answer (the first answer; a daemon restarted) the
+    # frames before went unanswered, and the answer is for the newest frame with its counter.
+    WINDOW = 64  # frames awaiting an answer, at most (128 ms)
+    RESYNC_S = 0.1
+    # a repeated answer is looked for among the last REPEATS answered frames
+    REPEATS = 16
 
     def __init__(self) -> None:
         self.sensor_frames_sent = 0
@@ -53,18 +55,19 @@ class RunStats:
         self.answered_late = 0  # of answered_once: arrived after the next sensor frame
         self.unanswered = 0
         self.answered_more_than_once = 0
-        self.unmatched_answers = 0  # valid commands echoing no frame awaiting an answer
+        self.unmatched_answers = 0  # valid commands echoing no frame sent lately
         # SAFE commands repeating the counter of the last answered frame: the daemon's own SAFE
         # after a sensor timeout (spec/system.md), not a second answer
         self.safe_repeats = 0
         self._last_echo: int | None = None
-        self._commands_seen = 0  # valid commands taken by on_command, SAFE repeats aside
+        self._last_command_s: float | None = None
         self.resyncs = 0
         self.latency_us = array("d")
         self.jitter_us = array("d")
-        # [counter, send time, answers, answered late, number of the first answer's command,
-        #  its index in latency_us] of the frames awaiting answers
-        self._pending: collections.deque[list] = collections.deque()
+        # [counter, send time, answers, answered late]: frames after the last answered one,
+        # and the last answered frames
+        self._awaiting: collections.deque[list] = collections.deque()
+        self._answered: collections.deque[list] = collections.deque()
 
     def _close(self, entry: list) -> None:
         n = entry[2]
@@ -81,9 +84,9 @@ class RunStats:
         self.sensor_frames_sent += 1
         self.jitter_us.append((sent_s - ideal_s) * 1e6)
         if frame.expect_answer:
-            self._pending.append([frame.counter, sent_s, 0, False, 0, 0])
-            if len(self._pending) > self.PENDING:
-                self._close(self._pending.popleft())
+            self._awaiting.append([frame.counter, sent_s, 0, False])
+            if len(self._awaiting) > self.WINDOW:
+                self._close(self._awaiting.popleft())
         else:
             self.sensor_frames_faulted += 1
 
@@ -93,31 +96,35 @@ class RunStats:
             self.safe_repeats += 1
             return
         self._last_echo = echo
-        self._commands_seen += 1
-        for k in range(len(self._pending) - 1, -1, -1):
-            entry = self._pending[k]
-            if entry[0] != echo:
-                continue
-            latency_us = (received_s - entry[1]) * 1e6
-            late = k < len(self._pending) - 1
-            if entry[2] == 0:
-                entry[2:] = [1, late, self._commands_seen, len(self.latency_us)]
-                self.latency_us.append(latency_us)
-            elif self._commands_seen - entry[4] >= self.PENDING:
-                # the first answer was an older frame's (see PENDING): this one is the frame's
-                self.unmatched_answers += 1
-                entry[3:] = [late, self._commands_seen, entry[5]]
-                self.latency_us[entry[5]] = latency_us
-            else:
-                entry[2] += 1
+        in_turn = (
+            self._last_command_s is not None and received_s - self._last_command_s <= self.RESYNC_S
+        )
+        self._last_command_s = received_s
+        awaiting = self._awaiting
+        ks = [k for k, entry in enumerate(awaiting) if entry[0] == echo]
+        if ks:
+            k = ks[0] if in_turn else ks[-1]
+            for _ in range(k):  # frames the answers passed by
+                self._close(awaiting.popleft())
+            entry = awaiting.popleft()
+            entry[2], entry[3] = 1, bool(awaiting)
+            self.latency_us.append((received_s - entry[1]) * 1e6)
+            self._answered.append(entry)
+            if len(self._answered) > self.REPEATS:
+                self._close(self._answered.popleft())
             return
+        for entry in reversed(self._answered):
+            if entry[0] == echo:
+                entry[2] += 1
+                return
         self.unmatched_answers += 1
 
     def finish(self) -> None:
-        """Count the frames still pending, once their answers have had the time a frame's
-        answer has while the run goes on (`run` listens PENDING periods after the last frame)."""
-        while self._pending:
-            self._close(self._pending.popleft())
+        """Count every frame, once the answers have had the time they have while the run goes
+        on (`run` listens WINDOW periods after the last frame)."""
+        for queue in (self._answered, self._awaiting):
+            while queue:
+                self._close(queue.popleft())
 
     def summary(self, firmware: Firmware, wall_s: float, cpu_s: float) -> dict[str, Any]:
         """The stats file's content (call `finish()` first)."""
@@ -238,7 +245,7 @@ def run(
                 k += skipped
         # answers still in flight when the last frame left: listen as long as an answer to an
         # earlier frame is waited for, then `stats.finish()` counts every frame
-        receive_until(clock() + RunStats.PENDING * period_s)
+        receive_until(clock() + RunStats.WINDOW * period_s)
     finally:
         gc.unfreeze()
 

@@ -75,16 +75,16 @@ def test_ten_seconds_of_force_tracking_one_command_per_sensor_frame(
         f"simulator: {st['sensor_frames_sent']} sensor frames, answers {a}, "
         f"watchdog trips {st['watchdog_trips']}, answer latency {st['answer_latency_us']}"
     )
-    print(
-        f"daemon: tracking Et {s['et']:.4f} over {s['armed_frames']} armed frames; "
-        f"|error| p95 {s['tracking_error_n']['p95']:.1f} N; latency {s['latency_us']}; "
+    print(  # Et and the percentiles are null without an armed frame
+        f"daemon: tracking Et {s['et']} over {s['armed_frames']} armed frames; "
+        f"|error| p95 {s['tracking_error_n']['p95']} N; latency {s['latency_us']}; "
         f"faults {s['faults']}"
     )
     assert st["sensor_frames_sent"] >= 4900
     assert a["answered_once"] == st["sensor_frames_sent"]
     assert a["unanswered"] == 0 and a["answered_more_than_once"] == 0 and a["unmatched"] == 0
     assert st["max_commanded_current_a"] <= 2.0
-    assert s["et"] <= 0.1
+    assert s["et"] is not None and s["et"] <= 0.1
     # No fault while the simulator streamed (the sensor timeout after it stopped is expected),
     # except the transport's: the python-can-remote bridge and the scheduler of this 2-core VM
     # now and then hold frames for over 20 ms, which trips the firmware's watchdog (or the
