@@ -467,7 +467,10 @@ class ScalarInverter:
         k += self._s.a0
 
     def solve(self, features: np.ndarray, f_des: float, i_prev: float) -> float:
-        """Current in A for one sample; features = the model's inputs without the current."""
+        """Current in A for one sample; features = the model's inputs without the current.
+        A non-finite f_des has no current: NaN, for the caller's finiteness check."""
+        if not math.isfinite(f_des):
+            return math.nan
         if self.method == "gradient":
             return self._gradient(features, f_des)
         self._features_part(features)

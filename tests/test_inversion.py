@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pytest
 import torch
@@ -350,6 +352,18 @@ def test_a_wrong_prediction_falls_back_to_the_full_solve() -> None:
     assert (inv.ahead_used, inv.ahead_missed) == (0, 1)
     assert got == pytest.approx(exact_inversion(model, feat[None], f_hi, 0.5, i_max=I_MAX)[0])
     assert got == pytest.approx(1.8, abs=1e-6)
+
+
+@pytest.mark.parametrize("method", ["exact", "gradient"])
+@pytest.mark.parametrize("f_des", [math.nan, math.inf])
+def test_a_non_finite_desired_force_has_no_current(method: str, f_des: float) -> None:
+    # the bracket's comparisons are all false for NaN: the exact solve gave a finite current
+    # (0 A here; 0.0625 A in a daemon whose reference went NaN)
+    model = random_model(np.random.default_rng(3), monotone=True)
+    inv = ScalarInverter(model, I_MAX, method=method)
+    feat = np.array([0.002, 0.05, -1.0])
+    inv.prepare(feat, 100.0, 0.5)
+    assert math.isnan(inv.solve(feat, f_des, 0.5))
 
 
 def test_an_ambiguous_root_is_not_followed_ahead() -> None:
