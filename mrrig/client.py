@@ -56,13 +56,20 @@ def request(
 
     Raises ClientError if no daemon answers within `timeout_s`.
     """
-    key = keys(rig)["control"]
     with open_session(zenoh_config) as session:
-        replies = session.get(key, payload=json.dumps(payload), encoding=JSON, timeout=timeout_s)
-        for reply in replies:
-            if reply.ok is not None:
-                return json.loads(reply.ok.payload.to_bytes())
-            raise ClientError(f"{key}: error reply: {reply.err.payload.to_string()}")
+        return query(session, rig, payload, timeout_s)
+
+
+def query(
+    session: zenoh.Session, rig: str, payload: dict[str, Any], timeout_s: float = 2.0
+) -> dict[str, Any]:
+    """`request` on a session that is already open (`open_session`)."""
+    key = keys(rig)["control"]
+    replies = session.get(key, payload=json.dumps(payload), encoding=JSON, timeout=timeout_s)
+    for reply in replies:
+        if reply.ok is not None:
+            return json.loads(reply.ok.payload.to_bytes())
+        raise ClientError(f"{key}: error reply: {reply.err.payload.to_string()}")
     raise ClientError(
         f"no daemon answered on {key} within {timeout_s:g} s "
         f"(is `mrrig run` up for rig {rig!r}, with a matching Zenoh config?)"

@@ -6,13 +6,20 @@
 4. the rig daemon as its own process: a 20 s force-tracking run with network inversion,
    telemetry on Zenoh (127.0.0.1) and a Rerun recording,
 then the daemon's summary and the simulator's view of the same run, and everything stopped.
+
+The daemon faults on a stall of this VM's processes as it would on a real bus (no sensor
+frame within its timeout, lost frames) and stays in FAULT: it never re-arms itself. The demo
+does what the rig's operator would: it watches the daemon's status over Zenoh and re-arms it
+after such a transport fault (`--max-rearms`, logged and counted), never after another one.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import logging
+import os
 import signal
 import subprocess
 import sys
@@ -20,14 +27,20 @@ import tempfile
 import time
 from pathlib import Path
 
+from mrrig import client
 from mrrig.canbus.bus import find_free_port, start_bridge, stop_bridge
-from mrrig.cli_args import positive
+from mrrig.cli_args import int_at_least, positive
 from mrrig.config import load_config
 from mrrig.realtime import keep_off_cpu
+from mrrig.sidecar import keys
 
 log = logging.getLogger(__name__)
 
 SIM_MODEL = Path("models/sim-forward.json")
+ZENOH_CLIENT = Path("configs/zenoh-client.json5")
+# the daemon's faults that a stall of the processes' transport causes; the demo re-arms after them
+TRANSPORT_FAULTS = frozenset({"sensor_timeout", "lost_frames", "firmware_watchdog"})
+WATCH_PERIOD_S = 0.25
 
 
 def ensure_sim_model(path: Path, seed: int = 0) -> Path:
@@ -54,6 +67,64 @@ def _stop(proc: subprocess.Popen, name: str, timeout_s: float = 10.0) -> int:
     return proc.returncode
 
 
+class _LatestStatus:
+    """Subscriber callback keeping the newest status the daemon published (on change, 1 Hz)."""
+
+    def __init__(self) -> None:
+        self.status: dict | None = None
+
+    def __call__(self, sample) -> None:
+        self.status = json.loads(sample.payload.to_bytes())
+
+
+def watch_and_rearm(
+    daemon: subprocess.Popen,
+    rig: str,
+    zenoh_config: Path,
+    max_rearms: int,
+    timeout_s: float,
+) -> tuple[int, list[str]]:
+    """Wait for the daemon to exit (at most `timeout_s`), re-arming it over Zenoh after each
+    transport fault its published status shows, at most `max_rearms` times. Returns its exit
+    code and the faults' reasons. A refused arm (the firmware still in FAULT) is tried again
+    on a later status."""
+    deadline = time.monotonic() + timeout_s
+    rearmed: list[str] = []
+    latest = _LatestStatus()
+    with contextlib.ExitStack() as stack:
+        session = None
+        while daemon.poll() is None:
+            if time.monotonic() > deadline:
+                raise subprocess.TimeoutExpired(daemon.args, timeout_s)
+            time.sleep(WATCH_PERIOD_S)
+            if len(rearmed) >= max_rearms:
+                continue
+            st = latest.status
+            try:
+                if session is None:
+                    session = stack.enter_context(client.open_session(zenoh_config))
+                    sub = session.declare_subscriber(keys(rig)["status"], latest)
+                    stack.callback(sub.undeclare)  # before the session closes
+                if st is None or st["state"] != "FAULT" or st["fault"] not in TRANSPORT_FAULTS:
+                    continue
+                latest.status = None  # act on this fault once; the next status tells the rest
+                reply = client.query(session, rig, {"cmd": "arm"}, 1.0)
+            except client.ClientError as exc:
+                log.debug("demo: the daemon does not answer (yet): %s", exc)
+                continue
+            if reply.get("ok") and reply.get("message") == "armed":
+                rearmed.append(st["fault_reason"])
+                log.warning(
+                    "demo: re-armed the daemon after its fault %r (%d of at most %d)",
+                    st["fault_reason"],
+                    len(rearmed),
+                    max_rearms,
+                )
+            elif not reply.get("ok"):
+                log.info("demo: re-arming refused: %s", reply.get("error"))
+    return daemon.returncode, rearmed
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="mrrig demo", description=__doc__)
     ap.add_argument("--config", type=Path, default=Path("configs/rig.toml"))
@@ -62,6 +133,18 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--model", type=Path, default=SIM_MODEL)
     ap.add_argument(
         "--record", type=Path, help="recording path (default recordings/<rig>-<UTC>.rrd)"
+    )
+    ap.add_argument(
+        "--zenoh-config",
+        type=Path,
+        default=ZENOH_CLIENT,
+        help="Zenoh client config reaching the daemon (its status, re-arming)",
+    )
+    ap.add_argument(
+        "--max-rearms",
+        type=int_at_least(0),
+        default=3,
+        help="re-arm the daemon after at most this many transport faults (0: never)",
     )
     args = ap.parse_args(argv)
 
@@ -87,7 +170,8 @@ def main(argv: list[str] | None = None) -> int:
             ],
         )
         # the daemon's loop gets its CPU (loop.cpu) to itself
-        loop_cpu = load_config(args.config).loop.cpu
+        cfg = load_config(args.config)
+        loop_cpu = cfg.loop.cpu
         keep_off_cpu(bridge.pid, loop_cpu, "CAN bridge")
         keep_off_cpu(sim.pid, loop_cpu, "firmware_sim")
         time.sleep(1.0)  # the simulator connects and starts streaming
@@ -113,12 +197,22 @@ def main(argv: list[str] | None = None) -> int:
             cmd += ["--record", str(args.record)]
         log.info("daemon: %s", " ".join(cmd[2:]))
         daemon = subprocess.Popen(cmd)
-        rc = daemon.wait(timeout=args.duration + 120)
+        keep_off_cpu(os.getpid(), loop_cpu, "demo")  # and the Zenoh session's threads
+        max_rearms = args.max_rearms if cfg.telemetry.enabled else 0
+        if args.max_rearms and not cfg.telemetry.enabled:
+            log.info("demo: telemetry is off in %s: no Zenoh, no re-arming", args.config)
+        rc, rearmed = watch_and_rearm(
+            daemon, cfg.rig.name, args.zenoh_config, max_rearms, args.duration + 120
+        )
         if rc != 0:
             raise RuntimeError(f"the daemon exited with code {rc}")
         _stop(sim, "firmware_sim")
         stats = json.loads(sim_stats.read_text())
         print(_sim_report(stats))
+        print(
+            f"demo: re-armed the daemon {len(rearmed)} times after a transport fault"
+            + "".join(f"\n  {reason}" for reason in rearmed)
+        )
         return 0
     finally:
         for proc, name in ((daemon, "daemon"), (sim, "firmware_sim")):

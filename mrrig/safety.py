@@ -29,6 +29,7 @@ class Fault(enum.Enum):
     NON_FINITE = "non_finite"  # NaN/inf in the estimate or the model
     STALE_REFERENCE = "stale_reference"
     FIRMWARE_FAULT = "firmware_fault"  # RigStatus State FAULT
+    FIRMWARE_WATCHDOG = "firmware_watchdog"  # RigStatus CommandTimeouts moved while armed
     ESTOP = "estop"
     LIMIT_TRIPPED = "limit_tripped"
     SENSOR_FAULT = "sensor_fault"
@@ -191,7 +192,7 @@ class Supervisor:
             if new_timeouts and self.state is RigState.ARMED:
                 events += self.trip(
                     t_s,
-                    Fault.FIRMWARE_FAULT,
+                    Fault.FIRMWARE_WATCHDOG,
                     "firmware watchdog tripped (no valid command for 20 ms)",
                 )
         return events

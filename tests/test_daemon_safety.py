@@ -149,7 +149,7 @@ def test_firmware_watchdog_trip_faults_an_armed_daemon(tmp_path):
         rig.status(state="FAULT", fault_code=1, timeouts=1)
         time.sleep(0.05)
         assert_safe(rig.exchange())
-        assert "watchdog" in assert_fault(rig, Fault.FIRMWARE_FAULT)["reason"]
+        assert "watchdog" in assert_fault(rig, Fault.FIRMWARE_WATCHDOG)["reason"]
 
 
 class _NaNController(Controller):
@@ -288,7 +288,7 @@ def test_another_senders_command_on_the_bus_faults_and_blocks_arming(tmp_path):
 
 def test_a_foreign_command_is_one_event_per_episode_even_over_another_fault():
     sup = Supervisor(Limits((-0.05, 0.05), (-1e4, 1e4), 5, 5, 1.0))
-    sup.trip(0.0, Fault.FIRMWARE_FAULT, "firmware watchdog tripped")  # the doubled commands
+    sup.trip(0.0, Fault.FIRMWARE_WATCHDOG, "firmware watchdog tripped")  # the doubled commands
     assert sup.foreign_command(0.100, "DamperCommand")  # recorded over the fault already there
     assert sup.fault is Fault.FOREIGN_COMMAND
     assert sup.foreign_command(0.102, "DamperCommand") == []  # the same sender, same episode

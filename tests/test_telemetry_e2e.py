@@ -120,7 +120,7 @@ def test_telemetry_control_recording_and_review(tmp_path, bridge, procs, sim_mod
         # IDLE, unless the CAN bridge between the processes stalled past a timeout (it does,
         # now and then, on this 2-core VM; seen once while the sidecar started): then a
         # transport fault, never another one; arming below is the explicit re-arm
-        transport = ("firmware_fault", "sensor_timeout")
+        transport = ("firmware_watchdog", "sensor_timeout", "lost_frames")
         st = status["status"]
         assert st["state"] == "IDLE" or (st["state"] == "FAULT" and st["fault"] in transport), st
         alive = session.liveliness().get(f"mrrig/{RIG}/alive", timeout=2.0)

@@ -14,7 +14,11 @@ SIM_SECONDS=${SIM_SECONDS:-4}           # simulated seconds (x5 on the wall cloc
 # a large socket buffer and a real-time priority: candump must not drop frames itself
 chrt -f 40 candump -L -r 8388608 vcan0 > "$out/candump.log" &
 dump=$!
-python -m mrrig run --config configs/vcan-vm.toml --arm --summary-json "$out/daemon.json" \
+# each process on a CPU of its own: vcan passes a frame on through the backlog of the CPU
+# that sent it, so the frames of a process that moves between CPUs can overtake each other
+# when one CPU's softirq is held up (seen here under load: the daemon received a sensor frame
+# before the 7 sent ahead of it, and answered them in that order)
+taskset -c 1 python -m mrrig run --config configs/vcan-vm.toml --arm --summary-json "$out/daemon.json" \
     > "$out/daemon.log" 2>&1 &
 daemon=$!
 # the daemon is up when it has logged its start line (imports are slow in the VM)
@@ -25,7 +29,7 @@ for _ in $(seq 1 600); do
 done
 sleep 2
 echo "rig_on_vcan: daemon up; simulator for ${SIM_SECONDS} simulated s"
-python -m firmware_sim --config configs/sim-vcan-vm.toml --duration "$SIM_SECONDS" \
+taskset -c 0 python -m firmware_sim --config configs/sim-vcan-vm.toml --duration "$SIM_SECONDS" \
     --stats "$out/sim.json" > "$out/sim.log" 2>&1
 sleep 1
 kill -TERM "$daemon"
