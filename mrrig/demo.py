@@ -32,14 +32,13 @@ from mrrig.canbus.bus import find_free_port, start_bridge, stop_bridge
 from mrrig.cli_args import int_at_least, positive
 from mrrig.config import load_config
 from mrrig.realtime import keep_off_cpu
+from mrrig.safety import TRANSPORT_FAULTS
 from mrrig.sidecar import keys
 
 log = logging.getLogger(__name__)
 
 SIM_MODEL = Path("models/sim-forward.json")
 ZENOH_CLIENT = Path("configs/zenoh-client.json5")
-# the daemon's faults that a stall of the processes' transport causes; the demo re-arms after them
-TRANSPORT_FAULTS = frozenset({"sensor_timeout", "lost_frames", "firmware_watchdog"})
 WATCH_PERIOD_S = 0.25
 
 

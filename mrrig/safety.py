@@ -38,6 +38,14 @@ class Fault(enum.Enum):
     INTERNAL_ERROR = "internal_error"  # an unexpected exception in the cycle
 
 
+# The faults a transport stall causes (a bus or a process held up past the sensor timeout or
+# the firmware's 20 ms watchdog): `mrrig validate` tries such a window again, `mrrig demo`
+# re-arms after them. The daemon itself never re-arms.
+TRANSPORT_FAULTS = frozenset(
+    {Fault.SENSOR_TIMEOUT.value, Fault.LOST_FRAMES.value, Fault.FIRMWARE_WATCHDOG.value}
+)
+
+
 @dataclass(frozen=True)
 class Limits:
     x_range_m: tuple[float, float]

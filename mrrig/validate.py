@@ -4,6 +4,9 @@ The daemon runs with the rig config's force reference (bouc_wen or sine, ...) an
 motion; for each model: arm, wait `--settle` s, keep `--duration` s of samples, disarm, and
 print the report (Et, tracking error, current, latency, faults). Models after the first are
 switched in with the daemon's `set_model` control request while disarmed, without a restart.
+A window whose faults are all transport faults (a stall past the sensor timeout or the
+firmware's watchdog) is tried again, up to `--attempts` in all; the report keeps the faults of
+the windows it discarded.
 """
 
 from __future__ import annotations
@@ -22,15 +25,17 @@ from mrrig import json_text
 from mrrig.characterize import (
     EXIT_INTERRUPTED,
     FLUSH_MARGIN_S,
+    RETRY_PAUSE_S,
     Interrupted,
     RigError,
     RigSession,
     rig_overrides,
     stop_on_signals,
 )
-from mrrig.cli_args import non_negative, output_file, positive
+from mrrig.cli_args import int_at_least, non_negative, output_file, positive
 from mrrig.config import load_config
 from mrrig.daemon import build_controller
+from mrrig.safety import TRANSPORT_FAULTS
 from mrrig.samples import RigState
 from mrrig.summary import format_summary, summarize
 from mrrig.typed_config import ConfigError
@@ -54,6 +59,9 @@ def track(
         session.request(cmd="disarm")
     s, events = session.take(t_start, t_end)
     summary = summarize(s, events)  # events since arming: a fault while settling counts too
+    summary["transport_faults_only"] = all(
+        e.get("fault") in TRANSPORT_FAULTS for e in events if e["kind"] == "fault"
+    )
     armed = s["state"] == RigState.ARMED
     i_meas = s["i_meas"][armed]
     summary["i_meas_a"] = {
@@ -63,17 +71,46 @@ def track(
     return summary
 
 
+def track_with_attempts(
+    session: RigSession,
+    settle_s: float,
+    duration_s: float,
+    attempts: int,
+    stop: threading.Event,
+) -> dict[str, Any]:
+    """`track`, tried again while a window's faults are all transport faults, up to `attempts`
+    windows; the kept summary has `attempts` and the faults of the discarded windows."""
+    discarded: list[dict] = []
+    for attempt in range(1, attempts + 1):
+        summary = track(session, settle_s, duration_s, stop)
+        transport_only = summary.pop("transport_faults_only")
+        if not summary["faults"] or not transport_only or attempt == attempts:
+            break
+        log.warning(
+            "attempt %d of %d: a transport fault (%s): trying the window again",
+            attempt,
+            attempts,
+            summary["faults"][0]["reason"],
+        )
+        discarded += summary["faults"]
+        session.wait_until(session.now() + RETRY_PAUSE_S, stop, fail_on_fault=False)
+    return {**summary, "attempts": attempt, "discarded_faults": discarded}
+
+
 def format_report(r: dict[str, Any]) -> str:
-    core = {k: v for k, v in r.items() if k not in ("model", "setup", "i_meas_a")}
+    skip = ("model", "setup", "i_meas_a", "attempts", "discarded_faults")
+    core = {k: v for k, v in r.items() if k not in skip}
     i_meas = r["i_meas_a"]
-    return "\n".join(
-        [
-            f"model         {r['model']}",
-            f"setup         {r['setup']}",
-            format_summary(core),
-            f"i_meas        mean {i_meas['mean']:.4g} A, max {i_meas['max']:.4g} A (armed)",
-        ]
-    )
+    lines = [
+        f"model         {r['model']}",
+        f"setup         {r['setup']}",
+        format_summary(core),
+        f"i_meas        mean {i_meas['mean']:.4g} A, max {i_meas['max']:.4g} A (armed)",
+    ]
+    if r["discarded_faults"]:
+        lines.append(f"attempts      {r['attempts']}; the windows discarded for a transport fault:")
+        lines += [f"  {f['reason']}" for f in r["discarded_faults"]]
+    return "\n".join(lines)
 
 
 def _setup(cfg) -> str:
@@ -98,6 +135,12 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--rig-config", type=Path, default=Path("configs/rig.toml"))
     ap.add_argument("--duration", type=positive, default=10.0, help="kept per model, s")
     ap.add_argument("--settle", type=non_negative, default=1.0, help="after arming, not kept, s")
+    ap.add_argument(
+        "--attempts",
+        type=int_at_least(1),
+        default=3,
+        help="windows per model while each meets only a transport fault",
+    )
     ap.add_argument("--bus-channel", help="override bus.channel of the rig config")
     ap.add_argument("--no-telemetry", action="store_true", help="no Zenoh telemetry")
     ap.add_argument("--json", type=output_file, help="write the reports (a list) as JSON")
@@ -120,7 +163,9 @@ def main(argv: list[str] | None = None) -> int:
                     if k:
                         session.request(cmd="disarm")
                         session.request(cmd="set_model", path=str(model))
-                    r = track(session, args.settle, args.duration, stop)
+                    r = track_with_attempts(
+                        session, args.settle, args.duration, args.attempts, stop
+                    )
                     r = {"model": str(model), "setup": _setup(cfg), **r}
                     reports.append(r)
                     print(format_report(r), flush=True)
