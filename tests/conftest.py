@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import signal
 import subprocess
 import sys
 import threading
@@ -75,6 +76,38 @@ def bridge():
         yield f"ws://127.0.0.1:{port}/"
     finally:
         stop_bridge(proc)
+
+
+class OutputWatch:
+    """A process's text output read on a thread (so that its pipe never fills up), and an
+    event set once a line holding `marker` has come."""
+
+    def __init__(self, proc: subprocess.Popen, marker: str) -> None:
+        self.lines: list[str] = []
+        self.seen = threading.Event()
+        self._thread = threading.Thread(target=self._read, args=(proc, marker), daemon=True)
+        self._thread.start()
+
+    def _read(self, proc: subprocess.Popen, marker: str) -> None:
+        for line in proc.stdout:
+            self.lines.append(line)
+            if marker in line:
+                self.seen.set()
+
+    def text(self) -> str:
+        return "".join(self.lines)
+
+    def join(self, timeout_s: float = 10.0) -> None:
+        self._thread.join(timeout_s)
+
+
+def stall(pid: int, seconds: float) -> None:
+    """Hold process `pid` up for `seconds` (SIGSTOP, SIGCONT): a transport stall, made."""
+    os.kill(pid, signal.SIGSTOP)
+    try:
+        time.sleep(seconds)
+    finally:
+        os.kill(pid, signal.SIGCONT)
 
 
 class BusLog:

@@ -43,7 +43,7 @@ from mrrig.samples import SAMPLE_DTYPE, RigState
 from mrrig.training import load_tidy
 from mrrig.typed_config import ConfigError
 from mrrig.validate import track_with_attempts
-from tests.conftest import REPO, TRANSPORT_FAULT_REASONS, rig_config
+from tests.conftest import REPO, TRANSPORT_FAULT_REASONS, OutputWatch, rig_config, stall
 
 _channels = itertools.count()
 
@@ -356,25 +356,13 @@ def test_validate_tries_a_window_again_after_a_transport_fault(tmp_path, bridge,
         procs, "validate", str(sim_model), "--rig-config", str(rig),
         "--duration", "2", "--json", str(report),
     )  # fmt: skip
-    lines: list[str] = []
-    armed = threading.Event()
-
-    def read() -> None:
-        for line in p.stdout:
-            lines.append(line)
-            if "state: armed (was IDLE)" in line:
-                armed.set()
-
-    reader = threading.Thread(target=read, daemon=True)
-    reader.start()
-    assert armed.wait(60), "".join(lines)
+    out = OutputWatch(p, "state: armed (was IDLE)")
+    assert out.seen.wait(60), out.text()
     time.sleep(0.5)
-    sim.send_signal(signal.SIGSTOP)
-    time.sleep(0.1)
-    sim.send_signal(signal.SIGCONT)
+    stall(sim.pid, 0.1)
     rc = p.wait(120)
-    reader.join(10)
-    log = "".join(lines)
+    out.join()
+    log = out.text()
     print(log[-2500:])
     (r,) = json.loads(report.read_text())["reports"]
     assert r["attempts"] >= 2, log

@@ -4,34 +4,25 @@ FAULT; the demo re-arms it over Zenoh as the rig's operator would, and only when
 from __future__ import annotations
 
 import json
-import os
 import re
-import signal
-import socket
 import subprocess
 import sys
-import threading
 import time
 from pathlib import Path
 
 import pytest
 
-from tests.conftest import REPO, rig_config
+from mrrig.canbus.bus import find_free_port
+from tests.conftest import REPO, OutputWatch, rig_config, stall
 
 pytestmark = pytest.mark.slow
 STALL_S = 0.1  # the simulator stopped this long: 50 periods without a sensor frame
 DURATION_S = 6.0
 
 
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
 def _zenoh_configs(tmp_path: Path) -> tuple[Path, Path]:
     """The daemon's (listening) and the demo's (connecting) Zenoh configs on a free port."""
-    endpoints = [f"tcp/127.0.0.1:{_free_port()}"]
+    endpoints = [f"tcp/127.0.0.1:{find_free_port()}"]
     scouting = {"multicast": {"enabled": False}}
     daemon, client = tmp_path / "zenoh-daemon.json5", tmp_path / "zenoh-client.json5"
     daemon.write_text(
@@ -83,31 +74,18 @@ def _demo_with_a_stall(tmp_path: Path, sim_model: Path, max_rearms: int) -> tupl
         stderr=subprocess.STDOUT,
         text=True,
     )
-    lines: list[str] = []
-    armed = threading.Event()
-
-    def read() -> None:
-        for line in proc.stdout:
-            lines.append(line)
-            if "state: armed (was IDLE)" in line:
-                armed.set()
-
-    reader = threading.Thread(target=read, daemon=True)
-    reader.start()
+    out = OutputWatch(proc, "state: armed (was IDLE)")
     try:
-        assert armed.wait(120), "".join(lines)
+        assert out.seen.wait(120), out.text()
         time.sleep(1.0)
-        sim = _simulator_of(proc.pid)
-        os.kill(sim, signal.SIGSTOP)
-        time.sleep(STALL_S)
-        os.kill(sim, signal.SIGCONT)
+        stall(_simulator_of(proc.pid), STALL_S)
         rc = proc.wait(DURATION_S + 120)
     finally:
         if proc.poll() is None:
             proc.terminate()
             proc.wait(15)
-    reader.join(10)
-    return rc, "".join(lines)
+    out.join()
+    return rc, out.text()
 
 
 def _armed_share(out: str) -> float:
