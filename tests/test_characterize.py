@@ -366,7 +366,7 @@ def test_validate_tries_a_window_again_after_a_transport_fault(tmp_path, bridge,
     print(log[-2500:])
     (r,) = json.loads(report.read_text())["reports"]
     assert r["attempts"] >= 2, log
-    assert r["discarded_faults"][0]["reason"].startswith("no sensor frame"), log
+    assert r["discarded_faults"], log  # ours ("no sensor frame"), or an earlier VM stall's
     assert "trying the window again" in log and "windows discarded for a transport fault" in log
     for faults in (r["faults"], r["discarded_faults"]):
         assert all(f["reason"].startswith(TRANSPORT_FAULT_REASONS) for f in faults), log
