@@ -43,10 +43,11 @@ from mrrig.typed_config import ConfigError
 log = logging.getLogger(__name__)
 
 
-def track(
+def _track(
     session: RigSession, settle_s: float, duration_s: float, stop: threading.Event
-) -> dict[str, Any]:
-    """One force-tracking window with the daemon's current controller: its summary."""
+) -> tuple[dict[str, Any], bool]:
+    """One force-tracking window with the daemon's current controller: its summary, and
+    whether its faults (if any) are all transport faults."""
     session.request(cmd="disarm")
     session.take(np.inf, np.inf)  # drop what came before
     session.request(cmd="arm")
@@ -59,16 +60,14 @@ def track(
         session.request(cmd="disarm")
     s, events = session.take(t_start, t_end)
     summary = summarize(s, events)  # events since arming: a fault while settling counts too
-    summary["transport_faults_only"] = all(
-        e.get("fault") in TRANSPORT_FAULTS for e in events if e["kind"] == "fault"
-    )
+    transport_only = all(e.get("fault") in TRANSPORT_FAULTS for e in events if e["kind"] == "fault")
     armed = s["state"] == RigState.ARMED
     i_meas = s["i_meas"][armed]
     summary["i_meas_a"] = {
         "mean": float(i_meas.mean()) if i_meas.size else float("nan"),
         "max": float(i_meas.max()) if i_meas.size else float("nan"),
     }
-    return summary
+    return summary, transport_only
 
 
 def track_with_attempts(
@@ -78,12 +77,11 @@ def track_with_attempts(
     attempts: int,
     stop: threading.Event,
 ) -> dict[str, Any]:
-    """`track`, tried again while a window's faults are all transport faults, up to `attempts`
-    windows; the kept summary has `attempts` and the faults of the discarded windows."""
+    """A force-tracking window, tried again while its faults are all transport faults, up to
+    `attempts` windows; the kept summary has `attempts` and the discarded windows' faults."""
     discarded: list[dict] = []
     for attempt in range(1, attempts + 1):
-        summary = track(session, settle_s, duration_s, stop)
-        transport_only = summary.pop("transport_faults_only")
+        summary, transport_only = _track(session, settle_s, duration_s, stop)
         if not summary["faults"] or not transport_only or attempt == attempts:
             break
         log.warning(
