@@ -5,7 +5,7 @@ Relative paths are taken from the working directory (run `mrrig` from the projec
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field, fields, replace
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, Literal
 
@@ -197,6 +197,3 @@ def load_config(
 def reference_from_table(table: dict[str, Any], source: str) -> ReferenceSection:
     """A reference section from a control request (same checks as the file)."""
     return parse(ReferenceSection, table, source, "reference")
-
-
-SECTION_NAMES = tuple(f.name for f in fields(DaemonConfig) if f.name != "source")

@@ -203,6 +203,3 @@ class External(ForceReference):
                 f"force_ref is {age * 1e3:.0f} ms old (timeout {self.timeout_s * 1e3:.0f} ms)"
             )
         return self._value
-
-
-KINDS = ("constant", "sine", "noise", "csv", "bouc_wen", "zenoh")

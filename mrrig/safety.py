@@ -63,7 +63,6 @@ class Supervisor:
         self.state = RigState.IDLE
         self.fault: Fault | None = None
         self.reason = ""
-        self.fault_count = 0
         self._bad: collections.deque[float] = collections.deque()
         self._lost: collections.deque[tuple[float, int]] = collections.deque()
         self._lost_sum = 0
@@ -91,7 +90,6 @@ class Supervisor:
 
     def trip(self, t_s: float, fault: Fault, reason: str) -> list[dict]:
         """Enter FAULT (or stay there, recording the new reason). Returns the events."""
-        self.fault_count += 1
         self.fault, self.reason = fault, reason
         self.state = RigState.FAULT
         return [self._event(t_s, "fault", reason, fault=fault.value)]

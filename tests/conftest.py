@@ -13,7 +13,7 @@ from pathlib import Path
 import can
 import pytest
 
-from mrrig.canbus.bus import find_free_port, open_bus, start_bridge, stop_bridge
+from mrrig.canbus.bus import find_free_port, start_bridge, stop_bridge
 from mrrig.datasets import Series, dataset_b
 
 REPO = Path(__file__).resolve().parents[1]
@@ -110,37 +110,6 @@ def stall(pid: int, seconds: float) -> None:
         os.kill(pid, signal.SIGCONT)
 
 
-class BusLog:
-    """Every frame on the bridge, as (t, id, data), recorded by a client of its own."""
-
-    def __init__(self, channel: str) -> None:
-        self.bus = open_bus("remote", channel)
-        self.frames: list[tuple[float, int, bytes]] = []
-        self._stop = False
-        self._thread = threading.Thread(target=self._run, daemon=True)
-        self._thread.start()
-
-    def _run(self) -> None:
-        while not self._stop:
-            msg = self.bus.recv(timeout=0.1)
-            if msg is not None:
-                self.frames.append((time.monotonic(), msg.arbitration_id, bytes(msg.data)))
-
-    def close(self) -> None:
-        self._stop = True
-        self._thread.join(timeout=2)
-        self.bus.shutdown()
-
-
-@pytest.fixture
-def buslog(bridge):
-    log = BusLog(bridge)
-    try:
-        yield log
-    finally:
-        log.close()
-
-
 def start(args: list[str], **kw) -> subprocess.Popen:
     env = dict(os.environ, PYTHONUNBUFFERED="1")
     return subprocess.Popen([sys.executable, *args], cwd=REPO, env=env, **kw)
@@ -210,4 +179,4 @@ def _value(v) -> str:
     return repr(v)
 
 
-__all__ = ["BusLog", "REPO", "can", "rig_config", "start", "stop"]
+__all__ = ["REPO", "can", "rig_config", "start", "stop"]

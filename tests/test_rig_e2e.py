@@ -8,34 +8,9 @@ import time
 
 import pytest
 
-from mrrig.canbus.codec import Codec
 from tests.conftest import TRANSPORT_FAULT_REASONS, rig_config
 
 pytestmark = pytest.mark.slow
-
-SENSORS, COMMAND = 0x110, 0x210
-
-
-def decode_log(frames):
-    """The bus log as [("S", counter, values) | ("C", echo, values)], invalid frames dropped."""
-    parser = Codec().parser()
-    out = []
-    rejected: dict[str, int] = {}
-    for t, fid, data in frames:
-        if fid not in (SENSORS, COMMAND):
-            continue
-        p = parser.parse(fid, data, t)
-        assert p.ok or fid == SENSORS, f"daemon sent an invalid frame: {p.reason}"
-        if not p.ok:
-            key = p.reason.split(":")[1].split("(")[0].strip() if ":" in p.reason else p.reason
-            rejected[key] = rejected.get(key, 0) + 1
-        if p.ok:
-            key = "S" if fid == SENSORS else "C"
-            out.append(
-                (key, p.counter if key == "S" else int(p.values["SensorCounterEcho"]), p.values)
-            )
-    print("sensor frames rejected by the listener:", rejected)
-    return out
 
 
 def test_ten_seconds_of_force_tracking_one_command_per_sensor_frame(

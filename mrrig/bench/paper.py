@@ -38,6 +38,7 @@ from mrrig.controllers import (
     RecurrentInverse,
     SupervisedInverse,
 )
+from mrrig.datasets import DATASET_A_VMAX_V as VMAX_V
 from mrrig.datasets import Series, dataset_a_training, dataset_a_validation
 from mrrig.inversion import (
     FLOW_STEPS,
@@ -57,7 +58,6 @@ from mrrig.training import ONLINE_CONTINUITY_CANDIDATES, choose_continuity, feat
 log = logging.getLogger(__name__)
 
 DT_S = 1e-3
-VMAX_V = 12.0  # the training range of data set A
 N_TRAIN = 12771  # the paper's training and validation sizes
 N_VAL = 1419
 FEEDBACK_TAU_S = 0.002
