@@ -23,6 +23,8 @@ from mrrig.sidecar import JSON, keys
 from mrrig.zenoh_config import load_zenoh_config
 
 ZenohConfigLike = str | Path | zenoh.Config
+# 127.0.0.1, client mode, multicast scouting off
+DEFAULT_CONFIG = Path("configs/zenoh-client.json5")
 ForceProfile = Callable[[float], float] | str | Path
 _WATCH_POLL_S = 0.01
 

@@ -15,12 +15,10 @@ from pathlib import Path
 from mrrig import client, json_text
 from mrrig.cli_args import finite, positive
 
-DEFAULT_ZENOH = Path("configs/zenoh-client.json5")
-
 
 def _common(ap: argparse.ArgumentParser) -> None:
     ap.add_argument("--rig", default="sim", help="rig name (the Zenoh key prefix mrrig/<rig>)")
-    ap.add_argument("--zenoh-config", type=Path, default=DEFAULT_ZENOH)
+    ap.add_argument("--zenoh-config", type=Path, default=client.DEFAULT_CONFIG)
     ap.add_argument("--timeout", type=positive, default=2.0, help="seconds to wait for the daemon")
 
 

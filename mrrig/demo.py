@@ -38,7 +38,6 @@ from mrrig.sidecar import keys
 log = logging.getLogger(__name__)
 
 SIM_MODEL = Path("models/sim-forward.json")
-ZENOH_CLIENT = Path("configs/zenoh-client.json5")
 WATCH_PERIOD_S = 0.25
 
 
@@ -136,7 +135,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument(
         "--zenoh-config",
         type=Path,
-        default=ZENOH_CLIENT,
+        default=client.DEFAULT_CONFIG,
         help="Zenoh client config reaching the daemon (its status, re-arming)",
     )
     ap.add_argument(

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import os
 import signal
 import subprocess
@@ -65,6 +66,22 @@ def sim_model(tmp_path_factory) -> Path:
     path = tmp_path_factory.mktemp("model") / "sim-forward.json"
     simulated_matrix_model(path, seed=0)
     return path
+
+
+def zenoh_configs(tmp_path: Path) -> tuple[Path, Path, int]:
+    """A daemon's (peer, listening) and a client's (connecting) Zenoh config files on a free
+    port of 127.0.0.1, multicast scouting off: (daemon file, client file, port)."""
+    port = find_free_port()
+    endpoints = [f"tcp/127.0.0.1:{port}"]
+    scouting = {"multicast": {"enabled": False}}
+    daemon, client = tmp_path / "zenoh-daemon.json5", tmp_path / "zenoh-client.json5"
+    daemon.write_text(
+        json.dumps({"mode": "peer", "listen": {"endpoints": endpoints}, "scouting": scouting})
+    )
+    client.write_text(
+        json.dumps({"mode": "client", "connect": {"endpoints": endpoints}, "scouting": scouting})
+    )
+    return daemon, client, port
 
 
 @pytest.fixture

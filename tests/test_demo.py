@@ -3,7 +3,6 @@ FAULT; the demo re-arms it over Zenoh as the rig's operator would, and only when
 
 from __future__ import annotations
 
-import json
 import re
 import subprocess
 import sys
@@ -12,26 +11,11 @@ from pathlib import Path
 
 import pytest
 
-from mrrig.canbus.bus import find_free_port
-from tests.conftest import REPO, OutputWatch, rig_config, stall
+from tests.conftest import REPO, OutputWatch, rig_config, stall, zenoh_configs
 
 pytestmark = pytest.mark.slow
 STALL_S = 0.1  # the simulator stopped this long: 50 periods without a sensor frame
 DURATION_S = 6.0
-
-
-def _zenoh_configs(tmp_path: Path) -> tuple[Path, Path]:
-    """The daemon's (listening) and the demo's (connecting) Zenoh configs on a free port."""
-    endpoints = [f"tcp/127.0.0.1:{find_free_port()}"]
-    scouting = {"multicast": {"enabled": False}}
-    daemon, client = tmp_path / "zenoh-daemon.json5", tmp_path / "zenoh-client.json5"
-    daemon.write_text(
-        json.dumps({"mode": "peer", "listen": {"endpoints": endpoints}, "scouting": scouting})
-    )
-    client.write_text(
-        json.dumps({"mode": "client", "connect": {"endpoints": endpoints}, "scouting": scouting})
-    )
-    return daemon, client
 
 
 def _simulator_of(demo_pid: int) -> int:
@@ -44,7 +28,7 @@ def _simulator_of(demo_pid: int) -> int:
 
 def _demo_with_a_stall(tmp_path: Path, sim_model: Path, max_rearms: int) -> tuple[int, str]:
     """Run the demo; 1 s after the daemon armed, stop the simulator for STALL_S."""
-    zdaemon, zclient = _zenoh_configs(tmp_path)
+    zdaemon, zclient, _ = zenoh_configs(tmp_path)
     cfg = rig_config(
         tmp_path,
         "ws://127.0.0.1:1/",  # the demo's own bridge replaces it

@@ -23,20 +23,16 @@ import pytest
 import zenoh
 
 from mrrig import client
+from mrrig.canbus.bus import find_free_port
 from mrrig.ipc import LoopEnd, Msg, make_channel
 from mrrig.review import read_recording, verify_rrd
 from mrrig.samples import FIELDS, SAMPLE_DTYPE, RigState
 from mrrig.sidecar import keys, start_sidecar
 from mrrig.zenoh_config import ZenohConfigError, load_zenoh_config, local_config
+from tests.conftest import zenoh_configs
 
 RIG = "testrig"
 CONFIGS = Path(__file__).resolve().parents[1] / "configs"
-
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def _collect(sub: zenoh.Subscriber, n: int, timeout_s: float = 10.0) -> list[Any]:
@@ -83,12 +79,7 @@ class Rig:
 @contextlib.contextmanager
 def running_sidecar(tmp_path: Path, record: Path | None = None) -> Iterator[Rig]:
     """A sidecar process on its own port, an observer session, and the loop's pipe end."""
-    port = _free_port()
-    conf_path = tmp_path / "zenoh-daemon.json5"
-    conf_path.write_text(
-        f'{{mode: "peer", listen: {{endpoints: ["tcp/127.0.0.1:{port}"]}},'
-        " scouting: {multicast: {enabled: false}}}"
-    )
+    conf_path, _, port = zenoh_configs(tmp_path)
     fds = make_channel()
     loop = LoopEnd(fds.loop_rx, fds.loop_tx)
     proc = start_sidecar(RIG, conf_path, fds, record=record, telemetry_hz=50)
@@ -345,7 +336,7 @@ def test_a_force_profile_may_have_a_header_and_blank_lines(tmp_path: Path):
 
 
 def test_request_without_a_daemon_is_a_clear_error(tmp_path: Path):
-    port = _free_port()
+    port = find_free_port()
     with pytest.raises(client.ClientError, match="daemon"):
         client.request(
             RIG, {"cmd": "status"}, local_config("client", connect=[f"tcp/127.0.0.1:{port}"])

@@ -7,7 +7,6 @@ import collections
 import json
 import math
 import signal
-import socket
 import time
 
 import numpy as np
@@ -16,17 +15,12 @@ import zenoh
 
 from mrrig.review import read_recording, verify_rrd
 from mrrig.review_cli import main as review_main
+from mrrig.safety import TRANSPORT_FAULTS
 from mrrig.zenoh_config import local_config
-from tests.conftest import rig_config
+from tests.conftest import rig_config, zenoh_configs
 
 pytestmark = pytest.mark.slow
 RIG = "e2e"
-
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def _open_when_up(port: int, timeout_s: float = 30.0) -> zenoh.Session:
@@ -67,17 +61,7 @@ class _Collect:
 
 
 def test_telemetry_control_recording_and_review(tmp_path, bridge, procs, sim_model, capsys):
-    port = _free_port()
-    zcfg = tmp_path / "zenoh-daemon.json5"
-    zcfg.write_text(
-        json.dumps(
-            {
-                "mode": "peer",
-                "listen": {"endpoints": [f"tcp/127.0.0.1:{port}"]},
-                "scouting": {"multicast": {"enabled": False}},
-            }
-        )
-    )
+    zcfg, _, port = zenoh_configs(tmp_path)
     cfg = rig_config(
         tmp_path,
         bridge,
@@ -120,7 +104,7 @@ def test_telemetry_control_recording_and_review(tmp_path, bridge, procs, sim_mod
         # IDLE, unless the CAN bridge between the processes stalled past a timeout (it does,
         # now and then, on this 2-core VM; seen once while the sidecar started): then a
         # transport fault, never another one; arming below is the explicit re-arm
-        transport = ("firmware_watchdog", "sensor_timeout", "lost_frames")
+        transport = TRANSPORT_FAULTS
         st = status["status"]
         assert st["state"] == "IDLE" or (st["state"] == "FAULT" and st["fault"] in transport), st
         alive = session.liveliness().get(f"mrrig/{RIG}/alive", timeout=2.0)
