@@ -10,7 +10,9 @@ then the daemon's summary and the simulator's view of the same run, and everythi
 The daemon faults on a stall of this VM's processes as it would on a real bus (no sensor
 frame within its timeout, lost frames) and stays in FAULT: it never re-arms itself. The demo
 does what the rig's operator would: it watches the daemon's status over Zenoh and re-arms it
-after such a transport fault (`--max-rearms`, logged and counted), never after another one.
+after such a transport fault, never after another one. Isolated faults are re-armed; a burst
+(more than `--max-rearms` in `--rearm-window` seconds) means a faulty bus, not a stall, and
+ends the re-arming for the run. Each re-arm is logged and counted.
 """
 
 from __future__ import annotations
@@ -39,6 +41,7 @@ log = logging.getLogger(__name__)
 
 SIM_MODEL = Path("models/sim-forward.json")
 WATCH_PERIOD_S = 0.25
+REARM_WINDOW_S = 10.0
 
 
 def ensure_sim_model(path: Path, seed: int = 0) -> Path:
@@ -75,15 +78,35 @@ class _LatestStatus:
         self.status = json.loads(sample.payload.to_bytes())
 
 
+class RearmLimit:
+    """The operator's rule: at most `count` re-arms in any `window_s` seconds. A transport
+    fault beyond it ends the re-arming for good (`ended`): faults that close together are a
+    faulty bus, not a stall of this machine."""
+
+    def __init__(self, count: int, window_s: float) -> None:
+        self.count, self.window_s = count, window_s
+        self.times: list[float] = []
+        self.ended = count == 0
+
+    def allows(self, now: float) -> bool:
+        """Whether a transport fault at `now` (monotonic s) may be re-armed; ends it if not."""
+        recent = sum(now - t < self.window_s for t in self.times)
+        self.ended = self.ended or recent >= self.count
+        return not self.ended
+
+    def rearmed(self, now: float) -> None:
+        self.times.append(now)
+
+
 def watch_and_rearm(
     daemon: subprocess.Popen,
     rig: str,
     zenoh_config: Path,
-    max_rearms: int,
+    limit: RearmLimit,
     timeout_s: float,
 ) -> tuple[int, list[str]]:
     """Wait for the daemon to exit (at most `timeout_s`), re-arming it over Zenoh after each
-    transport fault its published status shows, at most `max_rearms` times. Returns its exit
+    transport fault its published status shows, as long as `limit` allows. Returns its exit
     code and the faults' reasons. A refused arm (the firmware still in FAULT) is tried again
     on a later status."""
     deadline = time.monotonic() + timeout_s
@@ -95,7 +118,7 @@ def watch_and_rearm(
             if time.monotonic() > deadline:
                 raise subprocess.TimeoutExpired(daemon.args, timeout_s)
             time.sleep(WATCH_PERIOD_S)
-            if len(rearmed) >= max_rearms:
+            if limit.ended:
                 continue
             st = latest.status
             try:
@@ -106,17 +129,29 @@ def watch_and_rearm(
                 if st is None or st["state"] != "FAULT" or st["fault"] not in TRANSPORT_FAULTS:
                     continue
                 latest.status = None  # act on this fault once; the next status tells the rest
+                if not limit.allows(time.monotonic()):
+                    log.warning(
+                        "demo: not re-arming after the fault %r: %d re-arms in the last %g s;"
+                        " the daemon stays in FAULT for the rest of the run",
+                        st["fault_reason"],
+                        limit.count,
+                        limit.window_s,
+                    )
+                    continue
                 reply = client.query(session, rig, {"cmd": "arm"}, 1.0)
             except client.ClientError as exc:
                 log.debug("demo: the daemon does not answer (yet): %s", exc)
                 continue
             if reply.get("ok") and reply.get("message") == "armed":
+                limit.rearmed(time.monotonic())
                 rearmed.append(st["fault_reason"])
                 log.warning(
-                    "demo: re-armed the daemon after its fault %r (%d of at most %d)",
+                    "demo: re-armed the daemon after its fault %r (%d in all; at most %d in"
+                    " any %g s)",
                     st["fault_reason"],
                     len(rearmed),
-                    max_rearms,
+                    limit.count,
+                    limit.window_s,
                 )
             elif not reply.get("ok"):
                 log.info("demo: re-arming refused: %s", reply.get("error"))
@@ -142,7 +177,15 @@ def main(argv: list[str] | None = None) -> int:
         "--max-rearms",
         type=int_at_least(0),
         default=3,
-        help="re-arm the daemon after at most this many transport faults (0: never)",
+        help="re-arm the daemon after a transport fault at most this many times in any"
+        " --rearm-window seconds; one more fault ends the re-arming (0: never re-arm;"
+        " default %(default)s)",
+    )
+    ap.add_argument(
+        "--rearm-window",
+        type=positive,
+        default=REARM_WINDOW_S,
+        help="seconds of --max-rearms (default %(default)g)",
     )
     args = ap.parse_args(argv)
 
@@ -199,8 +242,9 @@ def main(argv: list[str] | None = None) -> int:
         max_rearms = args.max_rearms if cfg.telemetry.enabled else 0
         if args.max_rearms and not cfg.telemetry.enabled:
             log.info("demo: telemetry is off in %s: no Zenoh, no re-arming", args.config)
+        limit = RearmLimit(max_rearms, args.rearm_window)
         rc, rearmed = watch_and_rearm(
-            daemon, cfg.rig.name, args.zenoh_config, max_rearms, args.duration + 120
+            daemon, cfg.rig.name, args.zenoh_config, limit, args.duration + 120
         )
         if rc != 0:
             raise RuntimeError(f"the daemon exited with code {rc}")

@@ -11,6 +11,7 @@ from pathlib import Path
 
 import pytest
 
+from mrrig.demo import RearmLimit
 from tests.conftest import REPO, OutputWatch, rig_config, stall, zenoh_configs
 
 pytestmark = pytest.mark.slow
@@ -26,8 +27,11 @@ def _simulator_of(demo_pid: int) -> int:
     raise AssertionError(f"no firmware_sim among the demo's children {children}")
 
 
-def _demo_with_a_stall(tmp_path: Path, sim_model: Path, max_rearms: int) -> tuple[int, str]:
-    """Run the demo; 1 s after the daemon armed, stop the simulator for STALL_S."""
+def _demo_with_a_stall(
+    tmp_path: Path, sim_model: Path, max_rearms: int, *demo_args: str, stalls: int = 1
+) -> tuple[int, str]:
+    """Run the demo; 1 s after the daemon armed, stop the simulator for STALL_S; with
+    `stalls` > 1, again once the daemon has been re-armed (or 4 s on)."""
     zdaemon, zclient, _ = zenoh_configs(tmp_path)
     cfg = rig_config(
         tmp_path,
@@ -52,6 +56,7 @@ def _demo_with_a_stall(tmp_path: Path, sim_model: Path, max_rearms: int) -> tupl
             str(DURATION_S),
             "--max-rearms",
             str(max_rearms),
+            *demo_args,
         ],
         cwd=REPO,
         stdout=subprocess.PIPE,
@@ -63,6 +68,12 @@ def _demo_with_a_stall(tmp_path: Path, sim_model: Path, max_rearms: int) -> tupl
         assert out.seen.wait(120), out.text()
         time.sleep(1.0)
         stall(_simulator_of(proc.pid), STALL_S)
+        for n in range(1, stalls):
+            deadline = time.monotonic() + 4.0
+            while out.text().count("state: armed (was FAULT)") < n and time.monotonic() < deadline:
+                time.sleep(0.05)
+            time.sleep(0.3)
+            stall(_simulator_of(proc.pid), STALL_S)
         rc = proc.wait(DURATION_S + 120)
     finally:
         if proc.poll() is None:
@@ -100,3 +111,31 @@ def test_without_rearming_the_daemon_stays_in_fault(tmp_path, sim_model):
     assert "demo: re-armed the daemon 0 times" in out
     # armed from about 1 s to the stall at about 2 s of the 6 s run
     assert _armed_share(out) < 0.5
+
+
+def test_a_second_fault_within_the_window_ends_the_rearming(tmp_path, sim_model):
+    # one re-arm in any 60 s: the first fault (ours, or an earlier stall of the VM) is
+    # re-armed, the next one, whichever it is, is not
+    rc, out = _demo_with_a_stall(tmp_path, sim_model, 1, "--rearm-window", "60", stalls=2)
+    print(out[-3000:])
+    assert rc == 0, out
+    assert "state: armed (was FAULT)" in out
+    assert "demo: re-armed the daemon 1 times" in out
+    assert "demo: not re-arming after the fault" in out
+    assert "1 re-arms in the last 60 s" in out
+
+
+def test_rearm_limit_counts_the_rearms_within_its_window():
+    limit = RearmLimit(2, 10.0)
+    for t in (0.0, 4.0):
+        assert limit.allows(t)
+        limit.rearmed(t)
+    assert not limit.ended
+    # a third fault 10 s after the first, 6 s after the second: 1 re-arm in the window
+    assert limit.allows(10.0)
+    limit.rearmed(10.0)
+    # 11 s: the re-arms of 4 s and 10 s are within 10 s; the re-arming ends for good
+    assert not limit.allows(11.0)
+    assert limit.ended
+    assert not limit.allows(100.0)
+    assert RearmLimit(0, 10.0).ended
