@@ -45,6 +45,7 @@ PAPER_CONTINUITY = 1.0  # mu equivalent to the paper's on-line gradient method (
 # flow_inversion: steps per unit of descent time; within 2 mV rms of the paper's 1000
 # iterations (bench paper), the root to 1e-9 A at descent time 100 (tests)
 FLOW_STEPS = 4
+GRID_BLOCK_ROWS = 128  # rows of the exact solve's grid evaluated at a time (`_on_grid`)
 
 
 def flow_steps(duration: float) -> int:
@@ -252,7 +253,7 @@ def exact_inversion(
     c = s.f0 - f_des
     if continuity > 0:
         return _regularised(s, model, k, c, i_prev, grid, continuity, xtol_a, max_iter)
-    g = np.tanh(k[:, None, :] + grid[:, None] * s.w) @ s.v + c[:, None]  # N x G
+    g = _on_grid(s, k, grid) + c[:, None]  # N x G
     g_lo, g_hi = g[:, :-1], g[:, 1:]
     bracket = g_lo * g_hi <= 0.0
     denom = g_lo - g_hi
@@ -298,6 +299,23 @@ def exact_inversion(
     return out
 
 
+def _on_grid(s: _Split, k: np.ndarray, grid: np.ndarray) -> np.ndarray:
+    """f - f0 (N x G) at every grid current of every row (eqs 5, 7, 12), `GRID_BLOCK_ROWS`
+    rows at a time, so that the N x G x H hidden outputs (8 kB a row for the paper's 33 x 30)
+    never exist at once and each block's stay in the cache. The same numbers as one product
+    of all rows."""
+    n = k.shape[0]
+    gw = grid[:, None] * s.w
+    out = np.empty((n, grid.size))
+    buf = np.empty((min(GRID_BLOCK_ROWS, n), grid.size, s.w.size))
+    for a in range(0, n, GRID_BLOCK_ROWS):
+        t = buf[: min(GRID_BLOCK_ROWS, n - a)]
+        np.add(k[a : a + GRID_BLOCK_ROWS, None, :], gw, out=t)
+        np.tanh(t, out=t)  # eqs 5, 7
+        np.matmul(t, s.v, out=out[a : a + GRID_BLOCK_ROWS])
+    return out
+
+
 def _objective_weights(s: _Split, model: MLP, continuity: float) -> tuple[float, float]:
     """(a, b) of J(i) = a (f(i) - f_d)^2 + b (i - i_prev)^2, the module docstring's objective."""
     return 1.0 / float(model.out_std) ** 2, continuity / s.c_std**2
@@ -334,8 +352,7 @@ def _regularised(
     on J' = 2 (a g f' + b (i - i_prev)) inside its two neighbouring cells (bisecting on the sign
     of J' when a step leaves the bracket or J'' <= 0), until a step is below xtol_a."""
     a, b = _objective_weights(s, model, continuity)
-    t = np.tanh(k[:, None, :] + grid[:, None] * s.w)  # eqs 5, 7 on the grid, N x G x H
-    g = t @ s.v + c[:, None]
+    g = _on_grid(s, k, grid) + c[:, None]
     J = a * g * g + b * (grid - i_prev[:, None]) ** 2
     j = np.argmin(J, axis=1)
     last = grid.size - 1

@@ -3,11 +3,13 @@
 from __future__ import annotations
 
 import math
+import tracemalloc
 
 import numpy as np
 import pytest
 import torch
 
+from mrrig import inversion
 from mrrig.inversion import (
     ScalarInverter,
     eq14_gradient,
@@ -105,6 +107,43 @@ def test_exact_inversion_reproduces_reachable_force() -> None:
     i_star = exact_inversion(model, features, f_des, rng.uniform(0.0, I_MAX, 500), i_max=I_MAX)
     np.testing.assert_allclose(force(model, features, i_star), f_des, rtol=0, atol=1e-6)
     np.testing.assert_allclose(i_star, i_true, rtol=0, atol=1e-8)
+
+
+@pytest.mark.parametrize("continuity", [0.0, 1.0])
+def test_the_grid_in_blocks_of_rows_gives_the_numbers_of_one_product(
+    continuity: float, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    rng = np.random.default_rng(22)
+    model = random_model(rng)
+    n = 3 * inversion.GRID_BLOCK_ROWS + 5  # three whole blocks and a part
+    features = random_features(rng, n)
+    f_des = force(model, features, rng.uniform(0.0, I_MAX, n)) + rng.normal(0.0, 30.0, n)
+    i_prev = rng.uniform(0.0, I_MAX, n)
+    blocks = exact_inversion(model, features, f_des, i_prev, i_max=I_MAX, continuity=continuity)
+    monkeypatch.setattr(inversion, "GRID_BLOCK_ROWS", n)
+    whole = exact_inversion(model, features, f_des, i_prev, i_max=I_MAX, continuity=continuity)
+    np.testing.assert_array_equal(blocks, whole)
+
+
+@pytest.mark.parametrize("continuity", [0.0, 1.0])
+def test_exact_inversion_memory_per_row_stays_below_the_grids_hidden_outputs(
+    continuity: float,
+) -> None:
+    """The N x 33 x 30 hidden outputs on the grid (8 kB a row) never exist at once: a long
+    recording's validation rows must not need gigabytes."""
+    rng = np.random.default_rng(23)
+    model = random_model(rng)
+    n = 20000
+    features = random_features(rng, n)
+    f_des = force(model, features, rng.uniform(0.0, I_MAX, n))
+    i_prev = rng.uniform(0.0, I_MAX, n)
+    tracemalloc.start()
+    try:
+        exact_inversion(model, features, f_des, i_prev, i_max=I_MAX, continuity=continuity)
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert peak / n < 33 * 30 * 8 / 2, f"{peak / n:.0f} bytes a row"
 
 
 def test_exact_inversion_saturates_at_the_nearest_bound_when_out_of_reach() -> None:
