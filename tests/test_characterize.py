@@ -287,6 +287,20 @@ def _only_transport_faults(log: str) -> bool:
     return bool(reasons) and all(r.startswith(TRANSPORT_FAULT_REASONS) for r in reasons)
 
 
+def _characterize_as_a_user_would(procs, *args: str) -> tuple[int, list[str]]:
+    """`mrrig characterize ARGS` until it exits 0, 3 invocations at most: a run whose attempts
+    all met a transport stall of this VM is left for the next invocation (exit 1), and running
+    the same command again is what the user does. (exit status, each invocation's log)"""
+    logs = []
+    for _ in range(3):
+        p = _mrrig(procs, "characterize", *args)
+        log, _ = p.communicate(timeout=120)
+        logs.append(log)
+        if p.returncode == 0 or not _only_transport_faults(log):
+            break
+    return p.returncode, logs
+
+
 def _sim(procs, bridge: str) -> subprocess.Popen:
     sim = procs(["-m", "firmware_sim", "--config", "configs/sim.toml", "--bus-channel", bridge])
     time.sleep(1.0)
@@ -301,12 +315,10 @@ def test_characterize_train_validate_from_the_command_line(tmp_path, bridge, pro
     rig = rig_config(tmp_path, bridge, None)
     out, model, report = tmp_path / "char", tmp_path / "model.json", tmp_path / "val.json"
     t0 = time.monotonic()
-    p = _mrrig(
-        procs, "characterize", "--config", str(SHORT),
-        "--rig-config", str(rig), "--out", str(out),
-    )  # fmt: skip
-    log, _ = p.communicate(timeout=120)
-    assert p.returncode == 0, log
+    rc, logs = _characterize_as_a_user_would(
+        procs, "--config", str(SHORT), "--rig-config", str(rig), "--out", str(out)
+    )
+    assert rc == 0, logs[-1]
     t1 = time.monotonic()
     p = _mrrig(procs, "train", str(out / "matrix.csv"), "--out", str(model), "--no-supervised")
     log_train, _ = p.communicate(timeout=120)
@@ -379,8 +391,8 @@ def test_interrupted_characterize_command_resumes_without_repeating_runs(tmp_pat
     _sim(procs, bridge)
     rig = rig_config(tmp_path, bridge, None)
     out = tmp_path / "char"
-    args = ("characterize", "--config", str(SHORT), "--rig-config", str(rig))
-    p = _mrrig(procs, *args, "--out", str(out))
+    args = ("--config", str(SHORT), "--rig-config", str(rig))
+    p = _mrrig(procs, "characterize", *args, "--out", str(out))
     done_path = out / "done.json"
     end = time.monotonic() + 60
     while time.monotonic() < end:
@@ -394,16 +406,8 @@ def test_interrupted_characterize_command_resumes_without_repeating_runs(tmp_pat
     first = json.loads(done_path.read_text())["runs"]
     assert 1 <= len(first) < N_SHORT
     mtimes = {k: (out / f"run-{int(k):03d}.rrd").stat().st_mtime_ns for k in first}
-    logs = []
-    for _ in range(3):
-        p = _mrrig(procs, *args, "--out", str(out))
-        log, _ = p.communicate(timeout=120)
-        logs.append(log)
-        # a run whose attempts all met a transport stall of this VM is left for the next
-        # invocation (exit 1): resuming again is what the user does, and is resume once more
-        if p.returncode == 0 or not _only_transport_faults(log):
-            break
-    assert p.returncode == 0, log
+    rc, logs = _characterize_as_a_user_would(procs, *args, "--out", str(out))
+    assert rc == 0, logs[-1]
     assert f"{len(first)} of {N_SHORT} runs already recorded" in logs[0]
     runs = json.loads(done_path.read_text())["runs"]
     assert set(runs) == {str(k) for k in range(N_SHORT)}
