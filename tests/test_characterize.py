@@ -383,7 +383,8 @@ def test_validate_tries_a_window_again_after_a_transport_fault(tmp_path, bridge,
     for faults in (r["faults"], r["discarded_faults"]):
         assert all(f["reason"].startswith(TRANSPORT_FAULT_REASONS) for f in faults), log
     assert rc == (1 if r["faults"] else 0), log
-    assert r["armed_frames"] >= (1 if r["faults"] else 950)
+    # a window kept with a fault may have none: the fault can come while settling after arming
+    assert r["faults"] or r["armed_frames"] >= 950, log
 
 
 @pytest.mark.slow

@@ -191,14 +191,16 @@ def _socket_fds() -> int:
 
 def test_read_recording_leaves_no_server_or_new_threads(run) -> None:
     # the first calls start rerun's shared runtime pool (it can grow lazily to its size once
-    # more work arrives); a server or thread left behind per read would grow with every read
+    # more work arrives: seen +3 on a loaded VM); a server or thread left behind per read
+    # would grow with every read, by 10 or more here
     read_recording(run[0])
     read_recording(run[0])
     sockets, threads = _socket_fds(), len(os.listdir("/proc/self/task"))
-    for _ in range(3):
+    reads = 10
+    for _ in range(reads):
         read_recording(run[0])
     assert _socket_fds() <= sockets
-    assert len(os.listdir("/proc/self/task")) <= threads + 2
+    assert len(os.listdir("/proc/self/task")) - threads < reads // 2
 
 
 def test_recording_without_samples_reads_back_empty(tmp_path: Path) -> None:
