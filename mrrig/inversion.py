@@ -302,7 +302,7 @@ def exact_inversion(
 def _on_grid(s: _Split, k: np.ndarray, grid: np.ndarray) -> np.ndarray:
     """f - f0 (N x G) at every grid current of every row (eqs 5, 7, 12), `GRID_BLOCK_ROWS`
     rows at a time, so that the N x G x H hidden outputs (8 kB a row for the paper's 33 x 30)
-    never exist at once and each block's stay in the cache. The same numbers as one product
+    never exist at once and each block stays in the cache. The same numbers as one product
     of all rows."""
     n = k.shape[0]
     gw = grid[:, None] * s.w
