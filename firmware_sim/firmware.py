@@ -34,9 +34,9 @@ from typing import NamedTuple
 
 import numpy as np
 
+from damper.plant import BoucWenDamper, BoucWenParams
+from damper.signals import bandlimited_noise
 from firmware_sim.config import ActuatorConfig, FaultSpec, SimConfig
-from firmware_sim.plant import BoucWenDamper, BoucWenParams
-from firmware_sim.signals import bandlimited_noise
 from mrrig.canbus.codec import Codec, MessageLayout, Parsed
 
 logger = logging.getLogger(__name__)

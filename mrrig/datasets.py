@@ -11,8 +11,8 @@ from pathlib import Path
 
 import numpy as np
 
-from firmware_sim.plant import BoucWenParams, simulate
-from firmware_sim.signals import bandlimited_noise, sine
+from damper.plant import BoucWenParams, simulate
+from damper.signals import bandlimited_noise, sine
 
 DATASET_A_DT_S = 1e-3
 DATASET_A_VMAX_V = 12.0  # the training range of data set A

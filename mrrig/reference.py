@@ -13,8 +13,8 @@ from pathlib import Path
 
 import numpy as np
 
-from firmware_sim.plant import BoucWenDamper, BoucWenParams
-from firmware_sim.signals import bandlimited_noise
+from damper.plant import BoucWenDamper, BoucWenParams
+from damper.signals import bandlimited_noise
 
 
 class ReferenceError(ValueError):

@@ -10,7 +10,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from firmware_sim.plant import BoucWenDamper, BoucWenParams
+from damper.plant import BoucWenDamper, BoucWenParams
 from mrrig.controllers import ControlInput, Controller
 
 

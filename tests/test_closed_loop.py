@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from firmware_sim.plant import BoucWenParams
+from damper.plant import BoucWenParams
 from mrrig.controllers import ConstantCurrent
 from mrrig.datasets import dataset_a_validation
 from mrrig.metrics import error_norm

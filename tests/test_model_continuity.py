@@ -14,8 +14,8 @@ import json
 import numpy as np
 import pytest
 
-from firmware_sim.plant import BoucWenDamper, BoucWenParams
-from firmware_sim.signals import sine
+from damper.plant import BoucWenDamper, BoucWenParams
+from damper.signals import sine
 from mrrig.config import load_config
 from mrrig.daemon import build_controller
 from mrrig.metrics import error_norm

@@ -8,7 +8,7 @@ import math
 import numpy as np
 import pytest
 
-from firmware_sim.plant import BoucWenParams
+from damper.plant import BoucWenParams
 from mrrig.controllers import ControlInput, Controller, NetworkInversion
 from mrrig.inversion import ScalarInverter, exact_inversion, flow_inversion, gradient_inversion
 from mrrig.model.mlp import MLP

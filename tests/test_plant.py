@@ -4,14 +4,14 @@ import numpy as np
 import pytest
 from scipy.integrate import solve_ivp
 
-from firmware_sim.plant import (
+from damper.plant import (
     BoucWenDamper,
     BoucWenParams,
     damper_force,
     simulate,
     state_derivative,
 )
-from firmware_sim.signals import sine
+from damper.signals import sine
 
 PAPER = BoucWenParams.preset("paper-volt")
 

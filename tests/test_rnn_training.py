@@ -3,8 +3,8 @@
 import numpy as np
 import pytest
 
-from firmware_sim.plant import BoucWenParams, simulate
-from firmware_sim.signals import bandlimited_noise
+from damper.plant import BoucWenParams, simulate
+from damper.signals import bandlimited_noise
 from mrrig.controllers import RNN_INPUTS, ControlInput, RecurrentInverse, rnn_features
 from mrrig.datasets import Series, dataset_a_training
 from mrrig.metrics import error_norm

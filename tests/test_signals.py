@@ -1,7 +1,7 @@
 import numpy as np
 import pytest
 
-from firmware_sim.signals import bandlimited_noise, sine
+from damper.signals import bandlimited_noise, sine
 
 
 def test_sine_returns_the_analytic_derivatives():

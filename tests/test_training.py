@@ -6,7 +6,7 @@ import math
 import numpy as np
 import pytest
 
-from firmware_sim.plant import BoucWenParams
+from damper.plant import BoucWenParams
 from mrrig.bench.matrix import make_plant_force
 from mrrig.cli import main as mrrig_main
 from mrrig.datasets import DataError, Series, dataset_b, dataset_b_conditions

@@ -27,8 +27,8 @@ import time
 
 import numpy as np
 
-from firmware_sim.plant import BoucWenDamper, BoucWenParams, simulate
-from firmware_sim.signals import sine
+from damper.plant import BoucWenDamper, BoucWenParams, simulate
+from damper.signals import sine
 from mrrig import json_text
 from mrrig.cli_args import COUNT, SEED, output_file
 from mrrig.controllers import ControlInput, Controller, NetworkInversion, SupervisedInverse

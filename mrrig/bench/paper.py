@@ -27,7 +27,7 @@ import time
 
 import numpy as np
 
-from firmware_sim.plant import BoucWenParams
+from damper.plant import BoucWenParams
 from mrrig import json_text
 from mrrig.cli_args import COUNT, SEED, output_file
 from mrrig.controllers import (
