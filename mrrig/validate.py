@@ -22,19 +22,11 @@ from typing import Any
 import numpy as np
 
 from mrrig import json_text
-from mrrig.characterize import (
-    EXIT_INTERRUPTED,
-    FLUSH_MARGIN_S,
-    RETRY_PAUSE_S,
-    Interrupted,
-    RigError,
-    RigSession,
-    rig_overrides,
-    stop_on_signals,
-)
+from mrrig.characterize import EXIT_INTERRUPTED, FLUSH_MARGIN_S, RETRY_PAUSE_S
 from mrrig.cli_args import int_at_least, non_negative, output_file, positive
 from mrrig.config import load_config
 from mrrig.daemon import build_controller
+from mrrig.rig_session import Interrupted, RigError, RigSession, rig_overrides, stop_on_signals
 from mrrig.safety import TRANSPORT_FAULTS
 from mrrig.samples import RigState
 from mrrig.summary import format_summary, summarize

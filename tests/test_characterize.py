@@ -29,7 +29,6 @@ from mrrig.characterize import (
     Interrupted,
     MatrixSection,
     MatrixStore,
-    RigSession,
     Run,
     append_tidy,
     characterize,
@@ -39,6 +38,7 @@ from mrrig.characterize import (
 )
 from mrrig.config import load_config
 from mrrig.review import read_recording
+from mrrig.rig_session import RigSession
 from mrrig.samples import SAMPLE_DTYPE, RigState
 from mrrig.training import load_tidy
 from mrrig.typed_config import ConfigError
