@@ -28,6 +28,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "train": ("mrrig.train_cli", "train the forward network from recorded data"),
     "validate": ("mrrig.validate", "force-tracking validation of a model on the rig"),
     "bench": ("mrrig.bench.cli", "benchmarks: paper, loop, matrix, estimation, inversion"),
+    "certs": ("mrrig.certs", "a lab CA and certificates for Zenoh mutual TLS (init, issue)"),
 }
 
 

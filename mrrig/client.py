@@ -18,6 +18,7 @@ from typing import Any, TextIO
 import numpy as np
 import zenoh
 
+from mrrig import audit
 from mrrig.samples import RigState
 from mrrig.sidecar import JSON, keys
 from mrrig.zenoh_config import load_zenoh_config
@@ -33,12 +34,16 @@ class ClientError(ConnectionError):
     """No daemon answered, or it answered with a transport error."""
 
 
+def _config(zenoh_config: ZenohConfigLike) -> zenoh.Config:
+    if isinstance(zenoh_config, zenoh.Config):
+        return zenoh_config
+    return load_zenoh_config(zenoh_config)
+
+
 @contextlib.contextmanager
 def open_session(zenoh_config: ZenohConfigLike) -> Iterator[zenoh.Session]:
-    """A session from a checked config, closed on exit."""
-    conf = (
-        zenoh_config if isinstance(zenoh_config, zenoh.Config) else load_zenoh_config(zenoh_config)
-    )
+    """A session from a config (a file is read, one line naming it on error), closed on exit."""
+    conf = _config(zenoh_config)
     try:
         session = zenoh.open(conf)
     except zenoh.ZError as exc:
@@ -58,23 +63,32 @@ def request(
 
     Raises ClientError if no daemon answers within `timeout_s`.
     """
-    with open_session(zenoh_config) as session:
-        return query(session, rig, payload, timeout_s)
+    conf = _config(zenoh_config)
+    with open_session(conf) as session:
+        return query(session, rig, payload, timeout_s, audit.claims(session, conf))
 
 
 def query(
-    session: zenoh.Session, rig: str, payload: dict[str, Any], timeout_s: float = 2.0
+    session: zenoh.Session,
+    rig: str,
+    payload: dict[str, Any],
+    timeout_s: float = 2.0,
+    claims: dict[str, Any] | None = None,
 ) -> dict[str, Any]:
-    """`request` on a session that is already open (`open_session`)."""
+    """`request` on a session that is already open (`open_session`). `claims` (who this
+    client says it is, for the rig's audit) default to the session's id, user and host."""
     key = keys(rig)["control"]
-    replies = session.get(key, payload=json.dumps(payload), encoding=JSON, timeout=timeout_s)
+    attachment = json.dumps(claims or audit.claims(session, None))
+    replies = session.get(
+        key, payload=json.dumps(payload), encoding=JSON, timeout=timeout_s, attachment=attachment
+    )
     for reply in replies:
         if reply.ok is not None:
             return json.loads(reply.ok.payload.to_bytes())
         raise ClientError(f"{key}: error reply: {reply.err.payload.to_string()}")
     raise ClientError(
-        f"no daemon answered on {key} within {timeout_s:g} s "
-        f"(is `mrrig run` up for rig {rig!r}, with a matching Zenoh config?)"
+        f"no daemon answered on {key} within {timeout_s:g} s (is `mrrig run` up for rig "
+        f"{rig!r}, with a matching Zenoh config, and does its access control grant you control?)"
     )
 
 

@@ -155,6 +155,9 @@ class TelemetrySection:
     enabled: bool = True
     zenoh_config: Path = Path("configs/zenoh-daemon.json5")
     rate_hz: float = 50.0
+    # a config off loopback without authentication and access control runs only with this
+    # (a closed lab network), warned in every status and recording (mrrig.zenoh_config)
+    insecure: bool = False
 
     def check(self) -> None:
         if not 1 <= self.rate_hz <= 500:

@@ -54,6 +54,7 @@ from mrrig.summary import (
     format_summary,
 )
 from mrrig.typed_config import ConfigError
+from mrrig.zenoh_config import check_secure, load_zenoh_config
 
 log = logging.getLogger(__name__)
 
@@ -574,6 +575,7 @@ class Daemon:
             fds=fds,
             telemetry_hz=self.cfg.telemetry.rate_hz,
             live_url=self.cfg.recording.live_url,
+            insecure=self.cfg.telemetry.insecure,
         )
         keep_off_cpu(self.sidecar.pid, self.cfg.loop.cpu, "telemetry process")
         self.link = LoopEnd(*fds.loop_fds())
@@ -633,6 +635,12 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--bus-interface", help="override bus.interface")
     ap.add_argument("--bus-channel", help="override bus.channel")
     ap.add_argument("--no-telemetry", action="store_true", help="no Zenoh telemetry")
+    ap.add_argument(
+        "--insecure",
+        action="store_true",
+        help="allow a Zenoh config off loopback without authentication and access control "
+        "(a closed lab network only); warned in every status and recording",
+    )
     args = ap.parse_args(argv)
     overrides: dict[str, dict] = {}
     bus = {k: v for k, v in (("interface", args.bus_interface), ("channel", args.bus_channel)) if v}
@@ -640,6 +648,8 @@ def main(argv: list[str] | None = None) -> int:
         overrides["bus"] = bus
     if args.no_telemetry:
         overrides["telemetry"] = {"enabled": False}
+    if args.insecure:
+        overrides.setdefault("telemetry", {})["insecure"] = True
     loop = {}
     if args.duration is not None:
         loop["duration_s"] = args.duration
@@ -648,6 +658,12 @@ def main(argv: list[str] | None = None) -> int:
     if loop:
         overrides["loop"] = loop
     cfg = load_config(args.config, overrides)
+    if cfg.telemetry.enabled:  # the sidecar checks it too; refused here before the bus opens
+        check_secure(
+            load_zenoh_config(cfg.telemetry.zenoh_config),
+            str(cfg.telemetry.zenoh_config),
+            cfg.telemetry.insecure,
+        )
     record = args.record
     if record is None and cfg.recording.enabled:
         from mrrig.recording import recording_path

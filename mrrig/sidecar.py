@@ -4,14 +4,16 @@ The control loop talks to it over the pipes of `mrrig.ipc` and never runs a Zeno
 The sidecar publishes `mrrig/<rig>/telemetry` (columnar JSON batches at `telemetry_hz`),
 `mrrig/<rig>/status` (on change and every second) and `mrrig/<rig>/events`, holds the
 liveliness token `mrrig/<rig>/alive`, forwards `mrrig/<rig>/control` queries to the loop as
-REQUESTs and `mrrig/<rig>/force_ref` puts as FORCE_REFs, and writes the recording.
+REQUESTs and `mrrig/<rig>/force_ref` puts as FORCE_REFs, answers `mrrig/<rig>/status` queries
+with the latest status (what `mrrig rigs` reads), and writes the recording. Every control
+request, answered or refused, becomes an audit event (`mrrig.audit`).
 
 Zenoh callbacks only queue their item and wake the main thread through a pipe; all the work
 is done by the main thread, which also closes the session (close waits for callbacks).
 
 Run: python -m mrrig.sidecar --rig NAME --zenoh-config FILE|'' --record PATH|'' --rx-fd N
---tx-fd M [--telemetry-hz 50] [--live-url URL] [--nice 10]; or `start_sidecar(...)` from the
-daemon. An empty Zenoh config runs without Zenoh (recording only).
+--tx-fd M [--telemetry-hz 50] [--live-url URL] [--nice 10] [--insecure]; or
+`start_sidecar(...)` from the daemon. An empty Zenoh config runs without Zenoh (recording only).
 """
 
 from __future__ import annotations
@@ -34,10 +36,10 @@ from typing import Any, Protocol
 import numpy as np
 import zenoh
 
-from mrrig import json_text
+from mrrig import audit, json_text
 from mrrig.ipc import ChannelFds, Msg, SidecarEnd, decode_json, decode_samples
 from mrrig.samples import FIELDS, SAMPLE_DTYPE
-from mrrig.zenoh_config import ZenohConfigError, load_zenoh_config
+from mrrig.zenoh_config import ZenohConfigError, check_secure, load_zenoh_config
 
 log = logging.getLogger(__name__)
 
@@ -101,6 +103,8 @@ def parse_force_ref(payload: bytes) -> float:
 class _Pending:
     query: zenoh.Query
     deadline_s: float
+    request: dict[str, Any]
+    requester: dict[str, Any]
 
 
 class Sidecar:
@@ -113,7 +117,9 @@ class Sidecar:
         end: SidecarEnd,
         recorder: SampleSink | None,
         telemetry_hz: float,
+        warnings: list[str] | None = None,
     ) -> None:
+        """`warnings` (an insecure Zenoh config's) go into every status and the recording."""
         self.rig = rig
         self._keys = keys(rig)
         self._session = session
@@ -127,7 +133,9 @@ class Sidecar:
         self._stop = False
         self._batches: list[np.ndarray] = []
         self._last_t_s = 0.0
-        self._last_status: bytes | None = None
+        self._last_status: bytes | None = None  # as the loop sent it
+        self._status_out = b""  # as published: with the warnings
+        self._warnings = list(warnings or [])
         self._status_sent_s = 0.0
         self._pending: dict[int, _Pending] = {}
         self._next_id = 1
@@ -143,6 +151,10 @@ class Sidecar:
 
     def _on_query(self, query: zenoh.Query) -> None:
         self._inbox.put(("query", query, time.monotonic()))
+        self._wake()
+
+    def _on_status_query(self, query: zenoh.Query) -> None:
+        self._inbox.put(("status_query", query, time.monotonic()))
         self._wake()
 
     def _on_force_ref(self, sample: zenoh.Sample) -> None:
@@ -166,6 +178,7 @@ class Sidecar:
             self._entities = [
                 *self._pubs.values(),
                 s.declare_queryable(self._keys["control"], self._on_query),
+                s.declare_queryable(self._keys["status"], self._on_status_query),
                 s.declare_subscriber(self._keys["force_ref"], self._on_force_ref),
             ]
             # last, so a token seen by others means the sidecar is ready
@@ -173,6 +186,9 @@ class Sidecar:
             log.info("sidecar for rig %r serving on mrrig/%s/*", self.rig, self.rig)
         else:
             log.info("sidecar for rig %r: recording only, no Zenoh", self.rig)
+        for warning in self._warnings:
+            log.warning("%s", warning)
+            self._event({"t": 0.0, "level": "warning", "text": warning, "kind": "insecure"})
         try:
             self._serve()
         finally:
@@ -201,7 +217,7 @@ class Sidecar:
                 self._publish_telemetry()
                 next_telemetry_s = max(next_telemetry_s + self._period_s, now)
             if self._last_status is not None and now >= self._status_sent_s + STATUS_REPEAT_S:
-                self._publish_status(self._last_status, now)
+                self._publish_status(self._status_out, now)
             self._expire_queries(now)
 
     def _drain_wake(self) -> None:
@@ -219,27 +235,53 @@ class Sidecar:
                 return
             if kind == "query":
                 self._handle_query(item)
+            elif kind == "status_query":
+                if self._status_out:
+                    self._reply(item, self._status_out, self._keys["status"])
+                else:
+                    item.drop()  # no status yet: no answer, as if the rig were not there
             else:
                 self._handle_force_ref(item, t_rx_s)
 
     def _handle_query(self, query: zenoh.Query) -> None:
+        payload = query.payload.to_bytes() if query.payload else b""
+        requester = audit.requester(query)
         try:
-            request = json.loads(query.payload.to_bytes() if query.payload else b"")
+            request = json.loads(payload)
             if not isinstance(request, dict):
                 raise ValueError("a control request must be a JSON object")
         except ValueError as exc:  # JSONDecodeError and UnicodeDecodeError are ValueErrors
-            self._reply(query, {"ok": False, "error": f"invalid request: {exc}"})
+            refused = {"ok": False, "error": f"invalid request: {exc}"}
+            self._answer(query, payload, requester, refused)
             return
         request_id = self._next_id
         self._next_id += 1
         if not self._end.send_request({**request, "id": request_id}):
-            self._reply(query, NO_ANSWER)
+            self._answer(query, request, requester, NO_ANSWER)
             return
-        self._pending[request_id] = _Pending(query, time.monotonic() + CONTROL_TIMEOUT_S)
+        self._pending[request_id] = _Pending(
+            query, time.monotonic() + CONTROL_TIMEOUT_S, request, requester
+        )
 
-    def _reply(self, query: zenoh.Query, reply: dict[str, Any]) -> None:
+    def _answer(
+        self,
+        query: zenoh.Query,
+        request: dict[str, Any] | bytes,
+        requester: dict[str, Any],
+        reply: dict[str, Any],
+    ) -> None:
+        """Reply to a control query, and audit the request with its result."""
+        self._event(audit.event(self._last_t_s, request, reply, requester))
+        if self._warnings and isinstance(reply.get("status"), dict):
+            reply = {**reply, "status": {**reply["status"], "security_warning": self._warnings}}
+        self._reply(query, reply)
+
+    def _reply(
+        self, query: zenoh.Query, reply: dict[str, Any] | bytes, key: str | None = None
+    ) -> None:
+        text = reply if isinstance(reply, bytes) else json_text.dumps(reply)
         try:
-            query.reply(self._keys["control"], json_text.dumps(reply), encoding=JSON)
+            query.reply(key or self._keys["control"], text, encoding=JSON)
         except zenoh.ZError as exc:
             log.warning("could not reply to a control query: %s", exc)
         query.drop()  # sends the final answer now instead of at garbage collection
@@ -247,7 +289,8 @@ class Sidecar:
     def _expire_queries(self, now: float) -> None:
         for request_id in [i for i, p in self._pending.items() if now >= p.deadline_s]:
             log.warning("daemon did not answer control request %d", request_id)
-            self._reply(self._pending.pop(request_id).query, NO_ANSWER)
+            p = self._pending.pop(request_id)
+            self._answer(p.query, p.request, p.requester, NO_ANSWER)
 
     def _handle_force_ref(self, payload: bytes, t_rx_s: float) -> None:
         try:
@@ -279,8 +322,9 @@ class Sidecar:
                 self._event(decode_json(payload), payload)
             elif mtype == Msg.STATUS:
                 if payload != self._last_status:
-                    self._publish_status(payload, time.monotonic())
-                self._last_status = payload
+                    self._last_status = payload
+                    self._status_out = self._with_warnings(payload)
+                    self._publish_status(self._status_out, time.monotonic())
             elif mtype == Msg.REPLY:
                 self._handle_reply(decode_json(payload))
             elif mtype == Msg.SUMMARY:
@@ -296,7 +340,12 @@ class Sidecar:
         if pending is None:
             log.warning("reply to an unknown or expired request: %s", reply)
             return
-        self._reply(pending.query, reply)
+        self._answer(pending.query, pending.request, pending.requester, reply)
+
+    def _with_warnings(self, status: bytes) -> bytes:
+        if not self._warnings:
+            return status
+        return json_text.dumps({**decode_json(status), "security_warning": self._warnings}).encode()
 
     def _event(self, event: dict[str, Any], raw: bytes | None = None) -> None:
         self._publish("events", raw if raw is not None else json_text.dumps(event))
@@ -362,8 +411,8 @@ class Sidecar:
                 break
             self._handle_loop_messages(self._end.read_ready())
         self._publish_telemetry()
-        for pending in self._pending.values():
-            self._reply(pending.query, {"ok": False, "error": "daemon stopping"})
+        for p in self._pending.values():
+            self._answer(p.query, p.request, p.requester, {"ok": False, "error": "daemon stopping"})
         self._pending.clear()
         for entity in reversed(self._entities):
             try:
@@ -398,11 +447,16 @@ def run_sidecar(
     tx_fd: int,
     telemetry_hz: float = 50.0,
     live_url: str | None = None,
+    insecure: bool = False,
 ) -> int:
     """Run until STOP, EOF, SIGTERM or SIGINT; returns the exit status: 0, 2 for a refused
-    config, 3 if the session cannot open (port taken)."""
+    config (`check_secure`: off loopback without authentication and access control, unless
+    `insecure`), 3 if the session cannot open (port taken)."""
+    warnings: list[str] = []
     try:
         conf = load_zenoh_config(zenoh_config) if zenoh_config else None
+        if conf is not None:
+            warnings = check_secure(conf, str(zenoh_config), insecure)
     except ZenohConfigError as exc:
         log.error("%s", exc)
         return 2
@@ -424,7 +478,7 @@ def run_sidecar(
                 "%s: cannot open the Zenoh session: %s", zenoh_config, str(exc).splitlines()[0]
             )
             return 3
-        sidecar = Sidecar(rig, session, end, recorder, telemetry_hz)
+        sidecar = Sidecar(rig, session, end, recorder, telemetry_hz, warnings)
         for signum in (signal.SIGTERM, signal.SIGINT):
             signal.signal(signum, sidecar.request_stop)
         if stop_early:
@@ -447,6 +501,7 @@ def start_sidecar(
     record: str | Path | None = None,
     telemetry_hz: float = 50.0,
     live_url: str | None = None,
+    insecure: bool = False,
 ) -> subprocess.Popen[bytes]:
     """Start the sidecar process on the sidecar's ends of `fds`, and close those ends here.
 
@@ -474,6 +529,8 @@ def start_sidecar(
     ]
     if live_url:
         cmd += ["--live-url", live_url]
+    if insecure:
+        cmd.append("--insecure")
     proc = subprocess.Popen(cmd, pass_fds=fds.sidecar_fds(), start_new_session=True)
     # the loop must see EOF / EPIPE when the sidecar dies, so it holds no copy of these
     os.close(fds.sidecar_rx)
@@ -497,6 +554,12 @@ def main(argv: list[str] | None = None) -> int:
         help="niceness increment (SCHED_BATCH too), so waking the sidecar "
         "does not preempt the control loop; 0 keeps the priority",
     )
+    parser.add_argument(
+        "--insecure",
+        action="store_true",
+        help="allow a config off loopback without authentication and access control "
+        "(a closed lab network); warned in every status and the recording",
+    )
     parser.add_argument("--log-level", default="INFO")
     args = parser.parse_args(argv)
     logging.basicConfig(
@@ -512,6 +575,7 @@ def main(argv: list[str] | None = None) -> int:
         args.tx_fd,
         args.telemetry_hz,
         args.live_url,
+        args.insecure,
     )
 
 

@@ -1,11 +1,16 @@
-"""Loading Zenoh configs, refusing any that would leave 127.0.0.1.
+"""Loading Zenoh configs, and the rule for a rig's sidecar: secure off loopback, by default.
 
-Multicast scouting must be explicitly off and every listen/connect endpoint of the config's
-mode must be on host 127.0.0.1 (Zenoh's defaults listen on all interfaces and multicast).
+Any endpoint (tcp, tls, quic, ...) and mode (peer, client of a router, router) is accepted. A
+config that listens or connects beyond loopback (another address, all interfaces, multicast
+scouting) is refused for a sidecar or a router unless its transport authenticates the other
+side (mutual TLS on every endpoint, or Zenoh user-password) and an access-control policy is on
+with `default_permission: "deny"` (templates: configs/zenoh/). `--insecure` lifts the rule for
+a closed lab network, with a warning that the sidecar repeats in every status and recording.
 """
 
 from __future__ import annotations
 
+import ipaddress
 import json
 import re
 from pathlib import Path
@@ -13,9 +18,15 @@ from typing import Any
 
 import zenoh
 
-_LOCAL_HOST = "127.0.0.1"
 _DEFAULT_MODE = "peer"
 _RUST_SOURCE = re.compile(r"\s+at \S+\.rs:\d+\.?$")
+_LOCAL_PROTOCOLS = ("unixsock-stream", "unixpipe")  # no network at all
+_TLS_PROTOCOLS = ("tls", "quic")
+TEMPLATE = "configs/zenoh/rig.json5"
+INSECURE_WARNING = (
+    "insecure: Zenoh off loopback without authentication or access control (--insecure); "
+    "anyone on the network may arm this rig"
+)
 
 
 class ZenohConfigError(ValueError):
@@ -23,7 +34,10 @@ class ZenohConfigError(ValueError):
 
 
 def _get(conf: zenoh.Config, key: str) -> Any:
-    return json.loads(conf.get_json(key))
+    try:
+        return json.loads(conf.get_json(key))
+    except Exception:  # noqa: BLE001 - zenoh.ZError for a key the config does not have
+        return None
 
 
 def _endpoints_for_mode(value: Any, mode: str) -> list[str]:
@@ -36,11 +50,27 @@ def _endpoints_for_mode(value: Any, mode: str) -> list[str]:
 
 
 def endpoint_host(endpoint: str) -> str:
-    """'tcp/127.0.0.1:7447?x=y#iface=lo' -> '127.0.0.1'; '' if there is no host part."""
+    """'tcp/127.0.0.1:7447?x=y#iface=lo' -> '127.0.0.1', 'tls/[::1]:7447' -> '::1';
+    '' if there is no host part."""
     _, _, address = endpoint.partition("/")
     address = address.split("?", 1)[0].split("#", 1)[0]
     host, sep, _ = address.rpartition(":")
-    return host if sep else ""
+    return host.strip("[]") if sep else ""
+
+
+def is_loopback(endpoint: str) -> bool:
+    """True for an endpoint that cannot leave this machine (127.0.0.0/8, ::1, localhost, a
+    Unix socket)."""
+    protocol = endpoint.partition("/")[0]
+    if protocol in _LOCAL_PROTOCOLS:
+        return True
+    host = endpoint_host(endpoint)
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return False  # a host name or no host: it may be anywhere
 
 
 def _one_line(exc: Exception) -> str:
@@ -54,42 +84,96 @@ def _one_line(exc: Exception) -> str:
     return " ".join(text.split()) or type(exc).__name__
 
 
-def check_zenoh_config(conf: zenoh.Config, source: str) -> None:
-    """Raise ZenohConfigError unless `conf` stays on 127.0.0.1 with multicast scouting off."""
-    if _get(conf, "scouting/multicast/enabled") is not False:
-        raise ZenohConfigError(
-            f"{source}: scouting/multicast/enabled must be false (multicast scouting leaves "
-            f"127.0.0.1)"
-        )
+def endpoints(conf: zenoh.Config) -> list[str]:
+    """The listen and connect endpoints of the config's mode."""
     mode = _get(conf, "mode") or _DEFAULT_MODE
-    for key in ("listen/endpoints", "connect/endpoints"):
-        for endpoint in _endpoints_for_mode(_get(conf, key), mode):
-            if endpoint_host(endpoint) != _LOCAL_HOST:
-                raise ZenohConfigError(
-                    f"{source}: {key} has {endpoint!r}; only tcp/{_LOCAL_HOST}:<port> "
-                    f"endpoints are allowed"
-                )
+    return [
+        e
+        for key in ("listen/endpoints", "connect/endpoints")
+        for e in _endpoints_for_mode(_get(conf, key), mode)
+    ]
+
+
+def beyond_loopback(conf: zenoh.Config) -> list[str]:
+    """What takes the config beyond loopback: its non-loopback endpoints, and multicast
+    scouting; empty for a config that stays on this machine."""
+    # an absent listen key is Zenoh's default, all interfaces ('tcp/[::]:0'): listed here
+    reach = [repr(e) for e in endpoints(conf) if not is_loopback(e)]
+    if _get(conf, "scouting/multicast/enabled") is not False:
+        reach.append("multicast scouting")
+    return reach
+
+
+def _authenticated(conf: zenoh.Config) -> bool:
+    """Mutual TLS on every endpoint, or Zenoh user-password (with a dictionary to check the
+    other side against when it listens)."""
+    eps = endpoints(conf)
+    tls = _get(conf, "transport/link/tls") or {}
+    mtls = (
+        bool(eps)
+        and all(e.partition("/")[0] in _TLS_PROTOCOLS for e in eps)
+        and tls.get("enable_mtls") is True
+        and bool(tls.get("root_ca_certificate") or tls.get("root_ca_certificate_base64"))
+    )
+    usrpwd = _get(conf, "transport/auth/usrpwd") or {}
+    listens = bool(_endpoints_for_mode(_get(conf, "listen/endpoints"), _get(conf, "mode") or ""))
+    pwd = (
+        bool(usrpwd.get("user"))
+        and bool(usrpwd.get("password"))
+        and (bool(usrpwd.get("dictionary_file")) or not listens)
+    )
+    return mtls or pwd
+
+
+def _access_controlled(conf: zenoh.Config) -> bool:
+    acl = _get(conf, "access_control") or {}
+    return acl.get("enabled") is True and acl.get("default_permission") == "deny"
+
+
+def missing_security(conf: zenoh.Config) -> list[str]:
+    """What a config that leaves loopback lacks: authentication, access control, or both."""
+    missing = []
+    if not _authenticated(conf):
+        missing.append(
+            "peer authentication (mutual TLS on every endpoint, or transport/auth/usrpwd)"
+        )
+    if not _access_controlled(conf):
+        missing.append('access_control (enabled, default_permission "deny")')
+    return missing
+
+
+def check_secure(conf: zenoh.Config, source: str, insecure: bool = False) -> list[str]:
+    """A sidecar's or router's rule: raise ZenohConfigError if `conf` leaves loopback without
+    authentication and access control, unless `insecure`; then the warning(s) to repeat
+    (empty when the config is on loopback or secure)."""
+    reach = beyond_loopback(conf)
+    missing = missing_security(conf) if reach else []
+    if not missing:
+        return []
+    if insecure:
+        return [f"{INSECURE_WARNING} ({source}: {', '.join(reach)})"]
+    raise ZenohConfigError(
+        f"{source}: reaches beyond loopback ({', '.join(reach)}) without "
+        f"{' and '.join(missing)}; see {TEMPLATE}, or run with --insecure on a closed lab network"
+    )
 
 
 def load_zenoh_config(path: str | Path) -> zenoh.Config:
-    """Read a Zenoh JSON5 config file and check it (`check_zenoh_config`)."""
+    """Read a Zenoh JSON5 config file: one line naming the file on any error."""
     source = str(path)
     try:
-        conf = zenoh.Config.from_file(source)
+        return zenoh.Config.from_file(source)
     except Exception as exc:  # zenoh.ZError for both missing files and JSON5 syntax
         raise ZenohConfigError(f"{source}: cannot read Zenoh config: {_one_line(exc)}") from exc
-    check_zenoh_config(conf, source)
-    return conf
 
 
 def local_config(
     mode: str, listen: list[str] | None = None, connect: list[str] | None = None
 ) -> zenoh.Config:
-    """A checked config built in code (tests, tools): multicast off, the given endpoints."""
+    """A config built in code (tests, tools): multicast scouting off, the given endpoints."""
     conf = zenoh.Config()
     conf.insert_json5("mode", json.dumps(mode))
     conf.insert_json5("scouting/multicast/enabled", "false")
     conf.insert_json5("listen/endpoints", json.dumps(listen or []))
     conf.insert_json5("connect/endpoints", json.dumps(connect or []))
-    check_zenoh_config(conf, "<local_config>")
     return conf

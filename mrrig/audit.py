@@ -1,0 +1,112 @@
+"""Audit of control requests: who asked the rig for what, and what came of it.
+
+Zenoh does not tell a queryable who sent a query. With mutual TLS or user-password and the
+access control of configs/zenoh/ (default deny), a request that reaches the sidecar at all
+came from a subject granted `query` on `control` (an operator); one that is not granted is
+dropped by the Zenoh session that enforces the policy (the rig's own, or the router's) and never
+reaches the daemon. Beside that, the client attaches what it says about itself (its Zenoh
+session id, the user and host it runs as, the certificate name or Zenoh user of its config):
+`requester` keeps those as `claimed`, with the query's source info where Zenoh gives one.
+"""
+
+from __future__ import annotations
+
+import getpass
+import json
+import logging
+import socket
+from pathlib import Path
+from typing import Any
+
+import zenoh
+
+log = logging.getLogger(__name__)
+
+MAX_REQUEST_CHARS = 2048  # an audit keeps a request's text up to this, then a mark
+_RESULT_KEYS = ("ok", "error", "state", "message", "controller", "reference")
+
+
+def _certificate_name(path: str | None) -> str | None:
+    if not path:
+        return None
+    try:
+        from cryptography import x509
+        from cryptography.x509.oid import NameOID
+
+        cert = x509.load_pem_x509_certificate(Path(path).read_bytes())
+        names = cert.subject.get_attributes_for_oid(NameOID.COMMON_NAME)
+        return str(names[0].value) if names else None
+    except (OSError, ValueError):
+        return None
+
+
+def _config_value(conf: zenoh.Config, key: str) -> Any:
+    try:
+        return json.loads(conf.get_json(key))
+    except Exception:  # noqa: BLE001 - zenoh.ZError: the config has no such key
+        return None
+
+
+def claims(session: zenoh.Session, conf: zenoh.Config | None) -> dict[str, Any]:
+    """What a client says about itself: attached to its control queries."""
+    out: dict[str, Any] = {"zid": str(session.info.zid())}
+    try:
+        out["user"] = getpass.getuser()
+    except (KeyError, OSError):
+        pass
+    out["host"] = socket.gethostname()
+    if conf is not None:
+        cn = _certificate_name(_config_value(conf, "transport/link/tls/connect_certificate"))
+        if cn:
+            out["cert_cn"] = cn
+        zenoh_user = _config_value(conf, "transport/auth/usrpwd/user")
+        if zenoh_user:
+            out["zenoh_user"] = zenoh_user
+    return out
+
+
+def requester(query: zenoh.Query) -> dict[str, Any]:
+    """The requester as far as the query tells: its source info, and the client's claims."""
+    out: dict[str, Any] = {}
+    info = query.source_info
+    if info is not None:
+        out["source"] = str(info)
+    if query.attachment is not None:
+        try:
+            claimed = json.loads(query.attachment.to_bytes())
+            out["claimed"] = claimed if isinstance(claimed, dict) else str(claimed)
+        except ValueError:
+            out["claimed"] = query.attachment.to_bytes()[:200].decode("utf-8", "replace")
+    return out
+
+
+def _who(req: dict[str, Any]) -> str:
+    c = req.get("claimed")
+    if not isinstance(c, dict):
+        return "an unnamed client"
+    name = c.get("cert_cn") or c.get("zenoh_user") or c.get("user") or "?"
+    return f"{name}@{c.get('host', '?')} (zid {str(c.get('zid', '?'))[:8]})"
+
+
+def event(
+    t_s: float, request: dict[str, Any] | bytes, reply: dict[str, Any], who: dict[str, Any]
+) -> dict[str, Any]:
+    """The audit event of one control request: the request, its result, the requester."""
+    if isinstance(request, bytes):
+        request = {"raw": request[:MAX_REQUEST_CHARS].decode("utf-8", "replace")}
+    elif len(json.dumps(request)) > MAX_REQUEST_CHARS:
+        request = {"cmd": request.get("cmd"), "truncated": True}
+    result = {k: reply[k] for k in _RESULT_KEYS if k in reply}
+    cmd = request.get("cmd", "?")
+    outcome = "accepted" if reply.get("ok") else f"refused: {reply.get('error')}"
+    text = f"control {cmd} from {_who(who)}: {outcome}"
+    log.info("audit: %s", text)
+    return {
+        "t": t_s,
+        "level": "info" if reply.get("ok") else "warning",
+        "text": text,
+        "kind": "audit",
+        "request": request,
+        "result": result,
+        "requester": who,
+    }

@@ -1,0 +1,397 @@
+"""Secure off loopback: the config rule (unit tests, nothing opened), the lab CA, and real Zenoh
+sessions on 127.0.0.1 with mutual TLS or user-password and the shipped access control."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+import zenoh
+from cryptography import x509
+from cryptography.x509.oid import NameOID
+
+from mrrig import audit, certs, client
+from mrrig.canbus.bus import find_free_port
+from mrrig.ipc import LoopEnd, Msg, make_channel
+from mrrig.sidecar import keys, start_sidecar
+from mrrig.zenoh_config import (
+    INSECURE_WARNING,
+    TEMPLATE,
+    ZenohConfigError,
+    check_secure,
+    is_loopback,
+    load_zenoh_config,
+)
+from tests.conftest import REPO, rig_config
+
+ZENOH = REPO / "configs" / "zenoh"
+SHIPPED = sorted(REPO.glob("configs/**/*.json5"))
+SECURE_TEMPLATES = ("rig.json5", "rig-usrpwd.json5", "rig-client.json5", "router.json5")
+
+
+def _conf(text: str) -> zenoh.Config:
+    return zenoh.Config.from_json5(text)
+
+
+def _moved(conf: zenoh.Config, host: str) -> zenoh.Config:
+    """The same config with its endpoints on `host` (never opened here)."""
+    for key in ("listen/endpoints", "connect/endpoints"):
+        value = json.loads(conf.get_json(key))
+        if isinstance(value, list) and value:
+            conf.insert_json5(key, json.dumps([e.replace("127.0.0.1", host) for e in value]))
+    return conf
+
+
+@pytest.mark.parametrize("path", SHIPPED, ids=lambda p: str(p.relative_to(REPO)))
+def test_every_shipped_config_keeps_multicast_scouting_off_and_stays_on_loopback(path: Path):
+    conf = load_zenoh_config(path)
+    assert json.loads(conf.get_json("scouting/multicast/enabled")) is False
+    check_secure(conf, str(path))  # on loopback: no refusal, whatever its security
+
+
+@pytest.mark.parametrize("name", SECURE_TEMPLATES)
+def test_secure_templates_are_accepted_off_loopback(name: str):
+    conf = _moved(load_zenoh_config(ZENOH / name), "10.1.2.3")
+    assert check_secure(conf, name) == []
+
+
+SCOUT_OFF = "scouting: {multicast: {enabled: false}}"
+ACL = 'access_control: {enabled: true, default_permission: "deny"}'
+MTLS = 'transport: {link: {tls: {root_ca_certificate: "ca.pem", enable_mtls: true}}}'
+
+
+@pytest.mark.parametrize(
+    ("text", "missing"),
+    [
+        (f'{{listen: {{endpoints: ["tcp/0.0.0.0:7447"]}}, {SCOUT_OFF}}}', "authentication"),
+        (f"{{{SCOUT_OFF}}}", "authentication"),  # Zenoh's default listens on all interfaces
+        ('{listen: {endpoints: ["tcp/127.0.0.1:7447"]}}', "authentication"),  # multicast on
+        (
+            f'{{mode: "client", connect: {{endpoints: ["tcp/rig1.lab:7447"]}}, {SCOUT_OFF}}}',
+            "access_control",
+        ),
+        # TLS without client certificates authenticates only the listener
+        (
+            f'{{listen: {{endpoints: ["tls/10.0.0.5:7447"]}}, {SCOUT_OFF}, {ACL}, '
+            'transport: {link: {tls: {root_ca_certificate: "ca.pem"}}}}',
+            "authentication",
+        ),
+        # mutual TLS but one endpoint in clear
+        (
+            f'{{listen: {{endpoints: ["tls/10.0.0.5:7447", "tcp/10.0.0.5:7448"]}}, {SCOUT_OFF}, '
+            f"{ACL}, {MTLS}}}",
+            "authentication",
+        ),
+        (
+            f'{{listen: {{endpoints: ["tls/10.0.0.5:7447"]}}, {SCOUT_OFF}, {MTLS}}}',
+            "access_control",
+        ),
+        (
+            f'{{listen: {{endpoints: ["tls/10.0.0.5:7447"]}}, {SCOUT_OFF}, {MTLS}, '
+            'access_control: {enabled: true, default_permission: "allow"}}',
+            "access_control",
+        ),
+        # a listener with user-password needs the dictionary to check the others against
+        (
+            f'{{listen: {{endpoints: ["tcp/10.0.0.5:7447"]}}, {SCOUT_OFF}, {ACL}, '
+            'transport: {auth: {usrpwd: {user: "rig", password: "x"}}}}',
+            "authentication",
+        ),
+    ],
+)
+def test_an_insecure_config_off_loopback_is_refused_with_one_line(text: str, missing: str):
+    with pytest.raises(ZenohConfigError) as err:
+        check_secure(_conf(text), "z.json5")
+    message = str(err.value)
+    assert "\n" not in message and message.startswith("z.json5: reaches beyond loopback")
+    assert missing in message and TEMPLATE in message and "--insecure" in message
+    warnings = check_secure(_conf(text), "z.json5", insecure=True)
+    assert len(warnings) == 1 and warnings[0].startswith(INSECURE_WARNING)
+
+
+@pytest.mark.parametrize(
+    ("endpoint", "loopback"),
+    [
+        ("tcp/127.0.0.1:7447", True),
+        ("tls/127.0.0.2:7447", True),
+        ("tcp/[::1]:7447", True),
+        ("tcp/localhost:7447", True),
+        ("unixsock-stream//tmp/zenoh.sock", True),
+        ("tcp/0.0.0.0:7447", False),
+        ("tcp/[::]:7447", False),
+        ("quic/192.168.1.20:7447", False),
+        ("tls/rig1.lab:7447", False),
+    ],
+)
+def test_loopback_endpoints(endpoint: str, loopback: bool):
+    assert is_loopback(endpoint) is loopback
+
+
+def test_daemon_refuses_an_insecure_zenoh_config_before_opening_the_bus(tmp_path: Path):
+    zcfg = tmp_path / "open.json5"
+    zcfg.write_text(f'{{listen: {{endpoints: ["tcp/0.0.0.0:7447"]}}, {SCOUT_OFF}}}')
+    # a bus channel nothing serves: the refusal must come before the bus is opened
+    cfg = rig_config(
+        tmp_path, "ws://127.0.0.1:9/", None, telemetry={"enabled": True, "zenoh_config": str(zcfg)}
+    )
+    proc = subprocess.run(
+        [sys.executable, "-m", "mrrig", "run", "--config", str(cfg), "--no-record"],
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert proc.returncode == 2, proc.stderr
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith(f"error: {zcfg}: reaches beyond loopback")
+    assert TEMPLATE in lines[0]
+
+
+# ---- the lab CA ------------------------------------------------------------------------------
+
+
+def test_certs_init_and_issue_make_a_chain_for_127_0_0_1(tmp_path: Path):
+    d = tmp_path / "certs"
+    assert certs.main(["--dir", str(d), "init"]) == 0
+    assert certs.main(["--dir", str(d), "issue", "alice", "--role", "operator"]) == 0
+    ca = x509.load_pem_x509_certificate((d / "ca.pem").read_bytes())
+    cert = x509.load_pem_x509_certificate((d / "alice.pem").read_bytes())
+    cert.verify_directly_issued_by(ca)
+    assert cert.subject.get_attributes_for_oid(NameOID.COMMON_NAME)[0].value == "alice"
+    unit = cert.subject.get_attributes_for_oid(NameOID.ORGANIZATIONAL_UNIT_NAME)[0].value
+    assert unit == "operator"
+    san = cert.extensions.get_extension_for_class(x509.SubjectAlternativeName).value
+    assert "127.0.0.1" in [str(ip) for ip in san.get_values_for_type(x509.IPAddress)]
+    assert (d / "alice-key.pem").stat().st_mode & 0o077 == 0  # the key is the owner's only
+
+
+def test_certs_refuse_to_replace_a_ca_and_need_one_to_issue(tmp_path: Path):
+    d = tmp_path / "certs"
+    with pytest.raises(certs.CertError, match="run `mrrig certs init` first"):
+        certs.issue(d, "bob", "observer")
+    certs.init_ca(d)
+    with pytest.raises(certs.CertError, match="--force"):
+        certs.init_ca(d)
+    with pytest.raises(certs.CertError, match="unknown role"):
+        certs.issue(d, "bob", "admin")
+
+
+# ---- real sessions on 127.0.0.1 --------------------------------------------------------------
+
+
+def _lab(tmp_path: Path) -> Path:
+    """A lab CA with the shipped roles' certificates, and a second CA with an `operator`."""
+    d = tmp_path / "certs"
+    certs.init_ca(d)
+    for name in ("rig", "observer", "operator"):
+        certs.issue(d, name, name)
+    other = tmp_path / "other-ca"
+    certs.init_ca(other)
+    certs.issue(other, "operator", "operator")
+    return d
+
+
+def _template(name: str, tmp_path: Path, port: int) -> Path:
+    """A shipped template with its certificate folder and port made the test's."""
+    text = (ZENOH / name).read_text()
+    text = text.replace('"certs/', f'"{tmp_path}/certs/').replace(":7447", f":{port}")
+    path = tmp_path / name
+    path.write_text(text)
+    return path
+
+
+def _open(path: Path | zenoh.Config, timeout_s: float = 30.0) -> zenoh.Session:
+    conf = path if isinstance(path, zenoh.Config) else load_zenoh_config(path)
+    deadline = time.monotonic() + timeout_s
+    while True:
+        try:
+            return zenoh.open(conf)
+        except zenoh.ZError:
+            if time.monotonic() > deadline:
+                raise
+            time.sleep(0.3)
+
+
+def _refused(conf: zenoh.Config) -> bool:
+    try:
+        zenoh.open(conf).close()
+    except zenoh.ZError:
+        return True
+    return False
+
+
+def _fields(session: zenoh.Session, rig: str, seconds: float) -> dict[str, list]:
+    sub = session.declare_subscriber(keys(rig)["telemetry"])
+    got: dict[str, list] = {}
+    deadline = time.monotonic() + seconds
+    try:
+        while time.monotonic() < deadline:
+            sample = sub.try_recv()
+            if sample is None:
+                time.sleep(0.01)
+                continue
+            for name, values in json.loads(sample.payload.to_bytes())["fields"].items():
+                got.setdefault(name, []).extend(values)
+    finally:
+        sub.undeclare()
+    return got
+
+
+def _status(session: zenoh.Session, rig: str) -> dict | None:
+    for reply in session.get(keys(rig)["status"], timeout=2.0):
+        if reply.ok is not None:
+            return json.loads(reply.ok.payload.to_bytes())
+    return None
+
+
+@pytest.mark.slow
+def test_mtls_and_access_control_with_the_daemon(tmp_path: Path, bridge, procs):
+    """Observer reads but cannot drive; operator arms; no certificate or another CA's: no
+    session. The observer's control queries and force_ref puts are dropped by the rig's access
+    control: they never reach the daemon, so the audit on `events` shows only what did."""
+    rig = "sec"
+    _lab(tmp_path)
+    port = find_free_port()
+    rig_conf = _template("rig.json5", tmp_path, port)
+    cfg = rig_config(
+        tmp_path,
+        bridge,
+        None,
+        rig={"name": rig},
+        loop={"realtime": False},
+        controller={"name": "constant", "current_a": 0.5},
+        reference={"kind": "zenoh", "timeout_s": 5.0},
+        telemetry={"enabled": True, "zenoh_config": str(rig_conf), "rate_hz": 20.0},
+    )
+    procs(["-m", "firmware_sim", "--config", "configs/sim.toml", "--bus-channel", bridge])
+    procs(["-m", "mrrig", "run", "--config", str(cfg), "--no-record"])
+    observer = _open(_template("observer.json5", tmp_path, port))
+    operator = None
+    try:
+        # no client certificate, a certificate of another CA, plain TCP: no session at all
+        bare = zenoh.Config.from_json5(
+            f'{{mode: "client", connect: {{endpoints: ["tls/127.0.0.1:{port}"]}}, {SCOUT_OFF}, '
+            f'transport: {{link: {{tls: {{root_ca_certificate: "{tmp_path}/certs/ca.pem"}}}}}}}}'
+        )
+        assert _refused(bare)
+        foreign = load_zenoh_config(_template("operator.json5", tmp_path, port))
+        foreign.insert_json5(
+            "transport/link/tls/connect_certificate",
+            json.dumps(str(tmp_path / "other-ca/operator.pem")),
+        )
+        foreign.insert_json5(
+            "transport/link/tls/connect_private_key",
+            json.dumps(str(tmp_path / "other-ca/operator-key.pem")),
+        )
+        assert _refused(foreign)
+        plain = zenoh.Config.from_json5(
+            f'{{mode: "client", connect: {{endpoints: ["tcp/127.0.0.1:{port}"]}}, {SCOUT_OFF}}}'
+        )
+        assert _refused(plain)
+
+        # the observer reads status and telemetry ...
+        deadline = time.monotonic() + 30
+        status = None
+        while status is None and time.monotonic() < deadline:
+            status = _status(observer, rig)
+        assert status is not None and status["state"] in ("IDLE", "FAULT"), status
+        assert _fields(observer, rig, 1.0)["t"], "the observer got no telemetry"
+        # ... but cannot drive the rig: no reply, nothing changes
+        for request in ({"cmd": "arm"}, {"cmd": "set_controller", "name": "heaviside"}):
+            with pytest.raises(client.ClientError, match="no daemon answered"):
+                client.query(observer, rig, request, timeout_s=1.0)
+        pub = observer.declare_publisher(keys(rig)["force_ref"])
+        for _ in range(20):
+            pub.put(json.dumps({"force_n": 1234.0}))
+            time.sleep(0.02)
+        pub.undeclare()
+        seen = _fields(observer, rig, 0.5)
+        assert 1234.0 not in seen["f_des"]
+        status = _status(observer, rig)
+        assert status["state"] != "ARMED" and status["controller"] == "constant", status
+
+        # the operator's force reference arrives; it arms, and sees its audit events
+        op_conf = load_zenoh_config(_template("operator.json5", tmp_path, port))
+        operator = _open(op_conf)
+        events = operator.declare_subscriber(keys(rig)["events"])
+        pub = operator.declare_publisher(keys(rig)["force_ref"])
+        for _ in range(20):
+            pub.put(json.dumps({"force_n": 1234.0}))
+            time.sleep(0.02)
+        assert 1234.0 in _fields(operator, rig, 0.5)["f_des"]
+        pub.put(json.dumps({"force_n": 1234.0}))  # fresh for the arm (stale after 5 s)
+        pub.undeclare()
+        claims = audit.claims(operator, op_conf)
+        reply = client.query(operator, rig, {"cmd": "arm"}, timeout_s=3.0, claims=claims)
+        assert reply["ok"] is True and reply["state"] == "ARMED", reply
+        request = {"cmd": "set_controller", "name": "heaviside"}
+        refused = client.query(operator, rig, request, timeout_s=3.0, claims=claims)
+        assert refused["ok"] is False  # only when not armed
+        audits = []
+        deadline = time.monotonic() + 5
+        while len(audits) < 2 and time.monotonic() < deadline:
+            sample = events.try_recv()
+            if sample is None:
+                time.sleep(0.02)
+                continue
+            event = json.loads(sample.payload.to_bytes())
+            if event.get("kind") == "audit":
+                audits.append(event)
+        events.undeclare()
+        assert [a["request"]["cmd"] for a in audits] == ["arm", "set_controller"]
+        assert [a["result"]["ok"] for a in audits] == [True, False]
+        assert "only when not armed" in audits[1]["result"]["error"]
+        for a in audits:
+            claimed = a["requester"]["claimed"]
+            assert claimed["cert_cn"] == "operator"
+            assert claimed["zid"] == str(operator.info.zid())
+    finally:
+        observer.close()
+        if operator is not None:
+            operator.close()
+
+
+def test_user_password_and_access_control(tmp_path: Path):
+    """The sidecar on the user-password template: a wrong password gets no session; the
+    observer's control query never reaches the loop; the operator's does."""
+    (tmp_path / "certs").mkdir()
+    (tmp_path / "certs" / "users.txt").write_text("operator:op-secret\nobserver:ob-secret\n")
+    port = find_free_port()
+    conf = _template("rig-usrpwd.json5", tmp_path, port)
+    fds = make_channel(pipe_bytes=None)
+    loop = LoopEnd(fds.loop_rx, fds.loop_tx)
+    proc = start_sidecar("pw", conf, fds)
+
+    def user(name: str, password: str) -> zenoh.Config:
+        c = load_zenoh_config(_template(f"{name}-usrpwd.json5", tmp_path, port))
+        c.insert_json5("transport/auth/usrpwd/password", json.dumps(password))
+        return c
+
+    sessions = []
+    try:
+        operator = _open(user("operator", "op-secret"))
+        sessions.append(operator)
+        observer = _open(user("observer", "ob-secret"))
+        sessions.append(observer)
+        assert _refused(user("operator", "wrong"))
+        with pytest.raises(client.ClientError, match="no daemon answered"):
+            client.query(observer, "pw", {"cmd": "arm"}, timeout_s=1.0)
+        assert [m for m, _ in loop.poll()] == []  # it never reached the loop
+        # the operator's reaches it (the test plays the loop and does not answer)
+        reply = client.query(operator, "pw", {"cmd": "arm"}, timeout_s=3.0)
+        assert reply == {"ok": False, "error": "daemon did not answer"}
+        assert [p["cmd"] for m, p in loop.poll() if m == Msg.REQUEST] == ["arm"]
+    finally:
+        for s in sessions:
+            s.close()
+        loop.send_stop()
+        try:
+            proc.wait(timeout=10)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()
+        loop.close()
