@@ -27,6 +27,8 @@ from cryptography.hazmat.primitives import hashes, serialization
 from cryptography.hazmat.primitives.asymmetric import ec
 from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
 
+from mrrig.errors import MrrigError
+
 log = logging.getLogger(__name__)
 
 ROLES = ("observer", "operator", "rig", "router")
@@ -37,7 +39,7 @@ _NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,62}$")
 _LOOPBACK_NAMES = ("127.0.0.1", "localhost")
 
 
-class CertError(ValueError):
+class CertError(MrrigError, ValueError):
     """A certificate request that cannot be carried out; the message is one line."""
 
 

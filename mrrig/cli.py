@@ -11,6 +11,8 @@ import importlib
 import logging
 import sys
 
+from mrrig.errors import MrrigError
+
 # subcommand -> (module with main(argv) -> int, one-line help)
 COMMANDS: dict[str, tuple[str, str]] = {
     "demo": ("mrrig.demo", "simulator + daemon: a 20 s force-tracking run and its summary"),
@@ -30,10 +32,6 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "bench": ("mrrig.bench.cli", "benchmarks: paper, loop, matrix, estimation, inversion"),
     "certs": ("mrrig.certs", "a lab CA and certificates for Zenoh mutual TLS (init, issue)"),
 }
-
-
-class UsageError(Exception):
-    """An ordinary error of the user's input: printed as one line, exit code 2."""
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -73,5 +71,6 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def _is_ordinary(exc: BaseException) -> bool:
-    """User-facing errors (bad input): everything derived from ValueError, OSError, UsageError."""
-    return isinstance(exc, ValueError | OSError | UsageError | LookupError)
+    """User-facing errors: mrrig's own (`MrrigError`) and the builtins of bad input (ValueError,
+    OSError, LookupError) that reach here from libraries."""
+    return isinstance(exc, MrrigError | ValueError | OSError | LookupError)

@@ -19,6 +19,7 @@ import numpy as np
 import zenoh
 
 from mrrig import audit
+from mrrig.errors import MrrigError
 from mrrig.samples import RigState
 from mrrig.sidecar import JSON, keys
 from mrrig.zenoh_config import load_zenoh_config
@@ -30,7 +31,7 @@ ForceProfile = Callable[[float], float] | str | Path
 _WATCH_POLL_S = 0.01
 
 
-class ClientError(ConnectionError):
+class ClientError(MrrigError, ConnectionError):
     """No daemon answered, or it answered with a transport error."""
 
 

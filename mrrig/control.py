@@ -14,6 +14,7 @@ from typing import TYPE_CHECKING, Any
 
 from mrrig.config import ActuatorSection, reference_from_table
 from mrrig.controllers import CONTROLLER_NAMES
+from mrrig.errors import MrrigError
 from mrrig.samples import RigState
 from mrrig.typed_config import ConfigError, parse
 
@@ -21,7 +22,7 @@ if TYPE_CHECKING:
     from mrrig.daemon import Daemon
 
 
-class RequestError(ValueError):
+class RequestError(MrrigError, ValueError):
     """A control request that cannot be carried out; nothing was changed."""
 
 

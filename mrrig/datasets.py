@@ -13,6 +13,7 @@ import numpy as np
 
 from damper.plant import BoucWenParams, simulate
 from damper.signals import bandlimited_noise, sine
+from mrrig.errors import MrrigError
 
 DATASET_A_DT_S = 1e-3
 DATASET_A_VMAX_V = 12.0  # the training range of data set A
@@ -39,7 +40,7 @@ TIDY_HEADER = (
 )
 
 
-class DataError(ValueError):
+class DataError(MrrigError, ValueError):
     """A data file that cannot be read as a Series; the message is one line."""
 
 

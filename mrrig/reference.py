@@ -15,13 +15,14 @@ import numpy as np
 
 from damper.plant import BoucWenDamper, BoucWenParams
 from damper.signals import bandlimited_noise
+from mrrig.errors import MrrigError
 
 
-class ReferenceError(ValueError):
+class ForceReferenceError(MrrigError, ValueError):
     """A force reference that cannot be built (bad parameters, unreadable file)."""
 
 
-class StaleReference(Exception):
+class StaleReference(MrrigError):
     """The external force reference is older than its timeout."""
 
 
@@ -58,7 +59,7 @@ class Sine(ForceReference):
 
     def __init__(self, offset_n: float, amplitude_n: float, freq_hz: float) -> None:
         if freq_hz <= 0:
-            raise ReferenceError(f"sine: freq_hz must be positive, got {freq_hz}")
+            raise ForceReferenceError(f"sine: freq_hz must be positive, got {freq_hz}")
         self.offset_n, self.amplitude_n, self.w = offset_n, amplitude_n, 2 * math.pi * freq_hz
 
     def force(self, t_s: float, x_m: float, xd_m_s: float) -> float:
@@ -80,7 +81,7 @@ class Noise(ForceReference):
         period_s: float = 60.0,
     ) -> None:
         if freq_hz <= 0:
-            raise ReferenceError(f"noise: freq_hz must be positive, got {freq_hz}")
+            raise ForceReferenceError(f"noise: freq_hz must be positive, got {freq_hz}")
         n = int(round(period_s / dt_s))
         self._f, _, _ = bandlimited_noise(
             n, dt_s, freq_hz, amplitude_n, np.random.default_rng(seed)
@@ -105,21 +106,25 @@ class CsvSeries(ForceReference):
             with Path(path).open(newline="") as fh:
                 rows = list(csv.DictReader(fh))
         except OSError as exc:
-            raise ReferenceError(f"{path}: cannot read force profile: {exc.strerror}") from None
+            raise ForceReferenceError(
+                f"{path}: cannot read force profile: {exc.strerror}"
+            ) from None
         if not rows:
-            raise ReferenceError(f"{path}: force profile is empty")
+            raise ForceReferenceError(f"{path}: force profile is empty")
         for col in (time_column, force_column):
             if col not in rows[0]:
-                raise ReferenceError(f"{path}: column {col!r} missing (have {list(rows[0])})")
+                raise ForceReferenceError(f"{path}: column {col!r} missing (have {list(rows[0])})")
         try:
             t = np.array([float(r[time_column]) for r in rows])
             f = np.array([float(r[force_column]) for r in rows])
         except ValueError as exc:
-            raise ReferenceError(f"{path}: non-numeric value: {exc}") from None
+            raise ForceReferenceError(f"{path}: non-numeric value: {exc}") from None
         if not (np.all(np.isfinite(t)) and np.all(np.isfinite(f))):
-            raise ReferenceError(f"{path}: non-finite value in {time_column} or {force_column}")
+            raise ForceReferenceError(
+                f"{path}: non-finite value in {time_column} or {force_column}"
+            )
         if np.any(np.diff(t) <= 0):
-            raise ReferenceError(f"{path}: {time_column} must increase strictly")
+            raise ForceReferenceError(f"{path}: {time_column} must increase strictly")
         self.t, self.f = t, f
         self._t0 = 0.0
 
@@ -150,7 +155,7 @@ class BoucWenReference(ForceReference):
         try:
             params = BoucWenParams.preset(preset)
         except ValueError as exc:
-            raise ReferenceError(str(exc)) from None
+            raise ForceReferenceError(str(exc)) from None
         self._damper = BoucWenDamper(params, substep_s=2.5e-4)
         self.current_a, self.current_amp_a = current_a, current_amp_a
         self.w = 2 * math.pi * current_freq_hz
@@ -185,7 +190,7 @@ class External(ForceReference):
 
     def __init__(self, timeout_s: float) -> None:
         if timeout_s <= 0:
-            raise ReferenceError(f"zenoh: timeout_s must be positive, got {timeout_s}")
+            raise ForceReferenceError(f"zenoh: timeout_s must be positive, got {timeout_s}")
         self.timeout_s = timeout_s
         self._value: float | None = None
         self._t_rx = -math.inf

@@ -19,6 +19,7 @@ import numpy as np
 import pyarrow as pa
 import rerun as rr
 
+from mrrig.errors import MrrigError
 from mrrig.recording import (
     EVENT_TIMELINE,
     EVENTS_ENTITY,
@@ -34,7 +35,7 @@ _DATASET = "run"
 RRD_MAGIC = b"RRF2"  # the FourCC an .rrd file starts with (rerun-sdk 0.41, as pinned)
 
 
-class ReviewError(ValueError):
+class ReviewError(MrrigError, ValueError):
     """A recording that cannot be read or checked; the message is one line naming the file."""
 
 

@@ -17,6 +17,7 @@ import numpy as np
 from mrrig.config import DaemonConfig
 from mrrig.control import handle
 from mrrig.daemon import Daemon
+from mrrig.errors import MrrigError
 from mrrig.samples import SAMPLE_DTYPE, RigState
 
 log = logging.getLogger(__name__)
@@ -29,7 +30,7 @@ FIRST_FRAME_TIMEOUT_S = 10.0
 WARMUP_S = 1.0
 
 
-class RigError(RuntimeError):
+class RigError(MrrigError, RuntimeError):
     """The rig or the daemon cannot go on (no sensor frames, a refused request, a dead loop)."""
 
 

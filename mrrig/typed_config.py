@@ -14,10 +14,12 @@ import typing
 from pathlib import Path
 from typing import Any, TypeVar
 
+from mrrig.errors import MrrigError
+
 T = TypeVar("T")
 
 
-class ConfigError(ValueError):
+class ConfigError(MrrigError, ValueError):
     """A config file that cannot be used; the message is one line naming file and field."""
 
 

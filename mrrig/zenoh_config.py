@@ -18,6 +18,8 @@ from typing import Any
 
 import zenoh
 
+from mrrig.errors import MrrigError
+
 _DEFAULT_MODE = "peer"
 _RUST_SOURCE = re.compile(r"\s+at \S+\.rs:\d+\.?$")
 _LOCAL_PROTOCOLS = ("unixsock-stream", "unixpipe")  # no network at all
@@ -29,7 +31,7 @@ INSECURE_WARNING = (
 )
 
 
-class ZenohConfigError(ValueError):
+class ZenohConfigError(MrrigError, ValueError):
     """A Zenoh config that cannot be used; the message is one line naming file and key."""
 
 

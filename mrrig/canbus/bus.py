@@ -24,13 +24,15 @@ import can
 from can_remote.client import RemoteBus
 from can_remote.websocket import WebsocketClosed
 
+from mrrig.errors import MrrigError
+
 logger = logging.getLogger(__name__)
 
 BRIDGE_START_TIMEOUT_S = 10.0
 BRIDGE_STOP_TIMEOUT_S = 3.0
 
 
-class BusError(can.CanError):
+class BusError(MrrigError, can.CanError):
     """A CAN bus could not be opened, or its connection was lost."""
 
 

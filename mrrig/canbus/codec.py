@@ -21,6 +21,8 @@ import can
 import cantools
 from cantools.database.can import Message as DbcMessage
 
+from mrrig.errors import MrrigError
+
 logger = logging.getLogger(__name__)
 
 DEFAULT_DBC_PATH = Path(__file__).resolve().parents[2] / "configs" / "mrrig.dbc"
@@ -39,11 +41,11 @@ CRC8H2F_INIT = 0xFF
 CRC8H2F_XOR_OUT = 0xFF
 
 
-class CodecError(ValueError):
+class CodecError(MrrigError, ValueError):
     """The DBC does not describe a layout this codec supports."""
 
 
-class EncodeError(ValueError):
+class EncodeError(MrrigError, ValueError):
     """A packer was given a wrong signal set or a value outside a signal's range."""
 
 

@@ -18,10 +18,12 @@ from typing import Any
 
 import numpy as np
 
+from mrrig.errors import MrrigError
+
 FORMAT = "mrrig-mlp/1"
 
 
-class ModelError(ValueError):
+class ModelError(MrrigError, ValueError):
     """A model file or model object that cannot be used; the message is one line."""
 
 
