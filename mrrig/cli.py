@@ -31,6 +31,8 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "validate": ("mrrig.validate", "force-tracking validation of a model on the rig"),
     "bench": ("mrrig.bench.cli", "benchmarks: paper, loop, matrix, estimation, inversion"),
     "certs": ("mrrig.certs", "a lab CA and certificates for Zenoh mutual TLS (init, issue)"),
+    "router": ("mrrig.router", "a Zenoh router where a fleet of rigs and their clients meet"),
+    "rigs": ("mrrig.fleet", "list the live rigs: state, controller, fault (Zenoh)"),
 }
 
 

@@ -35,6 +35,7 @@ def main(argv: list[str]) -> int:
         ap.add_argument("request", help='a JSON request, e.g. \'{"cmd": "status"}\'')
     elif command == "watch":
         ap.add_argument("--duration", type=positive, help="seconds (default: until Ctrl-C)")
+        ap.add_argument("--all", action="store_true", help="one line per live rig (a fleet)")
     elif command == "send-force":
         src = ap.add_mutually_exclusive_group(required=True)
         src.add_argument("--csv", type=Path, help="profile file with columns t_s,force_n")
@@ -56,6 +57,10 @@ def main(argv: list[str]) -> int:
             raise ValueError(f"request: not valid JSON: {exc}") from None
         return _print_reply(client.request(args.rig, payload, zc, args.timeout))
     if command == "watch":
+        if args.all:
+            from mrrig.fleet import watch_all
+
+            return 0 if watch_all(zc, args.duration, out=sys.stdout) else 1
         n = client.watch(args.rig, zc, args.duration, out=sys.stdout)
         return 0 if n else 1
     if args.csv is not None:

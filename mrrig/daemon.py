@@ -24,7 +24,7 @@ from typing import Any
 
 import numpy as np
 
-from mrrig import json_text
+from mrrig import json_text, sdnotify
 from mrrig import reference as ref
 from mrrig.canbus.bus import open_bus
 from mrrig.canbus.codec import Codec
@@ -212,6 +212,7 @@ class Daemon:
         self._last_status_sent = -math.inf
         self._last_actuator_sent = -math.inf
         self._status_key = None
+        self.notifier = sdnotify.Notifier.from_env()  # systemd's READY=1 and watchdog
 
     # ---- time and hand-off -------------------------------------------------------------
     def now(self) -> float:
@@ -538,6 +539,7 @@ class Daemon:
             log.info("discarded %d frames queued before the loop started", stale)
         self._send_actuator()
         self.started.set()
+        self.notifier.ready(f"rig {cfg.rig.name}: listening on {cfg.bus.channel}")
         stop_deadline = None
         while not self._safe_sent_at_stop:
             if self._stop and stop_deadline is None:
@@ -551,6 +553,7 @@ class Daemon:
                 self.request_stop(f"bus error: {exc}")
                 break
             t_rx = time.perf_counter()
+            self.notifier.pet(t_rx)
             if msg is not None:
                 self.on_frame(msg, t_rx)
             self.check_timeout(t_rx)
@@ -591,6 +594,7 @@ class Daemon:
                 self._send_actuator()
             finally:
                 self.bus.shutdown()
+        self.notifier.stopping()  # after the SAFE command
         self.counters["cpu_loop_s"] = time.process_time() - self._cpu0
         ahead, missed = self.controller.solved_ahead()
         self.counters["commands_solved_ahead"] = ahead

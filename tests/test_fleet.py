@@ -1,0 +1,196 @@
+"""A fleet on 127.0.0.1: a router (`mrrig router`), three simulated rigs (bridge, firmware_sim
+and daemon each, the sidecars clients of the router) and the CLI through the router."""
+
+from __future__ import annotations
+
+import io
+import json
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import pytest
+import zenoh
+
+from mrrig import fleet
+from mrrig.canbus.bus import find_free_port, start_bridge, stop_bridge
+from mrrig.client import open_session
+from tests.conftest import REPO, rig_config, stop
+
+pytestmark = pytest.mark.slow
+SCOUT_OFF = {"multicast": {"enabled": False}}
+
+
+def _write(path: Path, conf: dict) -> Path:
+    path.write_text(json.dumps(conf))
+    return path
+
+
+def _cli(*args: str) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(
+        [sys.executable, "-m", "mrrig", *args],
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+
+
+def _wait(pred, timeout_s: float, step_s: float = 0.1):
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        value = pred()
+        if value:
+            return value
+        time.sleep(step_s)
+    return pred()
+
+
+def test_watch_all_prints_one_line_per_rig_and_nothing_without_rigs(tmp_path: Path):
+    port = find_free_port()
+    router = zenoh.open(
+        zenoh.Config.from_json5(
+            json.dumps(
+                {
+                    "mode": "router",
+                    "listen": {"endpoints": [f"tcp/127.0.0.1:{port}"]},
+                    "scouting": SCOUT_OFF,
+                }
+            )
+        )
+    )
+    conf = _write(
+        tmp_path / "c.json5",
+        {
+            "mode": "client",
+            "connect": {"endpoints": [f"tcp/127.0.0.1:{port}"]},
+            "scouting": SCOUT_OFF,
+        },
+    )
+    rig = zenoh.open(zenoh.Config.from_file(str(conf)))
+    try:
+        token = rig.liveliness().declare_token("mrrig/bench1/alive")
+        pub = rig.declare_publisher("mrrig/bench1/telemetry")
+        fields = {"t": [0.0, 0.002], "f_des": [1.0, 2.0], "f_meas": [1.5, 2.5], "i_cmd": [0, 0.1]}
+        fields |= {"latency_us": [100.0, 200.0], "state": [1, 1]}
+        out = io.StringIO()
+        stop = threading.Event()
+
+        def feed() -> None:
+            while not stop.wait(0.05):
+                pub.put(json.dumps({"rig": "bench1", "fields": fields}))
+
+        feeder = threading.Thread(target=feed)
+        feeder.start()
+        try:
+            n = fleet.watch_all(conf, duration_s=2.2, out=out)
+        finally:
+            stop.set()
+            feeder.join()
+        lines = out.getvalue().splitlines()
+        assert n > 0 and len(lines) == 2, lines
+        assert all(line.startswith("bench1 ") and "state ARMED" in line for line in lines)
+        pub.undeclare()
+        token.undeclare()
+        out = io.StringIO()
+        assert fleet.watch_all(conf, duration_s=1.1, out=out) == 0
+        assert out.getvalue().splitlines() == ["no live rigs"]
+    finally:
+        rig.close()
+        router.close()
+
+
+def test_a_router_three_rigs_and_the_cli(tmp_path: Path, procs):
+    port = find_free_port()
+    endpoint = [f"tcp/127.0.0.1:{port}"]
+    router_conf = _write(
+        tmp_path / "router.json5",
+        {"mode": "router", "listen": {"endpoints": endpoint}, "scouting": SCOUT_OFF},
+    )
+    client_conf = _write(
+        tmp_path / "client.json5",
+        {"mode": "client", "connect": {"endpoints": endpoint}, "scouting": SCOUT_OFF},
+    )
+    procs(["-m", "mrrig", "router", "--config", str(router_conf)])
+    bridges, channels, daemons, sims = {}, {}, {}, {}
+    try:
+        for name in ("rig1", "rig2", "rig3"):
+            bport = find_free_port()
+            bridges[name] = start_bridge(bport)
+            channels[name] = f"ws://127.0.0.1:{bport}/"
+            work = tmp_path / name
+            work.mkdir()
+            cfg = rig_config(
+                work,
+                channels[name],
+                None,
+                rig={"name": name},
+                controller={"name": "constant", "current_a": 0.5},
+                reference={"kind": "constant", "offset_n": 0.0},
+                telemetry={"enabled": True, "zenoh_config": str(client_conf), "rate_hz": 10.0},
+            )
+            daemons[name] = procs(
+                ["-m", "mrrig", "run", "--config", str(cfg), "--no-record"],
+                stdout=subprocess.DEVNULL,
+            )
+        with open_session(client_conf) as session:
+
+            def names() -> list[str]:
+                return [r.name for r in fleet.live_rigs(session, 0.5)]
+
+            # every daemon's loop is up before its simulator starts: no frame goes unanswered
+            assert _wait(lambda: names() == ["rig1", "rig2", "rig3"], 90), names()
+            for name in daemons:
+                sims[name] = procs(
+                    [
+                        "-m",
+                        "firmware_sim",
+                        "--config",
+                        "configs/sim.toml",
+                        "--bus-channel",
+                        channels[name],
+                        "--stats",
+                        str(tmp_path / f"{name}-sim.json"),
+                    ]
+                )
+            time.sleep(1.0)
+
+            listed = _cli("rigs", "--zenoh-config", str(client_conf), "--json")
+            assert listed.returncode == 0, listed.stderr
+            rows = json.loads(listed.stdout)
+            assert [r["rig"] for r in rows] == ["rig1", "rig2", "rig3"]
+            assert all(r["controller"] == "constant" and r["state"] for r in rows), rows
+
+            armed = _cli("arm", "--rig", "rig2", "--zenoh-config", str(client_conf))
+            assert armed.returncode == 0, armed.stdout + armed.stderr
+            assert json.loads(armed.stdout)["state"] == "ARMED"
+            states = {r.name: r.status["state"] for r in fleet.live_rigs(session)}
+            assert states["rig2"] == "ARMED", states
+            assert states["rig1"] != "ARMED" and states["rig3"] != "ARMED", states
+
+            os.kill(daemons["rig3"].pid, signal.SIGKILL)
+            t_kill = time.monotonic()
+            assert _wait(lambda: "rig3" not in names(), 2.0, step_s=0.05), names()
+            gone_s = time.monotonic() - t_kill
+            print(f"rig3 gone from the list {gone_s * 1e3:.0f} ms after SIGKILL of its daemon")
+            assert names() == ["rig1", "rig2"]
+            time.sleep(2.0)  # rig1 and rig2 keep running past the kill
+            table = _cli("rigs", "--zenoh-config", str(client_conf))
+            assert [line.split()[0] for line in table.stdout.splitlines()[1:]] == ["rig1", "rig2"]
+        # the simulators stop first, so every frame they sent had a daemon to answer it
+        for name in ("rig1", "rig2"):
+            sims[name].send_signal(signal.SIGTERM)
+            assert sims[name].wait(timeout=30) == 0
+            stats = json.loads((tmp_path / f"{name}-sim.json").read_text())
+            print(name, stats["sensor_frames_sent"], "frames sent", stats["answers"])
+            assert stats["sensor_frames_sent"] > 2500, stats
+            assert stats["answers"]["unanswered"] == 0, stats["answers"]
+    finally:
+        for proc in [*sims.values(), *daemons.values()]:
+            stop(proc)
+        for bridge in bridges.values():
+            stop_bridge(bridge)
