@@ -1,8 +1,9 @@
 """A fleet on 127.0.0.1: a router (`mrrig router`), three simulated rigs (bridge, firmware_sim
-and daemon each, the sidecars clients of the router) and the CLI through the router."""
+and daemon each, the sidecars connecting to the router) and the CLI through the router."""
 
 from __future__ import annotations
 
+import contextlib
 import io
 import json
 import os
@@ -18,7 +19,6 @@ import zenoh
 
 from mrrig import fleet
 from mrrig.canbus.bus import find_free_port, start_bridge, stop_bridge
-from mrrig.client import open_session
 from tests.conftest import REPO, rig_config, stop
 
 pytestmark = pytest.mark.slow
@@ -48,6 +48,13 @@ def _wait(pred, timeout_s: float, step_s: float = 0.1):
             return value
         time.sleep(step_s)
     return pred()
+
+
+def _try_open(conf: Path) -> zenoh.Session | None:
+    try:
+        return zenoh.open(zenoh.Config.from_file(str(conf)))
+    except zenoh.ZError:
+        return None
 
 
 def test_watch_all_prints_one_line_per_rig_and_nothing_without_rigs(tmp_path: Path):
@@ -115,7 +122,17 @@ def test_a_router_three_rigs_and_the_cli(tmp_path: Path, procs):
         tmp_path / "client.json5",
         {"mode": "client", "connect": {"endpoints": endpoint}, "scouting": SCOUT_OFF},
     )
-    procs(["-m", "mrrig", "router", "--config", str(router_conf)])
+    # as configs/zenoh/rig-fleet.json5: a peer listening nowhere, so that a rig may start
+    # before the router (here they do)
+    rig_conf = _write(
+        tmp_path / "rig.json5",
+        {
+            "mode": "peer",
+            "listen": {"endpoints": []},
+            "connect": {"endpoints": endpoint},
+            "scouting": SCOUT_OFF,
+        },
+    )
     bridges, channels, daemons, sims = {}, {}, {}, {}
     try:
         for name in ("rig1", "rig2", "rig3"):
@@ -131,13 +148,16 @@ def test_a_router_three_rigs_and_the_cli(tmp_path: Path, procs):
                 rig={"name": name},
                 controller={"name": "constant", "current_a": 0.5},
                 reference={"kind": "constant", "offset_n": 0.0},
-                telemetry={"enabled": True, "zenoh_config": str(client_conf), "rate_hz": 10.0},
+                telemetry={"enabled": True, "zenoh_config": str(rig_conf), "rate_hz": 10.0},
             )
             daemons[name] = procs(
                 ["-m", "mrrig", "run", "--config", str(cfg), "--no-record"],
                 stdout=subprocess.DEVNULL,
             )
-        with open_session(client_conf) as session:
+        procs(["-m", "mrrig", "router", "--config", str(router_conf)])
+        session = _wait(lambda: _try_open(client_conf), 60, step_s=0.5)
+        assert session is not None, "the router never listened"
+        with contextlib.closing(session):
 
             def names() -> list[str]:
                 return [r.name for r in fleet.live_rigs(session, 0.5)]

@@ -30,7 +30,7 @@ from tests.conftest import REPO, rig_config
 
 ZENOH = REPO / "configs" / "zenoh"
 SHIPPED = sorted(REPO.glob("configs/**/*.json5"))
-SECURE_TEMPLATES = ("rig.json5", "rig-usrpwd.json5", "rig-client.json5", "router.json5")
+SECURE_TEMPLATES = ("rig.json5", "rig-usrpwd.json5", "rig-fleet.json5", "router.json5")
 
 
 def _conf(text: str) -> zenoh.Config:
