@@ -57,6 +57,10 @@ def main(argv: list[str] | None = None) -> int:
     level = logging.DEBUG if args.debug else logging.WARNING if args.quiet else logging.INFO
     logging.basicConfig(level=level, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     module_name, _ = COMMANDS[args.command]
+    if args.command == "run":
+        from mrrig import memory
+
+        memory.set_environment()  # before numpy loads OpenBLAS: what the locked loop needs
     try:
         module = importlib.import_module(module_name)
         if module_name == "mrrig.client_cli":

@@ -12,10 +12,13 @@ import ctypes.util
 import logging
 import os
 
+from mrrig import memory
+
 log = logging.getLogger(__name__)
 
 _PR_SET_TIMERSLACK = 29
-_MCL_CURRENT, _MCL_FUTURE = 1, 2
+_MCL_CURRENT, _MCL_FUTURE, _MCL_ONFAULT = 1, 2, 4
+_EINVAL = 22
 
 
 def _libc() -> ctypes.CDLL | None:
@@ -31,7 +34,7 @@ def make_realtime(
     if libc is not None:
         if libc.prctl(_PR_SET_TIMERSLACK, 1, 0, 0, 0) != 0:
             log.warning("%s: cannot set timer slack (errno %d)", who, ctypes.get_errno())
-        if lock_memory and libc.mlockall(_MCL_CURRENT | _MCL_FUTURE) != 0:
+        if lock_memory and not _lock_memory(libc):
             log.warning(
                 "%s: memory not locked (errno %d): page faults may stall it",
                 who,
@@ -53,6 +56,15 @@ def make_realtime(
                 priority,
                 exc,
             )
+
+
+def _lock_memory(libc: ctypes.CDLL) -> bool:
+    """Every page the process touches stays resident: locked when first touched (ONFAULT, so
+    the libraries' unused pages are not), or where the kernel has no ONFAULT, all at once."""
+    memory.before_locking(libc)
+    if libc.mlockall(_MCL_CURRENT | _MCL_FUTURE | _MCL_ONFAULT) == 0:
+        return True
+    return ctypes.get_errno() == _EINVAL and libc.mlockall(_MCL_CURRENT | _MCL_FUTURE) == 0
 
 
 def keep_off_cpu(pid: int, cpu: int | None, who: str) -> None:

@@ -23,7 +23,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from mrrig import json_text
+from mrrig import json_text, memory
 from mrrig.canbus.bus import find_free_port, start_bridge, stop_bridge
 from mrrig.cli_args import output_file, positive
 from mrrig.config import load_config
@@ -111,8 +111,17 @@ def run_once(config: Path, sim_config: Path, duration_s: float, mode: str) -> di
         loop_cpu = load_config(config).loop.cpu
         keep_off_cpu(bridge.pid, loop_cpu, "CAN bridge")
         keep_off_cpu(sim.pid, loop_cpu, "firmware_sim")
-        if sim.wait(timeout=duration_s + 120) != 0:
-            raise RuntimeError(f"firmware_sim exited with code {sim.returncode}")
+        rss = _ResidentMemory(daemon.pid, settled=memory.status_kib(daemon.pid))
+        while True:
+            try:
+                code = sim.wait(timeout=RSS_SAMPLE_S)
+                break
+            except subprocess.TimeoutExpired:
+                if time.monotonic() - t0 > duration_s + 120:
+                    raise RuntimeError("firmware_sim did not stop") from None
+                rss.sample(time.monotonic() - t0)
+        if code != 0:
+            raise RuntimeError(f"firmware_sim exited with code {code}")
         wall = time.monotonic() - t0
         bridge_cpu = _cpu_s(bridge.pid) - t_bridge0
         echo_cpu = _cpu_s(daemon.pid)
@@ -156,6 +165,7 @@ def run_once(config: Path, sim_config: Path, duration_s: float, mode: str) -> di
             "telemetry_dropped": d.get("telemetry_dropped"),
             # frames whose inversion was prepared ahead / prepared but solved in full
             "solved_ahead": (d.get("commands_solved_ahead"), d.get("commands_ahead_missed")),
+            "resident_memory": rss.result(),
         }
     finally:
         for p in (daemon, sim):
@@ -163,6 +173,61 @@ def run_once(config: Path, sim_config: Path, duration_s: float, mode: str) -> di
                 p.kill()
                 p.wait()
         stop_bridge(bridge)
+
+
+RSS_SAMPLE_S = 1.0
+RSS_WARM_S = 10.0  # the loop has run every path of an ordinary run by then
+
+
+class _ResidentMemory:
+    """The daemon's resident and locked memory (/proc), sampled while the simulator runs."""
+
+    def __init__(self, pid: int, settled: dict[str, int]) -> None:
+        self._pid = pid
+        self.settled = settled  # before the first frame: imports done, memory locked
+        self.samples: list[tuple[float, dict[str, int]]] = []
+
+    def sample(self, t_s: float) -> None:
+        self.sample_status(t_s, memory.status_kib(self._pid))
+
+    def sample_status(self, t_s: float, status: dict[str, int]) -> None:
+        if status:
+            self.samples.append((t_s, status))
+
+    def result(self) -> dict:
+        if not self.samples:
+            return {}
+        rss = [s["VmRSS"] for _, s in self.samples]
+        warm = next((s for t, s in self.samples if t >= RSS_WARM_S), self.samples[0][1])
+        end = self.samples[-1][1]
+        return {
+            "settled_kib": self.settled.get("VmRSS"),
+            "first_kib": rss[0],
+            "warm_kib": warm["VmRSS"],
+            "warm_at_s": RSS_WARM_S,
+            "end_kib": end["VmRSS"],
+            "max_kib": max(rss),
+            "locked_end_kib": end.get("VmLck"),
+            "threads": end.get("Threads"),
+            "growth_from_warm_pct": 100 * (end["VmRSS"] - warm["VmRSS"]) / warm["VmRSS"],
+            "samples": len(rss),
+        }
+
+
+def format_memory(m: dict, who: str = "daemon") -> str:
+    if not m:
+        return "  resident memory: not measured (no /proc)"
+
+    def mib(kib: int | None) -> str:
+        return "?" if kib is None else f"{kib / 1024:.1f} MiB"
+
+    return (
+        f"  {who} resident memory (RSS): at start {mib(m['settled_kib'])} (settled, before "
+        f"the first frame), {mib(m['first_kib'])} at 1 s, {mib(m['warm_kib'])} at "
+        f"{m['warm_at_s']:g} s, after the run {mib(m['end_kib'])} (max {mib(m['max_kib'])}; "
+        f"growth from {m['warm_at_s']:g} s {m['growth_from_warm_pct']:+.2f} %); locked "
+        f"{mib(m['locked_end_kib'])} of address space, {m['threads']} threads"
+    )
 
 
 def format_run(r: dict) -> str:
@@ -203,6 +268,9 @@ def format_run(r: dict) -> str:
             f"telemetry samples dropped: {r['telemetry_dropped']}",
             "  firmware_sim period jitter us: " + "  ".join(f"{k} {v:.0f}" for k, v in jit.items()),
             "  CPU % of one core: " + "  ".join(f"{k} {v:.1f}" for k, v in cpu.items()),
+            format_memory(
+                r.get("resident_memory") or {}, "echo process" if r["mode"] == "echo" else "daemon"
+            ),
             *(
                 [
                     f"  commands solved ahead: {r['solved_ahead'][0]} (prepared, then solved"
