@@ -25,7 +25,7 @@ from firmware_sim.firmware import Firmware
 from firmware_sim.runner import RunStats, run, tune_process
 from mrrig import json_text
 from mrrig.canbus import DEFAULT_DBC_PATH, BusError, Codec, open_bus
-from mrrig.cli_args import output_file, positive
+from mrrig.cli_args import HelpFormatter, add_bus_options, output_file, positive
 
 logger = logging.getLogger("firmware_sim")
 
@@ -40,10 +40,11 @@ def _fault_arg(text: str) -> FaultSpec:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    ap = argparse.ArgumentParser(prog="firmware_sim", description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(
+        prog="mrrig sim", description=__doc__.splitlines()[0], formatter_class=HelpFormatter
+    )
     ap.add_argument("--config", type=Path, default=DEFAULT_CONFIG, help="simulator TOML config")
-    ap.add_argument("--bus-interface", help="python-can interface (overrides [bus] interface)")
-    ap.add_argument("--bus-channel", help="python-can channel (overrides [bus] channel)")
+    add_bus_options(ap, "[bus] ")
     ap.add_argument(
         "--fault",
         type=_fault_arg,

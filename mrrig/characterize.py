@@ -31,6 +31,7 @@ from typing import Any, TextIO
 import numpy as np
 
 from mrrig import json_text
+from mrrig.cli_args import HelpFormatter
 from mrrig.config import load_config
 from mrrig.datasets import TIDY_HEADER, dataset_b_conditions
 from mrrig.recording import Recorder
@@ -355,7 +356,11 @@ def characterize(
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="mrrig characterize", description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(
+        formatter_class=HelpFormatter,
+        prog="mrrig characterize",
+        description=__doc__.splitlines()[0],
+    )
     ap.add_argument(
         "--config",
         type=Path,
@@ -365,7 +370,13 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument(
         "--rig-config", type=Path, default=Path("configs/rig.toml"), help="daemon config (TOML)"
     )
-    ap.add_argument("--bus-channel", help="override bus.channel of the rig config")
+    ap.add_argument(
+        "-c",
+        "--channel",
+        "--bus-channel",
+        dest="bus_channel",
+        help="python-can channel (overrides bus.channel of the rig config)",
+    )
     ap.add_argument("--out", type=Path, help="output directory (default: output.directory)")
     ap.add_argument("--no-telemetry", action="store_true", help="no Zenoh telemetry")
     args = ap.parse_args(argv)

@@ -11,6 +11,38 @@ from collections.abc import Callable
 from pathlib import Path
 
 
+class HelpFormatter(argparse.ArgumentDefaultsHelpFormatter, argparse.RawDescriptionHelpFormatter):
+    """Every option's default in its help (`(default: 2.0)`), unless the help already says it
+    or there is none to say (a flag, an unset optional value); descriptions keep their lines."""
+
+    def _get_help_string(self, action: argparse.Action) -> str | None:
+        text = action.help or ""
+        if "default" in text or action.default in (None, False, argparse.SUPPRESS, []):
+            return text
+        return super()._get_help_string(action)
+
+
+def add_bus_options(ap: argparse.ArgumentParser, what: str = "bus.") -> None:
+    """python-can's names for the bus (`-i/--interface`, `-c/--channel`, as in can.logger);
+    `--bus-interface`/`--bus-channel` stay as aliases."""
+    ap.add_argument(
+        "-i",
+        "--interface",
+        "--bus-interface",
+        dest="bus_interface",
+        metavar="INTERFACE",
+        help=f"python-can interface: socketcan, remote, virtual, ... (overrides {what}interface)",
+    )
+    ap.add_argument(
+        "-c",
+        "--channel",
+        "--bus-channel",
+        dest="bus_channel",
+        metavar="CHANNEL",
+        help=f"python-can channel: can0, ws://127.0.0.1:54701/, ... (overrides {what}channel)",
+    )
+
+
 def int_at_least(low: int) -> Callable[[str], int]:
     """An integer >= `low` (a seed >= 0, an epoch limit >= 1)."""
 

@@ -22,7 +22,7 @@ from mrrig import audit
 from mrrig.errors import MrrigError
 from mrrig.samples import RigState
 from mrrig.sidecar import JSON, keys
-from mrrig.zenoh_config import load_zenoh_config
+from mrrig.zenoh_config import load_zenoh_config, zenoh_error_text
 
 ZenohConfigLike = str | Path | zenoh.Config
 # 127.0.0.1, client mode, multicast scouting off
@@ -49,7 +49,8 @@ def open_session(zenoh_config: ZenohConfigLike) -> Iterator[zenoh.Session]:
         session = zenoh.open(conf)
     except zenoh.ZError as exc:
         raise ClientError(
-            f"cannot open a Zenoh session (is the daemon running?): {str(exc).splitlines()[0]}"
+            f"cannot open a Zenoh session: {zenoh_error_text(exc)} (is the daemon running?"
+            " start it: mrrig run --config ...; or give --zenoh-config of its network)"
         ) from exc
     try:
         yield session

@@ -13,7 +13,7 @@ import sys
 from pathlib import Path
 
 from mrrig import client, json_text
-from mrrig.cli_args import finite, positive
+from mrrig.cli_args import HelpFormatter, finite, positive
 
 
 def _common(ap: argparse.ArgumentParser) -> None:
@@ -29,7 +29,7 @@ def _print_reply(reply: dict) -> int:
 
 def main(argv: list[str]) -> int:
     command, rest = argv[0], argv[1:]
-    ap = argparse.ArgumentParser(prog=f"mrrig {command}")
+    ap = argparse.ArgumentParser(formatter_class=HelpFormatter, prog=f"mrrig {command}")
     _common(ap)
     if command == "control":
         ap.add_argument("request", help='a JSON request, e.g. \'{"cmd": "status"}\'')

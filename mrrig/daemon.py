@@ -28,7 +28,7 @@ from mrrig import json_text, sdnotify
 from mrrig import reference as ref
 from mrrig.canbus.bus import open_bus
 from mrrig.canbus.codec import Codec
-from mrrig.cli_args import output_file, positive
+from mrrig.cli_args import HelpFormatter, add_bus_options, output_file, positive
 from mrrig.config import DaemonConfig, ReferenceSection, load_config
 from mrrig.controllers import (
     ConstantCurrent,
@@ -62,6 +62,13 @@ DESIRED_FORCE_LIMIT_N = 80000.0  # inside DamperCommand.DesiredForce's 24-bit ra
 ACTUATOR_PERIOD_S = 0.1
 STATUS_PERIOD_S = 1.0
 WAVEFORMS = {"stop": "STOP", "sine": "SINE", "random": "RANDOM", "hold": "HOLD"}
+# importing rerun and zenoh and opening both, on a loaded 2-core machine; a live_url that
+# nothing listens on alone blocks the recorder about 6 s
+SIDECAR_START_TIMEOUT_S = 30.0
+
+
+class SidecarStartError(OSError):
+    """The telemetry process (Zenoh, recording) could not start: the daemon does not run."""
 
 
 def build_controller(cfg: DaemonConfig, section=None) -> Controller:
@@ -582,6 +589,13 @@ class Daemon:
         )
         keep_off_cpu(self.sidecar.pid, self.cfg.loop.cpu, "telemetry process")
         self.link = LoopEnd(*fds.loop_fds())
+        # a rig must not run unobserved: no telemetry or recording, no loop
+        error = self.link.wait_ready(SIDECAR_START_TIMEOUT_S)
+        if error is not None:
+            off = ""
+            if self.cfg.telemetry.enabled:
+                off = " (to run without Zenoh: telemetry.enabled = false, or --no-telemetry)"
+            raise SidecarStartError(f"the telemetry process could not start: {error}{off}")
 
     def _shutdown(self) -> None:
         """SAFE first, then the actuator to rest, the summary, the sidecar, the bus."""
@@ -627,17 +641,18 @@ class Daemon:
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="mrrig run", description="Run the rig daemon.")
+    ap = argparse.ArgumentParser(
+        prog="mrrig run", description="Run the rig daemon.", formatter_class=HelpFormatter
+    )
     ap.add_argument("--config", required=True, type=Path, help="daemon config (TOML)")
-    ap.add_argument("--duration", type=positive, help="stop after this many seconds")
+    ap.add_argument("--duration", type=positive, help="stop after this many seconds (s)")
     ap.add_argument("--arm", action="store_true", help="arm at start (commands ACTIVE)")
     ap.add_argument(
         "--record", type=Path, help="recording file (default: recordings/<rig>-<UTC>.rrd)"
     )
     ap.add_argument("--no-record", action="store_true", help="no Rerun recording")
     ap.add_argument("--summary-json", type=output_file, help="also write the summary to this file")
-    ap.add_argument("--bus-interface", help="override bus.interface")
-    ap.add_argument("--bus-channel", help="override bus.channel")
+    add_bus_options(ap)
     ap.add_argument("--no-telemetry", action="store_true", help="no Zenoh telemetry")
     ap.add_argument(
         "--insecure",

@@ -31,7 +31,7 @@ from pathlib import Path
 
 from mrrig import client
 from mrrig.canbus.bus import find_free_port, start_bridge, stop_bridge
-from mrrig.cli_args import int_at_least, positive
+from mrrig.cli_args import HelpFormatter, int_at_least, positive
 from mrrig.config import load_config
 from mrrig.realtime import keep_off_cpu
 from mrrig.safety import TRANSPORT_FAULTS
@@ -159,7 +159,9 @@ def watch_and_rearm(
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="mrrig demo", description=__doc__)
+    ap = argparse.ArgumentParser(
+        formatter_class=HelpFormatter, prog="mrrig demo", description=__doc__
+    )
     ap.add_argument("--config", type=Path, default=Path("configs/rig.toml"))
     ap.add_argument("--sim-config", type=Path, default=Path("configs/sim.toml"))
     ap.add_argument("--duration", type=positive, default=20.0, help="force-tracking time, s")

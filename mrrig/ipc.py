@@ -6,8 +6,9 @@ the pipe is dropped and counted, never written in part. Frame: struct '<BH' (typ
 length) followed by the payload.
 
 Loop -> sidecar: SAMPLES (raw SAMPLE_DTYPE records), EVENT, STATUS, REPLY, SUMMARY (JSON
-objects), STOP (empty). Sidecar -> loop: REQUEST (JSON object with "id"), FORCE_REF (struct
-'<dd': force in N, sidecar receive time from time.monotonic()).
+objects), STOP (empty). Sidecar -> loop: READY (JSON {"error": null or one line}, once, when
+its Zenoh session and recording are open or have failed), REQUEST (JSON object with "id"),
+FORCE_REF (struct '<dd': force in N, sidecar receive time from time.monotonic()).
 """
 
 from __future__ import annotations
@@ -19,6 +20,7 @@ import logging
 import os
 import select
 import struct
+import time
 from dataclasses import dataclass
 from typing import Any
 
@@ -51,6 +53,7 @@ class Msg(enum.IntEnum):
     STOP = 6
     REQUEST = 16
     FORCE_REF = 17
+    READY = 18
 
 
 @dataclass(frozen=True)
@@ -242,9 +245,24 @@ class LoopEnd:
                 out.append((Msg.FORCE_REF, FORCE_REF.unpack(payload)))
             elif mtype == Msg.REQUEST:
                 out.append((Msg.REQUEST, decode_json(payload)))
+            elif mtype == Msg.READY:
+                out.append((Msg.READY, decode_json(payload)))
             else:
                 log.warning("ignored unexpected message type %d from the sidecar", mtype)
         return out
+
+    def wait_ready(self, timeout_s: float) -> str | None:
+        """At start-up, before the loop runs: wait for the sidecar's READY. Returns None when it
+        is up, else one line saying why not (its own error, its exit, or no answer in time)."""
+        deadline = time.monotonic() + timeout_s
+        while (left := deadline - time.monotonic()) > 0:
+            self._poller.poll(left * 1e3)
+            for mtype, payload in self.poll():
+                if mtype == Msg.READY:
+                    return payload.get("error")
+            if self._eof:
+                return "it exited before it was ready"
+        return f"it was not ready within {timeout_s:g} s"
 
     def close(self) -> None:
         os.close(self._rx)
@@ -284,6 +302,10 @@ class SidecarEnd:
 
     def send_request(self, request: dict[str, Any]) -> bool:
         return self._w.write(Msg.REQUEST, _encode_json(request))
+
+    def send_ready(self, error: str | None = None) -> bool:
+        """Tell the loop the sidecar is up (`error` None) or could not start (one line)."""
+        return self._w.write(Msg.READY, _encode_json({"error": error}))
 
     def send_force_ref(self, force_n: float, t_rx_s: float) -> bool:
         return self._w.write(Msg.FORCE_REF, FORCE_REF.pack(force_n, t_rx_s))

@@ -9,7 +9,11 @@ Layout of the recording (the contract `mrrig.review` reads back):
   share a time). `t` itself is also stored as a scalar (`frame/t`) because the timeline
   rounds it to whole nanoseconds.
 - `loops/force_velocity` and `loops/force_displacement`: one `LineStrips2D` strip per flush
-  window, at the window's last sensor time.
+  window, at the window's last sensor time, in normalised coordinates (value / full scale,
+  so both axes span about +-1); `<loop>/axes` beside each strip draws the axes and labels
+  their full scales (1-2-5 steps that only grow during a run).
+- For the viewer only: `tracking_error/f_err` (f_meas - f_des, N), `frame_gap/gap_ms` (time
+  since the previous sensor frame) and `summary_text` (the summary as the daemon prints it).
 - `events`: `TextLog` (text, level) plus `AnyValues` `t_s` (exact time, s) and `fields`
   (JSON object of the extra fields: kind, reason, ...), on `sensor_time` and the `event`
   sequence timeline.
@@ -24,6 +28,7 @@ from __future__ import annotations
 import contextlib
 import datetime as dt
 import logging
+import math
 import signal
 import threading
 import uuid
@@ -48,6 +53,16 @@ EVENTS_ENTITY = "events"
 SUMMARY_ENTITY = "summary"
 LOOP_FV_ENTITY = "loops/force_velocity"
 LOOP_FX_ENTITY = "loops/force_displacement"
+# derived series for the viewer only (review reads FIELD_ENTITIES)
+ERROR_ENTITY = "tracking_error/f_err"
+GAP_ENTITY = "frame_gap/gap_ms"
+REPORT_ENTITY = "summary_text"
+LOOP_AXES = "axes"  # child of each loop entity: its axes, labelled with their full scales
+# per loop: (x field, its name and unit), the y field is f_meas
+_LOOPS = {
+    LOOP_FV_ENTITY: ("xd", "velocity", "m/s"),
+    LOOP_FX_ENTITY: ("x", "displacement", "m"),
+}
 
 FIELD_ENTITIES: dict[str, str] = {
     "t": "frame/t",
@@ -63,6 +78,19 @@ FIELD_ENTITIES: dict[str, str] = {
     "i_meas": "current/i_meas",
     "latency_us": "latency/latency_us",
     "state": "state/state",
+}
+
+# legend names: what each series is, not only its field name
+_SERIES_NAMES: dict[str, str] = {
+    "f_meas": "f_meas measured (load cell)",
+    "f_des": "f_des desired",
+    "f_model": "f_model network model",
+    "i_cmd": "i_cmd commanded",
+    "i_meas": "i_meas measured",
+    "x": "x measured",
+    "x_est": "x_est estimated (Kalman)",
+    "xd": "xd estimated (Kalman)",
+    "xdd": "xdd estimated (Kalman)",
 }
 
 _SERIES_COLORS: dict[str, tuple[int, int, int]] = {
@@ -84,34 +112,88 @@ def recording_path(directory: str | Path, rig: str, now: dt.datetime | None = No
     return Path(directory) / f"{rig}-{now:%Y%m%dT%H%M%SZ}.rrd"
 
 
-def default_blueprint() -> rrb.Blueprint:
-    """Time series on the left, loops and the event log on the right."""
+def nice_scale(value: float) -> float:
+    """The smallest 1, 2 or 5 x 10^k at or above `value` (> 0): a full scale people read."""
+    if not math.isfinite(value) or value <= 0:
+        return 1.0
+    k = math.floor(math.log10(value))
+    for mantissa in (1.0, 2.0, 5.0, 10.0):
+        scale = mantissa * 10.0**k
+        if scale >= value * (1 - 1e-12):
+            return scale
+    return 10.0 ** (k + 1)
+
+
+def _series_view(origin: str, name: str, legend: bool = True) -> rrb.TimeSeriesView:
+    """A time series view; with more than one series its legend sits in the top-left corner,
+    small, where the traces of a run that starts at rest are flat (and it can be hidden)."""
+    return rrb.TimeSeriesView(
+        origin=origin,
+        name=name,
+        plot_legend=rrb.PlotLegend(corner=rrb.Corner2D.LeftTop, visible=legend),
+    )
+
+
+def _loop_view(origin: str, name: str) -> rrb.Spatial2DView:
+    # both coordinates are normalised to +-1 of their full scale (LOOP_AXES_ENTITY labels
+    # the scales), so a loop fills the square view instead of a vertical line of N over m/s
     recent = rrb.VisibleTimeRange(
         SENSOR_TIMELINE,
         start=rrb.TimeRangeBoundary.cursor_relative(seconds=-2.0),
         end=rrb.TimeRangeBoundary.cursor_relative(),
     )
+    return rrb.Spatial2DView(
+        origin=origin,
+        name=name,
+        time_ranges=recent,
+        visual_bounds=rrb.VisualBounds2D(x_range=[-1.25, 1.25], y_range=[-1.25, 1.25]),
+    )
+
+
+def default_blueprint() -> rrb.Blueprint:
+    """One tab per task: tracking (forces, their error, the loops), current, motion, timing,
+    events with the run's summary."""
     return rrb.Blueprint(
-        rrb.Horizontal(
-            rrb.Vertical(
-                rrb.TimeSeriesView(origin="forces", name="Force (N)"),
-                rrb.TimeSeriesView(origin="current", name="Current (A)"),
-                rrb.TimeSeriesView(origin="displacement", name="Displacement (m)"),
-                rrb.TimeSeriesView(origin="velocity", name="Velocity (m/s)"),
-                rrb.TimeSeriesView(origin="acceleration", name="Acceleration (m/s^2)"),
-                rrb.TimeSeriesView(origin="latency", name="Cycle latency (us)"),
-                rrb.TimeSeriesView(origin="state", name="State (0 IDLE, 1 ARMED, 2 FAULT)"),
+        rrb.Tabs(
+            rrb.Horizontal(
+                rrb.Vertical(
+                    _series_view("forces", "Force: desired, measured, model (N)"),
+                    _series_view(ERROR_ENTITY, "Tracking error f_meas - f_des (N)", legend=False),
+                    row_shares=[3, 2],
+                ),
+                rrb.Vertical(
+                    _loop_view(LOOP_FV_ENTITY, "Force-velocity loop (normalised)"),
+                    _loop_view(LOOP_FX_ENTITY, "Force-displacement loop (normalised)"),
+                ),
+                column_shares=[2, 1],
+                name="Tracking",
             ),
             rrb.Vertical(
-                rrb.Spatial2DView(
-                    origin=LOOP_FV_ENTITY, name="F-v loop (m/s, N)", time_ranges=recent
-                ),
-                rrb.Spatial2DView(
-                    origin=LOOP_FX_ENTITY, name="F-x loop (m, N)", time_ranges=recent
-                ),
-                rrb.TextLogView(origin=EVENTS_ENTITY, name="Events"),
+                _series_view("current", "Damper current: commanded, measured (A)"),
+                _series_view("state", "State (0 IDLE, 1 ARMED, 2 FAULT)", legend=False),
+                row_shares=[3, 1],
+                name="Current",
             ),
-            column_shares=[2, 1],
+            rrb.Vertical(
+                _series_view("displacement", "Displacement: measured, estimated (m)"),
+                _series_view("velocity", "Velocity, estimated (m/s)", legend=False),
+                _series_view("acceleration", "Acceleration, estimated (m/s^2)", legend=False),
+                name="Motion",
+            ),
+            rrb.Vertical(
+                _series_view("latency", "Cycle latency, receive -> send (us)", legend=False),
+                _series_view(GAP_ENTITY, "Gap between sensor frames (ms)", legend=False),
+                _series_view("state", "State (0 IDLE, 1 ARMED, 2 FAULT)", legend=False),
+                row_shares=[2, 2, 1],
+                name="Timing",
+            ),
+            rrb.Horizontal(
+                rrb.TextLogView(origin=EVENTS_ENTITY, name="Events (faults, state changes)"),
+                rrb.TextDocumentView(origin=REPORT_ENTITY, name="Run summary"),
+                column_shares=[1, 1],
+                name="Events and summary",
+            ),
+            active_tab=0,
         ),
         collapse_panels=False,
     )
@@ -158,9 +240,16 @@ class Recorder:
             color = _SERIES_COLORS.get(field)
             self._rec.log(
                 entity,
-                rr.SeriesLines(names=field, colors=[color] if color else None),
+                rr.SeriesLines(
+                    names=_SERIES_NAMES.get(field, field), colors=[color] if color else None
+                ),
                 static=True,
             )
+        self._rec.log(ERROR_ENTITY, rr.SeriesLines(names="f_meas - f_des"), static=True)
+        self._rec.log(GAP_ENTITY, rr.SeriesLines(names="sensor frame gap"), static=True)
+        # full scales of the loops' normalised axes: they only grow, to 1-2-5 steps
+        self._scales = {"x": 0.0, "xd": 0.0, "f_meas": 0.0}
+        self._last_t: float | None = None
         log.info("recording to %s%s", self.path, f" and {live_url}" if live_url else "")
 
     @contextlib.contextmanager
@@ -221,6 +310,7 @@ class Recorder:
                 self._drop(1)
                 return
             self._rec.log(SUMMARY_ENTITY, rr.TextDocument(json_text.dumps(d)), static=True)
+            self._rec.log(REPORT_ENTITY, summary_document(d, self.rig), static=True)
 
     def flush(self) -> None:
         """Send everything buffered now."""
@@ -269,12 +359,67 @@ class Recorder:
                 columns=rr.Scalars.columns(scalars=batch[field].astype(np.float64)),
             )
         self._frames += n
+        t = batch["t"]
+        self._send_derived(indexes, batch)
+        self._last_t = float(t[-1])
         self._rec.reset_time()
-        self._rec.set_time(SENSOR_TIMELINE, duration=float(batch["t"][-1]))
-        self._rec.log(
-            LOOP_FV_ENTITY, rr.LineStrips2D([np.column_stack((batch["xd"], batch["f_meas"]))])
-        )
-        self._rec.log(
-            LOOP_FX_ENTITY, rr.LineStrips2D([np.column_stack((batch["x"], batch["f_meas"]))])
-        )
+        self._rec.set_time(SENSOR_TIMELINE, duration=float(t[-1]))
+        for field in self._scales:
+            peak = float(np.nanmax(np.abs(batch[field]), initial=0.0))
+            if peak > self._scales[field]:
+                self._scales[field] = nice_scale(peak)
+        f_scale = self._scales["f_meas"] or 1.0
+        for entity, (field, name, unit) in _LOOPS.items():
+            scale = self._scales[field] or 1.0
+            self._rec.log(
+                entity,
+                rr.LineStrips2D(
+                    [np.column_stack((batch[field] / scale, batch["f_meas"] / f_scale))]
+                ),
+            )
+            self._rec.log(f"{entity}/{LOOP_AXES}", *loop_axes(name, unit, scale, f_scale))
         self._rec.reset_time()
+
+    def _send_derived(self, indexes: list[Any], batch: np.ndarray) -> None:
+        """The tracking error and the gap between sensor frames, for the viewer's tabs."""
+        t = batch["t"]
+        prev = t[0] if self._last_t is None else self._last_t
+        gaps_ms = np.diff(t, prepend=prev) * 1e3
+        error = batch["f_meas"] - batch["f_des"]
+        self._rec.send_columns(
+            ERROR_ENTITY, indexes=indexes, columns=rr.Scalars.columns(scalars=error)
+        )
+        self._rec.send_columns(
+            GAP_ENTITY, indexes=indexes, columns=rr.Scalars.columns(scalars=gaps_ms)
+        )
+
+
+def loop_axes(name: str, unit: str, scale: float, f_scale: float) -> tuple[Any, Any]:
+    """A loop view's axes: two grey lines through 0 and their ends labelled with the full
+    scale and its unit (the drawn coordinates are value / full scale)."""
+    grey = [(150, 150, 150)]
+    lines = rr.LineStrips2D([[(-1.0, 0.0), (1.0, 0.0)], [(0.0, -1.0), (0.0, 1.0)]], colors=grey)
+    ticks = rr.Points2D(
+        [(1.0, 0.0), (-1.0, 0.0), (0.0, 1.0), (0.0, -1.0)],
+        labels=[
+            f"{name} +{scale:g} {unit}",
+            f"-{scale:g} {unit}",
+            f"force +{f_scale:g} N",
+            f"-{f_scale:g} N",
+        ],
+        colors=grey,
+        radii=0.01,
+    )
+    return lines, ticks
+
+
+def summary_document(d: dict[str, Any], rig: str) -> rr.TextDocument:
+    """The run's summary as the daemon prints it, for the viewer's summary view."""
+    from mrrig.summary import format_summary
+
+    try:
+        text = format_summary(d)
+    except (KeyError, TypeError, ValueError):  # a partial summary: its JSON is still shown
+        text = json_text.dumps(d, indent=2)
+    body = f"# Run summary: rig {rig}\n\n```\n{text}\n```\n"
+    return rr.TextDocument(body, media_type=rr.MediaType.MARKDOWN)

@@ -6,13 +6,15 @@ import argparse
 from pathlib import Path
 
 from mrrig import json_text
-from mrrig.cli_args import output_file
+from mrrig.cli_args import HelpFormatter, output_file
 from mrrig.review import plot_recording, read_recording, verify_rrd
 from mrrig.summary import format_summary, summarize
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="mrrig review", description=__doc__)
+    ap = argparse.ArgumentParser(
+        formatter_class=HelpFormatter, prog="mrrig review", description=__doc__
+    )
     ap.add_argument("file", type=Path, help="a recording (.rrd) written by the daemon")
     ap.add_argument("--plot", type=output_file, help="also write a figure (PNG) of the run")
     ap.add_argument("--json", type=output_file, help="also write the metrics as JSON")
@@ -24,10 +26,12 @@ def main(argv: list[str] | None = None) -> int:
     counters = rec.summary or {}
     keep = {k: v for k, v in counters.items() if not isinstance(v, dict | list)}
     metrics = summarize(rec.samples, rec.events, keep)
-    print(format_summary(metrics))
+    # the files first: output cut short by a closed pipe (`| head`) must not lose them
     if args.plot:
         plot_recording(rec, args.plot)
-        print(f"figure: {args.plot}")
     if args.json:
         args.json.write_text(json_text.dumps(metrics, indent=2))
+    print(format_summary(metrics))
+    if args.plot:
+        print(f"figure: {args.plot}")
     return 0

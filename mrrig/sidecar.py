@@ -39,7 +39,7 @@ import zenoh
 from mrrig import audit, json_text
 from mrrig.ipc import ChannelFds, Msg, SidecarEnd, decode_json, decode_samples
 from mrrig.samples import FIELDS, SAMPLE_DTYPE
-from mrrig.zenoh_config import ZenohConfigError, check_secure, load_zenoh_config
+from mrrig.zenoh_config import ZenohConfigError, check_secure, load_zenoh_config, zenoh_error_text
 
 log = logging.getLogger(__name__)
 
@@ -451,38 +451,56 @@ def run_sidecar(
 ) -> int:
     """Run until STOP, EOF, SIGTERM or SIGINT; returns the exit status: 0, 2 for a refused
     config (`check_secure`: off loopback without authentication and access control, unless
-    `insecure`), 3 if the session cannot open (port taken)."""
+    `insecure`), 3 if the session cannot open (port taken) or the recording cannot be written.
+
+    Once its session and recording are open (or have failed) it sends READY to the loop, with
+    the failure as one line: the daemon stops its start-up on it (a rig must not run
+    unobserved)."""
     warnings: list[str] = []
+    end = SidecarEnd(rx_fd, tx_fd)
     try:
         conf = load_zenoh_config(zenoh_config) if zenoh_config else None
         if conf is not None:
             warnings = check_secure(conf, str(zenoh_config), insecure)
     except ZenohConfigError as exc:
-        log.error("%s", exc)
+        log.debug("%s", exc)
+        end.send_ready(str(exc))
+        end.close()
         return 2
     stop_early: list[int] = []  # a signal before the Sidecar exists still stops it
     for signum in (signal.SIGTERM, signal.SIGINT):
         signal.signal(signum, lambda num, _frame: stop_early.append(num))
-    end = SidecarEnd(rx_fd, tx_fd)
     recorder: SampleSink | None = None
     session: zenoh.Session | None = None
     try:
         if record:
             from mrrig.recording import Recorder  # rerun is heavy: only when recording
 
-            recorder = Recorder(record, rig, flush_interval_s=0.5, live_url=live_url)
+            try:
+                recorder = Recorder(record, rig, flush_interval_s=0.5, live_url=live_url)
+            except Exception as exc:  # noqa: BLE001 - reported to the daemon as one line
+                text = exc.strerror if isinstance(exc, OSError) and exc.strerror else exc
+                end.send_ready(f"cannot write the recording {record}: {text}")
+                return 3
         try:
             session = zenoh.open(conf) if conf is not None else None
         except zenoh.ZError as exc:  # e.g. the listen port is taken
-            log.error(
-                "%s: cannot open the Zenoh session: %s", zenoh_config, str(exc).splitlines()[0]
-            )
+            text = zenoh_error_text(exc)
+            hint = ""
+            if "address already in use" in text.lower():
+                hint = (
+                    " (another daemon or zenohd listens there: stop it, or give this rig"
+                    " another port in its Zenoh config)"
+                )
+            log.debug("%s: cannot open the Zenoh session: %s", zenoh_config, text)
+            end.send_ready(f"{zenoh_config}: cannot open the Zenoh session: {text}{hint}")
             return 3
         sidecar = Sidecar(rig, session, end, recorder, telemetry_hz, warnings)
         for signum in (signal.SIGTERM, signal.SIGINT):
             signal.signal(signum, sidecar.request_stop)
         if stop_early:
             sidecar.request_stop()
+        end.send_ready()
         sidecar.run()
     finally:
         if session is not None:

@@ -16,7 +16,7 @@ from pathlib import Path
 from typing import Any
 
 from mrrig import json_text
-from mrrig.cli_args import COUNT, SEED, output_file, positive
+from mrrig.cli_args import COUNT, SEED, HelpFormatter, output_file, positive
 from mrrig.datasets import DataError
 from mrrig.train_config import TrainConfig, load_train_config
 from mrrig.training import (
@@ -133,6 +133,7 @@ def _parser(cfg: TrainConfig) -> argparse.ArgumentParser:
     """The flags, their defaults taken from `cfg` (the config file's, or the built-in ones)."""
     f, t = cfg.features, cfg.training
     ap = argparse.ArgumentParser(
+        formatter_class=HelpFormatter,
         prog="mrrig train",
         description=__doc__.splitlines()[0],
         epilog="With --config FILE the file's [features], [training] and [csv] tables give the "

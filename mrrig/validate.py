@@ -23,7 +23,7 @@ import numpy as np
 
 from mrrig import json_text
 from mrrig.characterize import EXIT_INTERRUPTED, FLUSH_MARGIN_S, RETRY_PAUSE_S
-from mrrig.cli_args import int_at_least, non_negative, output_file, positive
+from mrrig.cli_args import HelpFormatter, int_at_least, non_negative, output_file, positive
 from mrrig.config import load_config
 from mrrig.daemon import build_controller
 from mrrig.rig_session import Interrupted, RigError, RigSession, rig_overrides, stop_on_signals
@@ -120,7 +120,9 @@ def _setup(cfg) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="mrrig validate", description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(
+        formatter_class=HelpFormatter, prog="mrrig validate", description=__doc__.splitlines()[0]
+    )
     ap.add_argument("model", nargs="+", type=Path, help="forward model file(s) (mrrig train)")
     ap.add_argument("--rig-config", type=Path, default=Path("configs/rig.toml"))
     ap.add_argument("--duration", type=positive, default=10.0, help="kept per model, s")
@@ -131,7 +133,13 @@ def main(argv: list[str] | None = None) -> int:
         default=3,
         help="windows per model while each meets only a transport fault",
     )
-    ap.add_argument("--bus-channel", help="override bus.channel of the rig config")
+    ap.add_argument(
+        "-c",
+        "--channel",
+        "--bus-channel",
+        dest="bus_channel",
+        help="python-can channel (overrides bus.channel of the rig config)",
+    )
     ap.add_argument("--no-telemetry", action="store_true", help="no Zenoh telemetry")
     ap.add_argument("--json", type=output_file, help="write the reports (a list) as JSON")
     args = ap.parse_args(argv)

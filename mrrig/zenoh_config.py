@@ -29,6 +29,7 @@ INSECURE_WARNING = (
     "insecure: Zenoh off loopback without authentication or access control (--insecure); "
     "anyone on the network may arm this rig"
 )
+_RUST_SOURCE_ANYWHERE = re.compile(r"\s+at \S+?\.rs:\d+\.?")
 
 
 class ZenohConfigError(MrrigError, ValueError):
@@ -73,6 +74,12 @@ def is_loopback(endpoint: str) -> bool:
         return ipaddress.ip_address(host).is_loopback
     except ValueError:
         return False  # a host name or no host: it may be anywhere
+
+
+def zenoh_error_text(exc: BaseException) -> str:
+    """A Zenoh error's first line without the Rust source path Zenoh appends to it."""
+    lines = str(exc).strip().splitlines() or [type(exc).__name__]
+    return _RUST_SOURCE_ANYWHERE.sub("", lines[0]).strip()
 
 
 def _one_line(exc: Exception) -> str:

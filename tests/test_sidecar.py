@@ -84,6 +84,7 @@ def running_sidecar(tmp_path: Path, record: Path | None = None) -> Iterator[Rig]
     fds = make_channel()
     loop = LoopEnd(fds.loop_rx, fds.loop_tx)
     proc = start_sidecar(RIG, conf_path, fds, record=record, telemetry_hz=50)
+    assert loop.wait_ready(30.0) is None  # as the daemon waits before its loop starts
     client_config = local_config("client", connect=[f"tcp/127.0.0.1:{port}"])
     # the sidecar may still be opening its listener: retry until it accepts
     observer = _wait_for(
@@ -439,6 +440,8 @@ def test_sidecar_refuses_a_bad_config_with_exit_2(tmp_path: Path):
     try:
         proc = start_sidecar(RIG, path, fds)
         assert proc.wait(timeout=10) == 2
+        error = loop.wait_ready(1.0)  # what the daemon stops its start-up with
+        assert error is not None and "\n" not in error and str(path) in error
     finally:
         loop.close()
 
@@ -476,6 +479,9 @@ def test_sidecar_exits_3_when_its_port_is_taken(tmp_path: Path):
         try:
             proc = start_sidecar(RIG, path, fds)
             assert proc.wait(timeout=10) == 3
+            error = loop.wait_ready(1.0)
+            assert "Address already in use" in error and ".rs:" not in error
+            assert "\n" not in error
         finally:
             loop.close()
 

@@ -6,6 +6,8 @@ import argparse
 import importlib
 import sys
 
+from mrrig.cli_args import HelpFormatter
+
 BENCHES = {
     "paper": "mrrig.bench.paper",
     "estimation": "mrrig.bench.estimation",
@@ -19,7 +21,9 @@ def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else list(argv)
     if argv and argv[0] in BENCHES:  # the rest, --help included, is the benchmark's own
         return int(importlib.import_module(BENCHES[argv[0]]).main(argv[1:]) or 0)
-    ap = argparse.ArgumentParser(prog="mrrig bench", description=__doc__)
+    ap = argparse.ArgumentParser(
+        formatter_class=HelpFormatter, prog="mrrig bench", description=__doc__
+    )
     ap.add_argument(
         "name", choices=sorted(BENCHES), help="then its own options (mrrig bench NAME --help)"
     )

@@ -16,7 +16,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from mrrig.cli_args import SEED, non_negative, positive
+from mrrig.cli_args import SEED, HelpFormatter, non_negative, positive
 from mrrig.estimation import Q_VAR, KalmanEstimator, finite_difference
 from mrrig.metrics import percentiles, rmse
 
@@ -144,7 +144,9 @@ def _print_table(res: dict) -> None:
 
 def main(argv: Sequence[str] | None = None) -> int:
     parser = argparse.ArgumentParser(
-        prog="mrrig bench estimation", description=__doc__.splitlines()[0]
+        formatter_class=HelpFormatter,
+        prog="mrrig bench estimation",
+        description=__doc__.splitlines()[0],
     )
     parser.add_argument("--seed", type=SEED, default=0)
     parser.add_argument(

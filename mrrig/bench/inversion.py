@@ -21,7 +21,7 @@ from collections.abc import Callable, Sequence
 
 import numpy as np
 
-from mrrig.cli_args import COUNT, SEED, non_negative, output_file
+from mrrig.cli_args import COUNT, SEED, HelpFormatter, non_negative, output_file
 from mrrig.inversion import ScalarInverter, exact_inversion, gradient_inversion
 from mrrig.metrics import error_norm, percentiles, rmse
 from mrrig.model.mlp import MLP
@@ -100,7 +100,11 @@ def _scalar_us(
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="mrrig bench inversion", description=__doc__.split("\n")[0])
+    ap = argparse.ArgumentParser(
+        formatter_class=HelpFormatter,
+        prog="mrrig bench inversion",
+        description=__doc__.split("\n")[0],
+    )
     ap.add_argument("--data", choices=("a", "b", "synthetic"), default="a")
     ap.add_argument("--model", help="a saved forward model (skips training)")
     ap.add_argument("--epochs", type=COUNT, default=1000, help="LM max epochs (default 1000)")

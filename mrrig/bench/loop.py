@@ -25,7 +25,7 @@ from pathlib import Path
 
 from mrrig import json_text, memory
 from mrrig.canbus.bus import find_free_port, start_bridge, stop_bridge
-from mrrig.cli_args import output_file, positive
+from mrrig.cli_args import HelpFormatter, output_file, positive
 from mrrig.config import load_config
 from mrrig.realtime import keep_off_cpu
 
@@ -298,7 +298,9 @@ def budget_verdict(r: dict) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="mrrig bench loop", description=__doc__)
+    ap = argparse.ArgumentParser(
+        formatter_class=HelpFormatter, prog="mrrig bench loop", description=__doc__
+    )
     ap.add_argument("--config", type=Path, default=Path("configs/rig.toml"))
     ap.add_argument("--sim-config", type=Path, default=Path("configs/sim.toml"))
     ap.add_argument("--duration", type=positive, default=60.0, help="seconds per run (default 60)")

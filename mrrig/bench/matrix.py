@@ -30,7 +30,7 @@ import numpy as np
 from damper.plant import BoucWenDamper, BoucWenParams, simulate
 from damper.signals import sine
 from mrrig import json_text
-from mrrig.cli_args import COUNT, SEED, output_file
+from mrrig.cli_args import COUNT, SEED, HelpFormatter, output_file
 from mrrig.controllers import ControlInput, Controller, NetworkInversion, SupervisedInverse
 from mrrig.datasets import DISPLACEMENT_LSB_M, Series, dataset_b, dataset_b_conditions
 from mrrig.estimation import KalmanEstimator
@@ -278,7 +278,11 @@ def format_report(r: dict) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="mrrig bench matrix", description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(
+        formatter_class=HelpFormatter,
+        prog="mrrig bench matrix",
+        description=__doc__.splitlines()[0],
+    )
     ap.add_argument("--json", type=output_file, help="also write the numbers to this JSON file")
     ap.add_argument("--seed", type=SEED, default=0)
     ap.add_argument("--epochs", type=COUNT, default=1000, help="LM epoch limit (default 1000)")

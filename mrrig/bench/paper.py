@@ -29,7 +29,7 @@ import numpy as np
 
 from damper.plant import BoucWenParams
 from mrrig import json_text
-from mrrig.cli_args import COUNT, SEED, output_file
+from mrrig.cli_args import COUNT, SEED, HelpFormatter, output_file
 from mrrig.controllers import (
     ContinuousState,
     Controller,
@@ -723,7 +723,9 @@ def format_report(r: dict) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="mrrig bench paper", description=__doc__)
+    ap = argparse.ArgumentParser(
+        formatter_class=HelpFormatter, prog="mrrig bench paper", description=__doc__
+    )
     ap.add_argument("--json", type=output_file, help="also write the numbers to this JSON file")
     ap.add_argument("--seed", type=SEED, default=0)
     ap.add_argument("--epochs", type=COUNT, default=1000, help="LM epoch limit (default 1000)")

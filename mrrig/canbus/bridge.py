@@ -7,12 +7,13 @@ memory locked and garbage collection frozen after start-up, and a clean exit on 
 from __future__ import annotations
 
 import argparse
+import errno
 import gc
 import logging
 import signal
 import sys
 
-from mrrig.cli_args import port
+from mrrig.cli_args import HelpFormatter, port
 
 log = logging.getLogger(__name__)
 
@@ -22,9 +23,11 @@ def _interrupt(signum: int, frame: object) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="mrrig bridge", description=__doc__.splitlines()[0])
-    ap.add_argument("--port", type=port, default=54701)
-    ap.add_argument("--channel", default="rig", help="virtual channel name")
+    ap = argparse.ArgumentParser(
+        prog="mrrig bridge", description=__doc__.splitlines()[0], formatter_class=HelpFormatter
+    )
+    ap.add_argument("--port", type=port, default=54701, help="TCP port of ws://HOST:PORT/")
+    ap.add_argument("-c", "--channel", default="rig", help="virtual channel name")
     ap.add_argument("--host", default="127.0.0.1", help="listen address (loopback only)")
     args = ap.parse_args(argv)
     if args.host not in ("127.0.0.1", "localhost", "::1"):
@@ -34,7 +37,15 @@ def main(argv: list[str] | None = None) -> int:
     from mrrig.realtime import make_realtime
 
     logging.getLogger("can").setLevel(logging.WARNING)
-    server = RemoteServer(args.host, args.port, channel=args.channel, bustype="virtual")
+    try:
+        server = RemoteServer(args.host, args.port, channel=args.channel, bustype="virtual")
+    except OSError as exc:
+        hint = ""
+        if exc.errno == errno.EADDRINUSE:
+            hint = " (another bridge there? pick a free port: mrrig bridge --port N)"
+        raise OSError(
+            f"cannot serve ws://{args.host}:{args.port}/: {exc.strerror or exc}{hint}"
+        ) from exc
     # client threads must not hold the exit: server_close() would join them
     server.daemon_threads = True
     server.block_on_close = False

@@ -36,6 +36,29 @@ class BusError(MrrigError, can.CanError):
     """A CAN bus could not be opened, or its connection was lost."""
 
 
+class BusOpenError(BusError, OSError):
+    """A bus that cannot be opened or served: an ordinary error of the set-up (one line, with
+    what to check), not a fault of the program."""
+
+
+def open_hint(interface: str, channel: str, exc: BaseException) -> str:
+    """What to check when `interface`/`channel` cannot be opened."""
+    if interface == "remote":
+        port = channel.rstrip("/").rpartition(":")[2]
+        return f"is the CAN bridge running? start it: mrrig bridge --port {port}"
+    if interface == "socketcan":
+        if isinstance(exc, OSError) and exc.errno == 97:  # EAFNOSUPPORT
+            return (
+                "this kernel has no SocketCAN: use the python-can-remote bridge"
+                " (mrrig bridge, interface remote; see README)"
+            )
+        return (
+            f"is {channel} up? sudo ip link set {channel} type can bitrate 1000000"
+            f" && sudo ip link set up {channel} (ip -details link show {channel})"
+        )
+    return f"check the bus settings for python-can's {interface!r} interface"
+
+
 class CheckedRemoteBus(RemoteBus):
     """can_remote client that raises `BusError` when the server connection is gone.
 
@@ -86,9 +109,9 @@ def open_bus(interface: str, channel: str, **kwargs: Any) -> can.BusABC:
             return CheckedRemoteBus(channel, **kwargs)
         return can.Bus(interface=interface, channel=channel, **kwargs)
     except Exception as exc:  # python-can backends raise anything from OSError to ImportError
-        raise BusError(
+        raise BusOpenError(
             f"cannot open CAN bus interface={interface!r} channel={channel!r}: "
-            f"{type(exc).__name__}: {exc}"
+            f"{type(exc).__name__}: {exc}; {open_hint(interface, channel, exc)}"
         ) from exc
 
 
@@ -131,7 +154,10 @@ def start_bridge(
     or it does not listen within `timeout_s`.
     """
     if _port_in_use(host, port):
-        raise BusError(f"CAN bridge: port {host}:{port} already in use")
+        raise BusOpenError(
+            f"CAN bridge: port {host}:{port} already in use (another bridge? pick a free one:"
+            " mrrig bridge --port N)"
+        )
     cmd = [
         sys.executable,
         "-m",
