@@ -40,6 +40,7 @@ from mrrig.controllers import (
     RecurrentInverse,
     SupervisedInverse,
 )
+from mrrig.errors import MrrigError
 from mrrig.estimation import RealtimeKalman
 from mrrig.inversion import DEFAULT_CONTINUITY
 from mrrig.model.mlp import MLP, ModelError
@@ -67,7 +68,7 @@ WAVEFORMS = {"stop": "STOP", "sine": "SINE", "random": "RANDOM", "hold": "HOLD"}
 SIDECAR_START_TIMEOUT_S = 30.0
 
 
-class SidecarStartError(OSError):
+class SidecarStartError(MrrigError, OSError):
     """The telemetry process (Zenoh, recording) could not start: the daemon does not run."""
 
 
