@@ -1,4 +1,5 @@
-"""Zenoh clients of a running daemon: control requests, live watch, force-reference streaming.
+"""Zenoh clients of a running daemon: control requests and the live watch (streaming a force
+profile: `mrrig.force_stream`).
 
 Every function opens its own session from a checked config (a path or a `zenoh.Config`) and
 closes it before returning, also on errors and Ctrl-C.
@@ -8,10 +9,9 @@ from __future__ import annotations
 
 import contextlib
 import json
-import math
 import sys
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any, TextIO
 
@@ -27,7 +27,6 @@ from mrrig.zenoh_config import load_zenoh_config, zenoh_error_text
 ZenohConfigLike = str | Path | zenoh.Config
 # 127.0.0.1, client mode, multicast scouting off
 DEFAULT_CONFIG = Path("configs/zenoh-client.json5")
-ForceProfile = Callable[[float], float] | str | Path
 _WATCH_POLL_S = 0.01
 
 
@@ -136,7 +135,12 @@ def watch(
     Runs for `duration_s` (None: until Ctrl-C); returns the number of samples received.
     """
     total = 0
+    quiet_s = 0
     with open_session(zenoh_config) as session:
+        latest_status: list[dict[str, Any]] = []
+        status_sub = session.declare_subscriber(
+            keys(rig)["status"], lambda s: latest_status.append(json.loads(s.payload.to_bytes()))
+        )
         sub = session.declare_subscriber(keys(rig)["telemetry"])
         t0 = time.monotonic()
         window_start = t0
@@ -154,84 +158,34 @@ def watch(
                 if now - window_start >= 1.0:
                     n = len(window.get("t", []))
                     total += n
-                    line = (
-                        format_watch_line(n / (now - window_start), window) if n else "no telemetry"
-                    )
+                    quiet_s = 0 if n else quiet_s + 1
+                    status = latest_status[-1] if latest_status else None
+                    del latest_status[:-1]
+                    if n:
+                        line = format_watch_line(n / (now - window_start), window)
+                        if status and status.get("state") == "FAULT":
+                            line += f"  fault {status.get('fault_reason') or status.get('fault')}"
+                    else:
+                        line = no_telemetry_line(rig, quiet_s, status)
                     print(line, file=out, flush=True)
                     window, window_start = {}, now
         except KeyboardInterrupt:
             pass
         finally:
             sub.undeclare()
+            status_sub.undeclare()
         total += len(window.get("t", []))
     return total
 
 
-def load_force_csv(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
-    """A force profile CSV: columns time (s) and force (N), an optional header line first,
-    blank lines skipped. Returns (t_s, force_n) with t increasing. Any other line that is not
-    two finite numbers is an error naming it: a dropped row would be bridged by interpolation
-    and streamed as if it were the profile."""
-    rows = []
-    for number, line in enumerate(Path(path).read_text().splitlines(), start=1):
-        if not line.strip():
-            continue
-        cells = line.split(",")
-        try:
-            row = (float(cells[0]), float(cells[1]))
-        except (ValueError, IndexError):
-            if number == 1:
-                continue  # the header
-            raise ValueError(
-                f"{path}:{number}: expected t_s,force_n numbers, got {line!r}"
-            ) from None
-        if not all(map(math.isfinite, row)):
-            raise ValueError(f"{path}:{number}: t_s and force_n must be finite, got {line!r}")
-        rows.append(row)
-    if len(rows) < 2:
-        raise ValueError(f"{path}: a force profile needs at least two rows t_s,force_n")
-    data = np.array(rows)
-    if not np.all(np.diff(data[:, 0]) > 0):
-        raise ValueError(f"{path}: time column must be strictly increasing")
-    return data[:, 0], data[:, 1]
-
-
-def send_force(
-    rig: str,
-    zenoh_config: ZenohConfigLike,
-    profile: ForceProfile,
-    rate_hz: float,
-    duration_s: float | None = None,
-) -> int:
-    """Stream {"force_n": profile(t)} to `mrrig/<rig>/force_ref` at `rate_hz`.
-
-    `profile` is a function of time since start (s) -> N, or a CSV path (linear
-    interpolation; `duration_s` defaults to the file's last time). Returns the puts sent.
-    """
-    if isinstance(profile, str | Path):
-        t_s, force_n = load_force_csv(profile)
-
-        def fn(t: float) -> float:
-            return float(np.interp(t, t_s, force_n))
-
-        duration_s = float(t_s[-1]) if duration_s is None else duration_s
-    else:
-        fn = profile
-    if duration_s is None:
-        raise ValueError("send_force: duration_s is needed for a function profile")
-    period_s = 1.0 / rate_hz
-    sent = 0
-    with open_session(zenoh_config) as session:
-        pub = session.declare_publisher(keys(rig)["force_ref"], encoding=JSON, express=True)
-        try:
-            t0 = time.monotonic()
-            for k in range(int(math.floor(duration_s * rate_hz)) + 1):
-                t = k * period_s
-                delay_s = t0 + t - time.monotonic()
-                if delay_s > 0:
-                    time.sleep(delay_s)  # absolute deadlines: no drift
-                pub.put(json.dumps({"force_n": fn(t)}))
-                sent += 1
-        finally:
-            pub.undeclare()
-    return sent
+def no_telemetry_line(rig: str, quiet_s: int, status: dict[str, Any] | None) -> str:
+    """What `watch` prints for a second without telemetry: what is known, and what to check."""
+    if status is not None:
+        fault = status.get("fault_reason") or status.get("fault")
+        state = status.get("state", "?") + (f" (fault {fault})" if fault else "")
+        return f"no telemetry for {quiet_s} s; the daemon's status says {state}"
+    return (
+        f"no telemetry for {quiet_s} s from mrrig/{rig}/telemetry: is the daemon up"
+        f" (mrrig status --rig {rig}), with telemetry.enabled and the same Zenoh network"
+        " (--zenoh-config)?"
+    )

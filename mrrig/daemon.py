@@ -199,6 +199,7 @@ class Daemon:
             "foreign_commands": 0,
             "lost_frames": 0,
             "telemetry_dropped": 0,
+            "force_refs_received": 0,  # on force_ref, with the zenoh reference
         }
         self.events: list[dict] = []
         self._keep_batches = keep_batches
@@ -494,6 +495,7 @@ class Daemon:
 
     def on_force_ref(self, force_n: float, t_rx_mono: float) -> None:
         if isinstance(self.reference, ref.External):
+            self.counters["force_refs_received"] += 1
             # the sidecar stamps with time.monotonic(); both clocks tick at the same rate
             delay = time.monotonic() - t_rx_mono
             self.reference.receive(force_n, self.now() - delay)

@@ -22,13 +22,13 @@ import numpy as np
 import pytest
 import zenoh
 
-from mrrig import client
+from mrrig import client, force_stream
 from mrrig.canbus.bus import find_free_port
 from mrrig.ipc import LoopEnd, Msg, SidecarEnd, make_channel
 from mrrig.recording import Recorder
 from mrrig.review import read_recording, verify_rrd
 from mrrig.samples import FIELDS, SAMPLE_DTYPE, RigState
-from mrrig.sidecar import Sidecar, keys, start_sidecar
+from mrrig.sidecar import JSON, Sidecar, keys, start_sidecar
 from mrrig.zenoh_config import INSECURE_WARNING, load_zenoh_config, local_config
 from tests.conftest import zenoh_configs
 
@@ -376,10 +376,15 @@ def test_watch_prints_live_numbers(rig: Rig):
     assert "f_des" in line and "latency p99" in line and "state ARMED" in line
 
 
-def test_send_force_streams_the_csv_profile(rig: Rig, tmp_path: Path):
+def test_streamed_csv_profile_reaches_the_loop_in_order(rig: Rig, tmp_path: Path):
     csv = tmp_path / "profile.csv"
     csv.write_text("t_s,force_n\n0,0\n0.1,100\n")
-    sent = client.send_force(RIG, rig.client_config, csv, rate_hz=50)
+    fn, length_s = force_stream.csv_profile(csv)
+    with client.open_session(rig.client_config) as session:
+        pub = session.declare_publisher(keys(RIG)["force_ref"], encoding=JSON)
+        n = round(length_s * 50) + 1
+        sent = force_stream.stream(pub, lambda k: fn(k / 50) if k < n else None, 50.0)
+        pub.undeclare()
     forces = []
     _wait_for(
         lambda: (
@@ -406,13 +411,35 @@ def test_a_bad_force_profile_row_is_named_not_skipped(tmp_path: Path, text: str,
     csv = tmp_path / "profile.csv"
     csv.write_text(text)
     with pytest.raises(ValueError, match=expected):
-        client.load_force_csv(csv)
+        force_stream.load_force_csv(csv)
+
+
+@pytest.mark.parametrize(
+    "text",
+    [
+        "force_n,t_s\n0,0\n100,0.1\n",  # the header read by name, not by position
+        "step,t_s,note,force_n\n1,0,a,0\n2,0.1,b,100\n",  # other columns left alone
+        "0,0\n0.1,100\n",  # no header: t_s, force_n
+    ],
+)
+def test_a_force_profile_header_is_read_by_name(tmp_path: Path, text: str):
+    csv = tmp_path / "profile.csv"
+    csv.write_text(text)
+    t_s, force_n = force_stream.load_force_csv(csv)
+    assert t_s.tolist() == [0.0, 0.1] and force_n.tolist() == [0.0, 100.0]
+
+
+def test_a_force_profile_header_without_the_columns_is_an_error(tmp_path: Path):
+    csv = tmp_path / "profile.csv"
+    csv.write_text("time,force\n0,0\n0.1,100\n")
+    with pytest.raises(ValueError, match=r"profile\.csv:1: header 'time,force' has no column"):
+        force_stream.load_force_csv(csv)
 
 
 def test_a_force_profile_may_have_a_header_and_blank_lines(tmp_path: Path):
     csv = tmp_path / "profile.csv"
     csv.write_text("t_s,force_n\n0,0\n\n0.1,100\n")
-    t_s, force_n = client.load_force_csv(csv)
+    t_s, force_n = force_stream.load_force_csv(csv)
     assert t_s.tolist() == [0.0, 0.1] and force_n.tolist() == [0.0, 100.0]
 
 
