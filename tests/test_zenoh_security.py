@@ -395,3 +395,62 @@ def test_user_password_and_access_control(tmp_path: Path):
             proc.kill()
             proc.wait()
         loop.close()
+
+
+def test_the_router_templates_access_control(tmp_path: Path):
+    """A fleet's router (configs/zenoh/router.json5) and a rig's sidecar session on
+    configs/zenoh/rig-fleet.json5, mutual TLS: through the router an observer reads the rig's
+    status, liveliness and telemetry, and its control query and force_ref never reach the rig;
+    an operator's do."""
+    d = _lab(tmp_path)
+    certs.issue(d, "router", "router")
+    port = find_free_port()
+    router = _open(_template("router.json5", tmp_path, port))
+    sessions = []
+    try:
+        rig = _open(_template("rig-fleet.json5", tmp_path, port))
+        sessions.append(rig)
+        reached: list[str] = []
+
+        def on_control(query: zenoh.Query) -> None:
+            reached.append("control")
+            query.reply(keys("rig")["control"], '{"ok": true}')
+            query.drop()
+
+        entities = [
+            rig.declare_queryable(keys("rig")["control"], on_control),
+            rig.declare_queryable(
+                keys("rig")["status"],
+                lambda q: (q.reply(keys("rig")["status"], '{"state": "IDLE"}'), q.drop()),
+            ),
+            rig.declare_subscriber(keys("rig")["force_ref"], lambda s: reached.append("force")),
+            rig.liveliness().declare_token(keys("rig")["alive"]),
+        ]
+        telemetry = rig.declare_publisher(keys("rig")["telemetry"])
+        entities.append(telemetry)
+        for role, may_drive in (("observer", False), ("operator", True)):
+            s = _open(_template(f"{role}.json5", tmp_path, port))
+            sessions.append(s)
+            got: list[int] = []
+            sub = s.declare_subscriber(keys("rig")["telemetry"], lambda _s, got=got: got.append(1))
+            alive = [r.ok for r in s.liveliness().get("mrrig/*/alive", timeout=2.0) if r.ok]
+            status = [r.ok for r in s.get("mrrig/*/status", timeout=2.0) if r.ok]
+            assert len(alive) == 1 and len(status) == 1, role
+            deadline = time.monotonic() + 5
+            while not got and time.monotonic() < deadline:
+                telemetry.put("{}")
+                time.sleep(0.1)
+            assert got, f"{role}: no telemetry"
+            reached.clear()
+            replies = [r.ok for r in s.get(keys("rig")["control"], timeout=1.0) if r.ok]
+            s.put(keys("rig")["force_ref"], "1")
+            time.sleep(0.5)
+            assert (len(replies) == 1) is may_drive, role
+            assert sorted(reached) == (["control", "force"] if may_drive else []), role
+            sub.undeclare()
+        for e in entities:
+            e.undeclare()
+    finally:
+        for s in sessions:
+            s.close()
+        router.close()
