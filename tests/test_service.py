@@ -84,6 +84,7 @@ enabled = false
     return path
 
 
+@pytest.mark.slow
 def test_daemon_notifies_ready_pets_the_watchdog_and_stops_on_sigterm(tmp_path: Path):
     sock, path = _notify_socket(tmp_path)
     watchdog_s = 0.2  # WatchdogSec=200ms: WATCHDOG=1 every 100 ms

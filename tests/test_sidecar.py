@@ -220,6 +220,19 @@ def test_every_control_request_is_an_audit_event_with_its_requester(rig: Rig):
     assert "claimed" not in refused["requester"]  # a bare get() says nothing about itself
 
 
+def test_the_audit_is_in_the_recording(tmp_path: Path):
+    path = tmp_path / "run.rrd"
+    with running_sidecar(tmp_path, record=path) as r:
+        player = threading.Thread(target=_answer_one_request, args=(r.loop, []))
+        player.start()
+        client.arm(RIG, r.client_config)
+        player.join()
+    audits = [e for e in read_recording(path).events if e["kind"] == "audit"]
+    assert len(audits) == 1
+    assert audits[0]["request"] == {"cmd": "arm"} and audits[0]["result"]["ok"] is True
+    assert audits[0]["requester"]["claimed"]["zid"]
+
+
 def test_status_is_answered_to_a_query_once_there_is_one(rig: Rig):
     def status() -> list[Any]:
         replies = rig.observer.get(keys(RIG)["status"], timeout=1.0)

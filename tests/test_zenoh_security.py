@@ -113,6 +113,18 @@ def test_an_insecure_config_off_loopback_is_refused_with_one_line(text: str, mis
     assert len(warnings) == 1 and warnings[0].startswith(INSECURE_WARNING)
 
 
+def test_clients_accept_any_endpoint_and_mode(tmp_path: Path):
+    path = tmp_path / "desk.json5"
+    path.write_text(
+        '{mode: "client", connect: {endpoints: ["tls/192.168.10.2:7447", "quic/rig1.lab:7447"]}}'
+    )
+    conf = load_zenoh_config(path)  # read, not refused: a client's own choice
+    assert json.loads(conf.get_json("connect/endpoints")) == [
+        "tls/192.168.10.2:7447",
+        "quic/rig1.lab:7447",
+    ]
+
+
 @pytest.mark.parametrize(
     ("endpoint", "loopback"),
     [
