@@ -55,6 +55,12 @@ def build_parser() -> argparse.ArgumentParser:
     )
     ap.add_argument("--duration", type=positive, metavar="S", help="stop after S seconds")
     ap.add_argument("--stats", type=output_file, metavar="FILE", help="write run statistics (JSON)")
+    ap.add_argument(
+        "--measure-echo",
+        action="store_true",
+        help="take this process's own frames back from the bus (through the bridge) and report "
+        "the windows in which the transport held them up (--stats: stall_windows)",
+    )
     return ap
 
 
@@ -80,7 +86,7 @@ def main(argv: list[str] | None = None) -> int:
     previous = {s: signal.signal(s, request_stop) for s in (signal.SIGINT, signal.SIGTERM)}
     try:
         try:
-            bus = open_bus(interface, channel)
+            bus = open_bus(interface, channel, receive_own_messages=args.measure_echo)
         except BusError as exc:
             logger.error("%s", exc)
             return 1
@@ -91,7 +97,7 @@ def main(argv: list[str] | None = None) -> int:
             len(config.faults) + len(args.fault),
         )
         tune_process(config.timing.realtime_priority)
-        stats = RunStats()
+        stats = RunStats(measure_echo=args.measure_echo)
         rc = 0
         wall0, cpu0 = time.monotonic(), time.process_time()
         try:

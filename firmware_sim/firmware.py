@@ -271,6 +271,10 @@ class Firmware:
 
     # ---- received frames ------------------------------------------------------------------
 
+    def sensor_counter(self, data: bytes) -> int:
+        """The counter of a RigSensors frame's payload (this firmware's own, echoed back)."""
+        return _counter(self._sensors, data)
+
     def on_frame(self, frame_id: int, data: bytes, t_s: float) -> Parsed | None:
         """Check and apply one received frame; None for frames that are not commands."""
         if frame_id != self.damper_command_id and frame_id != self._actuator_id:

@@ -46,8 +46,14 @@ class RunStats:
     RESYNC_S = 0.1
     # a repeated answer is looked for among the last REPEATS answered frames
     REPEATS = 16
+    # Held up by more than this, a frame marks a stall window. The simulator's own: a sensor
+    # frame sent this late after its deadline (its process did not run), from the frame sent
+    # before to this one, and the periods skipped after a long stall. The transport's
+    # (`measure_echo`: the bus echoes this process's own frames, through the bridge and back):
+    # an echo this late, from the send to the echo. A frame sent late is not "on time".
+    LATE_S = 0.005
 
-    def __init__(self) -> None:
+    def __init__(self, measure_echo: bool = False) -> None:
         self.sensor_frames_sent = 0
         self.sensor_frames_faulted = 0  # sent with a fault injected: no answer expected
         self.status_frames_sent = 0
@@ -68,6 +74,14 @@ class RunStats:
         # and the last answered frames
         self._awaiting: collections.deque[list] = collections.deque()
         self._answered: collections.deque[list] = collections.deque()
+        # frames sent on time (no stall of this process): each must get exactly one answer
+        self.on_time = {"frames": 0, "answered_once": 0, "unanswered": 0, "more_than_once": 0}
+        self.clock_t0_s = math.nan  # the run's time zero on the clock `run` was given
+        self._last_sent_s = math.inf
+        self.stall_windows: list[list] = []  # [kind, start_s, end_s]
+        self.measure_echo = measure_echo
+        self.echo_us = array("d")
+        self._echo_awaiting: collections.deque[tuple[int, float]] = collections.deque()
 
     def _close(self, entry: list) -> None:
         n = entry[2]
@@ -78,13 +92,37 @@ class RunStats:
             self.answered_late += entry[3]
         else:
             self.answered_more_than_once += 1
+        if entry[4]:
+            key = ("unanswered", "answered_once", "more_than_once")[min(n, 2)]
+            self.on_time[key] += 1
+
+    def stall(self, kind: str, start_s: float, end_s: float) -> None:
+        """A window in which `kind` ("simulator", "transport") held frames up; windows of one
+        kind that overlap or touch are merged."""
+        for w in reversed(self.stall_windows):
+            if w[0] == kind:
+                if start_s <= w[2] + self.LATE_S:
+                    w[1], w[2] = min(w[1], start_s), max(w[2], end_s)
+                    return
+                break
+        self.stall_windows.append([kind, start_s, end_s])
 
     def on_sensor_sent(self, frame: Frame, ideal_s: float, sent_s: float) -> None:
         """A RigSensors frame left at sent_s for the deadline ideal_s (same clock)."""
         self.sensor_frames_sent += 1
         self.jitter_us.append((sent_s - ideal_s) * 1e6)
+        on_time = sent_s - ideal_s <= self.LATE_S
+        if not on_time:  # the process last ran when it sent the frame before
+            self.stall("simulator", min(ideal_s, self._last_sent_s), sent_s)
+        self._last_sent_s = sent_s
+        if self.measure_echo:
+            self._echo_awaiting.append((frame.counter, sent_s))
+            if len(self._echo_awaiting) > self.WINDOW:
+                start_s = self._echo_awaiting.popleft()[1]
+                self.stall("transport", start_s, sent_s)  # its echo never came
         if frame.expect_answer:
-            self._awaiting.append([frame.counter, sent_s, 0, False])
+            self.on_time["frames"] += on_time
+            self._awaiting.append([frame.counter, sent_s, 0, False, on_time])
             if len(self._awaiting) > self.WINDOW:
                 self._close(self._awaiting.popleft())
         else:
@@ -119,6 +157,17 @@ class RunStats:
                 return
         self.unmatched_answers += 1
 
+    def on_echo(self, counter: int, received_s: float) -> None:
+        """This process's own RigSensors frame with `counter`, echoed back by the bus."""
+        awaiting = self._echo_awaiting
+        while awaiting:
+            sent_counter, sent_s = awaiting.popleft()
+            if sent_counter == counter:
+                self.echo_us.append((received_s - sent_s) * 1e6)
+                if received_s - sent_s > self.LATE_S:
+                    self.stall("transport", sent_s, received_s)
+                return
+
     def finish(self) -> None:
         """Count every frame, once the answers have had the time they have while the run goes
         on (`run` listens WINDOW periods after the last frame)."""
@@ -142,6 +191,13 @@ class RunStats:
                 "unmatched": self.unmatched_answers,
                 "safe_repeats": self.safe_repeats,
             },
+            "answers_on_time": dict(self.on_time),
+            "clock_t0_s": self.clock_t0_s,
+            "stall_windows": [
+                {"kind": k, "start_s": round(a, 6), "end_s": round(b, 6)}
+                for k, a, b in self.stall_windows
+            ],
+            "echo_us": _percentiles(self.echo_us),
             "answer_latency_us": _percentiles(self.latency_us),
             "period_jitter_us": _percentiles(self.jitter_us),
             "cpu_fraction": cpu_s / wall_s if wall_s > 0.0 else 0.0,
@@ -206,6 +262,7 @@ def run(
     gc.collect()
     gc.freeze()
     t0 = clock()
+    stats.clock_t0_s = t0
     k = 0
     try:
         while not should_stop():
@@ -242,6 +299,7 @@ def run(
                 skipped = math.ceil(late_s / period_s)
                 logger.warning("loop %.1f ms late: skipping %d periods", late_s * 1e3, skipped)
                 stats.resyncs += 1
+                stats.stall("simulator", (k - 1) * period_s, clock() - t0)
                 k += skipped
         # answers still in flight when the last frame left: listen as long as an answer to an
         # earlier frame is waited for, then `stats.finish()` counts every frame
@@ -254,6 +312,10 @@ def _receive(
     firmware: Firmware, stats: RunStats, msg: can.Message, t_s: float, damper_id: int
 ) -> None:
     if msg.is_extended_id or msg.is_remote_frame or msg.is_error_frame:
+        return
+    if msg.arbitration_id == firmware.sensors_id:  # our own, echoed back
+        if stats.measure_echo:
+            stats.on_echo(firmware.sensor_counter(bytes(msg.data)), t_s)
         return
     parsed = firmware.on_frame(msg.arbitration_id, bytes(msg.data), t_s)
     if parsed is not None and parsed.ok and msg.arbitration_id == damper_id:

@@ -550,6 +550,7 @@ class Daemon:
         self._send_actuator()
         self.started.set()
         self.notifier.ready(f"rig {cfg.rig.name}: listening on {cfg.bus.channel}")
+        log.info("loop running: one command per sensor frame")
         stop_deadline = None
         while not self._safe_sent_at_stop:
             if self._stop and stop_deadline is None:
@@ -622,6 +623,8 @@ class Daemon:
         self.counters["telemetry_dropped"] += self.link.dropped if self.link else 0
         self.summary = self._summary.result(self.events, dict(self.counters))
         self.summary["stop_reason"] = self.stop_reason
+        # the loop's time zero on CLOCK_MONOTONIC: its times set beside another process's
+        self.summary["clock_t0_s"] = self.t0
         qs = (50, 99, 99.9)
         self.summary["latency_split_us"] = {
             "before_send": self._before_send_us.percentiles(qs),

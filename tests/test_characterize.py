@@ -308,7 +308,7 @@ def _sim(procs, bridge: str) -> subprocess.Popen:
     return sim
 
 
-@pytest.mark.slow
+@pytest.mark.process
 def test_characterize_train_validate_from_the_command_line(tmp_path, bridge, procs):
     """The acceptance test of issue 5: three commands in separate processes on the simulator."""
     _sim(procs, bridge)
@@ -357,7 +357,7 @@ def test_characterize_train_validate_from_the_command_line(tmp_path, bridge, pro
     assert math.isfinite(r["et"]) and r["et"] < 0.25
 
 
-@pytest.mark.slow
+@pytest.mark.process
 def test_validate_tries_a_window_again_after_a_transport_fault(tmp_path, bridge, procs, sim_model):
     """The simulator stopped for 100 ms while validate tracks: that window faults (no sensor
     frame within the timeout) and is tried again; the report keeps the discarded fault."""
@@ -387,7 +387,7 @@ def test_validate_tries_a_window_again_after_a_transport_fault(tmp_path, bridge,
     assert r["faults"] or r["armed_frames"] >= 950, log
 
 
-@pytest.mark.slow
+@pytest.mark.process
 def test_interrupted_characterize_command_resumes_without_repeating_runs(tmp_path, bridge, procs):
     _sim(procs, bridge)
     rig = rig_config(tmp_path, bridge, None)

@@ -14,7 +14,7 @@ import pytest
 from mrrig.demo import RearmLimit
 from tests.conftest import REPO, OutputWatch, rig_config, stall, zenoh_configs
 
-pytestmark = pytest.mark.slow
+pytestmark = pytest.mark.process
 STALL_S = 0.1  # the simulator stopped this long: 50 periods without a sensor frame
 DURATION_S = 6.0
 

@@ -1,74 +1,107 @@
-"""The simulator and the daemon as separate processes over the python-can-remote bridge."""
+"""The simulator and the daemon as separate processes over the python-can-remote bridge.
+
+Each run is proved against the stalls the simulator measured (`tests/stall_proof.py`): a
+fault that no measured stall explains fails the test, whatever its reason.
+"""
 
 from __future__ import annotations
 
 import json
 import signal
+import subprocess
 import time
+from pathlib import Path
 
 import pytest
 
-from tests.conftest import TRANSPORT_FAULT_REASONS, rig_config
+from mrrig.review import read_recording
+from tests.conftest import OutputWatch, rig_config, stall
+from tests.stall_proof import prove
 
-pytestmark = pytest.mark.slow
+pytestmark = pytest.mark.process
+
+
+def run_rig(tmp_path: Path, bridge: str, procs, model: Path, duration_s: float, stop=None):
+    """The daemon (armed, recording) first, then the simulator for `duration_s`; `stop` =
+    (which: "simulator" or "daemon", after_s, for_s) holds that process up once, as the
+    machine's scheduler would. Returns (simulator stats, daemon summary, samples)."""
+    cfg = rig_config(tmp_path, bridge, model)
+    summary_path, rrd = tmp_path / "summary.json", tmp_path / "run.rrd"
+    daemon = procs(
+        ["-m", "mrrig", "run", "--config", str(cfg), "--arm", "--record", str(rrd),
+         "--summary-json", str(summary_path)],
+        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+    )  # fmt: skip
+    daemon_out = OutputWatch(daemon, "loop running")
+    assert daemon_out.seen.wait(60), daemon_out.text()  # waiting for sensor frames
+    sim_stats = tmp_path / "sim.json"
+    sim = procs(
+        ["-m", "firmware_sim", "--config", "configs/sim.toml", "--bus-channel", bridge,
+         "--measure-echo", "--stats", str(sim_stats), "--duration", str(duration_s)],
+        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+    )  # fmt: skip
+    out = OutputWatch(sim, "rig firmware on")
+    if stop is not None:
+        which, after_s, for_s = stop
+        assert out.seen.wait(30), out.text()  # streaming from now on
+        time.sleep(after_s)
+        stall((sim if which == "simulator" else daemon).pid, for_s)
+    assert sim.wait(timeout=60) == 0, out.text()
+    out.join()
+    print(out.text())
+    daemon.send_signal(signal.SIGTERM)
+    assert daemon.wait(timeout=30) == 0, daemon_out.text()
+    daemon_out.join()
+    st = json.loads(sim_stats.read_text())
+    s = json.loads(summary_path.read_text())
+    print(
+        f"simulator: {st['sensor_frames_sent']} sensor frames, answers {st['answers']}, "
+        f"on time {st['answers_on_time']}, watchdog trips {st['watchdog_trips']}, "
+        f"answer latency {st['answer_latency_us']}"
+    )
+    print(
+        f"daemon: Et {s['et']} over {s['armed_frames']} armed frames; latency {s['latency_us']}; "
+        f"faults {s['faults']}"
+    )
+    faults = s["faults"]
+    if faults and faults[-1]["reason"].startswith("no sensor frame"):
+        # the simulator stopped first: the daemon's timeout after its last frame
+        last_frame_t = st["clock_t0_s"] + duration_s - s["clock_t0_s"]
+        if faults[-1]["t"] >= last_frame_t:
+            faults = faults[:-1]
+    return st, {**s, "faults": faults}, read_recording(rrd).samples
 
 
 def test_ten_seconds_of_force_tracking_one_command_per_sensor_frame(
     tmp_path, bridge, procs, sim_model
 ):
-    """The daemon runs first; the simulator streams for 10 s and counts the answers itself:
-    every sensor frame it sent must have got exactly one valid command echoing its counter."""
-    cfg = rig_config(tmp_path, bridge, sim_model)
-    summary_path = tmp_path / "summary.json"
-    daemon = procs(
-        ["-m", "mrrig", "run", "--config", str(cfg), "--arm", "--summary-json", str(summary_path)]
-    )
-    time.sleep(3.0)  # the daemon is up and waiting for sensor frames
-    assert daemon.poll() is None
-    sim_stats = tmp_path / "sim.json"
-    sim = procs(
-        [
-            "-m",
-            "firmware_sim",
-            "--config",
-            "configs/sim.toml",
-            "--bus-channel",
-            bridge,
-            "--stats",
-            str(sim_stats),
-            "--duration",
-            "10",
-        ]
-    )
-    assert sim.wait(timeout=60) == 0
-    daemon.send_signal(signal.SIGTERM)
-    assert daemon.wait(timeout=30) == 0
-    st = json.loads(sim_stats.read_text())
-    s = json.loads(summary_path.read_text())
-    a = st["answers"]
-    print(
-        f"simulator: {st['sensor_frames_sent']} sensor frames, answers {a}, "
-        f"watchdog trips {st['watchdog_trips']}, answer latency {st['answer_latency_us']}"
-    )
-    print(  # Et and the percentiles are null without an armed frame
-        f"daemon: tracking Et {s['et']} over {s['armed_frames']} armed frames; "
-        f"|error| p95 {s['tracking_error_n']['p95']} N; latency {s['latency_us']}; "
-        f"faults {s['faults']}"
-    )
+    """Every sensor frame the simulator sent on time got exactly one valid command echoing its
+    counter; every fault lies in a stall the simulator measured; Et outside them <= 0.1."""
+    st, s, samples = run_rig(tmp_path, bridge, procs, sim_model, 10.0)
     assert st["sensor_frames_sent"] >= 4900
-    assert a["answered_once"] == st["sensor_frames_sent"]
-    assert a["unanswered"] == 0 and a["answered_more_than_once"] == 0 and a["unmatched"] == 0
     assert st["max_commanded_current_a"] <= 2.0
-    # No fault while the simulator streamed (the sensor timeout after it stopped is expected),
-    # except the transport's: the python-can-remote bridge and the scheduler of this 2-core VM
-    # now and then hold frames for over 20 ms, which trips the firmware's watchdog (or the
-    # daemon's sensor timeout) although every frame was answered once, as checked above.
-    faults = s["faults"]
-    if faults and faults[-1]["reason"].startswith("no sensor frame"):
-        faults = faults[:-1]  # the simulator stopped first
-    assert [f for f in faults if not f["reason"].startswith(TRANSPORT_FAULT_REASONS)] == []
-    assert s["et"] is not None
-    # The tracking bound holds for a run without a fault. A transport fault ends the armed
-    # frames early and puts its own error in them: the firmware cut the coil, or the simulator
-    # skipped the periods it was held up (seen: Et 0.17 over 1400 armed frames, max 2 kN).
-    assert faults or s["et"] <= 0.1
+    proof = prove(st, s["faults"], s["clock_t0_s"], samples, et_bound=0.1)
+    assert proof.et is not None
+
+
+def test_a_stall_of_the_simulator_is_measured_and_explains_the_fault_it_causes(
+    tmp_path, bridge, procs, sim_model
+):
+    """The simulator held up for 100 ms (SIGSTOP): the daemon faults (no sensor frame within
+    its 20 ms timeout), the simulator measured the window, and the run is proved."""
+    st, s, samples = run_rig(tmp_path, bridge, procs, sim_model, 5.0, stop=("simulator", 2.0, 0.1))
+    proof = prove(st, s["faults"], s["clock_t0_s"], samples, et_bound=0.1)
+    assert proof.explained, s["faults"]
+    assert any(w.kind == "simulator" and w.end_s - w.start_s >= 0.09 for w in proof.windows)
+
+
+def test_a_fault_of_the_daemon_with_no_stall_of_the_simulator_fails_the_proof(
+    tmp_path, bridge, procs, sim_model
+):
+    """The daemon held up for 60 ms: its commands stop, the firmware's watchdog trips and the
+    daemon faults with a transport's reason; every frame still gets its one answer, late. The
+    simulator and the bridge ran on time, so no window explains the fault: the proof fails."""
+    st, s, _ = run_rig(tmp_path, bridge, procs, sim_model, 5.0, stop=("daemon", 2.0, 0.06))
+    assert s["faults"], "the daemon's stall faulted nothing"
+    with pytest.raises(AssertionError, match="no measured stall explains"):
+        prove(st, s["faults"], s["clock_t0_s"])

@@ -148,7 +148,7 @@ def test_train_rnn_keeps_eq_40_and_reports_its_procedure(small_a):
     RecurrentInverse(VMAX_V, model)  # accepted by the controller
 
 
-@pytest.mark.slow
+@pytest.mark.long
 def test_rnn_tracks_held_out_stretches_of_data_set_a_in_closed_loop():
     """Closed loop against the plant on the held-out 2 s blocks of data set A's TRAINING signal
     (10, 30, 50 s: noise; 70 s: 6 V; 90 s: sine), never on the validation cases. The bound is

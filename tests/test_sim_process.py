@@ -133,6 +133,32 @@ def test_run_stats_take_the_first_answer_after_a_silence_for_the_newest_frame():
     assert list(stats.latency_us) == pytest.approx([500.0])
 
 
+def test_run_stats_a_frame_sent_late_marks_a_window_of_the_simulator_and_is_not_on_time():
+    stats = RunStats()
+    frames = [Frame(SENSORS_ID, b"", c, True) for c in range(4)]
+    stats.on_sensor_sent(frames[0], 0.000, 0.0001)
+    stats.on_sensor_sent(frames[1], 0.002, 0.0300)  # held up 28 ms: the process did not run
+    stats.on_sensor_sent(frames[2], 0.004, 0.0302)  # catching up, still late: same window
+    stats.on_sensor_sent(frames[3], 0.032, 0.0321)  # on time again
+    for c, t in ((0, 0.0005), (1, 0.0304), (2, 0.0306), (3, 0.0325)):
+        stats.on_command(c, t)
+    stats.finish()
+    assert stats.stall_windows == [["simulator", 0.0001, 0.0302]]
+    assert stats.on_time == {"frames": 2, "answered_once": 2, "unanswered": 0, "more_than_once": 0}
+    assert stats.answered_once == 4
+
+
+def test_run_stats_a_late_echo_of_its_own_frame_marks_a_window_of_the_transport():
+    stats = RunStats(measure_echo=True)
+    for i in range(3):
+        stats.on_sensor_sent(Frame(SENSORS_ID, b"", i, True), 0.002 * i, 0.002 * i)
+    stats.on_echo(0, 0.0003)
+    stats.on_echo(1, 0.0250)  # the bridge held it 23 ms
+    stats.on_echo(2, 0.0251)
+    assert stats.stall_windows == [["transport", 0.002, 0.0251]]
+    assert list(stats.echo_us) == pytest.approx([300.0, 23000.0, 21100.0])
+
+
 def test_sim_streams_sensors_at_500_hz_answers_are_matched_watchdog_trips_and_sigterm_exits_0(
     bridge, tmp_path
 ):

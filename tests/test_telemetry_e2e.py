@@ -19,7 +19,7 @@ from mrrig.safety import TRANSPORT_FAULTS
 from mrrig.zenoh_config import local_config
 from tests.conftest import rig_config, zenoh_configs
 
-pytestmark = pytest.mark.slow
+pytestmark = pytest.mark.process
 RIG = "e2e"
 
 

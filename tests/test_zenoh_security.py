@@ -260,7 +260,7 @@ def _status(session: zenoh.Session, rig: str) -> dict | None:
     return None
 
 
-@pytest.mark.slow
+@pytest.mark.process
 def test_mtls_and_access_control_with_the_daemon(tmp_path: Path, bridge, procs):
     """Observer reads but cannot drive; operator arms; no certificate or another CA's: no
     session. The observer's control queries and force_ref puts are dropped by the rig's access

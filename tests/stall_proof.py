@@ -1,0 +1,203 @@
+"""What a process test may set aside, and only that: the stalls the simulator measured.
+
+The simulator (`python -m firmware_sim --measure-echo --stats FILE`) writes the windows in
+which frames were held up: its own (a sensor frame sent late, periods skipped) and the
+transport's (its own frame echoed back late by the bridge). `prove` checks a run against them:
+
+1. every sensor frame the simulator sent on time got exactly one command;
+2. every fault of the daemon lies inside such a window: the interval in which the frames it
+   missed should have come (the gap its sensor timeout names; the firmware's watchdog trip,
+   reported in the next RigStatus, and its gap) lies inside one stall;
+3. tracking (Et, eqs 41-43) over the armed frames outside the windows meets the bound.
+
+Both processes read CLOCK_MONOTONIC (`clock_t0_s` in the simulator's stats and in the daemon's
+summary), so their times are comparable on one machine.
+"""
+
+from __future__ import annotations
+
+import re
+from collections.abc import Iterable, Mapping
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from mrrig.metrics import error_norm
+from mrrig.samples import RigState
+
+# A late frame marks a window (the simulator's RunStats.LATE_S); the daemon's own timeouts see
+# a stall within that much of its end.
+DETECT_S = 0.005
+# The firmware reports its watchdog in RigStatus, every 0.1 s.
+STATUS_PERIOD_S = 0.1
+# After a window, the coil's lag and the estimate need this long to be the loop's again.
+SETTLE_S = 0.1
+
+
+@dataclass(frozen=True)
+class Window:
+    kind: str  # "simulator" or "transport"
+    start_s: float  # CLOCK_MONOTONIC, s
+    end_s: float
+
+    def __str__(self) -> str:
+        return (
+            f"{self.kind} stall {1e3 * (self.end_s - self.start_s):.1f} ms "
+            f"[{self.start_s:.3f}, {self.end_s:.3f}] s"
+        )
+
+
+@dataclass
+class Proof:
+    windows: list[Window]
+    explained: list[tuple[dict, Window]]  # each fault and the window that explains it
+    et: float | None  # over the armed frames outside the windows
+    armed_frames: int  # outside the windows
+
+
+def windows(sim_stats: Mapping[str, Any]) -> list[Window]:
+    """The simulator's stall windows on CLOCK_MONOTONIC."""
+    t0 = sim_stats["clock_t0_s"]
+    return [
+        Window(w["kind"], t0 + w["start_s"], t0 + w["end_s"]) for w in sim_stats["stall_windows"]
+    ]
+
+
+def spans(ws: Iterable[Window]) -> list[Window]:
+    """The windows of both kinds merged where they overlap or touch: one stall may begin in
+    the transport and go on in the simulator."""
+    out: list[Window] = []
+    for w in sorted(ws, key=lambda w: w.start_s):
+        if out and w.start_s <= out[-1].end_s + DETECT_S:
+            last = out[-1]
+            kind = last.kind if last.kind == w.kind else "simulator+transport"
+            out[-1] = Window(kind, last.start_s, max(last.end_s, w.end_s))
+        else:
+            out.append(w)
+    return out
+
+
+def watchdog_trips(sim_stats: Mapping[str, Any]) -> list[tuple[float, float]]:
+    """The firmware's watchdog trips: (time on CLOCK_MONOTONIC, how long no command came)."""
+    t0 = sim_stats["clock_t0_s"]
+    out = []
+    for e in sim_stats["fault_events"]:
+        m = re.match(r"watchdog: no valid DamperCommand for ([\d.]+) ms", e["event"])
+        if m:
+            out.append((t0 + e["t_s"], float(m.group(1)) * 1e-3))
+    return out
+
+
+def silent_interval(
+    fault: Mapping[str, Any], t_s: float, trips: list[tuple[float, float]]
+) -> tuple[float, float] | None:
+    """When the frames the fault missed should have come (CLOCK_MONOTONIC): the daemon's
+    sensor timeout names its gap; the firmware's watchdog is the trip it reported before."""
+    reason = str(fault["reason"])
+    if reason.startswith("firmware watchdog"):
+        seen = [
+            (t, gap) for t, gap in trips if t - DETECT_S <= t_s <= t + STATUS_PERIOD_S + DETECT_S
+        ]
+        if not seen:
+            return None
+        t_trip, gap = seen[-1]
+        return t_trip - gap, t_trip
+    m = re.match(r"no sensor frame for ([\d.]+) ms", reason)
+    if m:
+        return t_s - float(m.group(1)) * 1e-3, t_s
+    return t_s, t_s
+
+
+def explaining_window(
+    fault: Mapping[str, Any], t_s: float, ws: Iterable[Window], trips: list[tuple[float, float]]
+) -> Window | None:
+    """The stall that covers the fault's silent interval (fault at `t_s` on CLOCK_MONOTONIC)."""
+    silent = silent_interval(fault, t_s, trips)
+    if silent is None:
+        return None
+    for w in spans(ws):
+        if w.start_s <= silent[0] + DETECT_S and silent[1] <= w.end_s + DETECT_S:
+            return w
+    return None
+
+
+def check_answers(sim_stats: Mapping[str, Any]) -> None:
+    """Rule 1: each sensor frame sent on time got exactly one command."""
+    on_time = sim_stats["answers_on_time"]
+    assert on_time["frames"] > 0, on_time
+    assert on_time["answered_once"] == on_time["frames"], on_time
+    assert on_time["unanswered"] == 0 and on_time["more_than_once"] == 0, on_time
+    assert sim_stats["answers"]["unmatched"] == 0, sim_stats["answers"]
+
+
+def check_faults(
+    faults: Iterable[Mapping[str, Any]],
+    clock_t0_s: float,
+    ws: list[Window],
+    trips: list[tuple[float, float]],
+) -> list[tuple[dict, Window]]:
+    """Rule 2: every fault (daemon time `t`) inside a stall; AssertionError names the others."""
+    explained, unexplained = [], []
+    for f in faults:
+        w = explaining_window(f, clock_t0_s + f["t"], ws, trips)
+        if w is None:
+            unexplained.append(dict(f))
+        else:
+            explained.append((dict(f), w))
+    assert not unexplained, f"faults that no measured stall explains: {unexplained}; windows: " + (
+        "; ".join(str(w) for w in ws) or "none"
+    )
+    return explained
+
+
+def set_aside(
+    t_s: np.ndarray,
+    ws: Iterable[Window],
+    explained: Iterable[tuple[dict, Window]],
+    clock_t0_s: float,
+) -> np.ndarray:
+    """Frames (daemon times `t_s`) inside a window, its settling, or before the fault it caused."""
+    out = np.zeros(t_s.shape, dtype=bool)
+    t_abs = clock_t0_s + t_s
+    ends = {w: w.end_s for w in spans(ws)}
+    for f, w in explained:
+        ends[w] = max(ends[w], clock_t0_s + f["t"])
+    for w, end_s in ends.items():
+        out |= (t_abs >= w.start_s) & (t_abs <= end_s + SETTLE_S)
+    return out
+
+
+def prove(
+    sim_stats: Mapping[str, Any],
+    faults: Iterable[Mapping[str, Any]],
+    clock_t0_s: float,
+    samples: np.ndarray | None = None,
+    et_bound: float | None = None,
+) -> Proof:
+    """Rules 1-3 on one run; prints the windows. `faults`: the daemon's, with `t` on its clock
+    (`clock_t0_s`); `samples`: its SAMPLE_DTYPE records (the recording) for rule 3."""
+    ws = windows(sim_stats)
+    print(
+        f"simulator: {len(ws)} stall windows"
+        + "".join(f"\n  {w}" for w in ws)
+        + f"\n  echo through the transport: {sim_stats['echo_us']} us"
+    )
+    check_answers(sim_stats)
+    explained = check_faults(faults, clock_t0_s, ws, watchdog_trips(sim_stats))
+    for f, w in explained:
+        print(f"  fault at t={f['t']:.3f} s ({f['reason']}): inside the {w}")
+    et, n = None, 0
+    if samples is not None:
+        armed = samples["state"] == RigState.ARMED
+        kept = armed & ~set_aside(samples["t"], ws, explained, clock_t0_s)
+        n = int(kept.sum())
+        if n:
+            et = error_norm(samples["f_des"][kept], samples["f_meas"][kept])
+        print(
+            f"  tracking: Et {et} over {n} armed frames outside the windows "
+            f"({int(armed.sum()) - n} set aside)"
+        )
+        if et_bound is not None:
+            assert et is not None and et <= et_bound, (et, et_bound)
+    return Proof(ws, explained, et, n)

@@ -1,0 +1,92 @@
+"""The process tests' proof (`tests/stall_proof.py`) on made-up runs: what it sets aside and
+what it refuses."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from mrrig.samples import SAMPLE_DTYPE, RigState
+from tests.stall_proof import prove
+
+T0_SIM, T0_DAEMON = 1000.0, 998.0  # the two processes' time zeros on CLOCK_MONOTONIC
+ON_TIME = {"frames": 5000, "answered_once": 5000, "unanswered": 0, "more_than_once": 0}
+
+
+def sim_stats(windows=(), trips=(), on_time=ON_TIME) -> dict:
+    """Simulator stats: windows (kind, start, end) and watchdog trips (t, gap) in its time."""
+    return {
+        "clock_t0_s": T0_SIM,
+        "answers_on_time": dict(on_time),
+        "answers": {"unmatched": 0},
+        "stall_windows": [{"kind": k, "start_s": a, "end_s": b} for k, a, b in windows],
+        "fault_events": [
+            {"t_s": t, "event": f"watchdog: no valid DamperCommand for {gap * 1e3:.1f} ms"}
+            for t, gap in trips
+        ],
+        "echo_us": {"n": 0},
+    }
+
+
+def fault(t_sim: float, reason: str) -> dict:
+    return {"t": t_sim + T0_SIM - T0_DAEMON, "reason": reason}
+
+
+def test_a_sensor_timeout_inside_a_stall_of_the_simulator_is_explained_and_printed(capsys):
+    st = sim_stats([("simulator", 3.000, 3.100)])
+    proof = prove(st, [fault(3.0205, "no sensor frame for 20.5 ms")], T0_DAEMON)
+    assert len(proof.explained) == 1
+    assert "simulator stall 100.0 ms [1003.000, 1003.100] s" in capsys.readouterr().out
+
+
+def test_a_watchdog_trip_is_explained_by_the_transport_stall_that_kept_the_commands():
+    st = sim_stats([("transport", 5.000, 5.030)], trips=[(5.021, 0.021)])
+    proof = prove(st, [fault(5.090, "firmware watchdog tripped (no valid command for 20 ms)")],
+                  T0_DAEMON)  # fmt: skip
+    assert proof.explained[0][1].kind == "transport"
+
+
+def test_a_stall_that_begins_in_the_transport_and_goes_on_in_the_simulator_is_one():
+    st = sim_stats([("transport", 2.000, 2.012), ("simulator", 2.010, 2.040)])
+    assert prove(st, [fault(2.025, "no sensor frame for 24 ms")], T0_DAEMON).explained
+
+
+@pytest.mark.parametrize(
+    ("windows", "trips", "f"),
+    [
+        ((), (), fault(3.0, "no sensor frame for 20.5 ms")),  # no stall at all
+        ([("simulator", 3.0, 3.008)], (), fault(3.0205, "no sensor frame for 20.5 ms")),  # short
+        ([("simulator", 1.0, 1.1)], (), fault(3.0, "no sensor frame for 20.5 ms")),  # elsewhere
+        # the daemon's own stall: the firmware's watchdog trips while the simulator runs on
+        ([("transport", 7.0, 7.006)], [(7.021, 0.021)], fault(7.08, "firmware watchdog tripped")),
+        ((), (), fault(4.0, "non-finite controller output")),  # a controller that failed
+        ([("simulator", 3.0, 3.1)], (), fault(3.5, "stale external force reference")),
+    ],
+    ids=["none", "too-short", "elsewhere", "daemon-stall", "controller", "after-the-stall"],
+)
+def test_a_fault_no_measured_stall_explains_fails_the_proof(windows, trips, f):
+    with pytest.raises(AssertionError, match="no measured stall explains"):
+        prove(sim_stats(windows, trips), [f], T0_DAEMON)
+
+
+def test_a_frame_sent_on_time_without_exactly_one_answer_fails_the_proof():
+    on_time = {**ON_TIME, "answered_once": 4999, "more_than_once": 1}
+    with pytest.raises(AssertionError, match="more_than_once"):
+        prove(sim_stats(on_time=on_time), [], T0_DAEMON)
+
+
+def test_tracking_is_scored_outside_the_stalls_and_their_settling():
+    t = np.arange(0.0, 6.0, 0.002)
+    s = np.zeros(t.size, dtype=SAMPLE_DTYPE)
+    s["t"] = t + T0_SIM - T0_DAEMON  # daemon time of the simulator's instants
+    s["state"] = RigState.ARMED
+    s["f_des"] = 500.0 * np.sin(2 * np.pi * t)
+    s["f_meas"] = s["f_des"] + 5.0
+    s["f_meas"][(t >= 2.25) & (t < 2.45)] = 0.0  # the stall and its settling
+    s["state"][(t >= 2.2705) & (t < 3.0)] = RigState.FAULT  # until the operator re-armed
+    st = sim_stats([("simulator", 2.25, 2.35)])
+    timeout = fault(2.2705, "no sensor frame for 20.5 ms")
+    proof = prove(st, [timeout], T0_DAEMON, s, et_bound=0.02)
+    assert proof.armed_frames == int((t < 2.25).sum() + (t >= 3.0).sum())
+    with pytest.raises(AssertionError, match="0.02"):  # the stall's frames scored
+        prove(sim_stats(), [], T0_DAEMON, s, et_bound=0.02)
