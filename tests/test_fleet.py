@@ -21,7 +21,7 @@ from mrrig import fleet
 from mrrig.canbus.bus import find_free_port, start_bridge, stop_bridge
 from tests.conftest import REPO, rig_config, stop
 
-pytestmark = pytest.mark.slow
+pytestmark = pytest.mark.process
 SCOUT_OFF = {"multicast": {"enabled": False}}
 
 

@@ -21,7 +21,7 @@ from mrrig.samples import RigState
 from tests.conftest import REPO, rig_config, start, stop, zenoh_configs
 from tests.test_lifecycle_errors import NO_MODEL, one_error_line
 
-pytestmark = pytest.mark.slow
+pytestmark = pytest.mark.process
 RIG = "sf"
 PROFILE = "force_n,t_s\n0,0\n400,0.5\n400,1.5\n"  # columns in the other order: read by name
 
