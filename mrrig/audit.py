@@ -6,7 +6,11 @@ came from a subject granted `query` on `control` (an operator); one that is not 
 dropped by the Zenoh session that enforces the policy (the rig's own, or the router's) and never
 reaches the daemon. Beside that, the client attaches what it says about itself (its Zenoh
 session id, the user and host it runs as, the certificate name or Zenoh user of its config):
-`requester` keeps those as `claimed`, with the query's source info where Zenoh gives one.
+`requester` keeps those as `claimed`, with the query's source info where Zenoh gives one. Where
+the claimed session is connected to the rig's session directly, its link tells what Zenoh
+authenticated (`link`: the certificate's common name or the Zenoh user, and the remote
+address); through a router, the rig's links are the router's (`via`). A client can claim
+another's session id: `link` is the authenticated identity of the session it names.
 """
 
 from __future__ import annotations
@@ -65,8 +69,21 @@ def claims(session: zenoh.Session, conf: zenoh.Config | None) -> dict[str, Any]:
     return out
 
 
-def requester(query: zenoh.Query) -> dict[str, Any]:
-    """The requester as far as the query tells: its source info, and the client's claims."""
+_MAX_VIA = 8
+
+
+def _links(session: zenoh.Session | None) -> list[Any]:
+    if session is None:
+        return []
+    try:
+        return list(session.info.links())
+    except (AttributeError, zenoh.ZError):  # a Zenoh without links(): the claims alone
+        return []
+
+
+def requester(query: zenoh.Query, session: zenoh.Session | None = None) -> dict[str, Any]:
+    """The requester as far as Zenoh tells: the query's source info, the client's claims, and
+    the authenticated link of the claimed session (or the links it came through)."""
     out: dict[str, Any] = {}
     info = query.source_info
     if info is not None:
@@ -77,10 +94,23 @@ def requester(query: zenoh.Query) -> dict[str, Any]:
             out["claimed"] = claimed if isinstance(claimed, dict) else str(claimed)
         except ValueError:
             out["claimed"] = query.attachment.to_bytes()[:200].decode("utf-8", "replace")
+    links = _links(session)
+    claimed = out.get("claimed")
+    zid = str(claimed.get("zid")) if isinstance(claimed, dict) else None
+    mine = next((link for link in links if str(link.zid) == zid), None)
+    if mine is not None:
+        out["link"] = {"zid": zid, "auth": mine.auth_identifier, "remote": str(mine.dst)}
+    elif links:
+        out["via"] = [
+            {"zid": str(link.zid), "auth": link.auth_identifier} for link in links[:_MAX_VIA]
+        ]
     return out
 
 
 def _who(req: dict[str, Any]) -> str:
+    link = req.get("link")
+    if isinstance(link, dict) and link.get("auth"):
+        return f"{link['auth']} (authenticated, zid {str(link['zid'])[:8]})"
     c = req.get("claimed")
     if not isinstance(c, dict):
         return "an unnamed client"

@@ -245,7 +245,7 @@ class Sidecar:
 
     def _handle_query(self, query: zenoh.Query) -> None:
         payload = query.payload.to_bytes() if query.payload else b""
-        requester = audit.requester(query)
+        requester = audit.requester(query, self._session)
         try:
             request = json.loads(payload)
             if not isinstance(request, dict):
