@@ -8,9 +8,10 @@ reaches the daemon. Beside that, the client attaches what it says about itself (
 session id, the user and host it runs as, the certificate name or Zenoh user of its config):
 `requester` keeps those as `claimed`, with the query's source info where Zenoh gives one. Where
 the claimed session is connected to the rig's session directly, its link tells what Zenoh
-authenticated (`link`: the certificate's common name or the Zenoh user, and the remote
-address); through a router, the rig's links are the router's (`via`). A client can claim
-another's session id: `link` is the authenticated identity of the session it names.
+authenticated (`link`: the certificate's common name, and the remote address; Zenoh 1.10
+names no user on a user-password link); through a router, the rig's links are the router's
+(`via`). A client can claim another's session id: `link` is the authenticated identity of the
+session it names.
 """
 
 from __future__ import annotations

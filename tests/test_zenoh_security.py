@@ -397,10 +397,21 @@ def test_user_password_and_access_control(tmp_path: Path):
         with pytest.raises(client.ClientError, match="no daemon answered"):
             client.query(observer, "pw", {"cmd": "arm"}, timeout_s=1.0)
         assert [m for m, _ in loop.poll() if m == Msg.REQUEST] == []  # it never reached the loop
-        # the operator's reaches it (the test plays the loop and does not answer)
-        reply = client.query(operator, "pw", {"cmd": "arm"}, timeout_s=3.0)
+        # the operator's reaches it (the test plays the loop and does not answer), and its
+        # audit has the link of its session (Zenoh 1.10 names no user on a user-password link:
+        # its auth identifier is empty; the user stays what the client claims)
+        events = operator.declare_subscriber(keys("pw")["events"])
+        time.sleep(0.3)
+        claims = audit.claims(operator, user("operator", "op-secret"))
+        reply = client.query(operator, "pw", {"cmd": "arm"}, timeout_s=3.0, claims=claims)
         assert reply == {"ok": False, "error": "daemon did not answer"}
         assert [p["cmd"] for m, p in loop.poll() if m == Msg.REQUEST] == ["arm"]
+        sample = events.recv()
+        events.undeclare()
+        event = json.loads(sample.payload.to_bytes())
+        assert event["kind"] == "audit" and event["result"]["ok"] is False
+        assert event["requester"]["link"]["zid"] == str(operator.info.zid())
+        assert event["requester"]["claimed"]["zenoh_user"] == "operator"
     finally:
         for s in sessions:
             s.close()
