@@ -37,7 +37,7 @@ def test_status_of_a_process_that_is_gone_is_empty():
     assert memory.status_kib()["VmRSS"] > 0
 
 
-@pytest.mark.slow
+@pytest.mark.process
 def test_the_locked_daemon_keeps_resident_what_it_touches(tmp_path: Path):
     cfg = tmp_path / "rig.toml"
     cfg.write_text(

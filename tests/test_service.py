@@ -84,7 +84,7 @@ enabled = false
     return path
 
 
-@pytest.mark.slow
+@pytest.mark.process
 def test_daemon_notifies_ready_pets_the_watchdog_and_stops_on_sigterm(tmp_path: Path):
     sock, path = _notify_socket(tmp_path)
     watchdog_s = 0.2  # WatchdogSec=200ms: WATCHDOG=1 every 100 ms
@@ -162,3 +162,43 @@ def test_the_abstract_namespace_address(tmp_path: Path):
         n.close()
     finally:
         sock.close()
+
+
+@pytest.mark.process
+def test_the_router_notifies_ready_and_pets_its_watchdog(tmp_path: Path):
+    from mrrig.canbus.bus import find_free_port
+
+    sock, path = _notify_socket(tmp_path)
+    conf = tmp_path / "router.json5"
+    conf.write_text(
+        f'{{mode: "router", listen: {{endpoints: ["tcp/127.0.0.1:{find_free_port()}"]}}, '
+        "scouting: {multicast: {enabled: false}}}"
+    )
+    env = {"PATH": "/usr/bin:/bin", "NOTIFY_SOCKET": str(path), "WATCHDOG_USEC": "200000"}
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "mrrig", "router", "--config", str(conf)],
+        cwd=REPO,
+        env=env,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+    )
+    kinds: list[str] = []
+    try:
+        deadline = time.monotonic() + 30
+        while time.monotonic() < deadline and kinds.count("WATCHDOG=1") < 5:
+            try:
+                kinds.append(sock.recv(4096).decode().split("\n")[0])
+            except TimeoutError:
+                assert proc.poll() is None, proc.communicate()[0]
+        proc.send_signal(signal.SIGTERM)
+        out, _ = proc.communicate(timeout=30)
+        sock.settimeout(1.0)
+        kinds.append(sock.recv(4096).decode())
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+        sock.close()
+    assert kinds[0] == "READY=1" and kinds.count("WATCHDOG=1") >= 5, kinds
+    assert kinds[-1] == "STOPPING=1" and proc.returncode == 0, out

@@ -143,6 +143,7 @@ def test_loopback_endpoints(endpoint: str, loopback: bool):
     assert is_loopback(endpoint) is loopback
 
 
+@pytest.mark.process
 def test_daemon_refuses_an_insecure_zenoh_config_before_opening_the_bus(tmp_path: Path):
     zcfg = tmp_path / "open.json5"
     zcfg.write_text(f'{{listen: {{endpoints: ["tcp/0.0.0.0:7447"]}}, {SCOUT_OFF}}}')
@@ -371,6 +372,7 @@ def test_mtls_and_access_control_with_the_daemon(tmp_path: Path, bridge, procs):
             operator.close()
 
 
+@pytest.mark.process
 def test_user_password_and_access_control(tmp_path: Path):
     """The sidecar on the user-password template: a wrong password gets no session; the
     observer's control query never reaches the loop; the operator's does."""
