@@ -169,6 +169,18 @@ class RecordingSection:
     enabled: bool = True
     directory: Path = Path("recordings")
     live_url: str | None = None  # e.g. rerun+http://127.0.0.1:9876/proxy
+    can_log: Path | None = None  # every frame, in python-can's format for its suffix (.blf, ...)
+
+    def check(self) -> None:
+        if self.can_log is None:
+            return
+        from mrrig.canlog import SUFFIXES  # python-can's writers: only when a log is asked for
+
+        if self.can_log.suffix.lower() not in SUFFIXES:
+            raise ValueError(
+                f"can_log: unknown bus log format {self.can_log.suffix!r}"
+                f" (one of {', '.join(SUFFIXES)})"
+            )
 
 
 @dataclass(frozen=True)

@@ -184,6 +184,11 @@ class Daemon:
         self._safe_sent_at_stop = False  # the stop's SAFE command answered a sensor frame
         self.bus = None
         self.link = None  # ipc.LoopEnd to the sidecar, when telemetry or recording is on
+        self.tap = None  # canlog.FrameTap: every frame for the bus log, when one is asked for
+        if cfg.recording.can_log is not None:
+            from mrrig.canlog import FrameTap
+
+            self.tap = FrameTap()
         self.sidecar = None
         self.t0 = time.perf_counter()
         self._cpu0 = time.process_time()
@@ -200,6 +205,7 @@ class Daemon:
             "lost_frames": 0,
             "telemetry_dropped": 0,
             "force_refs_received": 0,  # on force_ref, with the zenoh reference
+            "can_log_dropped": 0,  # frames the pipe to the bus log's writer could not take
         }
         self.events: list[dict] = []
         self._keep_batches = keep_batches
@@ -268,6 +274,8 @@ class Daemon:
             t = time.perf_counter()
             self.bus.send(msg, timeout=self.cfg.bus.send_timeout_s)
             self._send_call_s = time.perf_counter() - t
+            if self.tap is not None:
+                self.tap.tx(msg)
             return True
         except Exception as exc:  # noqa: BLE001 - any bus failure is a BUS_ERROR fault
             self.counters["send_failures"] += 1
@@ -406,6 +414,12 @@ class Daemon:
         self._n = 0
         if self.link is not None and not self.link.send_samples(batch):
             self.counters["telemetry_dropped"] += len(batch)
+        self._flush_frames()
+
+    def _flush_frames(self, force: bool = False) -> None:
+        frames = self.tap.take(force) if self.tap is not None else None
+        if frames is not None and self.link is not None:
+            self.counters["can_log_dropped"] += self.link.send_frames(frames)
 
     def handed_over(self, start: int = 0) -> list[np.ndarray]:
         """The sample batches completed so far, from batch `start` on (needs keep_batches).
@@ -420,6 +434,8 @@ class Daemon:
     # ---- frames ------------------------------------------------------------------------
     def on_frame(self, msg, t_rx: float) -> None:
         self.counters["frames_received"] += 1
+        if self.tap is not None:
+            self.tap.rx(msg)
         p = self.parser.parse(msg.arbitration_id, msg.data, t_rx)
         if p.name == "RigSensors":
             if not p.ok:
@@ -520,7 +536,7 @@ class Daemon:
         cfg = self.cfg
         self.bus = open_bus(cfg.bus.interface, cfg.bus.channel, **cfg.bus.options)
         try:
-            if cfg.telemetry.enabled or self.record_path is not None:
+            if cfg.telemetry.enabled or self.record_path is not None or self.tap is not None:
                 self._start_sidecar()
             self.controller.reset(1)
             # collect and freeze before raising the priority: a full collection at
@@ -590,6 +606,7 @@ class Daemon:
             telemetry_hz=self.cfg.telemetry.rate_hz,
             live_url=self.cfg.recording.live_url,
             insecure=self.cfg.telemetry.insecure,
+            can_log=self._can_log(),
         )
         keep_off_cpu(self.sidecar.pid, self.cfg.loop.cpu, "telemetry process")
         self.link = LoopEnd(*fds.loop_fds())
@@ -600,6 +617,14 @@ class Daemon:
             if self.cfg.telemetry.enabled:
                 off = " (to run without Zenoh: telemetry.enabled = false, or --no-telemetry)"
             raise SidecarStartError(f"the telemetry process could not start: {error}{off}")
+
+    def _can_log(self) -> tuple[Path, str] | None:
+        """The bus log and the channel name it shows (the interface's, a rig name otherwise)."""
+        path = self.cfg.recording.can_log
+        if path is None:
+            return None
+        bus = self.cfg.bus
+        return path, bus.channel if bus.interface == "socketcan" else self.cfg.rig.name
 
     def _shutdown(self) -> None:
         """SAFE first, then the actuator to rest, the summary, the sidecar, the bus."""
@@ -620,11 +645,14 @@ class Daemon:
         self.counters["loop_wall_s"] = self.now()
         if self._n:
             self._flush_samples()
+        self._flush_frames(force=True)
         self.counters["telemetry_dropped"] += self.link.dropped if self.link else 0
         self.summary = self._summary.result(self.events, dict(self.counters))
         self.summary["stop_reason"] = self.stop_reason
         # the loop's time zero on CLOCK_MONOTONIC: its times set beside another process's
         self.summary["clock_t0_s"] = self.t0
+        self.summary["controller"] = self.controller.name
+        self.summary["reference"] = self.reference.kind
         qs = (50, 99, 99.9)
         self.summary["latency_split_us"] = {
             "before_send": self._before_send_us.percentiles(qs),
@@ -657,6 +685,12 @@ def main(argv: list[str] | None = None) -> int:
         "--record", type=Path, help="recording file (default: recordings/<rig>-<UTC>.rrd)"
     )
     ap.add_argument("--no-record", action="store_true", help="no Rerun recording")
+    ap.add_argument(
+        "--can-log",
+        type=Path,
+        help="also write every frame to this bus log (.blf, .asc, .log candump, .trc, .csv,"
+        " .mf4 with asammdf; overrides recording.can_log)",
+    )
     ap.add_argument("--summary-json", type=output_file, help="also write the summary to this file")
     add_bus_options(ap)
     ap.add_argument("--no-telemetry", action="store_true", help="no Zenoh telemetry")
@@ -673,6 +707,8 @@ def main(argv: list[str] | None = None) -> int:
         overrides["bus"] = bus
     if args.no_telemetry:
         overrides["telemetry"] = {"enabled": False}
+    if args.can_log is not None:
+        overrides["recording"] = {"can_log": str(args.can_log)}
     if args.insecure:
         overrides.setdefault("telemetry", {})["insecure"] = True
     loop = {}
@@ -710,6 +746,8 @@ def main(argv: list[str] | None = None) -> int:
     print(format_summary(summary))
     if record is not None:
         print(f"recording: {record}")
+    if cfg.recording.can_log is not None:
+        print(f"bus log: {cfg.recording.can_log}")
     if args.summary_json:
         args.summary_json.write_text(json_text.dumps(summary, indent=2))
     return 0

@@ -6,9 +6,10 @@ the pipe is dropped and counted, never written in part. Frame: struct '<BH' (typ
 length) followed by the payload.
 
 Loop -> sidecar: SAMPLES (raw SAMPLE_DTYPE records), EVENT, STATUS, REPLY, SUMMARY (JSON
-objects), STOP (empty). Sidecar -> loop: READY (JSON {"error": null or one line}, once, when
-its Zenoh session and recording are open or have failed), REQUEST (JSON object with "id"),
-FORCE_REF (struct '<dd': force in N, sidecar receive time from time.monotonic()).
+objects), STOP (empty), FRAMES (raw `canlog.FRAME_DTYPE` records, for the bus log).
+Sidecar -> loop: READY (JSON {"error": null or one line}, once, when its Zenoh session and
+recording are open or have failed), REQUEST (JSON object with "id"), FORCE_REF (struct '<dd':
+force in N, sidecar receive time from time.monotonic()).
 """
 
 from __future__ import annotations
@@ -51,6 +52,7 @@ class Msg(enum.IntEnum):
     REPLY = 4
     SUMMARY = 5
     STOP = 6
+    FRAMES = 7
     REQUEST = 16
     FORCE_REF = 17
     READY = 18
@@ -115,6 +117,13 @@ def parse_frames(buf: bytearray) -> list[tuple[int, bytes]]:
 def decode_samples(payload: bytes) -> np.ndarray:
     """SAMPLES payload -> read-only SAMPLE_DTYPE array."""
     return np.frombuffer(payload, dtype=SAMPLE_DTYPE)
+
+
+def decode_frames(payload: bytes) -> np.ndarray:
+    """FRAMES payload -> read-only `canlog.FRAME_DTYPE` array."""
+    from mrrig.canlog import FRAME_DTYPE
+
+    return np.frombuffer(payload, dtype=FRAME_DTYPE)
 
 
 def decode_json(payload: bytes) -> dict[str, Any]:
@@ -220,6 +229,18 @@ class LoopEnd:
 
     def send_summary(self, summary: dict[str, Any]) -> bool:
         return self._w.write(Msg.SUMMARY, _encode_json(summary))
+
+    def send_frames(self, frames: np.ndarray) -> int:
+        """CAN frames for the bus log (`canlog.FRAME_DTYPE`), in messages of at most PIPE_BUF
+        bytes; returns the frames dropped (pipe full, sidecar gone)."""
+        raw = frames.tobytes()
+        step = MAX_PAYLOAD // frames.dtype.itemsize * frames.dtype.itemsize
+        dropped = 0
+        for start in range(0, len(raw), step):
+            part = raw[start : start + step]
+            if not self._w.write(Msg.FRAMES, part):
+                dropped += len(part) // frames.dtype.itemsize
+        return dropped
 
     def send_stop(self) -> bool:
         return self._w.write(Msg.STOP, b"")

@@ -27,7 +27,7 @@ from mrrig.recording import (
     FRAME_TIMELINE,
     SUMMARY_ENTITY,
 )
-from mrrig.samples import SAMPLE_DTYPE, RigState
+from mrrig.samples import SAMPLE_DTYPE
 
 log = logging.getLogger(__name__)
 
@@ -197,43 +197,10 @@ def verify_rrd(path: str | Path) -> None:
 
 
 def plot_recording(rec: Recording, out_png: str | Path) -> Path:
-    """A 2x2 PNG: forces vs time, currents vs time, F-v loop, latency histogram."""
-    import matplotlib
+    """The review figure (`mrrig.review_report.plot`) of the whole run as a PNG."""
+    from mrrig.review_report import plot
+    from mrrig.summary import summarize
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    s = rec.samples
-    out_png = Path(out_png)
-    fig, ax = plt.subplots(2, 2, figsize=(12, 8), layout="constrained")
-    ax_f, ax_i, ax_fv, ax_lat = ax.flat
-    t = s["t"]
-    ax_f.plot(t, s["f_meas"], lw=0.8, label="f_meas")
-    ax_f.plot(t, s["f_des"], lw=0.8, label="f_des")
-    ax_f.plot(t, s["f_model"], lw=0.8, ls="--", label="f_model")
-    ax_f.set(xlabel="sensor time (s)", ylabel="force (N)", title="Forces")
-    ax_f.legend(loc="upper right")
-    ax_i.plot(t, s["i_cmd"], lw=0.8, label="i_cmd")
-    ax_i.plot(t, s["i_meas"], lw=0.8, label="i_meas")
-    for ev in rec.events:
-        if ev.get("kind") == "fault" and ev["t"] is not None:
-            ax_f.axvline(ev["t"], color="red", lw=0.6, alpha=0.5)
-            ax_i.axvline(ev["t"], color="red", lw=0.6, alpha=0.5)
-    ax_i.set(xlabel="sensor time (s)", ylabel="current (A)", title="Damper current")
-    ax_i.legend(loc="upper right")
-    armed = s["state"] == RigState.ARMED
-    ax_fv.plot(s["xd"][~armed], s["f_meas"][~armed], ".", ms=1, color="0.7", label="not armed")
-    ax_fv.plot(s["xd"][armed], s["f_meas"][armed], ".", ms=1, label="armed")
-    ax_fv.set(xlabel="velocity (m/s)", ylabel="measured force (N)", title="Force-velocity")
-    ax_fv.legend(loc="upper left", markerscale=8)
-    lat = s["latency_us"][np.isfinite(s["latency_us"])]
-    ax_lat.hist(lat, bins=100, log=True)
-    if lat.size:
-        p99 = float(np.percentile(lat, 99))
-        ax_lat.axvline(p99, color="red", lw=0.8, label=f"p99 {p99:.0f} us")
-        ax_lat.legend(loc="upper right")
-    ax_lat.set(xlabel="cycle latency (us)", ylabel="frames", title="Latency receive -> send")
-    fig.suptitle(rec.path.name)
-    fig.savefig(out_png, dpi=100)
-    plt.close(fig)
-    return out_png
+    counters = {k: v for k, v in (rec.summary or {}).items() if not isinstance(v, dict | list)}
+    plot(rec, summarize(rec.samples, rec.events, counters), out_png)
+    return Path(out_png)

@@ -1,4 +1,5 @@
-"""`mrrig review FILE.rrd`: the metrics of a recorded run, read back with Rerun's reader."""
+"""`mrrig review FILE.rrd`: the metrics of a recorded run, read back with Rerun's reader;
+optionally a figure, a one-file HTML report and the check of a bus log of the same run."""
 
 from __future__ import annotations
 
@@ -6,8 +7,8 @@ import argparse
 from pathlib import Path
 
 from mrrig import json_text
-from mrrig.cli_args import HelpFormatter, output_file
-from mrrig.review import plot_recording, read_recording, verify_rrd
+from mrrig.cli_args import HelpFormatter, finite, output_file
+from mrrig.review import read_recording, verify_rrd
 from mrrig.summary import format_summary, summarize
 
 
@@ -16,22 +17,64 @@ def main(argv: list[str] | None = None) -> int:
         formatter_class=HelpFormatter, prog="mrrig review", description=__doc__
     )
     ap.add_argument("file", type=Path, help="a recording (.rrd) written by the daemon")
-    ap.add_argument("--plot", type=output_file, help="also write a figure (PNG) of the run")
+    ap.add_argument("--from", dest="t_from", type=finite, help="window start, sensor time (s)")
+    ap.add_argument("--to", dest="t_to", type=finite, help="window end, sensor time (s)")
+    ap.add_argument("--plot", type=output_file, help="also write a figure (PNG) of the window")
+    ap.add_argument(
+        "--html",
+        type=output_file,
+        help="also write a one-file HTML report (figure embedded, summary table, faults)",
+    )
     ap.add_argument("--json", type=output_file, help="also write the metrics as JSON")
+    ap.add_argument(
+        "--can-log",
+        type=Path,
+        help="a bus log of the same run (.blf, .asc, .log, ...): check its frames and counters"
+        " against the recording (exit 1 on a mismatch)",
+    )
     ap.add_argument("--verify", action="store_true", help="run `rerun rrd verify` first")
     args = ap.parse_args(argv)
     if args.verify:
         verify_rrd(args.file)
     rec = read_recording(args.file)
-    counters = rec.summary or {}
+    bus_log = None
+    if args.can_log is not None:
+        from mrrig.canlog import check_bus_log
+
+        bus_log = check_bus_log(args.can_log, rec.samples, rec.summary)
+    windowed = args.t_from is not None or args.t_to is not None
+    window_text = None
+    if windowed:
+        from mrrig.review_report import window
+
+        rec = window(rec, args.t_from, args.t_to)
+        window_text = f"{_bound(args.t_from)} to {_bound(args.t_to)} s of sensor time"
+    # the run's counters describe the whole run, not a window of it
+    counters = {} if windowed else rec.summary or {}
     keep = {k: v for k, v in counters.items() if not isinstance(v, dict | list)}
     metrics = summarize(rec.samples, rec.events, keep)
     # the files first: output cut short by a closed pipe (`| head`) must not lose them
-    if args.plot:
-        plot_recording(rec, args.plot)
+    if args.plot or args.html:
+        from mrrig import review_report
+
+        if args.plot:
+            review_report.plot(rec, metrics, args.plot)
+        if args.html:
+            bus_text = bus_log.text() if bus_log is not None else None
+            review_report.write_html(rec, metrics, args.html, bus_text, window_text)
     if args.json:
         args.json.write_text(json_text.dumps(metrics, indent=2))
+    if window_text:
+        print(f"window        {window_text}")
     print(format_summary(metrics))
-    if args.plot:
-        print(f"figure: {args.plot}")
+    for label, path in (("figure", args.plot), ("report", args.html)):
+        if path:
+            print(f"{label}: {path}")
+    if bus_log is not None:
+        print(bus_log.text())
+        return 0 if bus_log.ok else 1
     return 0
+
+
+def _bound(t: float | None) -> str:
+    return "start" if t is None else f"{t:g}"

@@ -37,7 +37,7 @@ import numpy as np
 import zenoh
 
 from mrrig import audit, json_text
-from mrrig.ipc import ChannelFds, Msg, SidecarEnd, decode_json, decode_samples
+from mrrig.ipc import ChannelFds, Msg, SidecarEnd, decode_frames, decode_json, decode_samples
 from mrrig.samples import FIELDS, SAMPLE_DTYPE
 from mrrig.zenoh_config import ZenohConfigError, check_secure, load_zenoh_config, zenoh_error_text
 
@@ -49,6 +49,13 @@ STATUS_REPEAT_S = 1.0
 NO_ANSWER = {"ok": False, "error": "daemon did not answer"}
 _SHUTDOWN_READS = 64  # bounded final drain: a loop that keeps writing cannot hold us
 _FLOAT_FIELDS = tuple(f for f in FIELDS if SAMPLE_DTYPE[f].kind == "f")
+
+
+class BusLog(Protocol):
+    """What the sidecar needs of `mrrig.canlog.BusLogWriter`."""
+
+    def write(self, frames: np.ndarray) -> None: ...
+    def close(self) -> None: ...
 
 
 class SampleSink(Protocol):
@@ -118,8 +125,11 @@ class Sidecar:
         recorder: SampleSink | None,
         telemetry_hz: float,
         warnings: list[str] | None = None,
+        bus_log: BusLog | None = None,
     ) -> None:
-        """`warnings` (an insecure Zenoh config's) go into every status and the recording."""
+        """`warnings` (an insecure Zenoh config's) go into every status and the recording;
+        `bus_log` writes the loop's FRAMES."""
+        self._bus_log = bus_log
         self.rig = rig
         self._keys = keys(rig)
         self._session = session
@@ -329,6 +339,9 @@ class Sidecar:
                 self._handle_reply(decode_json(payload))
             elif mtype == Msg.SUMMARY:
                 self._record("add_summary", decode_json(payload))
+            elif mtype == Msg.FRAMES:
+                if self._bus_log is not None:
+                    self._bus_log.write(decode_frames(payload))
             elif mtype == Msg.STOP:
                 log.info("STOP from the loop")
                 self._stop = True
@@ -448,6 +461,7 @@ def run_sidecar(
     telemetry_hz: float = 50.0,
     live_url: str | None = None,
     insecure: bool = False,
+    can_log: tuple[str, str] | None = None,
 ) -> int:
     """Run until STOP, EOF, SIGTERM or SIGINT; returns the exit status: 0, 2 for a refused
     config (`check_secure`: off loopback without authentication and access control, unless
@@ -472,7 +486,16 @@ def run_sidecar(
         signal.signal(signum, lambda num, _frame: stop_early.append(num))
     recorder: SampleSink | None = None
     session: zenoh.Session | None = None
+    bus_log = None
     try:
+        if can_log is not None:
+            from mrrig.canlog import BusLogError, BusLogWriter
+
+            try:
+                bus_log = BusLogWriter(*can_log)
+            except BusLogError as exc:
+                end.send_ready(str(exc))
+                return 3
         if record:
             from mrrig.recording import Recorder  # rerun is heavy: only when recording
 
@@ -495,7 +518,7 @@ def run_sidecar(
             log.debug("%s: cannot open the Zenoh session: %s", zenoh_config, text)
             end.send_ready(f"{zenoh_config}: cannot open the Zenoh session: {text}{hint}")
             return 3
-        sidecar = Sidecar(rig, session, end, recorder, telemetry_hz, warnings)
+        sidecar = Sidecar(rig, session, end, recorder, telemetry_hz, warnings, bus_log)
         for signum in (signal.SIGTERM, signal.SIGINT):
             signal.signal(signum, sidecar.request_stop)
         if stop_early:
@@ -507,6 +530,8 @@ def run_sidecar(
             session.close()
         if recorder is not None:
             recorder.close()  # idempotent; covers a failure before run() took it over
+        if bus_log is not None:
+            bus_log.close()
         end.close()
     log.info("sidecar stopped")
     return 0
@@ -520,10 +545,12 @@ def start_sidecar(
     telemetry_hz: float = 50.0,
     live_url: str | None = None,
     insecure: bool = False,
+    can_log: tuple[str | Path, str] | None = None,
 ) -> subprocess.Popen[bytes]:
     """Start the sidecar process on the sidecar's ends of `fds`, and close those ends here.
 
-    `zenoh_config` None: no Zenoh at all (recording only); `record` None: no recording.
+    `zenoh_config` None: no Zenoh at all (recording only); `record` None: no recording;
+    `can_log` (path, channel name written in it): the bus log of `mrrig.canlog`.
 
     The child gets its own session (process group), so a Ctrl-C at the terminal reaches only
     the daemon, which then sends its summary and STOP.
@@ -549,6 +576,8 @@ def start_sidecar(
         cmd += ["--live-url", live_url]
     if insecure:
         cmd.append("--insecure")
+    if can_log is not None:
+        cmd += ["--can-log", str(can_log[0]), "--can-log-channel", can_log[1]]
     proc = subprocess.Popen(cmd, pass_fds=fds.sidecar_fds(), start_new_session=True)
     # the loop must see EOF / EPIPE when the sidecar dies, so it holds no copy of these
     os.close(fds.sidecar_rx)
@@ -578,6 +607,8 @@ def main(argv: list[str] | None = None) -> int:
         help="allow a config off loopback without authentication and access control "
         "(a closed lab network); warned in every status and the recording",
     )
+    parser.add_argument("--can-log", default=None, help="bus log file (.blf, .asc, .log, ...)")
+    parser.add_argument("--can-log-channel", default="can0", help="channel name in the bus log")
     parser.add_argument("--log-level", default="INFO")
     args = parser.parse_args(argv)
     logging.basicConfig(
@@ -594,6 +625,7 @@ def main(argv: list[str] | None = None) -> int:
         args.telemetry_hz,
         args.live_url,
         args.insecure,
+        (args.can_log, args.can_log_channel) if args.can_log else None,
     )
 
 

@@ -1,0 +1,125 @@
+"""Bus logs: `mrrig run --can-log FILE` writes every frame the loop received or sent with
+python-can's writers; the .blf and the candump .log decode with cantools and match the run's
+recording (frame counts, the sensor frames' counters); `mrrig review --can-log` checks it and
+`--html` writes one file with the figure embedded."""
+
+from __future__ import annotations
+
+import base64
+import re
+import subprocess
+import sys
+
+import cantools
+import pytest
+
+from mrrig.canlog import check_bus_log, read_bus_log
+from mrrig.review import read_recording
+from tests.conftest import REPO, rig_config, start, stop
+from tests.test_lifecycle_errors import NO_MODEL, mrrig, one_error_line
+
+pytestmark = pytest.mark.slow
+
+
+def _run(tmp_path, bridge, log_name: str):
+    cfg = rig_config(tmp_path, bridge, None, **NO_MODEL)
+    rrd = tmp_path / f"{log_name}.rrd"
+    log = tmp_path / log_name
+    proc = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "mrrig",
+            "run",
+            "--config",
+            str(cfg),
+            "--duration",
+            "3",
+            "--arm",
+            "--record",
+            str(rrd),
+            "--can-log",
+            str(log),
+        ],
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+        timeout=120,
+        check=False,
+    )
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    assert f"bus log: {log}" in proc.stdout
+    return rrd, log
+
+
+@pytest.fixture(scope="module")
+def runs(tmp_path_factory):
+    """Two 3 s runs against firmware_sim: one with a .blf, one with a candump .log."""
+    from mrrig.canbus.bus import find_free_port, start_bridge, stop_bridge
+
+    tmp = tmp_path_factory.mktemp("buslog")
+    port = find_free_port()
+    bridge_proc = start_bridge(port)
+    channel = f"ws://127.0.0.1:{port}/"
+    sim = start(["-m", "firmware_sim", "--config", "configs/sim.toml", "-c", channel])
+    try:
+        yield {name: _run(tmp, channel, name) for name in ("run.blf", "run.log")}
+    finally:
+        stop(sim)
+        stop_bridge(bridge_proc)
+
+
+@pytest.mark.parametrize("name", ["run.blf", "run.log"])
+def test_a_bus_log_decodes_with_cantools_and_matches_the_recording(runs, name):
+    rrd, log = runs[name]
+    rec = read_recording(rrd)
+    db = cantools.database.load_file(str(REPO / "configs/mrrig.dbc"))
+    names = {}
+    sensor_counters, echoes = [], []
+    for msg in read_bus_log(log):
+        spec = db.get_message_by_frame_id(msg.arbitration_id)
+        values = spec.decode(msg.data)
+        names[spec.name] = names.get(spec.name, 0) + 1
+        if spec.name == "RigSensors":
+            assert msg.is_rx
+            sensor_counters.append(values["E2E_Counter"])
+        elif spec.name == "DamperCommand":
+            assert not msg.is_rx
+            echoes.append(values["SensorCounterEcho"])
+    s = rec.summary
+    assert names["RigSensors"] == s["sensor_frames_valid"] + s["sensor_frames_invalid"] > 1000
+    assert names["DamperCommand"] == s["commands_sent"]
+    assert names["ActuatorCommand"] >= 2  # the motion at start and its stop at the end
+    assert s["can_log_dropped"] == 0
+    # every recorded frame's counter is in the log, in order; the commands echo them
+    check = check_bus_log(log, rec.samples, rec.summary)
+    assert check.ok, check.text()
+    assert check.counters_in_order and rec.samples.size > 1000
+    assert set(echoes) <= set(range(16)) and len(echoes) >= rec.samples.size - 5
+
+
+def test_review_checks_the_bus_log_and_writes_a_one_file_report(runs, tmp_path):
+    rrd, log = runs["run.blf"]
+    html = tmp_path / "report.html"
+    proc = mrrig("-q", "review", str(rrd), "--can-log", str(log), "--html", str(html))
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    assert "matches the recording" in proc.stdout
+    text = html.read_text()
+    assert "constant" in text and "Et" in text  # the title: controller and Et
+    png = base64.b64decode(re.search(r"data:image/png;base64,([A-Za-z0-9+/=]+)", text)[1])
+    assert png.startswith(b"\x89PNG") and len(png) > 20_000
+    assert "<h2>Bus log</h2>" in text and "RigSensors" in text
+
+
+def test_review_with_the_bus_log_of_another_run_says_mismatch(runs):
+    rrd, _ = runs["run.blf"]
+    _, other = runs["run.log"]
+    proc = mrrig("-q", "review", str(rrd), "--can-log", str(other))
+    assert proc.returncode == 1, proc.stdout + proc.stderr
+    assert "MISMATCH" in proc.stdout
+
+
+def test_an_unknown_bus_log_format_stops_start_up(tmp_path):
+    cfg = rig_config(tmp_path, "ws://127.0.0.1:1/", None, **NO_MODEL)
+    line = one_error_line(mrrig("run", "--config", str(cfg), "--can-log", "x.txt"))
+    assert "unknown bus log format '.txt'" in line
