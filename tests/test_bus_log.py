@@ -18,7 +18,7 @@ from mrrig.review import read_recording
 from tests.conftest import REPO, rig_config, start, stop
 from tests.test_lifecycle_errors import NO_MODEL, mrrig, one_error_line
 
-pytestmark = pytest.mark.slow
+pytestmark = pytest.mark.process
 
 
 def _run(tmp_path, bridge, log_name: str):

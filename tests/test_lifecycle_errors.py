@@ -15,6 +15,7 @@ import pytest
 from mrrig.canbus.bus import find_free_port
 from tests.conftest import REPO, rig_config, zenoh_configs
 
+pytestmark = pytest.mark.process
 NO_MODEL = {"controller": {"name": "constant", "current_a": 0.5}}
 
 
