@@ -131,6 +131,8 @@ def test_clients_accept_any_endpoint_and_mode(tmp_path: Path):
         ("tcp/127.0.0.1:7447", True),
         ("tls/127.0.0.2:7447", True),
         ("tcp/[::1]:7447", True),
+        ("tcp/[::ffff:127.0.0.1]:7447", True),
+        ("tcp/[::ffff:10.0.0.5]:7447", False),
         ("tcp/localhost:7447", True),
         ("unixsock-stream//tmp/zenoh.sock", True),
         ("tcp/0.0.0.0:7447", False),
