@@ -60,12 +60,48 @@ def small_truth(small_b):
 
 @pytest.fixture(scope="session")
 def sim_model(tmp_path_factory) -> Path:
-    """A forward network trained on the simulated characterization matrix (once per session)."""
+    """A forward network trained on the simulated characterization matrix, once per run: the
+    pytest-xdist workers share the base directory and the first one trains it."""
+    from filelock import FileLock
+
     from mrrig.training import simulated_matrix_model
 
-    path = tmp_path_factory.mktemp("model") / "sim-forward.json"
-    simulated_matrix_model(path, seed=0)
+    root = tmp_path_factory.getbasetemp()
+    if os.environ.get("PYTEST_XDIST_WORKER"):
+        root = root.parent
+    path = root / "sim-forward.json"
+    with FileLock(f"{path}.lock"):
+        if not path.is_file():
+            simulated_matrix_model(path, seed=0)
     return path
+
+
+def pytest_addoption(parser: pytest.Parser) -> None:
+    parser.addoption(
+        "--all",
+        action="store_true",
+        help="also the process and long tests (CI runs every test)",
+    )
+
+
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    """A test on the bridge or with processes of its own is a process test; the default run
+    leaves the process and long tests out (`--all`, or a -m expression, chooses otherwise).
+    Process tests run one after another on one worker: they are sensitive to CPU load."""
+    for item in items:
+        if {"bridge", "procs"} & set(item.fixturenames):
+            item.add_marker(pytest.mark.process)
+        if item.get_closest_marker("process"):
+            item.add_marker(pytest.mark.xdist_group("process"))
+    if config.getoption("--all") or config.getoption("markexpr"):
+        return
+    kept, left_out = [], []
+    for item in items:
+        slow = any(item.get_closest_marker(m) for m in ("process", "long", "slow"))
+        (left_out if slow else kept).append(item)
+    if left_out:
+        config.hook.pytest_deselected(items=left_out)
+        items[:] = kept
 
 
 def zenoh_configs(tmp_path: Path) -> tuple[Path, Path, int]:

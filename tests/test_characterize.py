@@ -205,6 +205,7 @@ def _watch(store: MatrixStore, n_done: int, stop: threading.Event) -> threading.
     return t
 
 
+@pytest.mark.process
 def test_interrupted_matrix_resumes_without_repeating_finished_runs(tmp_path):
     runs = matrix_runs(TINY)
     out = tmp_path / "char"
@@ -245,6 +246,7 @@ def clean_window(session: RigSession) -> dict:
     return track_with_attempts(session, 0.6, 1.0, 3, threading.Event())
 
 
+@pytest.mark.process
 def test_validate_switches_models_with_set_model_while_disarmed(tmp_path, sim_model):
     other = tmp_path / "other-model.json"
     shutil.copy(sim_model, other)

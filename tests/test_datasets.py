@@ -33,6 +33,7 @@ def _at(s, t_s):
     return s.current[round(t_s / 1e-3)]
 
 
+@pytest.mark.long
 def test_dataset_a_training_follows_the_voltage_schedule(training):
     assert len(training) == 100_000
     np.testing.assert_allclose(np.diff(training.t), 1e-3)
@@ -51,6 +52,7 @@ def test_dataset_a_training_follows_the_voltage_schedule(training):
     assert np.all(np.isfinite(training.force)) and np.abs(training.force).max() > 1000.0
 
 
+@pytest.mark.long
 def test_dataset_a_training_is_reproducible_from_its_seed(training):
     again = dataset_a_training()
     np.testing.assert_array_equal(again.x, training.x)
@@ -58,6 +60,7 @@ def test_dataset_a_training_is_reproducible_from_its_seed(training):
     np.testing.assert_array_equal(again.force, training.force)
 
 
+@pytest.mark.long
 def test_dataset_a_validation_has_the_seven_cases_of_table_6(validation):
     assert tuple(s.name for s in validation) == DATASET_A_VALIDATION_NAMES
     assert DATASET_A_VALIDATION_NAMES == ("1,k=1", "1,k=2", "1,k=3", "2", "3,k=1", "3,k=2", "3,k=3")
@@ -76,6 +79,7 @@ def test_dataset_a_validation_has_the_seven_cases_of_table_6(validation):
     np.testing.assert_array_equal(reseeded[3].force, set2.force)
 
 
+@pytest.mark.long
 def test_dataset_a_validation_displacement_is_not_in_the_training_series(training, validation):
     train = training.x
     energy_win = np.convolve(train**2, np.ones(6000), mode="valid")

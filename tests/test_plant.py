@@ -34,6 +34,7 @@ def test_unknown_preset_names_itself_and_the_known_ones():
 
 
 @pytest.mark.parametrize("command", [0.0, 1.0, 2.0])
+@pytest.mark.long
 def test_step_matches_tight_radau_reference_within_5_n(command):
     amp_m, freq_hz, dt_s = 0.015, 4.0, 2e-3
     t = np.arange(1001) * dt_s

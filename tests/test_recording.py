@@ -189,6 +189,7 @@ def _socket_fds() -> int:
     return count
 
 
+@pytest.mark.long
 def test_read_recording_leaves_no_server_or_new_threads(run) -> None:
     # the first calls start rerun's shared runtime pool (it can grow lazily to its size once
     # more work arrives: seen +3 on a loaded VM); a server or thread left behind per read
@@ -265,6 +266,7 @@ def _start_writer(path: Path, mode: str) -> subprocess.Popen[str]:
     return proc
 
 
+@pytest.mark.process
 def test_sigterm_with_close_handler_leaves_a_complete_recording(tmp_path: Path) -> None:
     path = tmp_path / "term.rrd"
     proc = _start_writer(path, "handled")
@@ -278,6 +280,7 @@ def test_sigterm_with_close_handler_leaves_a_complete_recording(tmp_path: Path) 
     np.testing.assert_array_equal(back.samples["t"], np.arange(handed) * 0.002)
 
 
+@pytest.mark.process
 def test_unhandled_sigterm_leaves_a_recording_without_footer(tmp_path: Path) -> None:
     """No footer, so verify fails; what reached the disk still reads back as a clean prefix,
     less the recorder's buffer and rerun's batcher (up to about one flush interval)."""

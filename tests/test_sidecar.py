@@ -32,6 +32,8 @@ from mrrig.sidecar import JSON, Sidecar, keys, start_sidecar
 from mrrig.zenoh_config import INSECURE_WARNING, load_zenoh_config, local_config
 from tests.conftest import zenoh_configs
 
+pytestmark = pytest.mark.process
+
 RIG = "testrig"
 CONFIGS = Path(__file__).resolve().parents[1] / "configs"
 

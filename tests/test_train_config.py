@@ -212,6 +212,7 @@ def test_mrrig_train_stops_on_a_bad_config_with_one_line_and_exit_2(
     assert not out.exists()
 
 
+@pytest.mark.process
 def test_mrrig_train_process_exits_2_with_one_line_on_a_bad_config(tmp_path, data):
     cfg, out = _config(tmp_path, "[features]\nhistory_samples = -1\n"), tmp_path / "fwd.json"
     r = subprocess.run(

@@ -113,6 +113,7 @@ def test_validation_split_is_disjoint_and_falls_back_to_90_10_for_small_data():
 TINY = dict(amplitudes_m=(0.015,), freqs_hz=(2.0, 5.0), currents_a=(0.0, 0.6, 1.2))
 
 
+@pytest.mark.long
 def test_small_matrix_report_has_every_number():
     b = dataset_b(duration_s=0.3, **TINY)
     s = Series(
@@ -227,6 +228,7 @@ def test_recording_gives_x_est_i_cmd_f_meas_without_fault_samples_and_splits_run
     np.testing.assert_array_equal(np.unique(got.run_id[150:]), [1])
 
 
+@pytest.mark.long
 def test_the_start_with_the_best_online_inverse_on_the_training_rows_is_kept():
     b = dataset_b(duration_s=0.3, **TINY)
     s = Series(
