@@ -5,10 +5,9 @@ effect of the command v (volts or amperes, depending on the preset). The integra
 fixed-step RK4 with sub-steps of at most `substep_s` (the system is stiff: its fastest
 eigenvalue is about -4e3 1/s, so 1-2 ms steps are unstable). That eigenvalue, d(z')/dz at the
 saturated z, grows with the speed: a step faster than its sub-steps are stable for (0.35 m/s
-for 0.25 ms sub-steps, paper parameters) takes more sub-steps. (Before, a velocity spike of the
-estimate after a bus stall made the daemon's Bouc-Wen reference give NaN from 0.8 m/s.)
-The displacement inside a step is the cubic Hermite interpolant of the step's end points and
-velocities.
+for 0.25 ms sub-steps, paper parameters) takes more sub-steps, so that a velocity spike of the
+estimate (after a bus stall) gives a finite force. The displacement inside a step is the
+cubic Hermite interpolant of the step's end points and velocities.
 
 The same code runs on Python floats (one damper, the 0.5 kHz simulator: operators and abs()
 only, so no numpy overhead) and on numpy arrays of equal shape (a batch of independent dampers).
@@ -25,8 +24,8 @@ import numpy as np
 # A float, or a numpy array of equal shape for a batch of dampers.
 Num = Any
 
-# Up to this many dampers, one Python-float run per damper beats one numpy batch run
-# (measured: 41 us per scalar 2-ms step against 1.3-1.7 ms per batch step of 7-150 dampers).
+# Up to this many dampers, one Python-float run per damper beats one numpy batch run (the
+# batch step's per-operation overhead; docs/measurements.md).
 _SCALAR_BATCH_MAX = 32
 
 # RK4 is stable for h * lambda down to -2.785 on the real axis; keep h * lambda >= -2.

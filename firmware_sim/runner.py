@@ -2,7 +2,7 @@
 
 One thread, no Notifier: the loop waits for command frames in `bus.recv(timeout)` (a select
 on the socket for the remote bridge) until `lead_s` before the next deadline, computes the
-frame (plant step and encoding, 0.1-0.2 ms here), waits in `recv` again until `spin_s`
+frame (plant step and encoding), waits in `recv` again until `spin_s`
 before the deadline, then busy-waits, still polling the bus, and sends. Deadlines are
 t0 + k * period, so the rate never drifts; the busy tail is short, so the CPU stays low.
 Received frames are applied on arrival; the plant uses the latest command received before it

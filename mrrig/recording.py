@@ -203,9 +203,8 @@ class Recorder:
     """Writes one run to an .rrd file (and optionally streams it to a running viewer).
 
     `live_url` (e.g. rerun+http://127.0.0.1:9876/proxy) also streams to a running viewer or
-    `rerun --serve-grpc` proxy. Measured here: with nothing listening there, the constructor
-    blocks about 6 s and `close()` about 5 s (rerun's connect timeout); the file is complete
-    either way.
+    `rerun --serve-grpc` proxy. With nothing listening there, the constructor and `close()`
+    block for rerun's connect timeout (seconds); the file is complete either way.
 
     Meant for one thread plus signal handlers: a SIGTERM/SIGINT handler may call `close()`.
     Each public method holds a lock with SIGINT/SIGTERM blocked in the calling thread, so a

@@ -23,10 +23,10 @@ from mrrig.samples import SAMPLE_DTYPE, RigState
 log = logging.getLogger(__name__)
 
 # The rig must stream sensor frames this soon after the loop starts; the daemon's start-up
-# (mlockall of this process: 1-2 s here, rerun's libraries being mapped) is inside it.
+# (mlockall of this process, rerun's libraries being mapped) is inside it.
 FIRST_FRAME_TIMEOUT_S = 10.0
 # Disarmed (SAFE) time before the first arm: the loop's first few hundred ms after start-up
-# have stalls past the firmware's 20 ms watchdog on this VM (measured: 2 trips in 0.4 s).
+# can stall past the firmware's 20 ms watchdog.
 WARMUP_S = 1.0
 
 

@@ -439,12 +439,8 @@ class Sidecar:
 
 
 def lower_priority(nice: int) -> None:
-    """SCHED_BATCH + nice for this thread and the threads it starts later (Zenoh's).
-
-    Measured on the 2-core VM: with the sidecar at normal priority, the loop's pipe writes
-    that wake it had a p99 of 2-4 ms (the sidecar preempted the loop); SCHED_BATCH + nice 10
-    brought it to 0.1-0.4 ms.
-    """
+    """SCHED_BATCH + nice for this thread and the threads it starts later (Zenoh's): at
+    normal priority the sidecar, woken by the loop's pipe writes, preempts the loop."""
     try:
         os.sched_setscheduler(0, os.SCHED_BATCH, os.sched_param(0))
         os.nice(nice)

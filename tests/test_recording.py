@@ -192,8 +192,7 @@ def _socket_fds() -> int:
 @pytest.mark.long
 def test_read_recording_leaves_no_server_or_new_threads(run) -> None:
     # the first calls start rerun's shared runtime pool (it can grow lazily to its size once
-    # more work arrives: seen +3 on a loaded VM); a server or thread left behind per read
-    # would grow with every read, by 10 or more here
+    # more work arrives); a server or thread left behind per read grows with every read
     read_recording(run[0])
     read_recording(run[0])
     sockets, threads = _socket_fds(), len(os.listdir("/proc/self/task"))

@@ -103,8 +103,8 @@ def test_run_stats_count_each_sensor_frame_answered_once_unanswered_or_more_than
 
 def test_run_stats_match_answers_in_turn_through_a_stall_longer_than_the_counter_wraps():
     # two frames answered at once, then a 36 ms stall: frames 2..19 leave (counters 2 and 3
-    # twice) before their answers come, in order; a newest-first match took the answer to
-    # frame 2 for frame 18's and counted frame 18 answered twice (seen in CI)
+    # twice) before their answers come, in order; a newest-first match would take the answer
+    # to frame 2 for frame 18's and count frame 18 answered twice
     stats = RunStats()
     frames = [Frame(SENSORS_ID, b"", i % 16, True) for i in range(20)]
     for i in range(2):

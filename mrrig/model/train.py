@@ -8,12 +8,10 @@ The paper trains its forward network with `trainlm` (adaptive damping mu, early 
 accept the step and divide mu by 10 if the training MSE falls, otherwise multiply mu by 10 and
 solve again with the same J. The Jacobian is analytic (one hidden layer); J^T J is the cost of
 an epoch. The epoch runs in numpy float64: numpy computes J J^T as one BLAS syrk (half the
-flops of the gemm torch uses; measured 8 ms vs 15 ms for 12771 x 181 here), and one BLAS
-thread pool avoids the torch-OpenMP/OpenBLAS contention that made mixed epochs 2-10x slower on
-this 2-core VM. BLAS runs on `blas_threads` threads during training (default 1): on a busy
-2-core machine OpenBLAS's spinning worker threads made an epoch 20x slower (590 ms vs 23 ms),
-on an idle one two threads gain only about 1.3x. Torch provides `MLPModule`, the autograd twin
-of the numpy model.
+flops of torch's gemm), and one BLAS thread pool avoids contention with torch's OpenMP. BLAS
+runs on `blas_threads` threads during training (default 1: spinning worker threads stall a
+busy machine; docs/measurements.md). Torch provides `MLPModule`, the autograd twin of the
+numpy model.
 """
 
 from __future__ import annotations
