@@ -9,6 +9,8 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, Literal
 
+from mrrig.adaptation import AdaptationSettings
+from mrrig.controllers import CONTROLLERS
 from mrrig.typed_config import ConfigError, load_toml, parse
 
 __all__ = ["ConfigError", "DaemonConfig", "load_config", "reference_from_table"]
@@ -91,27 +93,47 @@ class EstimatorSection:
 
 @dataclass(frozen=True)
 class ControllerSection:
-    name: Literal[
-        "network_inversion", "heaviside", "continuous_state", "supervised", "rnn", "constant"
-    ] = "network_inversion"
+    name: str = "network_inversion"  # a controller of the registry (controllers.CONTROLLERS)
     model: Path | None = None  # the forward model (network inversion) or the inverse MLP / RNN
     method: Literal["exact", "gradient", "flow"] = "exact"
-    # load-cell feedback correction, its residual's time constant (0: the last residual as it
-    # is); off when absent
-    feedback_tau_s: float | None = None
+    # network inversion for the instant the command first acts on (the next desired force at
+    # the state one period ahead, the coil lag inverted for a model of the lagged current);
+    # false: for the present instant
+    ahead: bool = True
+    # load-cell feedback correction (network inversion): on by default; its residual's time
+    # constant (0: the last residual as it is)
+    feedback: bool = True
+    feedback_tau_s: float = 0.0
     # the exact solve's weight toward the previous command; absent: the model's own
     # (`online_continuity`, chosen by `mrrig train` on its training rows), else 0 (the root)
     continuity: float | None = None
     current_a: float = 0.0  # for the constant controller
 
     def check(self) -> None:
-        needs_model = self.name in ("network_inversion", "supervised", "rnn")
-        if needs_model and self.model is None:
+        if self.name not in CONTROLLERS:
+            raise ValueError(
+                f"name: unknown controller {self.name!r} (known: {', '.join(CONTROLLERS)})"
+            )
+        if CONTROLLERS[self.name].needs_model and self.model is None:
             raise ValueError(f"model: controller {self.name} needs a model file")
-        if self.feedback_tau_s is not None and not self.feedback_tau_s >= 0:
+        if not self.feedback_tau_s >= 0:
             raise ValueError("feedback_tau_s: must be >= 0")
         if self.continuity is not None and not self.continuity >= 0:
             raise ValueError("continuity: must be >= 0")
+
+
+@dataclass(frozen=True)
+class AdaptationSection(AdaptationSettings):
+    """On-line adaptation of network inversion's model force (mrrig/adaptation.py): a gain and
+    an offset estimated from the load cell after each command, frozen while not armed."""
+
+    enabled: bool = False
+
+    def settings(self) -> AdaptationSettings | None:
+        if not self.enabled:
+            return None
+        fields = {k: getattr(self, k) for k in AdaptationSettings.__dataclass_fields__}
+        return AdaptationSettings(**fields)
 
 
 @dataclass(frozen=True)
@@ -190,6 +212,7 @@ class DaemonConfig:
     loop: LoopSection = field(default_factory=LoopSection)
     estimator: EstimatorSection = field(default_factory=EstimatorSection)
     controller: ControllerSection = field(default_factory=ControllerSection)
+    adaptation: AdaptationSection = field(default_factory=AdaptationSection)
     reference: ReferenceSection = field(default_factory=ReferenceSection)
     actuator: ActuatorSection = field(default_factory=ActuatorSection)
     telemetry: TelemetrySection = field(default_factory=TelemetrySection)

@@ -32,7 +32,7 @@ def _arm(d: Daemon, req: dict) -> dict:
         raise RequestError(msg)
     if events:
         d.controller.reset(1)
-        d.reference.reset(d.now(), d.last_x)
+        d.reset_reference(d.now(), d.last_x)
     d._emit(events)
     return {"state": d.supervisor.state.name, "message": msg}
 
@@ -56,7 +56,7 @@ def _set_controller(d: Daemon, req: dict) -> dict:
         raise RequestError(
             f"name: unknown controller {name!r} (known: {', '.join(CONTROLLER_NAMES)})"
         )
-    keys = ("model", "method", "feedback_tau_s", "continuity", "current_a")
+    keys = ("model", "method", "ahead", "feedback", "feedback_tau_s", "continuity", "current_a")
     table = {k: v for k, v in req.items() if k in keys}
     table["name"] = name
     if "model" not in table and d.cfg.controller.model is not None:
@@ -64,6 +64,7 @@ def _set_controller(d: Daemon, req: dict) -> dict:
     section = _parse_section(type(d.cfg.controller), table, "controller")
     d.controller = _built(lambda: build_controller(d.cfg, section))
     d.controller.reset(1)
+    d.reset_reference(d.now(), d.last_x)  # its desired forces ahead, if it wants them
     d.cfg = replace(d.cfg, controller=section)
     d._send_status(force=True)
     return {"controller": d.controller.name}
@@ -87,8 +88,7 @@ def _set_profile(d: Daemon, req: dict) -> dict:
     except ConfigError as exc:
         raise RequestError(str(exc).removeprefix("request: ")) from None
     new = _built(lambda: build_reference(section, d.period_s))
-    new.reset(d.now(), d.last_x)
-    d.reference = new
+    d.reset_reference(d.now(), d.last_x, new)
     d.cfg = replace(d.cfg, reference=section)
     d._send_status(force=True)
     return {"reference": new.kind}
@@ -110,6 +110,35 @@ def _status(d: Daemon, req: dict) -> dict:
     return {"status": d.status()}
 
 
+def _adaptive(d: Daemon):
+    adapt = getattr(d.controller, "adapt", None)
+    if adapt is None:
+        raise RequestError(
+            f"controller {d.controller.name} has no on-line adaptation ([adaptation] enabled)"
+        )
+    return adapt
+
+
+def _reset_adaptation(d: Daemon, req: dict) -> dict:
+    """Back to the model as trained (gain 1, offset 0); allowed while armed."""
+    adapt = _adaptive(d)
+    adapt.reset(adapt.theta.shape[0])
+    d._emit([d.supervisor.event(d.now(), "adaptation", "adaptation reset by request")])
+    return {"adaptation": adapt.state()}
+
+
+def _freeze_adaptation(d: Daemon, req: dict) -> dict:
+    """`frozen`: true stops the updates (the adapted state stays in use), false resumes."""
+    frozen = req.get("frozen", True)
+    if not isinstance(frozen, bool):
+        raise RequestError(f"frozen: expected true or false, got {frozen!r}")
+    adapt = _adaptive(d)
+    adapt.frozen = frozen
+    what = "frozen" if frozen else "resumed"
+    d._emit([d.supervisor.event(d.now(), "adaptation", f"adaptation {what} by request")])
+    return {"adaptation": adapt.state()}
+
+
 COMMANDS = {
     "arm": _arm,
     "disarm": _disarm,
@@ -118,6 +147,8 @@ COMMANDS = {
     "set_profile": _set_profile,
     "actuator": _actuator,
     "status": _status,
+    "reset_adaptation": _reset_adaptation,
+    "freeze_adaptation": _freeze_adaptation,
 }
 
 

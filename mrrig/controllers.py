@@ -15,6 +15,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from mrrig.adaptation import AdaptationSettings, GainOffsetRLS
 from mrrig.inversion import (
     DEFAULT_CONTINUITY,
     ScalarInverter,
@@ -60,11 +61,59 @@ class ControlInput:
     f_des_next: np.ndarray | None = None
 
 
+@dataclass(frozen=True)
+class ControllerSettings:
+    """Everything a controller of the registry may be built from; each takes what it needs
+    (`Controller.build`). The daemon makes it from its config's [controller] section,
+    `mrrig bench paper` directly."""
+
+    i_max: float
+    dt_s: float = 0.002
+    model: MLP | None = None
+    method: str = "exact"  # network inversion's solve: INVERSION_METHODS
+    feedback_tau_s: float | None = None
+    continuity: float = DEFAULT_CONTINUITY
+    ahead: bool = False  # network inversion for the instant the command acts on
+    adaptation: AdaptationSettings | None = None  # on-line gain and offset (mrrig/adaptation.py)
+    current_a: float = 0.0  # the constant controller's
+    gradient_iterations: int = 1000
+    seed: int = 0
+
+
+CONTROLLERS: dict[str, type[Controller]] = {}
+
+
+def register(cls: type[Controller]) -> type[Controller]:
+    """Class decorator: the controller is known by its `name` to the daemon's config, the
+    `set_controller` request and `mrrig bench paper`."""
+    CONTROLLERS[cls.name] = cls
+    return cls
+
+
+def make_controller(name: str, settings: ControllerSettings) -> Controller:
+    """The registered controller `name` built from `settings`; ValueError (one line) for an
+    unknown name or settings that do not fit it."""
+    cls = CONTROLLERS.get(name)
+    if cls is None:
+        raise ValueError(f"unknown controller {name!r} (known: {', '.join(CONTROLLERS)})")
+    if cls.needs_model and settings.model is None:
+        raise ValueError(f"controller {name} needs a model")
+    return cls.build(settings)
+
+
 class Controller(abc.ABC):
     """A damper controller: `reset()` before a run, then `command()` once per sample."""
 
     name: str = ""
     controller_id: int = 0  # DamperCommand.ControllerId (spec/can-protocol.md)
+    needs_model = False
+    # whether `command_one` uses the desired force one period ahead (`f_des_next`)
+    wants_next_target = False
+
+    @classmethod
+    def build(cls, s: ControllerSettings) -> Controller:
+        """From the registry's settings (`make_controller`); most need the limit alone."""
+        return cls(s.i_max)
 
     def __init__(self, i_max: float) -> None:
         if not i_max > 0:
@@ -80,15 +129,39 @@ class Controller(abc.ABC):
     def command(self, s: ControlInput) -> np.ndarray:
         """The command for this instant, clamped to [0, i_max]."""
 
-    def command_one(self, x: float, xd: float, xdd: float, f_meas: float, f_des: float) -> float:
+    def command_one(
+        self,
+        x: float,
+        xd: float,
+        xdd: float,
+        f_meas: float,
+        f_des: float,
+        f_des_next: float | None = None,
+    ) -> float:
         """`command` for a batch of one lane, in plain floats (the daemon's loop). The same
         result and state; controllers override it where a float path is cheaper."""
         s = ControlInput(
-            np.array([x]), np.array([xd]), np.array([xdd]), np.array([f_meas]), np.array([f_des])
+            np.array([x]),
+            np.array([xd]),
+            np.array([xdd]),
+            np.array([f_meas]),
+            np.array([f_des]),
+            None if f_des_next is None else np.array([f_des_next]),
         )
         return float(self.command(s)[0])
 
-    def prepare_one(self, x: float, xd: float, xdd: float, f_des: float) -> None:  # noqa: B027
+    def after_send(self) -> None:  # noqa: B027 - most controllers learn nothing on-line
+        """Learn from the instant just commanded (on-line adaptation), once its command has
+        gone out: off the latency path. The daemon calls it only while armed and without a
+        fault in that frame."""
+
+    def adaptation_state(self) -> dict | None:
+        """The on-line adaptation's state (None: the controller has none)."""
+        return None
+
+    def prepare_one(  # noqa: B027
+        self, x: float, xd: float, xdd: float, f_des: float, f_des_next: float | None = None
+    ) -> None:
         """Work ahead for the next `command_one`, from a predicted state and target (the
         daemon calls it after it has answered a frame, while it waits for the next one). It
         changes no result beyond the solver's tolerance; most controllers have nothing to do."""
@@ -178,11 +251,16 @@ class ModelInputs:
         return np.concatenate([np.stack(cols, axis=-1), past], axis=-1)
 
 
+@register
 class ConstantCurrent(Controller):
     """Open loop: the same current all the time."""
 
     name = "constant"
     controller_id = 6
+
+    @classmethod
+    def build(cls, s: ControllerSettings) -> Controller:
+        return cls(s.i_max, s.current_a)
 
     def __init__(self, i_max: float, current: float) -> None:
         super().__init__(i_max)
@@ -194,6 +272,7 @@ class ConstantCurrent(Controller):
         return np.full(np.shape(s.f_des), self.current)
 
 
+@register
 class Heaviside(Controller):
     """Dyke et al. (1996): full or no current by the sign of (f_d - f_a) f_a (eqs 37-38)."""
 
@@ -211,6 +290,7 @@ class Heaviside(Controller):
         return self._held.copy()
 
 
+@register
 class ContinuousState(Controller):
     """Sims et al. (1999): v = clip(G (f_d - B f_a) sgn(f_a), 0, Vmax) (eq. 39)."""
 
@@ -227,6 +307,7 @@ class ContinuousState(Controller):
         return np.clip(v, 0.0, self.i_max)
 
 
+@register
 class NetworkInversion(Controller):
     """The paper's inverse model: solve the frozen forward network for the current.
 
@@ -254,10 +335,32 @@ class NetworkInversion(Controller):
     A forward model with history inputs (`FORWARD_INPUTS` then e.g. x_1, xd_1: `ModelInputs`)
     gets them from the past instants of each lane, past currents being its own commands;
     the unknown is still the present current alone, a scalar solve.
+
+    With `adaptation` (mrrig/adaptation.py), the model's force is gain * f_net + offset,
+    estimated from the load cell in `after_send`; the residual is taken against that force and
+    the network is solved for (target - offset) / gain. The adaptation survives `reset` (a
+    re-arm: the damper is still the one it adapted to); `reset_adaptation` starts it over.
+    Without it the arithmetic is that of the controller without adaptation, bit for bit.
     """
 
     name = "network_inversion"
     controller_id = 1
+    needs_model = True
+
+    @classmethod
+    def build(cls, s: ControllerSettings) -> Controller:
+        return cls(
+            s.i_max,
+            s.model,
+            method=s.method,
+            feedback_tau_s=s.feedback_tau_s,
+            dt_s=s.dt_s,
+            gradient_iterations=s.gradient_iterations,
+            seed=s.seed,
+            continuity=s.continuity,
+            ahead=s.ahead,
+            adaptation=s.adaptation,
+        )
 
     def __init__(
         self,
@@ -271,6 +374,7 @@ class NetworkInversion(Controller):
         seed: int = 0,
         continuity: float = DEFAULT_CONTINUITY,
         ahead: bool = False,
+        adaptation: AdaptationSettings | None = None,
     ) -> None:
         super().__init__(i_max)
         self._inputs = self._forward_inputs(model)
@@ -283,6 +387,8 @@ class NetworkInversion(Controller):
         if ahead and self._inputs.samples:
             raise ValueError("the one-step-ahead solve needs a model without history inputs")
         self.ahead = ahead
+        self.wants_next_target = ahead
+        self.adapt = None if adaptation is None else GainOffsetRLS(adaptation, dt_s)
         self.lag_tau_s = self._lag_tau_s(model)
         # the share of a step of the command that the lagged current makes in one period:
         # u(k+1) = u(k) + lag (v(k) - u(k)), eq. 36 solved exactly for v held over the period
@@ -298,6 +404,7 @@ class NetworkInversion(Controller):
         self._scalar = ScalarInverter(model, i_max, continuity=continuity)
         self._feat = np.empty(model.n_in - 1)  # the float path's features, reused
         self._feat_ahead = np.empty(model.n_in - 1)
+        self._feat_next = np.empty(model.n_in - 1)  # the solved instant's (one step ahead)
 
     @staticmethod
     def _forward_inputs(model: MLP) -> ModelInputs:
@@ -327,6 +434,11 @@ class NetworkInversion(Controller):
         self._first = True
         self._inputs.reset()
         self._scalar.discard_prepared()
+        # the instant just commanded, for `after_send`: the network's force then, the load cell
+        self._f_net_now: np.ndarray | None = None
+        self._f_meas_now = np.zeros(batch)
+        if self.adapt is not None and self.adapt.theta.shape[0] != batch:
+            self.adapt.reset(batch)
 
     def _features(self, s: ControlInput, current: np.ndarray) -> np.ndarray:
         return self._inputs.rows(s, current)
@@ -336,7 +448,22 @@ class NetworkInversion(Controller):
         return self._inputs.rows(s)
 
     def model_force(self, s: ControlInput, current: np.ndarray) -> np.ndarray:
-        return self.model.predict(self._features(s, np.asarray(current, dtype=float)))
+        f = self.model.predict(self._features(s, np.asarray(current, dtype=float)))
+        return f if self.adapt is None else self.adapt.force(f)
+
+    def after_send(self) -> None:
+        if self.adapt is not None and self._f_net_now is not None:
+            self.adapt.update(self._f_net_now, self._f_meas_now)
+            self._f_net_now = None
+
+    def adaptation_state(self) -> dict | None:
+        return None if self.adapt is None else self.adapt.state()
+
+    def _net_target(self, target: np.ndarray) -> np.ndarray:
+        """The network's force that makes the adapted force `target`."""
+        if self.adapt is None:
+            return target
+        return (target - self.adapt.offset_n) / self.adapt.gain
 
     def solved_ahead(self) -> tuple[int, int]:
         return self._scalar.ahead_used, self._scalar.ahead_missed
@@ -362,16 +489,24 @@ class NetworkInversion(Controller):
             self._u = self._u + lag * (self._prev - self._u)  # eq. 36, the held command
         now = self._prev if lag is None else self._u  # what the model's current input is now
         residual = 0.0
+        if self.adapt is not None:
+            self._f_net_now = self.model.predict(self._features(s, now))
+            self._f_meas_now = np.array(s.f_meas, dtype=float)
         if self.feedback_tau_s is not None:
             a = self.dt_s / (self.feedback_tau_s + self.dt_s)
             last = self._residual.copy()
-            self._residual += a * (s.f_meas - self.model_force(s, now) - self._residual)
+            f_model = (
+                self.model_force(s, now)
+                if self.adapt is None
+                else self.adapt.force(self._f_net_now)
+            )
+            self._residual += a * (s.f_meas - f_model - self._residual)
             residual = self._residual
         solve_at = self._solved_instant(s)
         if solve_at is not s and self.feedback_tau_s is not None and not self._first:
             # the residual at the solved instant, one period on, at its last rate of change
             residual = 2.0 * self._residual - last
-        target = solve_at.f_des - residual
+        target = self._net_target(solve_at.f_des - residual)
         if self.method == "gradient":
             # the paper's on-line inverse estimation: a random initial current, then each
             # sample's descent starts from the current now
@@ -412,11 +547,19 @@ class NetworkInversion(Controller):
         self._first = False
         return self._prev.copy()
 
-    def command_one(self, x: float, xd: float, xdd: float, f_meas: float, f_des: float) -> float:
+    def command_one(
+        self,
+        x: float,
+        xd: float,
+        xdd: float,
+        f_meas: float,
+        f_des: float,
+        f_des_next: float | None = None,
+    ) -> float:
         """The float path of `command` for one lane (exact or flow method, no history inputs):
-        the same arithmetic without building arrays, for the real-time loop (no `f_des_next`)."""
+        the same arithmetic without building arrays, for the real-time loop."""
         if self.method == "gradient" or self._inputs.samples or self.batch != 1:
-            return super().command_one(x, xd, xdd, f_meas, f_des)
+            return super().command_one(x, xd, xdd, f_meas, f_des, f_des_next)
         feat = self._feat
         feat[0], feat[1], feat[2] = x, xd, xdd
         lag = self._lag
@@ -425,14 +568,31 @@ class NetworkInversion(Controller):
             u = float(self._u[0])
             now = u + lag * (now - u)  # eq. 36, the held command
             self._u[0] = now
-        target = f_des
+        ahead = self.ahead and f_des_next is not None
+        target = f_des_next if ahead else f_des
+        adapt = self.adapt
+        if self.feedback_tau_s is not None or adapt is not None:
+            f_model = self._scalar.force(feat, now)
+            if adapt is not None:
+                self._f_net_now = np.array([f_model])
+                self._f_meas_now = np.array([f_meas])
+                f_model = float(adapt.force(f_model)[0])
         if self.feedback_tau_s is not None:
-            residual = f_meas - self._scalar.force(feat, now)
             a = self.dt_s / (self.feedback_tau_s + self.dt_s)
-            r = float(self._residual[0])
-            r += a * (residual - r)
+            last = r = float(self._residual[0])
+            r += a * (f_meas - f_model - r)
             self._residual[0] = r
-            target = f_des - r
+            if ahead and not self._first:
+                r = 2.0 * r - last  # at the solved instant, at its last rate of change
+            target = target - r
+        if adapt is not None:
+            target = (target - float(adapt.offset_n[0])) / float(adapt.gain[0])
+        if ahead:
+            # the instant the command first acts on: one period on at constant acceleration
+            # (eq. 21), as `_solved_instant`
+            T = self.dt_s
+            feat = self._feat_next
+            feat[0], feat[1], feat[2] = x + xd * T + 0.5 * xdd * T * T, xd + xdd * T, xdd
         if self.method == "flow":
             i0 = self._rng.uniform(0.0, self.i_max, 1)[0] if self._first else now
             duration = self.gradient_rate * self.gradient_iterations
@@ -446,12 +606,20 @@ class NetworkInversion(Controller):
         self._first = False
         return i
 
-    def prepare_one(self, x: float, xd: float, xdd: float, f_des: float) -> None:
+    def prepare_one(
+        self, x: float, xd: float, xdd: float, f_des: float, f_des_next: float | None = None
+    ) -> None:
         """Solve ahead on the predicted state (`ScalarInverter.prepare`), with the present
-        load-cell correction as the predicted one; the float path's cases only."""
+        load-cell correction (and adaptation) as the predicted one; the float path's cases
+        only. One step ahead, on the state a period after the predicted one, for `f_des_next`."""
         if self.method != "exact" or self._inputs.samples or self.batch != 1:
             return
         feat = self._feat_ahead
+        ahead = self.ahead and f_des_next is not None
+        if ahead:
+            T = self.dt_s
+            x, xd = x + xd * T + 0.5 * xdd * T * T, xd + xdd * T
+            f_des = f_des_next
         feat[0], feat[1], feat[2] = x, xd, xdd
         now = float(self._prev[0])  # what command_one will solve from
         if self._lag is not None:
@@ -460,9 +628,12 @@ class NetworkInversion(Controller):
         target = f_des
         if self.feedback_tau_s is not None:
             target = f_des - float(self._residual[0])
+        if self.adapt is not None:
+            target = (target - float(self.adapt.offset_n[0])) / float(self.adapt.gain[0])
         self._scalar.prepare(feat, target, now)
 
 
+@register
 class SupervisedInverse(Controller):
     """Direct inverse MLP (x, xd, xdd, f_des) -> current, trained by supervised learning.
 
@@ -472,6 +643,11 @@ class SupervisedInverse(Controller):
 
     name = "supervised"
     controller_id = 4
+    needs_model = True
+
+    @classmethod
+    def build(cls, s: ControllerSettings) -> Controller:
+        return cls(s.i_max, s.model)
 
     def __init__(self, i_max: float, model: MLP) -> None:
         super().__init__(i_max)
@@ -508,11 +684,17 @@ def rnn_features(f: np.ndarray, x: np.ndarray, v: np.ndarray) -> np.ndarray:
     return np.stack(cols, axis=-1)
 
 
+@register
 class RecurrentInverse(Controller):
     """Wang & Liao (2005) RNN (paper eq. 40): the previous six commands are fed back."""
 
     name = "rnn"
     controller_id = 5
+    needs_model = True
+
+    @classmethod
+    def build(cls, s: ControllerSettings) -> Controller:
+        return cls(s.i_max, s.model)
 
     def __init__(self, i_max: float, model: MLP) -> None:
         super().__init__(i_max)
@@ -536,11 +718,4 @@ class RecurrentInverse(Controller):
         return v
 
 
-CONTROLLER_NAMES = (
-    "network_inversion",
-    "heaviside",
-    "continuous_state",
-    "supervised",
-    "rnn",
-    "constant",
-)
+CONTROLLER_NAMES = tuple(CONTROLLERS)

@@ -31,14 +31,12 @@ from mrrig.canbus.codec import Codec
 from mrrig.cli_args import HelpFormatter, add_bus_options, output_file, positive
 from mrrig.config import DaemonConfig, ReferenceSection, load_config
 from mrrig.controllers import (
-    ConstantCurrent,
-    ContinuousState,
+    CONTROLLERS,
+    FORWARD_INPUTS,
     ControlInput,
     Controller,
-    Heaviside,
-    NetworkInversion,
-    RecurrentInverse,
-    SupervisedInverse,
+    ControllerSettings,
+    make_controller,
 )
 from mrrig.errors import MrrigError
 from mrrig.estimation import RealtimeKalman
@@ -73,35 +71,45 @@ class SidecarStartError(MrrigError, OSError):
 
 
 def build_controller(cfg: DaemonConfig, section=None) -> Controller:
-    """The configured controller; a model that does not fit stops here with one line."""
+    """The configured controller, from the registry (`controllers.make_controller`); a model
+    that does not fit stops here with one line."""
     c = section or cfg.controller
     i_max, dt = cfg.loop.i_max_a, cfg.loop.period_s
-    if c.name == "heaviside":
-        return Heaviside(i_max)
-    if c.name == "continuous_state":
-        return ContinuousState(i_max)
-    if c.name == "constant":
-        if not 0 <= c.current_a <= i_max:
-            raise ConfigError(f"{cfg.source}: controller.current_a: outside [0, {i_max}] A")
-        return ConstantCurrent(i_max, c.current_a)
-    model = load_model(c.model, cfg.source)
-    try:
-        if c.name == "network_inversion":
-            continuity = c.continuity
-            if continuity is None:
-                continuity = model_continuity(model, c.model)
-                log.info("%s: continuity %g, the model's own", c.model, continuity)
-            return NetworkInversion(
-                i_max,
-                model,
-                method=c.method,
-                feedback_tau_s=c.feedback_tau_s,
-                dt_s=dt,
-                continuity=continuity,
+    if c.name == "constant" and not 0 <= c.current_a <= i_max:
+        raise ConfigError(f"{cfg.source}: controller.current_a: outside [0, {i_max}] A")
+    model = load_model(c.model, cfg.source) if CONTROLLERS[c.name].needs_model else None
+    settings = ControllerSettings(i_max, dt_s=dt, model=model, current_a=c.current_a)
+    if c.name == "network_inversion":
+        continuity = c.continuity
+        if continuity is None:
+            continuity = model_continuity(model, c.model)
+            log.info("%s: continuity %g, the model's own", c.model, continuity)
+        ahead = c.ahead
+        if ahead and len(model.input_names) > len(FORWARD_INPUTS):
+            log.warning(
+                "%s: a model with history inputs: network inversion solves for the present "
+                "instant (the one-step-ahead solve takes a model of x, xd, xdd, current)",
+                c.model,
             )
-        if c.name == "supervised":
-            return SupervisedInverse(i_max, model)
-        return RecurrentInverse(i_max, model)
+            ahead = False
+        if ahead and model.meta.get("current_input", "commanded") != "lagged":
+            log.warning(
+                "%s: a model of the commanded current (no current_input = 'lagged', no "
+                "lag_tau_s): network inversion solves one step ahead without inverting the "
+                "coil's lag; for that, train on the lagged current "
+                "(mrrig train --current-input lagged)",
+                c.model,
+            )
+        settings = replace(
+            settings,
+            method=c.method,
+            feedback_tau_s=c.feedback_tau_s if c.feedback else None,
+            continuity=continuity,
+            ahead=ahead,
+            adaptation=cfg.adaptation.settings(),
+        )
+    try:
+        return make_controller(c.name, settings)
     except ValueError as exc:
         raise ModelError(f"{c.model}: input_names: {exc}") from None
 
@@ -228,6 +236,7 @@ class Daemon:
         self._last_actuator_sent = -math.inf
         self._status_key = None
         self.notifier = sdnotify.Notifier.from_env()  # systemd's READY=1 and watchdog
+        self._targets: list[float] = []  # desired forces of the coming frames (`_targets_now`)
 
     # ---- time and hand-off -------------------------------------------------------------
     def now(self) -> float:
@@ -250,6 +259,7 @@ class Daemon:
             "state": s.state.name,
             "armed": s.active,
             "controller": self.controller.name,
+            "adaptation": self.controller.adaptation_state(),
             "reference": self.reference.kind,
             "fault": s.fault.value if s.fault else None,
             "fault_reason": s.reason,
@@ -325,19 +335,28 @@ class Daemon:
         try:
             x, xd, xdd = self.kf.update(x_meas)
             if self._last_sensor_t is None:
-                self.reference.reset(t, x)
+                self.reset_reference(t, x)
             events += sup.finite(t, "the Kalman estimate", x, xd, xdd)
+            f_next = None
             try:
-                f_des = float(self.reference.force(t, x, xd))
+                if self._pipelined():
+                    f_des, f_next = self._targets_now(t, x, xd, xdd)
+                else:
+                    f_des = float(self.reference.force(t, x, xd))
             except ref.StaleReference as exc:
                 f_des = 0.0
                 if sup.active:
                     events += sup.trip(t, Fault.STALE_REFERENCE, f"stale force reference: {exc}")
+            if f_next is None and self.controller.wants_next_target:
+                f_next = f_des  # a reference not known ahead holds its present value
             # the clamp below passes NaN, and a controller may map it to a finite current
-            events += sup.finite(t, f"the {self.reference.kind} force reference", f_des)
+            what = f"the {self.reference.kind} force reference"
+            events += sup.finite(t, what, f_des, f_des if f_next is None else f_next)
             f_des = min(max(f_des, -DESIRED_FORCE_LIMIT_N), DESIRED_FORCE_LIMIT_N)
+            if f_next is not None:
+                f_next = min(max(f_next, -DESIRED_FORCE_LIMIT_N), DESIRED_FORCE_LIMIT_N)
             if sup.active:
-                i = self.controller.command_one(x, xd, xdd, f_meas, f_des)
+                i = self.controller.command_one(x, xd, xdd, f_meas, f_des, f_next)
                 events += sup.finite(t, f"the {self.controller.name} controller's command", i)
                 if sup.active:
                     i_cmd = min(max(i, 0.0), self.cfg.loop.i_max_a)
@@ -360,6 +379,8 @@ class Daemon:
         self.last_x = x
         f_model = math.nan
         try:
+            if active:
+                self.controller.after_send()  # on-line adaptation: armed, no fault this frame
             # off the latency path: the next frame's Kalman step, reference and controller
             # work, from the predicted state
             self._prepare_next(t + self.period_s, active)
@@ -380,19 +401,68 @@ class Daemon:
         row["xd"], row["xdd"], row["f_meas"], row["f_des"] = xd, xdd, f_meas, f_des
         row["f_model"], row["i_cmd"] = f_model, i_cmd if active else 0.0
         row["i_meas"], row["latency_us"], row["state"] = self._i_meas, latency_us, sup.state
+        adapt = getattr(self.controller, "adapt", None)
+        if adapt is None:
+            row["adapt_gain"] = row["adapt_offset_n"] = math.nan
+        else:
+            row["adapt_gain"], row["adapt_offset_n"] = adapt.theta[0, 0], adapt.offset_n[0]
         self._n += 1
         if self._n == len(self._buf):
             self._flush_samples()
         if events:
             self._emit(events)
 
+    def _pipelined(self) -> bool:
+        """Whether the desired forces are computed a frame ahead (`_targets`): for a controller
+        that solves for the instant its command acts on, with a reference known ahead."""
+        return self.controller.wants_next_target and self.reference.known_ahead
+
+    def reset_reference(self, t: float, x: float, reference: ref.ForceReference | None = None):
+        """(Re)start the force reference (a new one if given) at time t; forget its forces
+        computed ahead."""
+        if reference is not None:
+            self.reference = reference
+        self.reference.reset(t, x)
+        self._targets = []
+
+    def _targets_now(self, t: float, x: float, xd: float, xdd: float) -> tuple[float, float]:
+        """This frame's desired force and the next frame's: computed after the previous
+        frames' commands (`_prepare_next`) where they were, else now, the next one at the
+        state one period on (eq. 21). The reference is evaluated once per instant, in
+        order (a reference damper steps once per frame), on the frame sequence rather than
+        on receive times, which jitter."""
+        T = self.period_s
+        q = self._targets
+        f_des = q[0] if q else float(self.reference.force(t, x, xd))
+        if len(q) > 1:
+            f_next = q[1]
+        else:
+            xn, xdn = x + xd * T + 0.5 * xdd * T * T, xd + xdd * T
+            f_next = float(self.reference.force(t + T, xn, xdn))
+        self._targets = [f_next]
+        return f_des, f_next
+
     def _prepare_next(self, t_next: float, active: bool) -> None:
         """What the next frame's cycle can know before the frame: the Kalman filter's
-        prediction, gain and covariance, the reference for the predicted state, and the
+        prediction, gain and covariance, the reference for the predicted state (one instant
+        further for a controller that solves one step ahead: `_targets_now`), and the
         controller's solve on it (`Controller.prepare_one`)."""
         kf = self.kf
         kf.prepare()
         xp, xdp, xddp = kf.prior
+        if self._pipelined():
+            if len(self._targets) != 1:
+                return  # not after a frame's targets: the next frame computes its own
+            T = self.period_s
+            xn, xdn = xp + xdp * T + 0.5 * xddp * T * T, xdp + xddp * T
+            self._targets.append(float(self.reference.force(t_next + T, xn, xdn)))
+            if active:
+                f_now, f_after = (
+                    min(max(f, -DESIRED_FORCE_LIMIT_N), DESIRED_FORCE_LIMIT_N)
+                    for f in self._targets
+                )
+                self.controller.prepare_one(xp, xdp, xddp, f_now, f_after)
+            return
         self.reference.prepare(t_next, xp, xdp)
         if not active:
             return
@@ -401,7 +471,8 @@ class Daemon:
         except ref.StaleReference:
             return  # the frame itself will say so
         f_next = min(max(f_next, -DESIRED_FORCE_LIMIT_N), DESIRED_FORCE_LIMIT_N)
-        self.controller.prepare_one(xp, xdp, xddp, f_next)
+        wants = self.controller.wants_next_target
+        self.controller.prepare_one(xp, xdp, xddp, f_next, f_next if wants else None)
 
     def _flush_samples(self) -> None:
         batch = self._buf[: self._n].copy()
@@ -446,6 +517,7 @@ class Daemon:
             if p.lost_frames:
                 self.counters["lost_frames"] += p.lost_frames
                 self._emit(self.supervisor.lost_frames(t_rx - self.t0, p.lost_frames))
+                del self._targets[: p.lost_frames]  # those computed for the missing frames
                 for _ in range(p.lost_frames):  # the estimate goes on through the missing periods
                     self.kf.predict_only()
             if self._last_sensor_t is None:
@@ -639,6 +711,7 @@ class Daemon:
                 self.bus.shutdown()
         self.notifier.stopping()  # after the SAFE command
         self.counters["cpu_loop_s"] = time.process_time() - self._cpu0
+        adaptation = self.controller.adaptation_state()
         ahead, missed = self.controller.solved_ahead()
         self.counters["commands_solved_ahead"] = ahead
         self.counters["commands_ahead_missed"] = missed
@@ -653,6 +726,8 @@ class Daemon:
         self.summary["clock_t0_s"] = self.t0
         self.summary["controller"] = self.controller.name
         self.summary["reference"] = self.reference.kind
+        if adaptation is not None:
+            self.summary["adaptation"] = adaptation
         qs = (50, 99, 99.9)
         self.summary["latency_split_us"] = {
             "before_send": self._before_send_us.percentiles(qs),

@@ -45,13 +45,19 @@ REARM_WINDOW_S = 10.0
 
 
 def ensure_sim_model(path: Path, seed: int = 0) -> Path:
-    """Train the forward network on the simulated characterization matrix if `path` is absent."""
-    if path.is_file():
-        log.info("using the forward model %s", path)
-        return path
+    """Train the forward network on the simulated characterization matrix if `path` is absent,
+    or if it is a model of the commanded current (an older demo's): the daemon's default
+    inversion wants a model of the lagged current."""
+    from mrrig.model.mlp import MLP
     from mrrig.training import simulated_matrix_model
 
-    log.info("no %s yet: training one on the simulated characterization matrix", path)
+    if path.is_file():
+        if MLP.load(path).meta.get("current_input") == "lagged":
+            log.info("using the forward model %s", path)
+            return path
+        log.info("%s is a model of the commanded current: training one of the lagged current", path)
+    else:
+        log.info("no %s yet: training one on the simulated characterization matrix", path)
     simulated_matrix_model(path, seed=seed)
     return path
 

@@ -77,6 +77,8 @@ FIELD_ENTITIES: dict[str, str] = {
     "i_cmd": "current/i_cmd",
     "i_meas": "current/i_meas",
     "latency_us": "latency/latency_us",
+    "adapt_gain": "adaptation/gain",
+    "adapt_offset_n": "adaptation/offset_n",
     "state": "state/state",
 }
 

@@ -28,6 +28,9 @@ class StaleReference(MrrigError):
 
 class ForceReference(abc.ABC):
     kind: str = ""
+    # whether the force of a later instant can be computed now (from a predicted state); an
+    # external source's is only known when it arrives
+    known_ahead = True
 
     def reset(self, t_s: float, x_m: float) -> None:  # noqa: B027 - most sources are stateless
         """Called when a run (or this source) starts at time t_s."""
@@ -187,6 +190,7 @@ class External(ForceReference):
     """The latest value sent on `mrrig/<rig>/force_ref`; stale after `timeout_s`."""
 
     kind = "zenoh"
+    known_ahead = False
 
     def __init__(self, timeout_s: float) -> None:
         if timeout_s <= 0:

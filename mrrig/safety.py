@@ -88,6 +88,10 @@ class Supervisor:
             **extra,
         }
 
+    def event(self, t_s: float, kind: str, reason: str) -> dict:
+        """An event of this state that is no fault (e.g. a change of the adaptation)."""
+        return self._event(t_s, kind, reason)
+
     def trip(self, t_s: float, fault: Fault, reason: str) -> list[dict]:
         """Enter FAULT (or stay there, recording the new reason). Returns the events."""
         self.fault, self.reason = fault, reason

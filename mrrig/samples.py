@@ -35,6 +35,8 @@ SAMPLE_DTYPE = np.dtype(
         ("i_cmd", "f8"),  # commanded current, A (0 when SAFE)
         ("i_meas", "f8"),  # measured coil current (latest RigStatus), A
         ("latency_us", "f8"),  # receive -> send of this cycle, microseconds
+        ("adapt_gain", "f8"),  # on-line adaptation's gain on the model force (NaN: none)
+        ("adapt_offset_n", "f8"),  # and its offset, N
         ("state", "u1"),  # RigState
     ]
 )

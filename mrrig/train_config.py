@@ -35,7 +35,7 @@ __all__ = [
 class FeaturesSection:
     """The forward network's inputs (spec/modeling.md 4 B)."""
 
-    current_input: str = "commanded"  # one of CURRENT_INPUTS
+    current_input: str = "lagged"  # one of CURRENT_INPUTS (the default inversion inverts the lag)
     lag_tau_s: float = COIL_LAG_TAU_S  # the coil lag of current_input = "lagged"
     history_samples: int = 0  # previous samples of history_signals as extra inputs
     history_signals: tuple[str, ...] = DEFAULT_HISTORY_SIGNALS

@@ -733,13 +733,19 @@ def measured_series(b: Series) -> Series:
 def simulated_matrix_model(path: str | Path, seed: int = 0, max_epochs: int = 1000) -> MLP:
     """A forward model trained on the simulated characterization matrix (data set B, the
     simulator's plant and sensor noise), saved to `path`: the demo's and the tests' model.
-    As `mrrig train` makes it, from one start: the on-line continuity chosen on its training
-    rows goes with it (meta `online_continuity`, the daemon's default)."""
+    As `mrrig train` makes it, from one start: of the lagged current (the daemon's default
+    one-step-ahead inversion inverts the coil's lag), the on-line continuity chosen on its
+    training rows with it (meta `online_continuity`, the daemon's default)."""
     from mrrig.datasets import dataset_b
 
     series = measured_series(dataset_b())
     model, _, report = train_and_validate(
-        series, seed=seed, max_epochs=max_epochs, supervised=False, restarts=1
+        series,
+        seed=seed,
+        max_epochs=max_epochs,
+        supervised=False,
+        restarts=1,
+        current_input="lagged",
     )
     Path(path).parent.mkdir(parents=True, exist_ok=True)
     model.save(path)

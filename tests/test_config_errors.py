@@ -42,7 +42,7 @@ def run_daemon(tmp_path, text: str) -> subprocess.CompletedProcess:
         (BASE + '[loop]\ni_max_a = "two"\n', "loop.i_max_a: expected a number, got 'two'"),
         (BASE + "[loop]\ni_max_a = 9.0\n", "loop.i_max_a: must be in (0, 5] A"),
         (BASE + "[loop]\nperiod = 0.002\n", "loop.period: unknown field"),
-        (BASE + '[controller]\nname = "magic"\n', "controller.name: expected one of"),
+        (BASE + '[controller]\nname = "magic"\n', "controller.name: unknown controller 'magic'"),
         (
             BASE + '[controller]\nmodel = "no/such/model.json"\n',
             "controller.model: no/such/model.json not found",
