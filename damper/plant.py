@@ -16,7 +16,7 @@ only, so no numpy overhead) and on numpy arrays of equal shape (a batch of indep
 from __future__ import annotations
 
 import math
-from dataclasses import astuple, dataclass
+from dataclasses import astuple, dataclass, replace
 from typing import Any, ClassVar
 
 import numpy as np
@@ -85,6 +85,34 @@ class BoucWenParams:
         if name not in cls.PRESETS:
             raise ValueError(f"unknown Bouc-Wen preset {name!r}; known: {', '.join(cls.PRESETS)}")
         return cls(**_PAPER_TABLE_3)
+
+
+# the force parameters that a temperature scales: viscous (eqs 34-35), yield (eq. 33), stiffness
+VISCOUS_PARAMS = ("c0a", "c0b", "c1a", "c1b")
+YIELD_PARAMS = ("alpha_a", "alpha_b")
+STIFFNESS_PARAMS = ("k0", "k1")
+
+
+def params_at_temperature(
+    params: BoucWenParams,
+    rise_k: float,
+    viscous_per_k: float,
+    yield_per_k: float,
+    stiffness_per_k: float,
+) -> BoucWenParams:
+    """The parameters of a damper `rise_k` warmer than the one `params` describe: each group
+    of force parameters times (1 + coefficient * rise), at least 0.05. With one coefficient
+    for all three groups, the force at any current and motion is scaled by that factor
+    exactly: y' (eq. 32) is a ratio of the scaled parameters, and z (eq. 31) holds none."""
+    factors = {}
+    for names, per_k in (
+        (VISCOUS_PARAMS, viscous_per_k),
+        (YIELD_PARAMS, yield_per_k),
+        (STIFFNESS_PARAMS, stiffness_per_k),
+    ):
+        f = max(0.05, 1.0 + per_k * rise_k)
+        factors.update({n: getattr(params, n) * f for n in names})
+    return replace(params, **factors)
 
 
 def _rates(z: Num, y: Num, u: Num, x: Num, xd: Num, v: Num, k: tuple) -> tuple[Num, Num, Num]:
@@ -171,6 +199,15 @@ class BoucWenDamper:
         self._nodes: tuple[tuple[float, ...], ...] = ()
         self._fast_nodes: dict[int, tuple[tuple[float, ...], ...]] = {}  # more sub-steps, same dt
         self.reset(0.0)
+
+    def set_params(self, params: BoucWenParams) -> None:
+        """New force parameters from the next step on (a damper whose fluid warms), the state
+        kept; the hysteresis shape (gamma, beta, A, n) must stay, for the sub-step bound."""
+        same = ("gamma", "beta", "A", "n")
+        if any(getattr(params, k) != getattr(self.params, k) for k in same):
+            raise ValueError("set_params: gamma, beta, A and n must stay as they are")
+        self.params = params
+        self._k = astuple(params)
 
     @property
     def state(self) -> tuple[Num, Num, Num]:

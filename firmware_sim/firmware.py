@@ -34,7 +34,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from damper.plant import BoucWenDamper, BoucWenParams
+from damper.plant import BoucWenDamper, BoucWenParams, params_at_temperature
 from damper.signals import bandlimited_noise
 from firmware_sim.config import ActuatorConfig, FaultSpec, SimConfig
 from mrrig.canbus.codec import Codec, MessageLayout, Parsed
@@ -46,6 +46,7 @@ WATCHDOG_TIMEOUT_S = 0.020
 RECOVERY_COMMANDS = 5
 ACTUATOR_TIMEOUT_S = 0.5
 PLANT_PRESET = "rig-current"
+HEATING_STEP_K = 0.01  # the plant's parameters are updated when the temperature moved this much
 
 
 class Frame(NamedTuple):
@@ -237,7 +238,9 @@ class Firmware:
             self.actuator.command(
                 act.autostart, act.autostart_amplitude_m, act.autostart_frequency_hz
             )
-        self._plant = BoucWenDamper(BoucWenParams.preset(PLANT_PRESET), config.damper.substep_s)
+        self._params = BoucWenParams.preset(PLANT_PRESET)  # at ambient temperature
+        self._plant = BoucWenDamper(self._params, config.damper.substep_s)
+        self._params_degc = config.thermal.ambient_degc  # the plant's parameters are for this
         self._limit_a = config.damper.current_limit_a
         self.temperature_degc = config.thermal.ambient_degc
 
@@ -473,11 +476,24 @@ class Firmware:
         current_a = self._plant.state[2]
         self.force_n = force
         th = self._cfg.thermal
+        # the damper dissipates the coil's power and the work the actuator does on it
         power_w = th.coil_resistance_ohm * current_a * current_a + force * xd
-        self.temperature_degc += dt_s * (
-            power_w / th.heat_capacity_j_per_k
-            - (self.temperature_degc - th.ambient_degc) / th.time_constant_s
+        rise = self.temperature_degc - th.ambient_degc
+        self.temperature_degc += (
+            dt_s * (power_w - rise / th.thermal_resistance_k_per_w) / th.heat_capacity_j_per_k
         )
+        if th.heating and abs(self.temperature_degc - self._params_degc) >= HEATING_STEP_K:
+            # the force parameters follow the temperature in steps too small to show
+            self._params_degc = self.temperature_degc
+            self._plant.set_params(
+                params_at_temperature(
+                    self._params,
+                    self.temperature_degc - th.ambient_degc,
+                    th.viscous_per_k,
+                    th.yield_per_k,
+                    th.stiffness_per_k,
+                )
+            )
 
         sn = self._cfg.sensors
         gauss = self._gauss

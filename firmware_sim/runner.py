@@ -204,6 +204,7 @@ class RunStats:
             "resyncs": self.resyncs,
             "watchdog_trips": firmware.watchdog_trips,
             "max_commanded_current_a": firmware.max_commanded_current_a,
+            "damper_temperature_degc": firmware.temperature_degc,
             "fault_events": [{"t_s": round(t, 6), "event": e} for t, e in firmware.events],
         }
 

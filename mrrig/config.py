@@ -101,7 +101,8 @@ class ControllerSection:
     # false: for the present instant
     ahead: bool = True
     # load-cell feedback correction (network inversion): on by default; its residual's time
-    # constant (0: the last residual as it is)
+    # constant (0, the default: the last residual as it is; a low-pass filters the load
+    # cell's noise but lags: `mrrig bench paper` and `mrrig demo` measured both)
     feedback: bool = True
     feedback_tau_s: float = 0.0
     # the exact solve's weight toward the previous command; absent: the model's own

@@ -231,6 +231,7 @@ class Daemon:
         self._arm_pending = False
         self._last_counter = 0
         self._i_meas = 0.0
+        self._temp_degc = math.nan  # the damper's, from RigStatus
         self.last_x = 0.0  # the latest displacement estimate, m
         self._last_status_sent = -math.inf
         self._last_actuator_sent = -math.inf
@@ -401,6 +402,7 @@ class Daemon:
         row["xd"], row["xdd"], row["f_meas"], row["f_des"] = xd, xdd, f_meas, f_des
         row["f_model"], row["i_cmd"] = f_model, i_cmd if active else 0.0
         row["i_meas"], row["latency_us"], row["state"] = self._i_meas, latency_us, sup.state
+        row["temp_degc"] = self._temp_degc
         adapt = getattr(self.controller, "adapt", None)
         if adapt is None:
             row["adapt_gain"] = row["adapt_offset_n"] = math.nan
@@ -531,6 +533,7 @@ class Daemon:
             v = p.values
             self.counters["status_frames"] += 1
             self._i_meas = v["CoilCurrent"]
+            self._temp_degc = v["DamperTemperature"]
             state = self.codec.choices("RigStatus", "State").get(int(v["State"]), "?")
             code = int(v["FaultCode"])
             label = self.codec.choices("RigStatus", "FaultCode").get(code, str(code))
@@ -770,6 +773,11 @@ def main(argv: list[str] | None = None) -> int:
     add_bus_options(ap)
     ap.add_argument("--no-telemetry", action="store_true", help="no Zenoh telemetry")
     ap.add_argument(
+        "--adaptation",
+        choices=("on", "off"),
+        help="override adaptation.enabled: on-line gain and offset of the model's force",
+    )
+    ap.add_argument(
         "--insecure",
         action="store_true",
         help="allow a Zenoh config off loopback without authentication and access control "
@@ -784,6 +792,8 @@ def main(argv: list[str] | None = None) -> int:
         overrides["telemetry"] = {"enabled": False}
     if args.can_log is not None:
         overrides["recording"] = {"can_log": str(args.can_log)}
+    if args.adaptation:
+        overrides["adaptation"] = {"enabled": args.adaptation == "on"}
     if args.insecure:
         overrides.setdefault("telemetry", {})["insecure"] = True
     loop = {}

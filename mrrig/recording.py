@@ -79,6 +79,7 @@ FIELD_ENTITIES: dict[str, str] = {
     "latency_us": "latency/latency_us",
     "adapt_gain": "adaptation/gain",
     "adapt_offset_n": "adaptation/offset_n",
+    "temp_degc": "temperature/temp_degc",
     "state": "state/state",
 }
 

@@ -37,6 +37,7 @@ SAMPLE_DTYPE = np.dtype(
         ("latency_us", "f8"),  # receive -> send of this cycle, microseconds
         ("adapt_gain", "f8"),  # on-line adaptation's gain on the model force (NaN: none)
         ("adapt_offset_n", "f8"),  # and its offset, N
+        ("temp_degc", "f8"),  # damper temperature (latest RigStatus), degC
         ("state", "u1"),  # RigState
     ]
 )

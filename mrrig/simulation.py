@@ -38,6 +38,8 @@ def closed_loop(
     fed back every sample) and its command is held over [k, k+1]; f_a(k) is compared with
     f_des(k), as in the paper's Table 6. The reference is known ahead: the controller also
     gets f_des(k+1) (`ControlInput.f_des_next`; at the last sample f_des(k)).
+    After each command the controller learns from that instant (`after_send`, the
+    adaptation), as the rig daemon lets it after the command has gone out.
     The dampers start at rest with the coil state u0 (B,) (command units; the controllers are
     not told it). A reference made by `simulate` starts at rest with u = its first command:
     with that u0, a controller that commands the reference's own voltages tracks it exactly.
@@ -64,6 +66,7 @@ def closed_loop(
             f_des_next=f_des[:, min(k + 1, n - 1)],
         )
         command[:, k] = controller.command(s)
+        controller.after_send()  # the rig daemon's on-line learning, once the command is out
         if k + 1 < n:
             cmd = command[:, k].tolist()
             f_a = np.array(

@@ -87,6 +87,11 @@ class SummaryAccumulator:
         self.first_t = self.last_t = math.nan
         self.f_des = _Moments()  # armed frames
         self.sse = 0.0  # armed: sum of (f_des - f_meas)^2
+        # armed frames after an armed frame: their force answers an armed command (the first
+        # frame of an armed stretch measures the damper as it was before arming)
+        self.f_des_answered = _Moments()
+        self.sse_answered = 0.0
+        self._last_armed = False  # the previous batch's last frame
         self.error = Histogram(ERROR_BIN_N, ERROR_TOP_N)
         self.i_cmd = _Moments()  # every frame
         # |i_cmd(k) - i_cmd(k-1)| where frames k-1 and k are both armed
@@ -111,6 +116,11 @@ class SummaryAccumulator:
         f_des, f_meas = samples["f_des"][armed], samples["f_meas"][armed]
         self.f_des.add(f_des)
         self.sse += float(((f_des - f_meas) ** 2).sum())
+        answered = armed & np.concatenate([[self._last_armed], armed[:-1]])
+        self._last_armed = bool(armed[-1])
+        f_des_a = samples["f_des"][answered]
+        self.f_des_answered.add(f_des_a)
+        self.sse_answered += float(((f_des_a - samples["f_meas"][answered]) ** 2).sum())
         self.error.add(np.abs(f_des - f_meas))
         self.i_cmd.add(samples["i_cmd"])
         self._add_steps(samples["i_cmd"].astype(float), armed)
@@ -134,6 +144,12 @@ class SummaryAccumulator:
         fd = self.f_des
         # eqs 41-43; undefined without an armed frame or for a constant target
         et = math.sqrt(self.sse) / math.sqrt(fd.m2) if fd.n and fd.max > fd.min else math.nan
+        fa = self.f_des_answered
+        et_answered = (
+            math.sqrt(self.sse_answered) / math.sqrt(fa.m2)
+            if fa.n and fa.max > fa.min
+            else math.nan
+        )
         i = self.i_cmd
         out: dict[str, Any] = {
             "duration_s": self.last_t - self.first_t if self.frames else 0.0,
@@ -146,6 +162,7 @@ class SummaryAccumulator:
                 if ev.get("kind") == "fault"
             ],
             "et": et,
+            "et_answered": et_answered,
             "tracking_error_n": self.error.percentiles((50, 95)),
             "i_cmd_a": {
                 "mean": i.mean if i.n else math.nan,
@@ -162,6 +179,17 @@ class SummaryAccumulator:
         for key, value in (counters or {}).items():
             out.setdefault(key, value)
         return out
+
+
+# the spec's budget of the daemon's work per frame, receive -> send (spec/system.md)
+LATENCY_BUDGET_US = {"p99": 300.0, "p99.9": 1000.0}
+
+
+def _budget_line(latency_us: Mapping[str, float]) -> str:
+    over = [k for k, limit in LATENCY_BUDGET_US.items() if not latency_us.get(k, math.nan) <= limit]
+    budget = ", ".join(f"{k} <= {v:g} us" for k, v in LATENCY_BUDGET_US.items())
+    verdict = "within it" if not over else "OVER it at " + ", ".join(over)
+    return f"the spec's budget {budget}: {verdict}"
 
 
 def frame_gaps(t_s: np.ndarray) -> dict[str, float | int]:
@@ -224,11 +252,13 @@ def format_summary(d: Mapping[str, Any]) -> str:
     lines = [
         f"duration      {_fmt(d['duration_s'], ' s', 6)}, {d['frames']} frames"
         f" ({d['armed_frames']} armed)",
-        f"Et            {_fmt(d['et'])} (armed frames)",
+        f"Et            {_fmt(d['et'])} (armed frames); {_fmt(d['et_answered'])} where the"
+        " force answers an armed command (all but each armed stretch's first frame)",
         f"|f_des-f_meas| {_stats_line(d['tracking_error_n'], ' N')}",
         f"i_cmd         {_stats_line(d['i_cmd_a'], ' A')}",
         f"i_cmd steps   {_step_line(d['i_cmd_step_a'])} (between armed frames)",
         f"latency       {_stats_line(d['latency_us'], ' us')}",
+        f"              {_budget_line(d['latency_us'])}",
         f"frame gaps    max {_fmt(d['frame_gap_ms']['max'], ' ms')},"
         f" {d['frame_gap_ms']['over_10_ms']} over 10 ms",
         f"faults        {len(d['faults'])}",
@@ -240,6 +270,7 @@ def format_summary(d: Mapping[str, Any]) -> str:
         "frames",
         "armed_frames",
         "et",
+        "et_answered",
         "tracking_error_n",
         "i_cmd_a",
         "i_cmd_step_a",

@@ -53,17 +53,22 @@ enabled = false
 class ScriptedRig:
     """The firmware's side of the bus, driven by the test."""
 
-    def __init__(self, tmp_path: Path, timeout_periods: int = 50):
+    def __init__(self, tmp_path: Path, timeout_periods: int = 50, config=None, **daemon_kw):
+        """`config(channel) -> path`: a daemon config of the test's own on that channel (else
+        `write_config`'s); `daemon_kw` go to the `Daemon` (e.g. record_path)."""
         # a generous sensor timeout by default: the test thread plays the firmware and can be
         # slower than 2 ms per frame on a loaded machine; the timeout test sets the real one
         self.channel = f"rig-harness-{next(_channels)}"
-        cfg_path = write_config(tmp_path, self.channel, timeout_periods)
+        if config is None:
+            cfg_path = write_config(tmp_path, self.channel, timeout_periods)
+        else:
+            cfg_path = config(self.channel)
         self.cfg = load_config(cfg_path)
         self.codec = Codec()
         self.packer = self.codec.packer("RIG")
         self.parser = self.codec.parser()
         self.bus = can.Bus(interface="virtual", channel=self.channel, receive_own_messages=False)
-        self.daemon = Daemon(self.cfg, keep_batches=True)
+        self.daemon = Daemon(self.cfg, keep_batches=True, **daemon_kw)
         self.thread = threading.Thread(target=self.daemon.run, daemon=True)
         self.counter = 0
 

@@ -31,7 +31,7 @@ def test_bench_paper_counts_the_cases_at_or_below_each_reference() -> None:
     text = "\n".join(acceptance_lines(table, paper, starts))
     # by hand: 0.17 > 0.04 is the one case above, 0.17 / 0.04 = 4.25
     assert (
-        "exact (default) + feedback             6 of 7 cases at or below, worst ratio 4.25" in text
+        "exact, present instant + feedback      6 of 7 cases at or below, worst ratio 4.25" in text
     )
     assert "root" not in text  # rows the table lacks are left out
     # 0.08 and 0.07 and 0.08 at or below 0.08; 0.2 / 0.08 = 2.5

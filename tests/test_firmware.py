@@ -476,3 +476,46 @@ def test_shipped_config_loads_and_a_bad_field_is_named(tmp_path):
     bad.write_text("[thermal]\ncoil_resistance_ohm = nan\n")
     with pytest.raises(ConfigError, match=r"thermal.coil_resistance_ohm: expected a finite number"):
         load_config(bad)
+
+
+# ------------------------------------------------------------------------------- heating
+def _heating(heating: bool, **thermal) -> SimConfig:
+    from firmware_sim.config import ThermalConfig
+
+    th = ThermalConfig(heating=heating, heat_capacity_j_per_k=100.0, **thermal)  # warms fast
+    return dataclasses.replace(QUIET, thermal=th)
+
+
+def _forces_while_moving(config: SimConfig, seconds: float) -> tuple[list[float], list[float]]:
+    rig = Rig(config)
+    rig.actuator("SINE", 0.02, 5.0)
+    rig.run(round(seconds / T), answer="ACTIVE", current_a=1.5)
+    force = [p.values["Force"] for p in rig.sensors]
+    temps = [p.values["DamperTemperature"] for p in rig.status]
+    return force, temps
+
+
+def test_the_damper_warms_from_its_dissipated_power_and_rig_status_reports_it():
+    force, temps = _forces_while_moving(_heating(False), 6.0)
+    assert temps[0] == pytest.approx(25.0, abs=0.01)
+    assert temps[-1] > temps[0] + 5.0  # the actuator's work and the coil's power
+    assert all(b >= a - 0.01 for a, b in zip(temps, temps[1:], strict=False))
+
+
+def test_with_heating_on_the_force_falls_as_the_damper_warms_and_off_it_does_not():
+    cold, temps = _forces_while_moving(_heating(False), 6.0)
+    warm, temps_on = _forces_while_moving(_heating(True), 6.0)
+    assert temps_on[-1] > 40.0
+    n = round(0.2 / T)  # the last cycle of the same motion and current
+    ratio = max(map(abs, warm[-n:])) / max(map(abs, cold[-n:]))
+    rise = temps_on[-2] - 25.0  # RigStatus every 100 ms: the one inside that cycle
+    # -0.003 per K for every force parameter: the force scaled by 1 - 0.003 * rise
+    assert ratio == pytest.approx(1.0 - 0.003 * rise, abs=0.02)
+    assert warm[: n // 5] == cold[: n // 5]  # the same damper while still cold
+
+
+def test_heating_coefficients_out_of_range_are_refused(tmp_path):
+    path = tmp_path / "sim.toml"
+    path.write_text("[thermal]\nheating = true\nviscous_per_k = -0.5\n")
+    with pytest.raises(ConfigError, match="thermal.viscous_per_k"):
+        load_config(path)

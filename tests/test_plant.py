@@ -161,3 +161,23 @@ def test_a_step_faster_than_its_substeps_are_stable_for_takes_more_of_them(speed
 def test_step_rejects_non_positive_interval():
     with pytest.raises(ValueError, match="dt_s"):
         BoucWenDamper(PAPER).step(0.0, 0.0, 0.0, 0.0)
+
+
+def test_at_75_degc_the_force_at_the_same_current_and_motion_is_15_percent_less():
+    """The `heating` preset's default: every force parameter falls 0.3 % per K."""
+    from damper.plant import params_at_temperature
+
+    warm = params_at_temperature(PAPER, 50.0, -0.003, -0.003, -0.003)
+    t = np.arange(0, 1.0, 1e-3)
+    x, xd = 0.01 * np.sin(2 * np.pi * 3 * t), 0.01 * 2 * np.pi * 3 * np.cos(2 * np.pi * 3 * t)
+    forces = []
+    for p in (PAPER, warm):
+        d = BoucWenDamper(p)
+        d.reset(x[0], xd[0], 1.0)
+        forces.append(
+            np.array([d.step(a, b, 1.0, 1e-3) for a, b in zip(x[1:], xd[1:], strict=True)])
+        )
+    np.testing.assert_allclose(forces[1], 0.85 * forces[0], rtol=1e-9, atol=1e-9)
+    d = BoucWenDamper(PAPER)
+    with pytest.raises(ValueError, match="gamma"):
+        d.set_params(dataclasses.replace(PAPER, gamma=1.0))

@@ -59,11 +59,12 @@ def test_example_config_is_the_built_in_defaults():
 
 
 def test_built_in_defaults_are_the_librarys():
-    """Without --config `mrrig train` runs as before: the defaults are train_and_validate's."""
+    """Without --config `mrrig train` trains as train_and_validate's defaults do, but for the
+    current input: the lagged current, which the daemon's default inversion inverts."""
     lib = {k: p.default for k, p in inspect.signature(train_and_validate).parameters.items()}
     f, t = TrainConfig().features, TrainConfig().training
-    assert (f.current_input, f.lag_tau_s, f.history_samples, f.history_signals) == (
-        lib["current_input"],
+    assert f.current_input == "lagged"
+    assert (f.lag_tau_s, f.history_samples, f.history_signals) == (
         lib["lag_tau_s"],
         lib["history_samples"],
         lib["history_signals"],

@@ -14,6 +14,7 @@ BENCHES = {
     "inversion": "mrrig.bench.inversion",
     "loop": "mrrig.bench.loop",
     "matrix": "mrrig.bench.matrix",
+    "drift": "mrrig.bench.drift",
 }
 
 
