@@ -490,16 +490,14 @@ class NetworkInversion(Controller):
         now = self._prev if lag is None else self._u  # what the model's current input is now
         residual = 0.0
         if self.adapt is not None:
-            self._f_net_now = self.model.predict(self._features(s, now))
+            f_net = self.model.predict(self._features(s, now))
+            # the first instant's force answers no command of this run: nothing to learn
+            self._f_net_now = None if self._first else f_net
             self._f_meas_now = np.array(s.f_meas, dtype=float)
         if self.feedback_tau_s is not None:
             a = self.dt_s / (self.feedback_tau_s + self.dt_s)
             last = self._residual.copy()
-            f_model = (
-                self.model_force(s, now)
-                if self.adapt is None
-                else self.adapt.force(self._f_net_now)
-            )
+            f_model = self.model_force(s, now) if self.adapt is None else self.adapt.force(f_net)
             self._residual += a * (s.f_meas - f_model - self._residual)
             residual = self._residual
         solve_at = self._solved_instant(s)
@@ -574,7 +572,8 @@ class NetworkInversion(Controller):
         if self.feedback_tau_s is not None or adapt is not None:
             f_model = self._scalar.force(feat, now)
             if adapt is not None:
-                self._f_net_now = np.array([f_model])
+                # the first instant's force answers no command of this run: nothing to learn
+                self._f_net_now = None if self._first else np.array([f_model])
                 self._f_meas_now = np.array([f_meas])
                 f_model = float(adapt.force(f_model)[0])
         if self.feedback_tau_s is not None:

@@ -155,7 +155,7 @@ def test_a_spike_through_the_controller_is_bounded_too():
         assert step[1] * 1000.0 <= s.max_offset_step_n + 1e-9
         if k == 150:
             assert ctrl.adapt.skipped == 1 and not step.any()
-    assert ctrl.adapt.updates == 198
+    assert ctrl.adapt.updates == 197  # not the first instant, not the spike
 
 
 def test_settings_out_of_range_are_refused():
@@ -213,7 +213,7 @@ def test_adaptation_runs_only_while_armed_and_never_in_a_fault(tmp_path, sim_mod
         _frames(rig, 100, 60)
         armed = _armed(rig)
         learnt = adapt.updates + adapt.skipped
-        assert learnt == armed > 0
+        assert learnt == armed - 1 > 0  # each armed frame but the first (it answers none)
         theta = adapt.theta.copy()
         rig.exchange(SensorFault=1)  # FAULT within this frame: no update from it
         assert rig.daemon.supervisor.state is RigState.FAULT
@@ -241,6 +241,9 @@ def test_the_recording_holds_the_adapted_state_and_the_model_file_is_unchanged(t
     with ScriptedRig(tmp_path, config=cfg, record_path=record) as rig:
         _frames(rig, 300)
         final = rig.daemon.controller.adaptation_state()
+        # the recording is closed before the daemon's thread ends: time for that
+        rig.daemon.request_stop("test done")
+        rig.thread.join(timeout=60)
     assert final["updates"] > 0 and final["gain"] != 1.0
     summary = rig.daemon.summary
     assert summary["adaptation"]["gain"] == final["gain"]

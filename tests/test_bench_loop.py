@@ -72,3 +72,36 @@ def test_bench_help_is_the_named_benchmarks_own(capsys) -> None:
         main(["fly"])
     assert done.value.code == 2
     assert "invalid choice: 'fly'" in capsys.readouterr().err
+
+
+def test_bench_paper_prints_table_6_with_the_daemons_default_and_keeps_the_rest_for_detail():
+    from mrrig.bench.paper import TABLE_ROWS, format_report, labels
+
+    choice = {"feedback": {"feedback_tau_s": 0.0, "continuity": 0.03}, "open": {"continuity": 0.1}}
+    names = [*TABLE_ROWS, "default_flow", "default_gradient", "network_inversion_root"]
+    row = {n: [0.01 * (k + 1)] * 7 for k, n in enumerate(names)}
+    lab = labels(choice, 0.3, 0.03)
+    assert [n for n in lab if "default" in lab[n]] == ["default"]  # only the daemon's
+    r = {
+        "cases": [f"c{k}" for k in range(7)],
+        "dt_s": 1e-3,
+        "vmax_v": 12.0,
+        "table6": row,
+        "paper_table6": {"heaviside": [0.5] * 7},
+        "random_starts": {},
+        "labels": lab,
+        "default_settings": {"method": "exact", "feedback_tau_s": 0.0, "continuity": 0.03},
+        "inversion_cost": {
+            "step_ahead_feedback_us_median": 40.0,
+            "step_ahead_feedback_us_p99": 80.0,
+            "step_flow_us_median": 30.0,
+            "step_gradient_us_median": 9000.0,
+            "step_adaptation_us_median": 45.0,
+        },
+    }
+    text = format_report(r)
+    assert lab["default"] in text and lab["default_adaptation"] in text
+    assert lab["network_inversion_root"] not in text  # exploratory: only with --detail
+    # the measurement's pick: the smallest mean Et of the three solves (exact here)
+    assert "the measurement picks exact (the default)." in text
+    assert "  paper" in text and "what differs from the paper" in text

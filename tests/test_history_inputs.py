@@ -343,7 +343,10 @@ def test_daemon_loop_runs_a_history_model_like_the_controller_offline(tmp_path, 
     s = np.concatenate(rig.daemon.handed_over())
     s = s[s["state"] == RigState.ARMED]
     assert s.size >= 40
-    offline = NetworkInversion(rig.cfg.loop.i_max_a, history_model)
+    # the daemon's default load-cell feedback (with a history model: the present instant)
+    offline = NetworkInversion(
+        rig.cfg.loop.i_max_a, history_model, feedback_tau_s=section.feedback_tau_s
+    )
     offline.reset(1)
     for row in s:
         inst = ControlInput(
