@@ -94,6 +94,8 @@ _SERIES_NAMES: dict[str, str] = {
     "x_est": "x_est estimated (Kalman)",
     "xd": "xd estimated (Kalman)",
     "xdd": "xdd estimated (Kalman)",
+    "adapt_gain": "gain on the model force",
+    "adapt_offset_n": "offset of the model force (N)",
 }
 
 _SERIES_COLORS: dict[str, tuple[int, int, int]] = {
@@ -154,8 +156,8 @@ def _loop_view(origin: str, name: str) -> rrb.Spatial2DView:
 
 
 def default_blueprint() -> rrb.Blueprint:
-    """One tab per task: tracking (forces, their error, the loops), current, motion, timing,
-    events with the run's summary."""
+    """One tab per task: tracking (forces, their error, the loops), current, motion, the
+    on-line adaptation and the damper's temperature, timing, events with the run's summary."""
     return rrb.Blueprint(
         rrb.Tabs(
             rrb.Horizontal(
@@ -182,6 +184,11 @@ def default_blueprint() -> rrb.Blueprint:
                 _series_view("velocity", "Velocity, estimated (m/s)", legend=False),
                 _series_view("acceleration", "Acceleration, estimated (m/s^2)", legend=False),
                 name="Motion",
+            ),
+            rrb.Vertical(
+                _series_view("adaptation", "On-line adaptation: gain, offset (N)"),
+                _series_view("temperature", "Damper temperature (degC)", legend=False),
+                name="Adaptation",
             ),
             rrb.Vertical(
                 _series_view("latency", "Cycle latency, receive -> send (us)", legend=False),

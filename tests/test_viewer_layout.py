@@ -32,11 +32,19 @@ def test_blueprint_has_one_tab_per_task(recorded):
     root = read_blueprint(recorded)
     assert root.kind == "tabs"
     tabs = {tab.name: tab for tab in root.children}
-    assert list(tabs) == ["Tracking", "Current", "Motion", "Timing", "Events and summary"]
+    assert list(tabs) == [
+        "Tracking",
+        "Current",
+        "Motion",
+        "Adaptation",
+        "Timing",
+        "Events and summary",
+    ]
     origins = {name: {v.origin: v for v in tab.views()} for name, tab in tabs.items()}
     assert set(origins["Tracking"]) == {"forces", ERROR_ENTITY, LOOP_FV_ENTITY, LOOP_FX_ENTITY}
     assert set(origins["Current"]) == {"current", "state"}
     assert set(origins["Motion"]) == {"displacement", "velocity", "acceleration"}
+    assert set(origins["Adaptation"]) == {"adaptation", "temperature"}
     assert set(origins["Timing"]) == {"latency", GAP_ENTITY, "state"}
     events = origins["Events and summary"]
     assert events["events"].kind == "TextLog"
@@ -49,7 +57,7 @@ def test_blueprint_has_one_tab_per_task(recorded):
 
 
 def test_every_time_series_names_its_unit_and_keeps_its_legend_in_a_corner(recorded):
-    units = ("(N)", "(A)", "(m)", "(m/s)", "(m/s^2)", "(us)", "(ms)", "IDLE")
+    units = ("(N)", "(A)", "(m)", "(m/s)", "(m/s^2)", "(us)", "(ms)", "(degC)", "IDLE")
     for view in read_blueprint(recorded).views():
         if view.kind != "TimeSeries":
             continue

@@ -32,6 +32,7 @@ from mrrig.demo import SIM_MODEL, RearmLimit, _stop, ensure_sim_model, watch_and
 from mrrig.metrics import error_norm
 from mrrig.realtime import keep_off_cpu
 from mrrig.samples import RigState
+from mrrig.typed_config import load_toml
 
 log = logging.getLogger(__name__)
 
@@ -44,7 +45,6 @@ def _one_run(
     adaptation: bool, duration_s: float, sim_config: Path, rig_config: Path, work: Path
 ) -> dict:
     """One force-tracking run; its recording's numbers per minute."""
-    from firmware_sim.config import load_config as load_sim_config
     from mrrig.review import read_recording
 
     tag = "with" if adaptation else "without"
@@ -104,13 +104,16 @@ def _one_run(
                 "gain_end": float(s["adapt_gain"][w][-1]) if w.any() else float("nan"),
             }
         )
-    th = load_sim_config(sim_config).thermal
+    # the simulator's heating coefficients, from its config file (mrrig never imports the
+    # simulator: it runs as its own process)
+    th = load_toml(sim_config).get("thermal", {})
     finite = s["temp_degc"][np.isfinite(s["temp_degc"])]
     t_start, t_end = (float(finite[0]), float(finite[-1])) if finite.size else (np.nan, np.nan)
-    rise = t_end - th.ambient_degc
+    rise = t_end - float(th.get("ambient_degc", t_start))
     # every force parameter times (1 + coefficient * rise): with one coefficient, the force
     # at a fixed current and motion falls by that share (damper.plant.params_at_temperature)
-    factors = [1.0 + k * rise for k in (th.viscous_per_k, th.yield_per_k, th.stiffness_per_k)]
+    keys = ("viscous_per_k", "yield_per_k", "stiffness_per_k")
+    factors = [1.0 + float(th.get(k, np.nan)) * rise for k in keys]
     return {
         "adaptation": adaptation,
         "minutes": minutes,
