@@ -427,11 +427,15 @@ class Firmware:
             if not self._tripped:
                 self._tripped = True
                 self.watchdog_trips += 1
+                # after SAFE commands the coil is at 0 A already: the host has stopped, as
+                # at the end of every run; after ACTIVE ones the host went silent mid-control
+                after = "ACTIVE" if self._active else "SAFE"
                 self._event(
                     t_s,
                     f"watchdog: no valid DamperCommand for "
-                    f"{(t_s - self._last_cmd_s) * 1e3:.1f} ms, coil to 0 A",
-                    logging.WARNING,
+                    f"{(t_s - self._last_cmd_s) * 1e3:.1f} ms after {after} commands, coil to 0 A"
+                    + ("" if self._active else " (the daemon stopped or stalled)"),
+                    logging.WARNING if self._active else logging.INFO,
                 )
             self._n_active = self._n_safe = 0
         if (

@@ -33,6 +33,8 @@ from mrrig import client
 from mrrig.canbus.bus import find_free_port, start_bridge, stop_bridge
 from mrrig.cli_args import HelpFormatter, int_at_least, positive
 from mrrig.config import load_config
+from mrrig.demo_report import DemoProgress, open_hint, verdict
+from mrrig.errors import MrrigError
 from mrrig.realtime import keep_off_cpu
 from mrrig.safety import TRANSPORT_FAULTS
 from mrrig.sidecar import keys
@@ -42,6 +44,10 @@ log = logging.getLogger(__name__)
 SIM_MODEL = Path("models/sim-forward.json")
 WATCH_PERIOD_S = 0.25
 REARM_WINDOW_S = 10.0
+
+
+class DemoError(MrrigError, RuntimeError):
+    """The demo could not run (a process did not start or stop as it should)."""
 
 
 def ensure_sim_model(path: Path, seed: int = 0) -> Path:
@@ -75,13 +81,22 @@ def _stop(proc: subprocess.Popen, name: str, timeout_s: float = 10.0) -> int:
 
 
 class _LatestStatus:
-    """Subscriber callback keeping the newest status the daemon published (on change, 1 Hz)."""
+    """Subscriber callback keeping the newest status the daemon published (on change, 1 Hz):
+    `status` until acted on, `last` for the progress line, and the faults counted."""
 
     def __init__(self) -> None:
         self.status: dict | None = None
+        self.last: dict | None = None
+        self.faults = 0
 
     def __call__(self, sample) -> None:
-        self.status = json.loads(sample.payload.to_bytes())
+        st = json.loads(sample.payload.to_bytes())
+        prev = self.last or {}
+        if st["state"] == "FAULT" and (
+            prev.get("state") != "FAULT" or prev.get("fault_reason") != st["fault_reason"]
+        ):
+            self.faults += 1
+        self.status = self.last = st
 
 
 class RearmLimit:
@@ -110,11 +125,12 @@ def watch_and_rearm(
     zenoh_config: Path,
     limit: RearmLimit,
     timeout_s: float,
+    progress: DemoProgress | None = None,
 ) -> tuple[int, list[str]]:
     """Wait for the daemon to exit (at most `timeout_s`), re-arming it over Zenoh after each
     transport fault its published status shows, as long as `limit` allows. Returns its exit
     code and the faults' reasons. A refused arm (the firmware still in FAULT) is tried again
-    on a later status."""
+    on a later status. `progress` prints its line a second from the telemetry."""
     deadline = time.monotonic() + timeout_s
     rearmed: list[str] = []
     latest = _LatestStatus()
@@ -124,7 +140,9 @@ def watch_and_rearm(
             if time.monotonic() > deadline:
                 raise subprocess.TimeoutExpired(daemon.args, timeout_s)
             time.sleep(WATCH_PERIOD_S)
-            if limit.ended:
+            if progress is not None:
+                progress.tick(latest.last, latest.faults, len(rearmed))
+            elif limit.ended:
                 continue
             st = latest.status
             try:
@@ -132,7 +150,12 @@ def watch_and_rearm(
                     session = stack.enter_context(client.open_session(zenoh_config))
                     sub = session.declare_subscriber(keys(rig)["status"], latest)
                     stack.callback(sub.undeclare)  # before the session closes
-                if st is None or st["state"] != "FAULT" or st["fault"] not in TRANSPORT_FAULTS:
+                    if progress is not None:
+                        tel = session.declare_subscriber(keys(rig)["telemetry"], progress.et)
+                        stack.callback(tel.undeclare)
+                if limit.ended or st is None or st["state"] != "FAULT":
+                    continue
+                if st["fault"] not in TRANSPORT_FAULTS:
                     continue
                 latest.status = None  # act on this fault once; the next status tells the rest
                 if not limit.allows(time.monotonic()):
@@ -197,6 +220,14 @@ def main(argv: list[str] | None = None) -> int:
     )
     args = ap.parse_args(argv)
 
+    cfg = load_config(args.config)
+    if cfg.telemetry.enabled:
+        _refuse_a_running_daemon(cfg.rig.name, args.zenoh_config)
+    record = args.record
+    if record is None and cfg.recording.enabled:
+        from mrrig.recording import recording_path
+
+        record = recording_path(cfg.recording.directory, cfg.rig.name)
     ensure_sim_model(args.model)
     port = find_free_port()
     work = Path(tempfile.mkdtemp(prefix="mrrig-demo-"))
@@ -219,13 +250,12 @@ def main(argv: list[str] | None = None) -> int:
             ],
         )
         # the daemon's loop gets its CPU (loop.cpu) to itself
-        cfg = load_config(args.config)
         loop_cpu = cfg.loop.cpu
         keep_off_cpu(bridge.pid, loop_cpu, "CAN bridge")
         keep_off_cpu(sim.pid, loop_cpu, "firmware_sim")
         time.sleep(1.0)  # the simulator connects and starts streaming
         if sim.poll() is not None:
-            raise RuntimeError(f"firmware_sim exited at start (code {sim.returncode})")
+            raise DemoError(f"firmware_sim exited at start (code {sim.returncode})")
         summary_json = work / "daemon-summary.json"
         cmd = [
             sys.executable,
@@ -242,8 +272,10 @@ def main(argv: list[str] | None = None) -> int:
             "--summary-json",
             str(summary_json),
         ]
-        if args.record:
-            cmd += ["--record", str(args.record)]
+        if record is not None:
+            cmd += ["--record", str(record)]
+        else:
+            cmd += ["--no-record"]
         log.info("daemon: %s", " ".join(cmd[2:]))
         daemon = subprocess.Popen(cmd)
         keep_off_cpu(os.getpid(), loop_cpu, "demo")  # and the Zenoh session's threads
@@ -251,11 +283,12 @@ def main(argv: list[str] | None = None) -> int:
         if args.max_rearms and not cfg.telemetry.enabled:
             log.info("demo: telemetry is off in %s: no Zenoh, no re-arming", args.config)
         limit = RearmLimit(max_rearms, args.rearm_window)
+        progress = DemoProgress(args.duration) if cfg.telemetry.enabled else None
         rc, rearmed = watch_and_rearm(
-            daemon, cfg.rig.name, args.zenoh_config, limit, args.duration + 120
+            daemon, cfg.rig.name, args.zenoh_config, limit, args.duration + 120, progress
         )
         if rc != 0:
-            raise RuntimeError(f"the daemon exited with code {rc}")
+            raise DemoError(f"the daemon exited with code {rc} (its error is above)")
         _stop(sim, "firmware_sim")
         stats = json.loads(sim_stats.read_text())
         print(_sim_report(stats))
@@ -263,12 +296,29 @@ def main(argv: list[str] | None = None) -> int:
             f"demo: re-armed the daemon {len(rearmed)} times after a transport fault"
             + "".join(f"\n  {reason}" for reason in rearmed)
         )
-        return 0
+        ok, text = verdict(json.loads(summary_json.read_text()))
+        print(text)
+        if record is not None:
+            print(open_hint(record))
+        return 0 if ok else 1
     finally:
         for proc, name in ((daemon, "daemon"), (sim, "firmware_sim")):
             if proc is not None:
                 _stop(proc, name)
         stop_bridge(bridge)
+
+
+def _refuse_a_running_daemon(rig: str, zenoh_config: Path) -> None:
+    """A daemon of this rig that already answers (another demo, a `mrrig run`) would take the
+    demo's Zenoh port, and the demo would re-arm it: stop before starting anything."""
+    try:
+        client.request(rig, {"cmd": "status"}, zenoh_config, 0.5)
+    except client.ClientError:
+        return  # nothing answers: the way is clear
+    raise DemoError(
+        f"a daemon of rig {rig!r} already answers on {zenoh_config}'s Zenoh network (another"
+        " demo or mrrig run?): stop it first, or give this demo another rig name and port"
+    )
 
 
 def _sim_report(stats: dict) -> str:

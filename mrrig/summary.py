@@ -157,7 +157,9 @@ class SummaryAccumulator:
             "frames": self.frames,
             "armed_frames": fd.n,
             "faults": [
+                # with its kind where the event names one (the safety list's, e.g. sensor_timeout)
                 {"t": ev.get("t"), "reason": ev.get("reason", ev.get("text"))}
+                | ({"fault": ev["fault"]} if ev.get("fault") else {})
                 for ev in events
                 if ev.get("kind") == "fault"
             ],
