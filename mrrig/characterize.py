@@ -142,7 +142,7 @@ def record_run(
     s, events = session.take(t_start, t_end)
     faults = [e for e in events if e["kind"] == "fault"]
     if faults:
-        raise RunFailed(f"fault: {faults[0]['reason']}")
+        raise RunFailed(f"fault: {faults[0]['reason']}", faults[0])
     expected = m.duration_s / session.period_s
     if s.size < MIN_SAMPLE_FRACTION * expected:
         raise RunFailed(f"{s.size} samples, expected about {expected:.0f}")
@@ -259,8 +259,11 @@ class MatrixStore:
     def rrd_path(self, run: Run) -> Path:
         return self.dir / f"run-{run.run_id:03d}.rrd"
 
-    def save(self, rig: str, run: Run, s: np.ndarray, attempts: int) -> None:
-        """Recording, then the CSV rows, then done.json: a crash before the last redoes it."""
+    def save(
+        self, rig: str, run: Run, s: np.ndarray, attempts: int, failed: list[dict] | None = None
+    ) -> None:
+        """Recording, then the CSV rows, then done.json: a crash before the last redoes it.
+        `failed`: the attempts before this one, each with its reason (and fault time)."""
         t0 = float(s["t"][0])
         write_run_recording(self.rrd_path(run), rig, run, s, self.m)
         with self.csv_path.open("a", encoding="utf-8") as fh:
@@ -271,6 +274,7 @@ class MatrixStore:
             **asdict(run),
             "samples": int(s.size),
             "attempts": attempts,
+            "failed_attempts": failed or [],
             "finished_utc": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
         }
         self._write_done()
@@ -334,14 +338,16 @@ def characterize(
     in_a_row = 0
     for run in todo:
         progress.start(run)
+        failed: list[dict] = []
         for attempt in range(1, store.m.attempts + 1):
             try:
                 s = record_run(session, run, store.m, stop)
             except RunFailed as exc:
                 log.warning("run %d, attempt %d: %s", run.run_id, attempt, exc)
+                failed.append(_failed_attempt(session, attempt, exc))
                 session.wait_until(session.now() + RETRY_PAUSE_S, stop, fail_on_fault=False)
                 continue
-            store.save(rig, run, s, attempt)
+            store.save(rig, run, s, attempt, failed)
             in_a_row = 0
             break
         else:
@@ -353,6 +359,16 @@ def characterize(
                 raise RigError(f"{in_a_row} runs in a row failed; last: {run.label()}")
         progress.finish()
     return failed
+
+
+def _failed_attempt(session: RigSession, attempt: int, exc: RunFailed) -> dict[str, Any]:
+    """One failed attempt for done.json; a fault's time also on CLOCK_MONOTONIC (`clock_s`),
+    to set it beside the rig's own record of the same moment."""
+    out: dict[str, Any] = {"attempt": attempt, "reason": str(exc)}
+    if exc.fault is not None:
+        t = float(exc.fault["t"])
+        out.update(fault=exc.fault["reason"], t_s=t, clock_s=session.clock_t0_s + t)
+    return out
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -35,7 +35,12 @@ class RigError(MrrigError, RuntimeError):
 
 
 class RunFailed(RigError):
-    """One run did not give clean data (a fault, missing samples); it may be tried again."""
+    """One run did not give clean data (a fault, missing samples); it may be tried again.
+    `fault`: the daemon's fault event that failed it, where one did."""
+
+    def __init__(self, message: str, fault: dict[str, Any] | None = None) -> None:
+        super().__init__(message)
+        self.fault = fault
 
 
 class Interrupted(Exception):
@@ -114,7 +119,16 @@ class RigSession:
                 raise Interrupted
             self.check_alive()
             if fail_on_fault and self.state() is RigState.FAULT:
-                raise RunFailed(f"fault: {self.fault_reason()}")
+                raise RunFailed(f"fault: {self.fault_reason()}", self.last_fault())
+
+    def last_fault(self) -> dict[str, Any] | None:
+        """The daemon's latest fault event (its `t` on the daemon's clock)."""
+        return next((e for e in reversed(self.daemon.events) if e["kind"] == "fault"), None)
+
+    @property
+    def clock_t0_s(self) -> float:
+        """The daemon's time zero on CLOCK_MONOTONIC: its times beside another process's."""
+        return self.daemon.t0
 
     def take(self, t0_s: float, t1_s: float) -> tuple[np.ndarray, list[dict]]:
         """Samples with t in [t0_s, t1_s) and the events since the last call.

@@ -279,6 +279,7 @@ def format_summary(d: Mapping[str, Any]) -> str:
         "latency_us",
         "frame_gap_ms",
         "faults",
+        "clock_t0_s",  # for tools that set the run beside another process's clock
     }
     extra = {k: v for k, v in d.items() if k not in known}
     if extra:

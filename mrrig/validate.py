@@ -165,6 +165,7 @@ def main(argv: list[str] | None = None) -> int:
                         session, args.settle, args.duration, args.attempts, stop
                     )
                     r = {"model": str(model), "setup": _setup(cfg), **r}
+                    r["clock_t0_s"] = session.clock_t0_s  # the faults' `t` on CLOCK_MONOTONIC
                     reports.append(r)
                     print(format_report(r), flush=True)
         except Interrupted:

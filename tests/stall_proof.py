@@ -168,6 +168,23 @@ def set_aside(
     return out
 
 
+def explain(
+    sim_stats: Mapping[str, Any], faults: Iterable[Mapping[str, Any]], clock_t0_s: float
+) -> list[tuple[dict, Window]]:
+    """Rule 2 alone, the windows printed: `faults` with `t` on the daemon's clock, whose time
+    zero on CLOCK_MONOTONIC is `clock_t0_s` (0 for faults timed on CLOCK_MONOTONIC itself)."""
+    ws = windows(sim_stats)
+    print(
+        f"simulator: {len(ws)} stall windows"
+        + "".join(f"\n  {w}" for w in ws)
+        + f"\n  echo through the transport: {sim_stats['echo_us']} us"
+    )
+    explained = check_faults(faults, clock_t0_s, ws, watchdog_trips(sim_stats))
+    for f, w in explained:
+        print(f"  fault at t={f['t']:.3f} s ({f['reason']}): inside the {w}")
+    return explained
+
+
 def prove(
     sim_stats: Mapping[str, Any],
     faults: Iterable[Mapping[str, Any]],
@@ -177,16 +194,9 @@ def prove(
 ) -> Proof:
     """Rules 1-3 on one run; prints the windows. `faults`: the daemon's, with `t` on its clock
     (`clock_t0_s`); `samples`: its SAMPLE_DTYPE records (the recording) for rule 3."""
-    ws = windows(sim_stats)
-    print(
-        f"simulator: {len(ws)} stall windows"
-        + "".join(f"\n  {w}" for w in ws)
-        + f"\n  echo through the transport: {sim_stats['echo_us']} us"
-    )
     check_answers(sim_stats)
-    explained = check_faults(faults, clock_t0_s, ws, watchdog_trips(sim_stats))
-    for f, w in explained:
-        print(f"  fault at t={f['t']:.3f} s ({f['reason']}): inside the {w}")
+    explained = explain(sim_stats, faults, clock_t0_s)
+    ws = windows(sim_stats)
     et, n = None, 0
     if samples is not None:
         armed = samples["state"] == RigState.ARMED
