@@ -18,10 +18,6 @@ from mrrig.canbus.bus import find_free_port, start_bridge, stop_bridge
 from mrrig.datasets import Series, dataset_b
 
 REPO = Path(__file__).resolve().parents[1]
-# the reasons of the faults a transport stall causes: the python-can-remote bridge and the
-# scheduler of this 2-core VM now and then hold frames for over 20 ms, which trips the
-# firmware's watchdog or the daemon's sensor timeout
-TRANSPORT_FAULT_REASONS = ("firmware watchdog tripped", "no sensor frame")
 # a valid RigSensors message's signals (a machine at rest, actuator on, no fault)
 SENSORS = {
     "ActuatorEnabled": 1,
