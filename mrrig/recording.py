@@ -106,6 +106,8 @@ _SERIES_COLORS: dict[str, tuple[int, int, int]] = {
     "i_meas": (31, 119, 180),
     "x": (31, 119, 180),
     "x_est": (255, 127, 14),
+    "adapt_gain": (31, 119, 180),
+    "adapt_offset_n": (255, 127, 14),
 }
 
 _SIGNALS = {signal.SIGINT, signal.SIGTERM}
@@ -129,14 +131,11 @@ def nice_scale(value: float) -> float:
     return 10.0 ** (k + 1)
 
 
-def _series_view(origin: str, name: str, legend: bool = True) -> rrb.TimeSeriesView:
-    """A time series view; with more than one series its legend sits in the top-left corner,
-    small, where the traces of a run that starts at rest are flat (and it can be hidden)."""
-    return rrb.TimeSeriesView(
-        origin=origin,
-        name=name,
-        plot_legend=rrb.PlotLegend(corner=rrb.Corner2D.LeftTop, visible=legend),
-    )
+def _series_view(origin: str, name: str) -> rrb.TimeSeriesView:
+    """A time series view without a legend (one drawn over the plot hides the traces that pass
+    under it): a view of several series names their colours in its title, and hovering a
+    trace shows its name."""
+    return rrb.TimeSeriesView(origin=origin, name=name, plot_legend=rrb.PlotLegend(visible=False))
 
 
 def _loop_view(origin: str, name: str) -> rrb.Spatial2DView:
@@ -162,8 +161,8 @@ def default_blueprint() -> rrb.Blueprint:
         rrb.Tabs(
             rrb.Horizontal(
                 rrb.Vertical(
-                    _series_view("forces", "Force: desired, measured, model (N)"),
-                    _series_view(ERROR_ENTITY, "Tracking error f_meas - f_des (N)", legend=False),
+                    _series_view("forces", "Force (N): desired red, measured blue, model green"),
+                    _series_view(ERROR_ENTITY, "Tracking error f_meas - f_des (N)"),
                     row_shares=[3, 2],
                 ),
                 rrb.Vertical(
@@ -174,26 +173,28 @@ def default_blueprint() -> rrb.Blueprint:
                 name="Tracking",
             ),
             rrb.Vertical(
-                _series_view("current", "Damper current: commanded, measured (A)"),
-                _series_view("state", "State (0 IDLE, 1 ARMED, 2 FAULT)", legend=False),
+                _series_view("current", "Damper current (A): commanded red, measured blue"),
+                _series_view("state", "State (0 IDLE, 1 ARMED, 2 FAULT)"),
                 row_shares=[3, 1],
                 name="Current",
             ),
             rrb.Vertical(
-                _series_view("displacement", "Displacement: measured, estimated (m)"),
-                _series_view("velocity", "Velocity, estimated (m/s)", legend=False),
-                _series_view("acceleration", "Acceleration, estimated (m/s^2)", legend=False),
+                _series_view(
+                    "displacement", "Displacement (m): measured blue, Kalman estimate orange"
+                ),
+                _series_view("velocity", "Velocity, estimated (m/s)"),
+                _series_view("acceleration", "Acceleration, estimated (m/s^2)"),
                 name="Motion",
             ),
             rrb.Vertical(
-                _series_view("adaptation", "On-line adaptation: gain, offset (N)"),
-                _series_view("temperature", "Damper temperature (degC)", legend=False),
+                _series_view("adaptation", "On-line adaptation: gain blue, offset (N) orange"),
+                _series_view("temperature", "Damper temperature (degC)"),
                 name="Adaptation",
             ),
             rrb.Vertical(
-                _series_view("latency", "Cycle latency, receive -> send (us)", legend=False),
-                _series_view(GAP_ENTITY, "Gap between sensor frames (ms)", legend=False),
-                _series_view("state", "State (0 IDLE, 1 ARMED, 2 FAULT)", legend=False),
+                _series_view("latency", "Cycle latency, receive -> send (us)"),
+                _series_view(GAP_ENTITY, "Gap between sensor frames (ms)"),
+                _series_view("state", "State (0 IDLE, 1 ARMED, 2 FAULT)"),
                 row_shares=[2, 2, 1],
                 name="Timing",
             ),
@@ -380,10 +381,11 @@ class Recorder:
         f_scale = self._scales["f_meas"] or 1.0
         for entity, (field, name, unit) in _LOOPS.items():
             scale = self._scales[field] or 1.0
+            # the 2D view's y axis points down: -force, so that pulling is up as on paper
             self._rec.log(
                 entity,
                 rr.LineStrips2D(
-                    [np.column_stack((batch[field] / scale, batch["f_meas"] / f_scale))]
+                    [np.column_stack((batch[field] / scale, -batch["f_meas"] / f_scale))]
                 ),
             )
             self._rec.log(f"{entity}/{LOOP_AXES}", *loop_axes(name, unit, scale, f_scale))
@@ -405,7 +407,8 @@ class Recorder:
 
 def loop_axes(name: str, unit: str, scale: float, f_scale: float) -> tuple[Any, Any]:
     """A loop view's axes: two grey lines through 0 and their ends labelled with the full
-    scale and its unit (the drawn coordinates are value / full scale)."""
+    scale and its unit (the drawn coordinates are value / full scale, force negated: the
+    view's y axis points down)."""
     grey = [(150, 150, 150)]
     lines = rr.LineStrips2D([[(-1.0, 0.0), (1.0, 0.0)], [(0.0, -1.0), (0.0, 1.0)]], colors=grey)
     ticks = rr.Points2D(
@@ -413,8 +416,8 @@ def loop_axes(name: str, unit: str, scale: float, f_scale: float) -> tuple[Any, 
         labels=[
             f"{name} +{scale:g} {unit}",
             f"-{scale:g} {unit}",
-            f"force +{f_scale:g} N",
             f"-{f_scale:g} N",
+            f"force +{f_scale:g} N",
         ],
         colors=grey,
         radii=0.01,

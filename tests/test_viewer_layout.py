@@ -56,15 +56,16 @@ def test_blueprint_has_one_tab_per_task(recorded):
         assert bounds["x_range"] == bounds["y_range"] == [-1.25, 1.25]
 
 
-def test_every_time_series_names_its_unit_and_keeps_its_legend_in_a_corner(recorded):
+def test_every_time_series_names_its_unit_and_no_legend_covers_it(recorded):
     units = ("(N)", "(A)", "(m)", "(m/s)", "(m/s^2)", "(us)", "(ms)", "(degC)", "IDLE")
     for view in read_blueprint(recorded).views():
         if view.kind != "TimeSeries":
             continue
         assert any(u in view.name for u in units), view.name
-        legend = view.properties["PlotLegend"]
-        # a legend only where a view has more than one series, in the top-left corner
-        assert legend["PlotLegend:corner"] == [1]
+        # no legend drawn over the plot: the title names the colours of several series
+        assert view.properties["PlotLegend"]["PlotLegend:visible"] == [False]
+    forces = next(v for v in read_blueprint(recorded).views() if v.origin == "forces")
+    assert all(c in forces.name for c in ("desired red", "measured blue", "model green"))
 
 
 @pytest.mark.parametrize("entity", [LOOP_FV_ENTITY, LOOP_FX_ENTITY])
