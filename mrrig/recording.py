@@ -206,7 +206,11 @@ def default_blueprint() -> rrb.Blueprint:
             ),
             active_tab=0,
         ),
-        collapse_panels=False,
+        # the views get the window: the blueprint and selection panels start collapsed, the
+        # time panel as its bar (the sensor_time timeline, where the loops' 2 s window moves)
+        rrb.BlueprintPanel(state="collapsed"),
+        rrb.SelectionPanel(state="collapsed"),
+        rrb.TimePanel(state="collapsed", timeline=SENSOR_TIMELINE),
     )
 
 
