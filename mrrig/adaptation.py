@@ -67,6 +67,12 @@ class GainOffsetRLS:
         self.P[:, 0, 0] = self.P[:, 1, 1] = self.settings.initial_variance
         self.updates = 0
         self.skipped = 0
+        self._floats()
+
+    def _floats(self) -> None:
+        # lane 0's gain and offset as floats, for the daemon's float path before send()
+        self.gain0 = float(self.theta[0, 0])
+        self.offset0_n = float(self.theta[0, 1] * FORCE_SCALE_N)
 
     @property
     def gain(self) -> np.ndarray:
@@ -112,6 +118,7 @@ class GainOffsetRLS:
         self.theta = np.where(ok[:, None], theta, self.theta)
         self.P = np.where(ok[:, None, None], P, self.P)
         self.updates += int(np.sum(ok))
+        self._floats()
 
     def state(self) -> dict[str, float | int | bool]:
         """The adapted state of lane 0, for status, telemetry and the summary."""

@@ -575,7 +575,7 @@ class NetworkInversion(Controller):
                 # the first instant's force answers no command of this run: nothing to learn
                 self._f_net_now = None if self._first else np.array([f_model])
                 self._f_meas_now = np.array([f_meas])
-                f_model = float(adapt.force(f_model)[0])
+                f_model = adapt.gain0 * f_model + adapt.offset0_n
         if self.feedback_tau_s is not None:
             a = self.dt_s / (self.feedback_tau_s + self.dt_s)
             last = r = float(self._residual[0])
@@ -585,7 +585,7 @@ class NetworkInversion(Controller):
                 r = 2.0 * r - last  # at the solved instant, at its last rate of change
             target = target - r
         if adapt is not None:
-            target = (target - float(adapt.offset_n[0])) / float(adapt.gain[0])
+            target = (target - adapt.offset0_n) / adapt.gain0
         if ahead:
             # the instant the command first acts on: one period on at constant acceleration
             # (eq. 21), as `_solved_instant`
@@ -628,7 +628,7 @@ class NetworkInversion(Controller):
         if self.feedback_tau_s is not None:
             target = f_des - float(self._residual[0])
         if self.adapt is not None:
-            target = (target - float(self.adapt.offset_n[0])) / float(self.adapt.gain[0])
+            target = (target - self.adapt.offset0_n) / self.adapt.gain0
         self._scalar.prepare(feat, target, now)
 
 
