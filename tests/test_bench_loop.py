@@ -3,6 +3,8 @@ benchmarks)."""
 
 from __future__ import annotations
 
+import numpy as np
+
 from mrrig.bench.loop import budget_verdict
 
 
@@ -105,3 +107,15 @@ def test_bench_paper_prints_table_6_with_the_daemons_default_and_keeps_the_rest_
     # the measurement's pick: the smallest mean Et of the three solves (exact here)
     assert "the measurement picks exact (the default)." in text
     assert "  paper" in text and "what differs from the paper" in text
+
+
+def test_bench_drift_sets_aside_the_half_second_after_a_stall_or_an_arming():
+    from mrrig.bench.drift import _after_stalls
+
+    t = np.arange(0, 3.0, 0.002)
+    t[1000:] += 0.05  # a 52 ms gap at t = 2 s
+    armed = np.ones(t.size, bool)
+    armed[:100] = False  # armed at 0.2 s
+    out = _after_stalls(t, armed)
+    expect = ((t >= 0.2) & (t < 0.7)) | ((t >= t[1000]) & (t < t[1000] + 0.5))
+    np.testing.assert_array_equal(out, expect)
