@@ -32,8 +32,12 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "review": ("mrrig.review_cli", "print the metrics of a Rerun recording (.rrd)"),
     "characterize": ("mrrig.characterize", "run the characterization test matrix on the rig"),
     "train": ("mrrig.train_cli", "train the forward network from recorded data"),
+    "evaluate": ("mrrig.evaluate", "a forward model's Et and inverse RMSE on any data, --plot"),
     "validate": ("mrrig.validate", "force-tracking validation of a model on the rig"),
-    "bench": ("mrrig.bench.cli", "benchmarks: paper, drift, loop, matrix, estimation, inversion"),
+    "bench": (
+        "mrrig.bench.cli",
+        "benchmarks: paper, drift, loop, matrix, estimation, inversion, train",
+    ),
     "certs": ("mrrig.certs", "a lab CA and certificates for Zenoh mutual TLS (init, issue)"),
     "router": ("mrrig.router", "a Zenoh router where a fleet of rigs and their clients meet"),
     "rigs": ("mrrig.fleet", "list the live rigs: state, controller, fault (Zenoh)"),

@@ -3,9 +3,7 @@ recorded CSV files (C), all as `Series` in SI units (spec/modeling.md section 4)
 
 from __future__ import annotations
 
-import csv
 import itertools
-import math
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -63,6 +61,7 @@ class Series:
     run_id: np.ndarray | None = None
     x_meas: np.ndarray | None = None
     force_meas: np.ndarray | None = None
+    current_unit: str = "A"  # the command's unit: "A" (coil current) or "V" (driver voltage)
 
     def __post_init__(self) -> None:
         n = np.asarray(self.t).shape
@@ -185,27 +184,113 @@ def dataset_b(
     )
 
 
-# Units accepted per field, as factors to SI.
+# Units accepted per field, as factors to SI. The damper command is a coil current (A) or a
+# current driver's input voltage (V): volts stay volts (the model's command unit says which).
 CSV_UNITS: dict[str, dict[str, float]] = {
     "t": {"s": 1.0, "ms": 1e-3},
     "x": {"m": 1.0, "mm": 1e-3, "cm": 1e-2},
     "xd": {"m/s": 1.0, "mm/s": 1e-3, "cm/s": 1e-2},
     "xdd": {"m/s^2": 1.0, "mm/s^2": 1e-3, "cm/s^2": 1e-2},
     "force": {"N": 1.0, "kN": 1e3},
-    "current": {"A": 1.0, "mA": 1e-3},
+    "current": {"A": 1.0, "mA": 1e-3, "V": 1.0},
 }
+COMMAND_UNITS = {"A": "A", "mA": "A", "V": "V"}  # the command's unit in the Series
 _REQUIRED = ("t", "x", "current", "force")
+CSV_CHUNK_ROWS = 1_000_000  # rows read at a time: a large file streams in chunks
+# Headers `NAME_UNIT` that name a field without a column map (e.g. t_s, x_cm, force_n, command_v)
+_HEADER_FIELDS = {
+    "t": "t",
+    "time": "t",
+    "x": "x",
+    "xd": "xd",
+    "xdd": "xdd",
+    "force": "force",
+    "f": "force",
+    "current": "current",
+    "i": "current",
+    "command": "current",
+}
+_HEADER_UNITS = {
+    "t": {"s": "s", "ms": "ms"},
+    "x": {"m": "m", "mm": "mm", "cm": "cm"},
+    "xd": {"m_s": "m/s", "mm_s": "mm/s", "cm_s": "cm/s"},
+    "xdd": {"m_s2": "m/s^2", "mm_s2": "mm/s^2", "cm_s2": "cm/s^2"},
+    "force": {"n": "N", "kn": "kN"},
+    "current": {"a": "A", "ma": "mA", "v": "V"},
+}
+
+
+def csv_header(path: str | Path) -> list[str]:
+    """The header of a CSV (its first line that is neither blank nor a # comment), stripped;
+    a one-line DataError if the file cannot be read."""
+    import pandas as pd  # noqa: PLC0415 - pandas is slow to import; only CSV users pay for it
+
+    path = Path(path)
+    try:
+        head = pd.read_csv(
+            path,
+            nrows=0,
+            comment="#",
+            skip_blank_lines=True,
+            encoding="utf-8-sig",
+            index_col=False,
+        )
+    except (OSError, UnicodeDecodeError, ValueError) as exc:
+        reason = exc.strerror if isinstance(exc, OSError) and exc.strerror else str(exc)
+        raise DataError(f"{path}: cannot read: {reason}".replace("\n", " ")) from exc
+    return [str(h).strip() for h in head.columns]
+
+
+def columns_from_header(header: list[str]) -> tuple[dict[str, str], dict[str, str]] | None:
+    """(columns, units) from headers that name field and unit (`t_s`, `x_cm`, `xd_cm_s`,
+    `force_n`, `command_v`, `current_a`), or None when t, x, force and a command are not all
+    named so. Unrecognised headers are ignored."""
+    columns: dict[str, str] = {}
+    units: dict[str, str] = {}
+    for h in header:
+        name, _, unit = h.lower().partition("_")
+        field = _HEADER_FIELDS.get(name)
+        if field is None or field in columns or unit not in _HEADER_UNITS[field]:
+            continue
+        columns[field] = h
+        units[field] = _HEADER_UNITS[field][unit]
+    if not all(f in columns for f in _REQUIRED):
+        return None
+    return columns, units
+
+
+def _file_line(path: Path, data_row: int) -> int:
+    """The file line (1-based) of data row `data_row` (0-based), blank and comment lines
+    skipped as the reader skips them: only for an error message."""
+    seen_header = False
+    row = -1
+    with path.open(encoding="utf-8-sig", errors="replace") as fh:
+        for number, line in enumerate(fh, start=1):
+            text = line.strip()
+            if not text or text.startswith("#"):
+                continue
+            if not seen_header:
+                seen_header = True
+                continue
+            row += 1
+            if row == data_row:
+                return number
+    return -1
 
 
 def load_csv(
     path: str | Path, columns: dict[str, str], units: dict[str, str] | None = None
 ) -> Series:
-    """Read a CSV into a Series in SI units.
+    """Read a CSV into a Series in SI units (the command in A, or in V for a driver voltage).
 
     `columns` maps our fields (t, x, current, force; optional xd, xdd) to CSV headers, `units`
     gives each field's unit (SI where absent: s, m, m/s, m/s^2, N, A). Absent xd/xdd are None.
-    Any problem raises DataError with a one-line message naming the file and the field.
+    Read by pandas in chunks of `CSV_CHUNK_ROWS`: blank lines, # comment lines, a BOM, quoted
+    headers and a trailing comma are fine. Any problem raises DataError with a one-line
+    message naming the file, and the line and field of a bad value.
     """
+    import pandas as pd  # noqa: PLC0415 - see csv_header
+
     path = Path(path)
     units = units or {}
     for field in itertools.chain(columns, units):
@@ -221,35 +306,52 @@ def load_csv(
             known = ", ".join(CSV_UNITS[field])
             raise DataError(f"{path}: field {field!r}: unknown unit {unit!r} (known: {known})")
         scale[field] = CSV_UNITS[field][unit]
-    try:
-        with path.open(newline="", encoding="utf-8-sig") as fh:
-            reader = csv.reader(fh)
-            header = [h.strip() for h in next(reader, [])]
-            rows = list(reader)
-    except (OSError, UnicodeDecodeError, csv.Error) as exc:
-        reason = exc.strerror if isinstance(exc, OSError) and exc.strerror else str(exc)
-        raise DataError(f"{path}: cannot read: {reason}".replace("\n", " ")) from exc
-    if not rows:
-        raise DataError(f"{path}: no data rows")
-    data: dict[str, np.ndarray] = {}
+    header = csv_header(path)
     for field, col in columns.items():
         if col not in header:
             raise DataError(f"{path}: field {field!r}: no column {col!r} in the header")
-        j = header.index(col)
-        values = np.empty(len(rows))
-        for r, row in enumerate(rows):
-            text = row[j] if j < len(row) else ""
-            try:
-                value = float(text)
-            except ValueError:
-                value = math.nan
-            if not math.isfinite(value):
-                raise DataError(
-                    f"{path}: column {col!r} (field {field!r}), data row {r + 1}: "
-                    f"not a finite number: {text!r}"
+    fields = list(columns)
+    wanted = [columns[f] for f in fields]
+    parts: dict[str, list[np.ndarray]] = {f: [] for f in fields}
+    done = 0
+    try:
+        reader = pd.read_csv(
+            path,
+            usecols=lambda h: str(h).strip() in wanted,
+            dtype=str,
+            comment="#",
+            skip_blank_lines=True,
+            encoding="utf-8-sig",
+            index_col=False,
+            chunksize=CSV_CHUNK_ROWS,
+            keep_default_na=False,
+            skipinitialspace=True,
+        )
+        for chunk in reader:
+            chunk.columns = [str(h).strip() for h in chunk.columns]
+            for field, col in zip(fields, wanted, strict=True):
+                text = chunk[col].to_numpy(dtype=object)
+                values = pd.to_numeric(chunk[col].str.strip(), errors="coerce").to_numpy(
+                    dtype=float, na_value=np.nan
                 )
-            values[r] = value
-        data[field] = values * scale[field]
+                bad = ~np.isfinite(values)
+                if bad.any():
+                    r = int(np.flatnonzero(bad)[0])
+                    line = _file_line(path, done + r)
+                    raise DataError(
+                        f"{path}: line {line}: column {col!r} (field {field!r}): "
+                        f"not a finite number: {text[r]!r}"
+                    )
+                parts[field].append(values * scale[field])
+            done += len(chunk)
+    except (OSError, UnicodeDecodeError, ValueError, pd.errors.ParserError) as exc:
+        if isinstance(exc, DataError):
+            raise
+        reason = exc.strerror if isinstance(exc, OSError) and exc.strerror else str(exc)
+        raise DataError(f"{path}: cannot read: {reason}".replace("\n", " ")) from exc
+    if done == 0:
+        raise DataError(f"{path}: no data rows")
+    data = {f: np.concatenate(parts[f]) for f in fields}
     return Series(
         t=data["t"],
         x=data["x"],
@@ -258,4 +360,5 @@ def load_csv(
         current=data["current"],
         force=data["force"],
         name=path.stem,
+        current_unit=COMMAND_UNITS[units.get("current", "A")],
     )

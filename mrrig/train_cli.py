@@ -22,10 +22,13 @@ from mrrig.train_config import TrainConfig, load_train_config
 from mrrig.training import (
     CURRENT_INPUTS,
     HISTORY_SIGNALS,
+    SPLITS,
     check_history,
+    exclude_bad_stretches,
     load_training_data,
     train_and_validate,
 )
+from mrrig.training.select import choose_features, command_varies
 
 log = logging.getLogger(__name__)
 
@@ -78,18 +81,62 @@ def _pct(d: dict[str, float] | None) -> str:
     return f"p50 {d['p50']:.1f}  p95 {d['p95']:.1f}  max {d['max']:.1f}"
 
 
+def format_excluded(ex: dict[str, Any] | None) -> list[str]:
+    if ex is None:
+        return []
+    if ex["keep_all"]:
+        return ["excluded: nothing (--keep-all)"]
+    if not ex["excluded_samples"]:
+        return ["excluded: nothing (no saturation, idle or transient stretch found)"]
+    kinds = ", ".join(f"{k} {n}" for k, n in ex["by_kind"].items())
+    lines = [f"excluded {ex['excluded_samples']} of {ex['of_samples']} samples ({kinds}):"]
+    lines += [
+        f"  {st['kind']}: run {st['run']}, {st['t_start_s']:.4f}-{st['t_end_s']:.4f} s"
+        f" ({st['samples']} samples)"
+        for st in ex["stretches"]
+    ]
+    return lines
+
+
+def format_search(fs: dict[str, Any] | None) -> list[str]:
+    if fs is None:
+        return []
+    lines = [
+        f"features auto: {fs['method']}",
+        "  inversion: median CPU us of the daemon's per-frame solve (prepared ahead), and of"
+        " the full solve",
+    ]
+    if fs["lag_fit"]:
+        lines.append(f"  command lag by 1-D search: tau {fs['lag_fit']['tau_s'] * 1e3:.2f} ms")
+    for c in fs["candidates"]:
+        budget = "" if c["in_budget"] else f" (over the {fs['inversion_budget_us']:g} us budget)"
+        lines.append(
+            f"  CV Et {c['cv_et']:.4f}  inversion {c['inversion_us']:5.1f} us"
+            f" (full solve {c['inversion_full_us']:5.1f})  {c['label']}{budget}"
+        )
+    lines += [f"  not tried (search time spent): {label}" for label in fs["not_tried"]]
+    lines.append(f"  chosen: {fs['chosen']['label']} (CV Et {fs['chosen']['cv_et']:.4f})")
+    return lines
+
+
 def format_report(r: dict[str, Any]) -> str:
     ni = r["network_inversion"]
+    unit = r.get("command_unit", "A")
+    stride = r.get("history_stride", 1)
     lines = [
+        *format_excluded(r.get("excluded")),
+        *format_search(r.get("features_search")),
         f"split: {r['split']['rule']} (seed {r['split']['seed']})",
-        f"current input: {r['current_input']}"
+        f"command input ({unit}): {r['current_input']}"
         + (f" (lag tau {r['lag_tau_s'] * 1e3:.2f} ms)" if r["lag_tau_s"] else ""),
         "history inputs: "
         + (
-            f"the previous {r['history_samples']} samples of {', '.join(r['history_signals'])}"
+            f"{r['history_samples']} earlier samples, {stride} apart, of"
+            f" {', '.join(r['history_signals'])}"
             if r["history_samples"]
             else "none"
         ),
+        f"hidden neurons: {r.get('hidden', 30)}",
         f"forward network: {r['epochs']} epochs ({r['stop_reason']}), {r['seconds']:.1f} s",
         *(
             [
@@ -102,7 +149,8 @@ def format_report(r: dict[str, Any]) -> str:
             if (st := r.get("starts"))
             else []
         ),
-        f"forward Et on the {r['n_val']} validation samples: {r['forward']['et']:.4f}"
+        f"forward Et on the {r['n_val']} held-out samples ({r['split']['kind']}):"
+        f" {r['forward']['et']:.4f}"
         f" (RMSE {r['forward']['rmse_n']:.2f} N)",
         f"network inversion: inverse-current RMSE {ni['current_rmse_a']:.4f} A (paper 0.09 A),"
         f" i_max {r['i_max_a']:g} A",
@@ -164,11 +212,20 @@ def _parser(cfg: TrainConfig) -> argparse.ArgumentParser:
         "[csv] units)",
     )
     ap.add_argument(
+        "--features",
+        choices=("auto", "manual"),
+        default=f.mode,
+        help="auto: choose the command input (lag fitted), history and hidden size by blocked "
+        "cross-validation on the training blocks; manual: the flags below. Default: auto "
+        "where the command changes within runs, manual where it is held per run (the "
+        "characterization matrix) or where --current-input or --history is given",
+    )
+    ap.add_argument(
         "--current-input",
         choices=CURRENT_INPUTS,
-        default=f.current_input,
-        help="current input of the network: as commanded, or through the coil lag "
-        "(default %(default)s)",
+        default=None,
+        help=f"current input of the network: as commanded, or through the coil lag "
+        f"(manual; default {f.current_input})",
     )
     ap.add_argument(
         "--lag-tau-s",
@@ -179,10 +236,41 @@ def _parser(cfg: TrainConfig) -> argparse.ArgumentParser:
     ap.add_argument(
         "--history",
         type=int,
-        default=f.history_samples,
+        default=None,
         metavar="N",
-        help="history inputs: the previous N samples of --history-signals (default %(default)s; "
-        "0: none)",
+        help=f"history inputs: N earlier samples of --history-signals (manual; default "
+        f"{f.history_samples}; 0: none)",
+    )
+    ap.add_argument(
+        "--history-stride",
+        type=COUNT,
+        default=f.history_stride,
+        help="samples between the history taps (default %(default)s)",
+    )
+    ap.add_argument(
+        "--hidden",
+        type=COUNT,
+        default=f.hidden,
+        help="hidden neurons (manual; default %(default)s)",
+    )
+    ap.add_argument(
+        "--split",
+        choices=SPLITS,
+        default=t.split,
+        help="hold-out: blocks (the last --holdout-fraction of each run, default) or random "
+        "(the paper's --n-train / --n-val random samples: optimistic, neighbours of held-out "
+        "samples are trained on)",
+    )
+    ap.add_argument(
+        "--holdout-fraction",
+        type=positive,
+        default=t.holdout_fraction,
+        help="the end of each run held out by the blocks split (default %(default)g)",
+    )
+    ap.add_argument(
+        "--keep-all",
+        action="store_true",
+        help="keep the bad stretches (saturation, idle, transients) that are excluded by default",
     )
     ap.add_argument(
         "--history-signals",
@@ -246,28 +334,54 @@ def main(argv: list[str] | None = None) -> int:
             "--supervised-out needs the supervised model: drop --no-supervised "
             "(or training.supervised = false in the config)"
         )
+    manual_flags = args.current_input is not None or args.history is not None
+    current_input = args.current_input or cfg.features.current_input
     history_samples, history_signals = _history(
-        args.history, args.history_signals, cfg.features.history_signals
+        cfg.features.history_samples if args.history is None else args.history,
+        args.history_signals,
+        cfg.features.history_signals,
     )
+    history_stride, hidden = args.history_stride, args.hidden
     columns = _mapping(args.columns, "--columns") if args.columns else dict(cfg.csv.columns)
     units = _mapping(args.units, "--units") if args.units else dict(cfg.csv.units)
     series = load_training_data(args.data, columns or None, units or None)
+    series, excluded = exclude_bad_stretches(series, args.keep_all)
     log.info("training on %d samples from %d file(s)", len(series), len(args.data))
+    mode = args.features or ("manual" if manual_flags or not command_varies(series) else "auto")
+    search = None
+    if mode == "auto":
+        cand, search = choose_features(series, args.seed, args.holdout_fraction)
+        current_input, lag_tau_s = cand.current_input, cand.lag_tau_s
+        history_samples, history_signals = cand.history_samples, cand.history_signals
+        history_stride, hidden = cand.history_stride, cand.hidden
+    else:
+        lag_tau_s = args.lag_tau_s
     fwd, sup, report = train_and_validate(
         series,
         n_train=args.n_train,
         n_val=args.n_val,
         seed=args.seed,
         progress=_progress,
-        current_input=args.current_input,
-        lag_tau_s=args.lag_tau_s,
+        current_input=current_input,
+        lag_tau_s=lag_tau_s,
         max_epochs=args.epochs,
         i_max=args.i_max,
         supervised=args.supervised,
         history_samples=history_samples,
         history_signals=history_signals,
         restarts=args.restarts,
+        split=args.split,
+        holdout_fraction=args.holdout_fraction,
+        history_stride=history_stride,
+        hidden=hidden,
     )
+    report["excluded"] = excluded
+    report["features_mode"] = mode
+    report["features_search"] = search
+    fwd.meta["excluded"] = excluded
+    fwd.meta["features_mode"] = mode
+    if search is not None:
+        fwd.meta["features_search"] = search
     fwd.meta["data_files"] = [str(p) for p in args.data]
     if config_path is not None:
         fwd.meta["train_config"] = str(config_path)

@@ -15,6 +15,7 @@ from mrrig.training import (
     CURRENT_INPUTS,
     DEFAULT_HISTORY_SIGNALS,
     DEFAULT_RESTARTS,
+    HOLDOUT_FRACTION,
     PAPER_N_TRAIN,
     PAPER_N_VAL,
     check_history,
@@ -39,8 +40,17 @@ class FeaturesSection:
     lag_tau_s: float = COIL_LAG_TAU_S  # the coil lag of current_input = "lagged"
     history_samples: int = 0  # previous samples of history_signals as extra inputs
     history_signals: tuple[str, ...] = DEFAULT_HISTORY_SIGNALS
+    history_stride: int = 1  # samples between history taps
+    hidden: int = 30  # hidden neurons
+    mode: str | None = None  # "auto" | "manual"; absent: auto where the command varies in runs
 
     def check(self) -> None:
+        if self.mode not in (None, "auto", "manual"):
+            raise ValueError(f"mode: expected 'auto' or 'manual', got {self.mode!r}")
+        if self.history_stride < 1:
+            raise ValueError(f"history_stride: must be >= 1, got {self.history_stride}")
+        if self.hidden < 1:
+            raise ValueError(f"hidden: must be >= 1, got {self.hidden}")
         if self.current_input not in CURRENT_INPUTS:
             choices = ", ".join(repr(c) for c in CURRENT_INPUTS)
             raise ValueError(
@@ -68,6 +78,8 @@ class TrainingSection:
     restarts: int = DEFAULT_RESTARTS  # forward-network starts; the best on-line inverse is kept
     n_train: int = PAPER_N_TRAIN  # 90/10 of all samples where the data has fewer
     n_val: int = PAPER_N_VAL
+    split: str = "blocks"  # "blocks": the end of each run held out; "random": the paper's
+    holdout_fraction: float = HOLDOUT_FRACTION
     i_max_a: float | None = None  # the inversion bound; absent: the data's largest current
     supervised: bool = True  # also train the supervised inverse MLP
 
@@ -80,6 +92,10 @@ class TrainingSection:
             raise ValueError(f"restarts: must be >= 1, got {self.restarts}")
         if self.n_train < 1:
             raise ValueError(f"n_train: must be >= 1, got {self.n_train}")
+        if self.split not in ("blocks", "random"):
+            raise ValueError(f"split: expected 'blocks' or 'random', got {self.split!r}")
+        if not 0.0 < self.holdout_fraction < 0.5:
+            raise ValueError(f"holdout_fraction: must be in (0, 0.5), got {self.holdout_fraction}")
         if self.n_val < 1:
             raise ValueError(f"n_val: must be >= 1, got {self.n_val}")
         if self.i_max_a is not None and not self.i_max_a > 0:

@@ -6,6 +6,8 @@ from mrrig.datasets import (
     DATASET_A_VALIDATION_NAMES,
     DataError,
     Series,
+    columns_from_header,
+    csv_header,
     dataset_a_training,
     dataset_a_validation,
     dataset_b,
@@ -187,8 +189,8 @@ _COLS = {"t": "time", "x": "pos", "current": "I", "force": "F"}
         ("unknown unit", _COLS, {"x": "inch"}, ["'x'", "'inch'"]),
         ("unknown field", _COLS | {"temp": "T"}, {}, ["'temp'"]),
         ("no column for a field", {"t": "time", "x": "pos", "current": "I"}, {}, ["'force'"]),
-        ("non-numeric value", _COLS | {"current": "bad"}, {}, ["'bad'", "'current'", "row 2"]),
-        ("empty value", _COLS | {"current": "gap"}, {}, ["'gap'", "row 3"]),
+        ("non-numeric value", _COLS | {"current": "bad"}, {}, ["'bad'", "'current'", "line 3"]),
+        ("empty value", _COLS | {"current": "gap"}, {}, ["'gap'", "line 4"]),
     ],
 )
 def test_each_bad_csv_input_gives_a_one_line_data_error(tmp_path, case, columns, units, names):
@@ -206,6 +208,49 @@ def test_each_bad_csv_input_gives_a_one_line_data_error(tmp_path, case, columns,
     for name in names:
         assert name in msg
     assert isinstance(err.value, ValueError)
+
+
+def test_csv_with_blank_lines_trailing_commas_bom_comments_and_quotes_reads_as_plain(
+    si_and_cm_csv, tmp_path
+):
+    plain = load_csv(si_and_cm_csv[0], _COLS)
+    lines = si_and_cm_csv[0].read_text().splitlines()
+    header = ",".join(f'"{h}"' for h in lines[0].split(","))  # quoted headers
+    body = [line + "," for line in lines[1:]]  # a trailing comma on every data row
+    messy = tmp_path / "messy.csv"
+    text = "# rig 1, test 7\n" + header + ",\n" + body[0] + "\n\n# a note\n"
+    text += "\n".join(body[1:]) + "\n\n"  # blank lines inside and at the end
+    messy.write_bytes(b"\xef\xbb\xbf" + text.encode())  # a BOM
+    got = load_csv(messy, _COLS)
+    for field in ("t", "x", "current", "force"):
+        np.testing.assert_array_equal(getattr(got, field), getattr(plain, field))
+
+
+def test_bad_value_after_comment_and_blank_lines_names_its_file_line(tmp_path):
+    path = tmp_path / "late.csv"
+    path.write_text("# header next\ntime,pos,I,F\n0,0,0,0\n\n# note\n0.002,0,x,0\n")
+    with pytest.raises(DataError, match=r"late.csv: line 6: column 'I' \(field 'current'\)"):
+        load_csv(path, _COLS)
+
+
+def test_csv_is_read_in_chunks_equal_to_one_read(si_and_cm_csv, monkeypatch):
+    import mrrig.datasets as ds
+
+    whole = load_csv(si_and_cm_csv[0], _COLS)
+    monkeypatch.setattr(ds, "CSV_CHUNK_ROWS", 2)  # 5 rows: chunks of 2, 2, 1
+    chunked = load_csv(si_and_cm_csv[0], _COLS)
+    np.testing.assert_array_equal(chunked.force, whole.force)
+    np.testing.assert_array_equal(chunked.t, whole.t)
+
+
+def test_headers_with_units_name_the_fields_and_a_voltage_command_stays_volts(tmp_path):
+    path = tmp_path / "dyke.csv"
+    path.write_text("t_s,x_cm,command_v,force_n\n0,1.5,2.0,10\n0.001,1.6,2.5,11\n")
+    columns, units = columns_from_header(csv_header(path))
+    s = load_csv(path, columns, units)
+    assert s.current_unit == "V"
+    np.testing.assert_allclose(s.x, [0.015, 0.016])
+    np.testing.assert_array_equal(s.current, [2.0, 2.5])
 
 
 def test_csv_with_header_only_is_a_data_error(tmp_path):

@@ -122,7 +122,8 @@ def test_small_matrix_report_has_every_number():
     cond = dataset_b_conditions(TINY["amplitudes_m"], TINY["freqs_hz"], TINY["currents_a"])
     plant = make_plant_force(s, BoucWenParams.preset("rig-current"), cond)
     fwd, sup, r = train_and_validate(s, seed=0, max_epochs=EPOCHS, plant_force=plant)
-    assert (r["split"]["n_train"], r["split"]["n_val"]) == (810, 90)  # 90/10 of 6 x 150
+    # time blocks: the last ceil(15 %) = 23 of each of 6 runs of 150 held out
+    assert (r["split"]["n_train"], r["split"]["n_val"]) == (762, 138)
     assert r["i_max_a"] == 1.2
     numbers = [r["forward"]["et"], r["forward"]["rmse_n"]]
     for side in ("network_inversion", "network_inversion_online", "supervised"):
@@ -173,10 +174,13 @@ def test_mrrig_train_writes_the_model_with_options_and_fingerprint(tmp_path, sma
     assert model.meta["current_input"] == "lagged"
     assert model.meta["lag_tau_s"] == pytest.approx(COIL_LAG_TAU_S)
     assert model.meta["data_fingerprint"] == series_fingerprint(load_training_data([data]))
-    assert model.meta["n_train"] + model.meta["n_val"] == len(small_truth)
+    assert model.meta["split"] == "blocks" and model.meta["holdout_fraction"] == 0.15
     assert model.meta["split_seed"] == 2 and model.meta["data_files"] == [str(data)]
     assert MLP.load(sup_out).output_name == "current"
     report = json.loads(rep.read_text())
+    assert report["split"]["n_train"] + report["split"]["n_val"] == len(small_truth)
+    # LM's rows (fit + early stopping) are training rows: the hold-out is not among them
+    assert model.meta["n_train"] + model.meta["n_val"] == report["split"]["n_train"]
     assert report["current_input"] == "lagged"
     assert "inverse-current RMSE" in capsys.readouterr().out
 

@@ -15,6 +15,7 @@ BENCHES = {
     "loop": "mrrig.bench.loop",
     "matrix": "mrrig.bench.matrix",
     "drift": "mrrig.bench.drift",
+    "train": "mrrig.bench.train",
 }
 
 

@@ -3,11 +3,12 @@ simulator, and the paper's validation numbers (spec/modeling.md 4 B, 5).
 
 Simulates the 150 runs (data set B defaults: 0.5 kHz, sensor noise and quantisation), gives
 the daemon's Kalman estimates of xd/xdd from the noisy displacement (`estimate_derivatives`,
-first 0.1 s of each run dropped), trains the forward network and the supervised inverse MLP on
-the paper's random 12771 / 1419 split, and prints forward Et, the inverse-current RMSE (A) and
-the tracking error (N) of network inversion against the supervised inverse. The plant's force
-for the inverted currents is its steady-state response: the damper run at that constant current
-through the sample's own sine, read at the sample's instant.
+first 0.1 s of each run dropped), trains the forward network and the supervised inverse MLP as
+`mrrig train` does (the last 15 % of each run held out, LM on a 12771-row coverage subsample
+of the rest; the paper drew a random 12771 / 1419), and prints forward Et, the inverse-current
+RMSE (A) and the tracking error (N) of network inversion against the supervised inverse. The
+plant's force for the inverted currents is its steady-state response: the damper run at that
+constant current through the sample's own sine, read at the sample's instant.
 
 Then the closed-loop check: for a few runs the plant (preset rig-current) is driven at 0.5 kHz by
 each controller tracking the run's measured force, the controller seeing Kalman estimates of the
