@@ -131,8 +131,8 @@ def format_report(r: dict[str, Any]) -> str:
         + (f" (lag tau {r['lag_tau_s'] * 1e3:.2f} ms)" if r["lag_tau_s"] else ""),
         "history inputs: "
         + (
-            f"{r['history_samples']} earlier samples, {stride} apart, of"
-            f" {', '.join(r['history_signals'])}"
+            f"the previous {r['history_samples']} samples of {', '.join(r['history_signals'])}"
+            + (f" ({stride} samples apart)" if stride > 1 else "")
             if r["history_samples"]
             else "none"
         ),

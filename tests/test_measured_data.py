@@ -172,6 +172,7 @@ def test_measured_file_saturation_and_unsteady_end_are_excluded():
     assert ex["excluded_samples"] < 0.05 * len(s)
 
 
+@pytest.mark.long
 @needs_measured
 def test_random_split_is_optimistic_and_the_block_split_is_the_default(measured_short):
     s, _ = exclude_bad_stretches(load_training_data([measured_short]))
@@ -193,6 +194,7 @@ def _train_then_evaluate(tmp_path, data, extra):
     return json.loads(report.read_text()), json.loads(out.read_text())
 
 
+@pytest.mark.long
 @needs_measured
 def test_evaluate_gives_the_training_reports_et_on_the_measured_holdout(tmp_path, measured_short):
     r, e = _train_then_evaluate(
@@ -205,6 +207,7 @@ def test_evaluate_gives_the_training_reports_et_on_the_measured_holdout(tmp_path
     assert e["inverse_current_rmse"] == r["network_inversion"]["current_rmse_a"]
 
 
+@pytest.mark.long
 def test_evaluate_on_a_simulator_recording_equals_the_training_report(tmp_path, capsys):
     from mrrig.recording import Recorder
     from mrrig.samples import SAMPLE_DTYPE, RigState
@@ -226,6 +229,7 @@ def test_evaluate_on_a_simulator_recording_equals_the_training_report(tmp_path, 
     assert "forward Et" in capsys.readouterr().out
 
 
+@pytest.mark.long
 def test_evaluate_refuses_a_command_in_other_units(tmp_path, varying):
     from mrrig.cli import main as mrrig_main
 

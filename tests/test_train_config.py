@@ -93,13 +93,15 @@ def test_config_lagged_current_and_training_options_reach_the_model(tmp_path, da
     cfg = _config(
         tmp_path,
         '[features]\ncurrent_input = "lagged"\nlag_tau_s = 0.004\n'
-        "[training]\nepochs = 3\nseed = 2\nn_train = 300\nn_val = 100\nsupervised = false\n",
+        "[training]\nepochs = 3\nseed = 2\nsplit = \"random\"\nn_train = 300\nn_val = 100\n"
+        "supervised = false\n",
     )
     m = _train(data, tmp_path / "fwd.json", "--config", str(cfg))
     assert m.meta["current_input"] == "lagged"
     assert m.meta["lag_tau_s"] == pytest.approx(0.004)
     assert m.meta["split_seed"] == 2
-    assert (m.meta["n_train"], m.meta["n_val"]) == (300, 100)
+    assert (m.meta["n_train"], m.meta["n_val"]) == (300, 100)  # the random split's sizes
+    assert m.meta["split"] == "random"
     assert m.input_names == ["x", "xd", "xdd", "current"]
 
 
@@ -181,6 +183,11 @@ BAD = [
     ("[training]\nn_val = 0\n", "training.n_val: ", ">= 1"),
     ("[training]\ni_max_a = -1.0\n", "training.i_max_a: ", "must be positive"),
     ('[training]\nsupervised = "yes"\n', "training.supervised: ", "true or false"),
+    ('[training]\nsplit = "shuffled"\n', "training.split: ", "'blocks' or 'random'"),
+    ("[training]\nholdout_fraction = 0.6\n", "training.holdout_fraction: ", "(0, 0.5)"),
+    ('[features]\nmode = "guess"\n', "features.mode: ", "'auto' or 'manual'"),
+    ("[features]\nhistory_stride = 0\n", "features.history_stride: ", ">= 1"),
+    ("[features]\nhidden = 0\n", "features.hidden: ", ">= 1"),
     ('[csv]\ncolumns = { pos = "Pos" }\n', "csv.columns.pos: ", "unknown field"),
     ("[csv]\ncolumns = { x = 3 }\n", "csv.columns.x: ", "non-empty string"),
     ('[csv]\nunits = { x = "inch" }\n', "csv.units.x: ", "unknown unit 'inch'"),
