@@ -191,10 +191,22 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(
         formatter_class=HelpFormatter, prog="mrrig demo", description=__doc__
     )
-    ap.add_argument("--config", type=Path, default=Path("configs/rig.toml"))
-    ap.add_argument("--sim-config", type=Path, default=Path("configs/sim.toml"))
+    ap.add_argument(
+        "--config", type=Path, default=Path("configs/rig.toml"), help="daemon config (TOML)"
+    )
+    ap.add_argument(
+        "--sim-config",
+        type=Path,
+        default=Path("configs/sim.toml"),
+        help="simulator config (TOML)",
+    )
     ap.add_argument("--duration", type=positive, default=20.0, help="force-tracking time, s")
-    ap.add_argument("--model", type=Path, default=SIM_MODEL)
+    ap.add_argument(
+        "--model",
+        type=Path,
+        default=SIM_MODEL,
+        help="forward model (JSON); trained on the simulated matrix when absent",
+    )
     ap.add_argument(
         "--record", type=Path, help="recording path (default recordings/<rig>-<UTC>.rrd)"
     )

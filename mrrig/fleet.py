@@ -20,7 +20,7 @@ from typing import Any, TextIO
 import zenoh
 
 from mrrig import client, json_text
-from mrrig.cli_args import positive
+from mrrig.cli_args import HelpFormatter, positive
 
 ALIVE = "mrrig/*/alive"
 STATUS = "mrrig/*/status"
@@ -137,8 +137,15 @@ def watch_all(
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="mrrig rigs", description="List the live rigs.")
-    ap.add_argument("--zenoh-config", type=Path, default=client.DEFAULT_CONFIG)
+    ap = argparse.ArgumentParser(
+        prog="mrrig rigs", description="List the live rigs.", formatter_class=HelpFormatter
+    )
+    ap.add_argument(
+        "--zenoh-config",
+        type=Path,
+        default=client.DEFAULT_CONFIG,
+        help="Zenoh config reaching the rigs or their router (JSON5)",
+    )
     ap.add_argument("--timeout", type=positive, default=1.0, help="seconds to wait for answers")
     ap.add_argument("--json", action="store_true", help="a JSON list instead of a table")
     args = ap.parse_args(argv)

@@ -19,6 +19,7 @@ from pathlib import Path
 import zenoh
 
 from mrrig import sdnotify
+from mrrig.cli_args import HelpFormatter
 from mrrig.zenoh_config import ZenohConfigError, check_secure, endpoints, load_zenoh_config
 
 log = logging.getLogger(__name__)
@@ -45,7 +46,9 @@ def open_router(path: Path, insecure: bool = False) -> zenoh.Session:
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="mrrig router", description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(
+        prog="mrrig router", description=__doc__.splitlines()[0], formatter_class=HelpFormatter
+    )
     ap.add_argument("--config", type=Path, default=DEFAULT_CONFIG, help="Zenoh router config")
     ap.add_argument(
         "--insecure",

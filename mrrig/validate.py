@@ -124,7 +124,9 @@ def main(argv: list[str] | None = None) -> int:
         formatter_class=HelpFormatter, prog="mrrig validate", description=__doc__.splitlines()[0]
     )
     ap.add_argument("model", nargs="+", type=Path, help="forward model file(s) (mrrig train)")
-    ap.add_argument("--rig-config", type=Path, default=Path("configs/rig.toml"))
+    ap.add_argument(
+        "--rig-config", type=Path, default=Path("configs/rig.toml"), help="daemon config (TOML)"
+    )
     ap.add_argument("--duration", type=positive, default=10.0, help="kept per model, s")
     ap.add_argument("--settle", type=non_negative, default=1.0, help="after arming, not kept, s")
     ap.add_argument(
