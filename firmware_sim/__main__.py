@@ -97,7 +97,10 @@ def main(argv: list[str] | None = None) -> int:
             len(config.faults) + len(args.fault),
         )
         tune_process(config.timing.realtime_priority)
-        stats = RunStats(measure_echo=args.measure_echo)
+        stats = RunStats(
+            measure_echo=args.measure_echo,
+            stale_answer_age_s=config.commands.stale_answer_age_s,
+        )
         rc = 0
         wall0, cpu0 = time.monotonic(), time.process_time()
         try:

@@ -147,10 +147,15 @@ class CommandConfig:
 
     bad_frame_budget: int = 5
     bad_frame_window_s: float = 1.0
+    # a test instrument, not firmware: ACTIVE commands answering a sensor frame sent longer
+    # ago than this are counted (the daemon's loop.max_frame_age_s: it must send none)
+    stale_answer_age_s: float = 0.01
 
     def check(self) -> None:
         if self.bad_frame_budget < 0 or not self.bad_frame_window_s > 0.0:
             raise ValueError("bad_frame_budget >= 0 and bad_frame_window_s > 0 required")
+        if not self.stale_answer_age_s > 0.0:
+            raise ValueError("stale_answer_age_s: must be > 0")
 
 
 @dataclass(frozen=True)

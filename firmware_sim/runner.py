@@ -53,7 +53,10 @@ class RunStats:
     # an echo this late, from the send to the echo. A frame sent late is not "on time".
     LATE_S = 0.005
 
-    def __init__(self, measure_echo: bool = False) -> None:
+    def __init__(self, measure_echo: bool = False, stale_answer_age_s: float = math.inf) -> None:
+        self.stale_answer_age_s = stale_answer_age_s
+        # ACTIVE answers to a frame sent more than stale_answer_age_s before they came
+        self.active_answers_stale = 0
         self.sensor_frames_sent = 0
         self.sensor_frames_faulted = 0  # sent with a fault injected: no answer expected
         self.status_frames_sent = 0
@@ -147,6 +150,8 @@ class RunStats:
             entry = awaiting.popleft()
             entry[2], entry[3] = 1, bool(awaiting)
             self.latency_us.append((received_s - entry[1]) * 1e6)
+            if not safe and received_s - entry[1] > self.stale_answer_age_s:
+                self.active_answers_stale += 1
             self._answered.append(entry)
             if len(self._answered) > self.REPEATS:
                 self._close(self._answered.popleft())
@@ -190,6 +195,7 @@ class RunStats:
                 "answered_more_than_once": self.answered_more_than_once,
                 "unmatched": self.unmatched_answers,
                 "safe_repeats": self.safe_repeats,
+                "active_to_stale": self.active_answers_stale,
             },
             "answers_on_time": dict(self.on_time),
             "clock_t0_s": self.clock_t0_s,
@@ -198,6 +204,7 @@ class RunStats:
                 for k, a, b in self.stall_windows
             ],
             "echo_us": _percentiles(self.echo_us),
+            "stale_answer_age_s": self.stale_answer_age_s,
             "answer_latency_us": _percentiles(self.latency_us),
             "period_jitter_us": _percentiles(self.jitter_us),
             "cpu_fraction": cpu_s / wall_s if wall_s > 0.0 else 0.0,

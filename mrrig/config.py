@@ -15,6 +15,10 @@ from mrrig.typed_config import ConfigError, load_toml, parse
 
 __all__ = ["ConfigError", "DaemonConfig", "load_config", "reference_from_table"]
 
+# sane bounds of a damper test rig, well inside the DBC's ranges (+-8.3 m, +-83 kN)
+X_RANGE_LIMIT_M = 0.5
+F_RANGE_LIMIT_N = 80000.0
+
 
 @dataclass(frozen=True)
 class RigSection:
@@ -63,6 +67,13 @@ class LoopSection:
     arm_settle_s: float = 1.0  # arm_on_start arms after this long of valid sensor frames
     duration_s: float | None = None  # stop by itself after this long (tests, demo)
     telemetry_batch: int = 10  # samples per hand-off to the telemetry process
+    # a sensor frame older than this when answered (from its receive timestamp at the bus)
+    # was held up by a stall: answered SAFE, and a fault. Absent: one period (a real bus)
+    max_frame_age_s: float | None = None
+
+    @property
+    def frame_age_limit_s(self) -> float:
+        return self.period_s if self.max_frame_age_s is None else self.max_frame_age_s
 
     def check(self) -> None:
         if not 0.0005 <= self.period_s <= 0.1:
@@ -71,10 +82,26 @@ class LoopSection:
             raise ValueError("i_max_a: must be in (0, 5] A")
         if self.timeout_periods < 1:
             raise ValueError("timeout_periods: must be at least 1")
+        if self.bad_frame_budget < 0 or self.lost_frame_budget < 0:
+            raise ValueError("bad_frame_budget, lost_frame_budget: must be >= 0")
+        if not 0 < self.budget_window_s <= 60:
+            raise ValueError("budget_window_s: must be in (0, 60] s")
         if self.x_range_m[0] >= self.x_range_m[1]:
             raise ValueError("x_range_m: lower bound must be below the upper bound")
+        if not (-X_RANGE_LIMIT_M <= self.x_range_m[0] and self.x_range_m[1] <= X_RANGE_LIMIT_M):
+            raise ValueError(
+                f"x_range_m: must lie in [-{X_RANGE_LIMIT_M:g}, {X_RANGE_LIMIT_M:g}] m"
+            )
         if self.f_range_n[0] >= self.f_range_n[1]:
             raise ValueError("f_range_n: lower bound must be below the upper bound")
+        if not (-F_RANGE_LIMIT_N <= self.f_range_n[0] and self.f_range_n[1] <= F_RANGE_LIMIT_N):
+            raise ValueError(
+                f"f_range_n: must lie in [-{F_RANGE_LIMIT_N:g}, {F_RANGE_LIMIT_N:g}] N"
+            )
+        if not self.arm_settle_s >= 0:
+            raise ValueError("arm_settle_s: must be >= 0")
+        if self.max_frame_age_s is not None and not 0 < self.max_frame_age_s <= 0.1:
+            raise ValueError("max_frame_age_s: must be in (0, 0.1] s")
         if self.duration_s is not None and not self.duration_s > 0:
             raise ValueError("duration_s: must be positive")
         if not 1 <= self.telemetry_batch <= 40:
@@ -154,10 +181,18 @@ class ReferenceSection:
     def check(self) -> None:
         if self.kind == "csv" and self.path is None:
             raise ValueError("path: a csv reference needs a path")
-        if self.freq_hz <= 0:
-            raise ValueError("freq_hz: must be positive")
-        if self.timeout_s <= 0:
-            raise ValueError("timeout_s: must be positive")
+        if not 0 <= self.amplitude_n <= F_RANGE_LIMIT_N:
+            raise ValueError(f"amplitude_n: must be in [0, {F_RANGE_LIMIT_N:g}] N")
+        if not abs(self.offset_n) + self.amplitude_n <= F_RANGE_LIMIT_N:
+            raise ValueError(f"offset_n: |offset_n| + amplitude_n must be <= {F_RANGE_LIMIT_N:g} N")
+        if not 0 < self.freq_hz <= 250:
+            raise ValueError("freq_hz: must be in (0, 250] Hz (half the sensor rate)")
+        if not 0 < self.timeout_s <= 10:
+            raise ValueError("timeout_s: must be in (0, 10] s")
+        if not (0 <= self.current_a <= 5 and 0 <= self.current_amp_a <= 5):
+            raise ValueError("current_a, current_amp_a: must be in [0, 5] A")
+        if not 0 < self.current_freq_hz <= 250:
+            raise ValueError("current_freq_hz: must be in (0, 250] Hz")
 
 
 @dataclass(frozen=True)
@@ -181,10 +216,36 @@ class TelemetrySection:
     # a config off loopback without authentication and access control runs only with this
     # (a closed lab network), warned in every status and recording (mrrig.zenoh_config)
     insecure: bool = False
+    # no heartbeat from the telemetry process for this long: fault telemetry_lost (the rig is
+    # not left ARMED unobserved longer), and the process is restarted once
+    heartbeat_timeout_s: float = 2.0
 
     def check(self) -> None:
         if not 1 <= self.rate_hz <= 500:
             raise ValueError("rate_hz: must be in [1, 500]")
+        if not 0.3 <= self.heartbeat_timeout_s <= 30:
+            raise ValueError("heartbeat_timeout_s: must be in [0.3, 30] s")
+
+
+@dataclass(frozen=True)
+class ControlSection:
+    """Limits of the control plane (mrrig/<rig>/control)."""
+
+    # set_model / set_controller model files and set_profile CSV files must lie inside one of
+    # these (after symlinks); the configured model's and profile's own directories are allowed
+    model_dirs: tuple[Path, ...] = (Path("models"),)
+    profile_dirs: tuple[Path, ...] = (Path("profiles"),)
+    max_file_bytes: int = 4_000_000
+    read_timeout_s: float = 1.0
+    armed_amplitude_step_m: float = 0.005  # the largest actuator amplitude step while ARMED
+
+    def check(self) -> None:
+        if not 0 < self.max_file_bytes <= 100_000_000:
+            raise ValueError("max_file_bytes: must be in (0, 1e8]")
+        if not 0 < self.read_timeout_s <= 10:
+            raise ValueError("read_timeout_s: must be in (0, 10] s")
+        if not 0 <= self.armed_amplitude_step_m <= 0.04:
+            raise ValueError("armed_amplitude_step_m: must be in [0, 0.04] m")
 
 
 @dataclass(frozen=True)
@@ -218,6 +279,7 @@ class DaemonConfig:
     actuator: ActuatorSection = field(default_factory=ActuatorSection)
     telemetry: TelemetrySection = field(default_factory=TelemetrySection)
     recording: RecordingSection = field(default_factory=RecordingSection)
+    control: ControlSection = field(default_factory=ControlSection)
     source: str = "<defaults>"  # the file it came from, for error messages
 
 

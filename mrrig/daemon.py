@@ -2,8 +2,10 @@
 
 read -> check -> Kalman -> force reference -> controller -> clamp -> send, paced by the sensor
 frames, in one thread that never waits on telemetry: samples, events and status are handed to
-the sidecar process (Zenoh + Rerun) through a non-blocking pipe, and control requests come
-back the same way, polled between frames.
+the sidecar process (Zenoh + Rerun) through a non-blocking pipe. The loop owns the bus, the
+packer, the controller and the safety state; control requests are checked and prepared by
+`mrrig.control.ControlWorker` in its own thread, and the loop swaps in what it prepared
+between frames.
 
 `mrrig run --config configs/rig.toml`
 """
@@ -16,6 +18,7 @@ import logging
 import math
 import resource
 import signal
+import sys
 import threading
 import time
 from dataclasses import replace
@@ -30,6 +33,14 @@ from mrrig.canbus.bus import open_bus
 from mrrig.canbus.codec import Codec
 from mrrig.cli_args import HelpFormatter, add_bus_options, output_file, positive
 from mrrig.config import DaemonConfig, ReferenceSection, load_config
+from mrrig.control import (
+    Change,
+    ControlWorker,
+    Pending,
+    Preparer,
+    RequestError,
+    check_actuator_step,
+)
 from mrrig.controllers import (
     CONTROLLERS,
     FORWARD_INPUTS,
@@ -41,6 +52,7 @@ from mrrig.controllers import (
 from mrrig.errors import MrrigError
 from mrrig.estimation import RealtimeKalman
 from mrrig.inversion import DEFAULT_CONTINUITY
+from mrrig.ipc import LoopEnd, Msg, ReplyWriter, make_channel
 from mrrig.model.mlp import MLP, ModelError
 from mrrig.realtime import keep_off_cpu, make_realtime
 from mrrig.safety import Fault, Limits, Supervisor
@@ -59,7 +71,14 @@ log = logging.getLogger(__name__)
 
 DESIRED_FORCE_LIMIT_N = 80000.0  # inside DamperCommand.DesiredForce's 24-bit range
 ACTUATOR_PERIOD_S = 0.1
-STATUS_PERIOD_S = 1.0
+STATUS_PERIOD_S = 0.1  # to the sidecar, which answers `status` requests and publishes at 1 Hz
+# the longest a control-thread computation holds the GIL against the loop (Python's default
+# of 5 ms is two and a half sensor periods)
+SWITCH_INTERVAL_S = 0.0002
+SIDECAR_START_S = 20.0  # a new telemetry process's first heartbeat may take this long
+MAX_SIDECAR_RESTARTS = 1
+MAX_REPLAYED_EVENTS = 20  # events a restarted telemetry process is told again
+CLOCK_SANE_S = 60.0  # a frame timestamp further off than this is not on this machine's clock
 WAVEFORMS = {"stop": "STOP", "sine": "SINE", "random": "RANDOM", "hold": "HOLD"}
 # importing rerun and zenoh and opening both, on a loaded 2-core machine; a live_url that
 # nothing listens on alone blocks the recorder about 6 s
@@ -70,14 +89,26 @@ class SidecarStartError(MrrigError, OSError):
     """The telemetry process (Zenoh, recording) could not start: the daemon does not run."""
 
 
-def build_controller(cfg: DaemonConfig, section=None) -> Controller:
+class Exit:
+    """`mrrig run`'s exit codes (README: Exit codes)."""
+
+    OK = 0  # stopped by its duration or a signal, not in FAULT
+    FAULT = 1  # ended in FAULT (a fault that nobody re-armed)
+    USAGE = 2  # a bad config, model or argument (the CLI's one-line error)
+    BUS_LOST = 3  # the CAN bus failed or went away (a killed bridge)
+    TELEMETRY_LOST = 4  # the telemetry process died again after its one restart
+
+
+def build_controller(cfg: DaemonConfig, section=None, model: MLP | None = None) -> Controller:
     """The configured controller, from the registry (`controllers.make_controller`); a model
-    that does not fit stops here with one line."""
+    that does not fit stops here with one line. `model`: the section's model, already read
+    (the control plane reads it under limits)."""
     c = section or cfg.controller
     i_max, dt = cfg.loop.i_max_a, cfg.loop.period_s
     if c.name == "constant" and not 0 <= c.current_a <= i_max:
         raise ConfigError(f"{cfg.source}: controller.current_a: outside [0, {i_max}] A")
-    model = load_model(c.model, cfg.source) if CONTROLLERS[c.name].needs_model else None
+    if model is None and CONTROLLERS[c.name].needs_model:
+        model = load_model(c.model, cfg.source)
     settings = ControllerSettings(i_max, dt_s=dt, model=model, current_a=c.current_a)
     if c.name == "network_inversion":
         continuity = c.continuity
@@ -186,18 +217,28 @@ class Daemon:
         )
         self.actuator = cfg.actuator
         self.record_path = record_path
+        self.exit_code = Exit.OK
+        self.record_paths = [record_path] if record_path is not None else []
+        self._clock_warned = False
+        self._sidecar_deadline = math.inf
+        self.control = ControlWorker(Preparer(self, build_controller, build_reference))
+        self.control.on_start = self._control_thread_started
         self.stop_reason = ""
         self._stop = False
         self.started = threading.Event()  # set when the loop listens for frames
         self._safe_sent_at_stop = False  # the stop's SAFE command answered a sensor frame
         self.bus = None
-        self.link = None  # ipc.LoopEnd to the sidecar, when telemetry or recording is on
+        self.link: LoopEnd | None = None  # to the sidecar, when telemetry or recording is on
+        self._replies: ReplyWriter | None = None  # the control thread's end of the same pipe
         self.tap = None  # canlog.FrameTap: every frame for the bus log, when one is asked for
         if cfg.recording.can_log is not None:
             from mrrig.canlog import FrameTap
 
             self.tap = FrameTap()
         self.sidecar = None
+        self._sidecar_restarts = 0
+        self._sidecar_restarting = False
+        self.recording_failed = ""  # why the recording stopped, if it did
         self.t0 = time.perf_counter()
         self._cpu0 = time.process_time()
         self.counters = {
@@ -211,6 +252,9 @@ class Daemon:
             "send_failures": 0,
             "foreign_commands": 0,
             "lost_frames": 0,
+            "frames_ignored": 0,  # 29-bit, remote, error and unknown-id frames
+            "stale_frames": 0,  # answered SAFE: older than loop.max_frame_age_s
+            "sensor_frames_early": 0,  # counter ahead of the time since the last frame
             "telemetry_dropped": 0,
             "force_refs_received": 0,  # on force_ref, with the zenoh reference
             "can_log_dropped": 0,  # frames the pipe to the bus log's writer could not take
@@ -227,6 +271,9 @@ class Daemon:
         self._buf = np.zeros(cfg.loop.telemetry_batch, dtype=SAMPLE_DTYPE)
         self._n = 0
         self._last_sensor_t = None
+        self._last_sensor_bus_ts = None  # the bus's receive timestamp of that frame
+        self._early_event_t = -math.inf
+        self._frame_age_limit_s = cfg.loop.frame_age_limit_s
         self._first_sensor_t = 0.0
         self._arm_pending = False
         self._last_counter = 0
@@ -246,7 +293,7 @@ class Daemon:
     def _emit(self, events: list[dict]) -> None:
         for e in events:
             self.events.append(e)
-            level = logging.WARNING if e["kind"] == "fault" else logging.INFO
+            level = logging.INFO if e["level"] == "info" else logging.WARNING
             log.log(level, "%s: %s", e["kind"], e["reason"])
             if self.link is not None:
                 self.link.send_event(e)
@@ -265,6 +312,8 @@ class Daemon:
             "fault": s.fault.value if s.fault else None,
             "fault_reason": s.reason,
             "firmware_blocking": s.firmware_blocking,
+            "recording": "failed: " + self.recording_failed if self.recording_failed else None,
+            "telemetry_restarts": self._sidecar_restarts,
             "t": self.now(),
             **self.counters,
         }
@@ -321,11 +370,16 @@ class Daemon:
         self._last_actuator_sent = self.now()
 
     # ---- the cycle ---------------------------------------------------------------------
-    def cycle(self, values: dict[str, float], counter: int, t_rx: float) -> None:
+    def cycle(
+        self, values: dict[str, float], counter: int, t_rx: float, queued_s: float = 0.0
+    ) -> None:
         """One valid RigSensors frame -> exactly one DamperCommand.
 
-        An unexpected error in the computation does not unwind the loop: it is a fault, and
-        the frame is still answered, SAFE.
+        `queued_s`: how long the frame waited between its receive timestamp at the bus and
+        `t_rx` (the loop reading it); its age when answered is that plus the cycle's time.
+        A frame older than `loop.max_frame_age_s` is answered SAFE, and while armed the stall
+        is a fault. An unexpected error in the computation does not unwind the loop: it is a
+        fault, and the frame is still answered, SAFE.
         """
         sup = self.supervisor
         t = t_rx - self.t0
@@ -369,12 +423,22 @@ class Daemon:
             # the stop answers this frame SAFE: the rig is disarmed from this frame on, and the
             # frame is recorded so (not as an armed frame whose command fell to 0 A)
             events += sup.disarm(t, f"stopping: {self.stop_reason}")
+        age_s = queued_s + (time.perf_counter() - t_rx)
+        if age_s > self._frame_age_limit_s:
+            self.counters["stale_frames"] += 1
+            if sup.active:
+                events += sup.trip(
+                    t,
+                    Fault.STALE_FRAME,
+                    f"sensor frame {age_s * 1e3:.1f} ms old when answered (limit "
+                    f"{self._frame_age_limit_s * 1e3:g} ms): the daemon or the bus stalled",
+                )
         active = sup.active
         safe_f = f_des if math.isfinite(f_des) else 0.0
         self._send_command(active, i_cmd if active else 0.0, safe_f, counter)
         if self._stop:
             self._safe_sent_at_stop = True
-        latency_us = (time.perf_counter() - t_rx) * 1e6
+        latency_us = (time.perf_counter() - t_rx + queued_s) * 1e6
         self._split[self._n] = (latency_us - self._send_call_s * 1e6, self._send_call_s * 1e6)
         self._send_call_s = math.nan
         self.last_x = x
@@ -505,17 +569,20 @@ class Daemon:
         return self._chunks[start:]
 
     # ---- frames ------------------------------------------------------------------------
-    def on_frame(self, msg, t_rx: float) -> None:
+    def on_frame(self, msg, t_rx: float, queued_s: float = 0.0) -> None:
+        """One received frame; `queued_s` as in `cycle`."""
         self.counters["frames_received"] += 1
         if self.tap is not None:
             self.tap.rx(msg)
-        p = self.parser.parse(msg.arbitration_id, msg.data, t_rx)
+        # 29-bit, remote and error frames are none of the DBC's 11-bit messages
+        p = self.parser.parse_message(msg, t_rx)
         if p.name == "RigSensors":
             if not p.ok:
                 self.counters["sensor_frames_invalid"] += 1
                 self._emit(self.supervisor.bad_frame(t_rx - self.t0, p.reason))
                 return
             self.counters["sensor_frames_valid"] += 1
+            self._check_counter_timing(msg.timestamp, p.lost_frames, t_rx)
             if p.lost_frames:
                 self.counters["lost_frames"] += p.lost_frames
                 self._emit(self.supervisor.lost_frames(t_rx - self.t0, p.lost_frames))
@@ -526,7 +593,7 @@ class Daemon:
                 self._first_sensor_t = t_rx
             if self._arm_pending and t_rx - self._first_sensor_t >= self.cfg.loop.arm_settle_s:
                 self._arm_at_start(t_rx)
-            self.cycle(p.values, p.counter, t_rx)
+            self.cycle(p.values, p.counter, t_rx, queued_s)
             self._last_sensor_t = t_rx
             self._last_counter = p.counter
         elif p.name == "RigStatus" and p.ok:
@@ -546,7 +613,29 @@ class Daemon:
             self.counters["foreign_commands"] += 1
             self._emit(self.supervisor.foreign_command(t_rx - self.t0, p.name))
         elif not p.ok and p.name is None:
+            self.counters["frames_ignored"] += 1
             log.debug("ignored frame: %s", p.reason)
+
+    def _check_counter_timing(self, bus_ts: float, lost: int, t_rx: float) -> None:
+        """A sensor frame whose counter moved on more periods than time has passed since the
+        last one (a counter jump inside one period): a replayed or forged frame with a valid
+        CRC, or a second sender. E2E profile 2's 4-bit counter cannot stop such frames (README,
+        security); this only makes them seen: counted, and an event per budget window."""
+        last, self._last_sensor_bus_ts = self._last_sensor_bus_ts, bus_ts
+        if last is None or lost == 0 or bus_ts - last >= lost * self.period_s:
+            return
+        self.counters["sensor_frames_early"] += 1
+        t = t_rx - self.t0
+        if t - self._early_event_t >= self.cfg.loop.budget_window_s:
+            self._early_event_t = t
+            self._emit(
+                self.supervisor.notice(
+                    t,
+                    "suspect_frame",
+                    f"sensor counter advanced {lost + 1} in {(bus_ts - last) * 1e3:.2f} ms: "
+                    "a replayed or forged frame, or a second sender?",
+                )
+            )
 
     def _arm_at_start(self, t_rx: float) -> None:
         """arm_on_start: once the sensor frames have streamed for arm_settle_s."""
@@ -577,12 +666,105 @@ class Daemon:
         self.counters["safe_commands_unprompted"] += 1
         self._last_sensor_t = now_abs  # again after another timeout period
 
-    # ---- control requests (from Zenoh, through the sidecar) ----------------------------
-    def handle_request(self, req: dict[str, Any]) -> dict[str, Any]:
-        """One control request -> a JSON-able reply; an invalid one changes nothing."""
-        from mrrig.control import handle
+    # ---- control requests (from Zenoh through the sidecar, or in process) ----------------
+    def submit(self, req: dict[str, Any] | bytes, reply) -> None:
+        """Queue a control request (any thread, never blocks); `reply(dict)` is called from
+        the control thread with the answer once the loop has applied it, or refused it."""
+        self.control.submit(req, reply)
 
-        return handle(self, req)
+    def request(self, req: dict[str, Any], timeout_s: float = 5.0) -> dict[str, Any]:
+        """A control request from another thread of this process (characterize, tests):
+        blocks that thread until the loop has answered. Never call it from the loop."""
+        pending = Pending()
+        self.control.submit(req, pending)
+        return pending.wait(timeout_s)
+
+    def _control_thread_started(self) -> None:
+        keep_off_cpu(threading.get_native_id(), self.cfg.loop.cpu, "control thread")
+
+    def _apply_change(self) -> None:
+        """At most one prepared change per pass of the loop, between frames."""
+        taken = self.control.take()
+        if taken is None:
+            return
+        change, item = taken
+        try:
+            reply = {"ok": True, **self.apply(change)}
+        except RequestError as exc:
+            reply = {"ok": False, "error": str(exc)}
+        except Exception as exc:  # noqa: BLE001 - a failed change must not stop the loop
+            log.exception("applying %s failed", change.cmd)
+            reply = {"ok": False, "error": f"{type(exc).__name__}: {exc}"}
+        self.control.done(item, reply)
+
+    def apply(self, c: Change) -> dict[str, Any]:
+        """Swap in a prepared change (loop thread). The state is checked again here: an arm
+        that came after the change was prepared wins."""
+        sup = self.supervisor
+        if c.cmd == "arm":
+            ok, msg, events = sup.arm(self.now())
+            if not ok:
+                raise RequestError(msg)
+            if events:
+                self.controller.reset(1)
+                self.reset_reference(self.now(), self.last_x)
+            self._emit(events)
+            return {"state": sup.state.name, "message": msg}
+        if c.cmd == "disarm":
+            self._emit(sup.disarm(self.now(), "disarmed by request"))
+            return {"state": sup.state.name}
+        if c.cmd == "status":
+            return {"status": self.status()}
+        if c.cmd in ("reset_adaptation", "freeze_adaptation"):  # allowed while armed
+            return self._adaptation_change(c)
+        if c.cmd == "sidecar":
+            if c.sidecar is None:
+                self.exit_code = Exit.TELEMETRY_LOST
+                self.request_stop("telemetry lost: its restart failed")
+            else:
+                self._sidecar_back(*c.sidecar)
+            return {}
+        if c.cmd in ("set_controller", "set_profile") and sup.state is RigState.ARMED:
+            raise RequestError(f"{c.cmd} only when not armed (disarm first)")
+        if c.cmd == "set_controller":
+            self.controller = c.controller
+            self.controller.reset(1)
+            self.reset_reference(self.now(), self.last_x)  # its desired forces ahead, if any
+            self.cfg = replace(self.cfg, controller=c.controller_section)
+            self._send_status(force=True)
+            return {"controller": self.controller.name}
+        if c.cmd == "set_profile":
+            self.reset_reference(self.now(), self.last_x, c.reference)
+            self.cfg = replace(self.cfg, reference=c.reference_section)
+            self._send_status(force=True)
+            return {"reference": self.reference.kind}
+        a = c.actuator
+        check_actuator_step(sup.state, self.actuator, a, self.cfg)
+        self.actuator = a
+        self._send_actuator()
+        return {
+            "waveform": a.waveform,
+            "amplitude_m": a.amplitude_m,
+            "frequency_hz": a.frequency_hz,
+        }
+
+    def _adaptation_change(self, c: Change) -> dict[str, Any]:
+        adapt = getattr(self.controller, "adapt", None)
+        if adapt is None:
+            raise RequestError(
+                f"controller {self.controller.name} has no on-line adaptation "
+                "([adaptation] enabled)"
+            )
+        if c.cmd == "reset_adaptation":  # back to the model as trained (gain 1, offset 0)
+            adapt.reset(adapt.theta.shape[0])
+            what = "reset"
+        else:  # frozen: the adapted state stays in use, without updates
+            adapt.frozen = c.frozen
+            what = "frozen" if c.frozen else "resumed"
+        self._emit(
+            [self.supervisor.event(self.now(), "adaptation", f"adaptation {what} by request")]
+        )
+        return {"adaptation": adapt.state()}
 
     def on_force_ref(self, force_n: float, t_rx_mono: float) -> None:
         if isinstance(self.reference, ref.External):
@@ -591,16 +773,92 @@ class Daemon:
             delay = time.monotonic() - t_rx_mono
             self.reference.receive(force_n, self.now() - delay)
 
-    def _poll_link(self) -> None:
-        from mrrig.ipc import Msg
-
+    def _poll_link(self, now: float) -> None:
         for mtype, payload in self.link.poll():
             if mtype == Msg.REQUEST:
-                reply = self.handle_request(payload)
-                reply["id"] = payload.get("id")
-                self.link.send_reply(reply)
+                request_id, raw = payload
+                self.control.submit(raw, self._replies.reply_to(request_id))
             elif mtype == Msg.FORCE_REF:
                 self.on_force_ref(*payload)
+            elif mtype == Msg.HEARTBEAT:
+                self._sidecar_deadline = now + self.cfg.telemetry.heartbeat_timeout_s
+            elif mtype == Msg.NOTICE and payload.get("kind") == "recording_failed":
+                self._recording_failed(str(payload.get("reason", "")))
+
+    def _recording_failed(self, reason: str) -> None:
+        self.recording_failed = reason or "unknown"
+        self._emit(
+            self.supervisor.trip(self.now(), Fault.RECORDING_FAILED, f"recording failed: {reason}")
+        )
+
+    # ---- supervision of the telemetry process ------------------------------------------
+    def _watch_sidecar(self, now: float) -> None:
+        """A dead sidecar (its pipe closed) or one without a heartbeat for
+        `telemetry.heartbeat_timeout_s`: fault `telemetry_lost`, then one restart."""
+        if self._sidecar_restarting:
+            return
+        if self.link.closed:
+            code = self.sidecar.poll() if self.sidecar is not None else None
+            why = f"the telemetry process exited (code {code})"
+        elif now > self._sidecar_deadline:
+            why = (
+                "no heartbeat from the telemetry process for "
+                f"{self.cfg.telemetry.heartbeat_timeout_s:g} s (stopped or stuck)"
+            )
+        else:
+            return
+        self._emit(self.supervisor.trip(self.now(), Fault.TELEMETRY_LOST, why))
+        old = (self.sidecar, self.link, self._replies)
+        self.link = None
+        if self._sidecar_restarts >= MAX_SIDECAR_RESTARTS:
+            log.error("telemetry lost again after its restart: stopping the daemon")
+            self.exit_code = Exit.TELEMETRY_LOST
+            self.request_stop(f"telemetry lost: {why}")
+            self.control.submit_job(lambda: self._end_sidecar(*old))
+            return
+        self._sidecar_restarts += 1
+        self._sidecar_restarting = True
+        log.warning("%s: restarting it", why)
+        self.control.submit_job(lambda: self._restart_sidecar(*old))
+
+    def _end_sidecar(self, proc, link, replies) -> None:
+        """Kill and reap a lost sidecar and close its pipes (control thread)."""
+        if proc is not None and proc.poll() is None:
+            proc.kill()
+        if proc is not None:
+            try:
+                proc.wait(timeout=5)
+            except Exception:  # noqa: BLE001
+                log.warning("telemetry process %d not reaped", proc.pid)
+        replies.close()
+        link.close()
+
+    def _restart_sidecar(self, proc, link, replies) -> Change:
+        """Control thread: the lost process ended, a new one started (its own recording);
+        a Change for the loop either way (`sidecar` None: it could not start)."""
+        self._end_sidecar(proc, link, replies)
+        if self.record_path is not None:
+            n = self._sidecar_restarts
+            self.record_path = self.record_path.with_name(
+                f"{self.record_path.stem.split('.restart')[0]}.restart{n}.rrd"
+            )
+            self.record_paths.append(self.record_path)
+        if self.tap is not None:
+            log.warning("the bus log ends here: a restarted telemetry process does not continue it")
+        try:
+            return Change("sidecar", sidecar=self._spawn_sidecar(can_log=False))
+        except Exception as exc:  # noqa: BLE001 - the loop is told and stops
+            log.error("restarting the telemetry process failed: %s", exc)
+            return Change("sidecar")
+
+    def _sidecar_back(self, proc, link, replies) -> None:
+        self.sidecar, self.link, self._replies = proc, link, replies
+        self._sidecar_deadline = time.perf_counter() + SIDECAR_START_S
+        self._sidecar_restarting = False
+        log.info("telemetry process restarted (pid %d)", proc.pid)
+        for e in self.events[-MAX_REPLAYED_EVENTS:]:
+            link.send_event(e)
+        self._send_status(force=True)
 
     # ---- run ---------------------------------------------------------------------------
     def request_stop(self, reason: str) -> None:
@@ -612,7 +870,11 @@ class Daemon:
         self.bus = open_bus(cfg.bus.interface, cfg.bus.channel, **cfg.bus.options)
         try:
             if cfg.telemetry.enabled or self.record_path is not None or self.tap is not None:
-                self._start_sidecar()
+                self.sidecar, self.link, self._replies = self._spawn_sidecar()
+                self._sidecar_deadline = time.perf_counter() + SIDECAR_START_S
+            # started before the loop takes real-time priority: it runs at normal priority
+            sys.setswitchinterval(SWITCH_INTERVAL_S)
+            self.control.start()
             self.controller.reset(1)
             # collect and freeze before raising the priority: a full collection at
             # SCHED_FIFO would starve the simulator and the bridge on a 2-core machine
@@ -652,28 +914,49 @@ class Daemon:
                 msg = recv(timeout=timeout_s)
             except Exception as exc:  # noqa: BLE001 - a dead bus stops the loop safely
                 self._emit(self.supervisor.trip(self.now(), Fault.BUS_ERROR, f"receive: {exc}"))
+                self.exit_code = Exit.BUS_LOST
                 self.request_stop(f"bus error: {exc}")
                 break
             t_rx = time.perf_counter()
             self.notifier.pet(t_rx)
             if msg is not None:
-                self.on_frame(msg, t_rx)
+                self.on_frame(msg, t_rx, self._queued_s(msg))
             self.check_timeout(t_rx)
             t = t_rx - self.t0
             if self.link is not None:
-                self._poll_link()
+                self._poll_link(t_rx)
+                self._watch_sidecar(t_rx)
+            self._apply_change()
             if t - self._last_actuator_sent >= ACTUATOR_PERIOD_S:
                 self._send_actuator()
             self._send_status()
             if end is not None and t_rx >= end:
                 self.request_stop(f"duration {cfg.loop.duration_s:g} s reached")
 
-    def _start_sidecar(self) -> None:
-        from mrrig.ipc import LoopEnd, make_channel
+    def _queued_s(self, msg) -> float:
+        """How long ago the bus received `msg` (its timestamp: the kernel's on SocketCAN, the
+        bridge's on the Python bridge; both time.time())."""
+        q = time.time() - msg.timestamp
+        if 0.0 <= q < CLOCK_SANE_S:
+            return q
+        if -CLOCK_SANE_S < q < 0.0:
+            return 0.0  # stamped a hair in our future: the two clocks' reads, not an age
+        if not self._clock_warned:
+            self._clock_warned = True
+            log.warning(
+                "frame timestamps are not on this machine's clock (%.0f s off): frame age "
+                "is measured from the loop's read only",
+                q,
+            )
+        return 0.0
+
+    def _spawn_sidecar(self, can_log: bool = True) -> tuple[Any, LoopEnd, ReplyWriter]:
+        """Start the telemetry process and wait for it to be ready; `can_log` False: without
+        the bus log (a restarted process would start the run's bus log over)."""
         from mrrig.sidecar import start_sidecar
 
         fds = make_channel()
-        self.sidecar = start_sidecar(
+        proc = start_sidecar(
             rig=self.cfg.rig.name,
             zenoh_config=self.cfg.telemetry.zenoh_config if self.cfg.telemetry.enabled else None,
             record=self.record_path,
@@ -681,17 +964,19 @@ class Daemon:
             telemetry_hz=self.cfg.telemetry.rate_hz,
             live_url=self.cfg.recording.live_url,
             insecure=self.cfg.telemetry.insecure,
-            can_log=self._can_log(),
+            can_log=self._can_log() if can_log else None,
         )
-        keep_off_cpu(self.sidecar.pid, self.cfg.loop.cpu, "telemetry process")
-        self.link = LoopEnd(*fds.loop_fds())
+        keep_off_cpu(proc.pid, self.cfg.loop.cpu, "telemetry process")
+        link = LoopEnd(*fds.loop_fds())
         # a rig must not run unobserved: no telemetry or recording, no loop
-        error = self.link.wait_ready(SIDECAR_START_TIMEOUT_S)
+        error = link.wait_ready(SIDECAR_START_TIMEOUT_S)
         if error is not None:
+            link.close()
             off = ""
             if self.cfg.telemetry.enabled:
                 off = " (to run without Zenoh: telemetry.enabled = false, or --no-telemetry)"
             raise SidecarStartError(f"the telemetry process could not start: {error}{off}")
+        return proc, link, link.reply_writer()
 
     def _can_log(self) -> tuple[Path, str] | None:
         """The bus log and the channel name it shows (the interface's, a rig name otherwise)."""
@@ -704,6 +989,10 @@ class Daemon:
     def _shutdown(self) -> None:
         """SAFE first, then the actuator to rest, the summary, the sidecar, the bus."""
         gc.unfreeze()
+        self.control.stop()
+        while (taken := self.control.take()) is not None:
+            if taken[0].cmd == "sidecar" and taken[0].sidecar is not None:
+                self._sidecar_back(*taken[0].sidecar)  # a restart that finished as it ended
         if self.bus is not None:
             if self._last_sensor_t is not None and not self._safe_sent_at_stop:
                 self._send_command(False, 0.0, 0.0, self._last_counter)
@@ -731,6 +1020,9 @@ class Daemon:
         self.summary["reference"] = self.reference.kind
         if adaptation is not None:
             self.summary["adaptation"] = adaptation
+        if self.exit_code == Exit.OK and self.supervisor.state is RigState.FAULT:
+            self.exit_code = Exit.FAULT
+        self.summary["exit_code"] = self.exit_code
         qs = (50, 99, 99.9)
         self.summary["latency_split_us"] = {
             "before_send": self._before_send_us.percentiles(qs),
@@ -740,6 +1032,7 @@ class Daemon:
             self.link.send_summary(self.summary)
             self.link.send_stop()
             self.link.close()
+            self._replies.close()
         if self.sidecar is not None:
             try:
                 self.sidecar.wait(timeout=15)
@@ -829,10 +1122,12 @@ def main(argv: list[str] | None = None) -> int:
     )
     summary = daemon.run()
     print(format_summary(summary))
-    if record is not None:
-        print(f"recording: {record}")
+    for path in daemon.record_paths:
+        print(f"recording: {path}")
     if cfg.recording.can_log is not None:
         print(f"bus log: {cfg.recording.can_log}")
     if args.summary_json:
         args.summary_json.write_text(json_text.dumps(summary, indent=2))
-    return 0
+    if daemon.exit_code != Exit.OK:
+        log.warning("exit code %d: %s", daemon.exit_code, summary["stop_reason"] or "a fault")
+    return daemon.exit_code

@@ -5,11 +5,14 @@ most PIPE_BUF bytes, so POSIX makes each write all-or-nothing. A message that do
 the pipe is dropped and counted, never written in part. Frame: struct '<BH' (type, payload
 length) followed by the payload.
 
-Loop -> sidecar: SAMPLES (raw SAMPLE_DTYPE records), EVENT, STATUS, REPLY, SUMMARY (JSON
-objects), STOP (empty), FRAMES (raw `canlog.FRAME_DTYPE` records, for the bus log).
+Loop -> sidecar: SAMPLES (raw SAMPLE_DTYPE records), EVENT, STATUS, REPLY (JSON with the
+request's "id", written by the daemon's control thread on its own `ReplyWriter`), SUMMARY
+(JSON objects), STOP (empty), FRAMES (raw `canlog.FRAME_DTYPE` records, for the bus log).
 Sidecar -> loop: READY (JSON {"error": null or one line}, once, when its Zenoh session and
-recording are open or have failed), REQUEST (JSON object with "id"), FORCE_REF (struct '<dd':
-force in N, sidecar receive time from time.monotonic()).
+recording are open or have failed), REQUEST (struct '<I' id, then the request's JSON text as
+the client sent it, checked by the sidecar), FORCE_REF (struct '<dd': force in N, sidecar
+receive time from time.monotonic()), HEARTBEAT (empty, every HEARTBEAT_PERIOD_S), NOTICE (JSON
+object: {"kind": "recording_failed", "reason": ...}).
 """
 
 from __future__ import annotations
@@ -39,6 +42,9 @@ MAX_PAYLOAD = PIPE_BUF - HEADER.size
 SAMPLES_PER_MESSAGE = MAX_PAYLOAD // SAMPLE_DTYPE.itemsize
 _SAMPLES_STEP = SAMPLES_PER_MESSAGE * SAMPLE_DTYPE.itemsize
 FORCE_REF = struct.Struct("<dd")
+REQUEST_ID = struct.Struct("<I")
+MAX_REQUEST_PAYLOAD = MAX_PAYLOAD - REQUEST_ID.size
+HEARTBEAT_PERIOD_S = 0.2
 _F_SETPIPE_SZ = 1031  # Linux fcntl; a bigger pipe rides out longer sidecar stalls
 _READ_CHUNK = 1 << 16
 
@@ -56,6 +62,8 @@ class Msg(enum.IntEnum):
     REQUEST = 16
     FORCE_REF = 17
     READY = 18
+    HEARTBEAT = 19
+    NOTICE = 20
 
 
 @dataclass(frozen=True)
@@ -140,7 +148,7 @@ class _Writer:
 
     def __init__(self, fd: int) -> None:
         os.set_blocking(fd, False)
-        self._fd = fd
+        self.fd = fd
         self.dropped = 0  # messages not written (pipe full, reader gone, too large)
         self.peer_gone = False
 
@@ -154,7 +162,7 @@ class _Writer:
             return False
         try:
             # one writev of <= PIPE_BUF bytes: atomic, so never a partial frame in the pipe
-            os.writev(self._fd, (HEADER.pack(mtype, n), payload))
+            os.writev(self.fd, (HEADER.pack(mtype, n), payload))
         except BlockingIOError:
             self.dropped += 1
             return False
@@ -165,7 +173,7 @@ class _Writer:
         return True
 
     def close(self) -> None:
-        os.close(self._fd)
+        os.close(self.fd)
 
 
 class LoopEnd:
@@ -223,10 +231,6 @@ class LoopEnd:
     def send_status(self, status: dict[str, Any]) -> bool:
         return self._w.write(Msg.STATUS, _encode_json(status))
 
-    def send_reply(self, reply: dict[str, Any]) -> bool:
-        """The answer to a REQUEST; must carry the request's "id"."""
-        return self._w.write(Msg.REPLY, _encode_json(reply))
-
     def send_summary(self, summary: dict[str, Any]) -> bool:
         return self._w.write(Msg.SUMMARY, _encode_json(summary))
 
@@ -245,10 +249,16 @@ class LoopEnd:
     def send_stop(self) -> bool:
         return self._w.write(Msg.STOP, b"")
 
+    def reply_writer(self) -> ReplyWriter:
+        """A second writer on the pipe to the sidecar, for the control thread."""
+        return ReplyWriter(self._w.fd)
+
     def poll(self) -> list[tuple[Msg, Any]]:
         """Non-blocking: the messages that have arrived, decoded.
 
-        (Msg.REQUEST, dict) or (Msg.FORCE_REF, (force_n, t_rx_monotonic_s)).
+        (Msg.REQUEST, (id, raw JSON bytes)), (Msg.FORCE_REF, (force_n, t_rx_monotonic_s)),
+        (Msg.HEARTBEAT, None), (Msg.NOTICE, dict). The request's JSON is decoded by the
+        control thread, not here.
         """
         if not self._poller.poll(0):
             return []
@@ -265,7 +275,12 @@ class LoopEnd:
             if mtype == Msg.FORCE_REF:
                 out.append((Msg.FORCE_REF, FORCE_REF.unpack(payload)))
             elif mtype == Msg.REQUEST:
-                out.append((Msg.REQUEST, decode_json(payload)))
+                (request_id,) = REQUEST_ID.unpack_from(payload)
+                out.append((Msg.REQUEST, (request_id, payload[REQUEST_ID.size :])))
+            elif mtype == Msg.HEARTBEAT:
+                out.append((Msg.HEARTBEAT, None))
+            elif mtype == Msg.NOTICE:
+                out.append((Msg.NOTICE, decode_json(payload)))
             elif mtype == Msg.READY:
                 out.append((Msg.READY, decode_json(payload)))
             else:
@@ -287,6 +302,25 @@ class LoopEnd:
 
     def close(self) -> None:
         os.close(self._rx)
+        self._w.close()
+
+
+class ReplyWriter:
+    """The control thread's writer on the loop's pipe to the sidecar (a dup of its fd): each
+    reply is one atomic write, so it never splits a message of the loop's."""
+
+    def __init__(self, tx_fd: int) -> None:
+        self._w = _Writer(os.dup(tx_fd))
+
+    def send_reply(self, reply: dict[str, Any]) -> bool:
+        """The answer to a REQUEST; must carry the request's "id"."""
+        return self._w.write(Msg.REPLY, _encode_json(reply))
+
+    def reply_to(self, request_id: int):
+        """A callable delivering a reply to request `request_id`."""
+        return lambda reply: self.send_reply({**reply, "id": request_id})
+
+    def close(self) -> None:
         self._w.close()
 
 
@@ -321,8 +355,15 @@ class SidecarEnd:
         readable, _, _ = select.select([self._rx], [], [], timeout_s)
         return self.read_ready() if readable else []
 
-    def send_request(self, request: dict[str, Any]) -> bool:
-        return self._w.write(Msg.REQUEST, _encode_json(request))
+    def send_request(self, request_id: int, raw: bytes) -> bool:
+        """A request's JSON text (at most MAX_REQUEST_PAYLOAD bytes) under its id."""
+        return self._w.write(Msg.REQUEST, REQUEST_ID.pack(request_id) + raw)
+
+    def send_heartbeat(self) -> bool:
+        return self._w.write(Msg.HEARTBEAT, b"")
+
+    def send_notice(self, notice: dict[str, Any]) -> bool:
+        return self._w.write(Msg.NOTICE, _encode_json(notice))
 
     def send_ready(self, error: str | None = None) -> bool:
         """Tell the loop the sidecar is up (`error` None) or could not start (one line)."""

@@ -111,6 +111,15 @@ _SERIES_COLORS: dict[str, tuple[int, int, int]] = {
 }
 
 _SIGNALS = {signal.SIGINT, signal.SIGTERM}
+# rerun writes the file in a thread of its own and only logs a failed write; a flush that
+# waits for that thread raises once it has died (disk full, file size limit), or times out.
+# Under the sidecar's heartbeat timeout (2 s), so a failing disk is not taken for a stuck
+# sidecar; a healthy flush of 0.5 s of samples takes milliseconds
+WRITE_TIMEOUT_S = 1.0
+
+
+class RecordingError(OSError):
+    """The recording file could not be written; what reached it is truncated."""
 
 
 def recording_path(directory: str | Path, rig: str, now: dt.datetime | None = None) -> Path:
@@ -243,6 +252,7 @@ class Recorder:
         self._events = 0
         self._closed = False
         self._dropped_after_close = 0
+        self.failed = ""  # why writing the file failed: what it holds is truncated
         self.path.parent.mkdir(parents=True, exist_ok=True)
         self._rec = rr.RecordingStream(APPLICATION_ID, recording_id=uuid.uuid4())
         sinks: list[Any] = [rr.FileSink(self.path)]
@@ -337,12 +347,28 @@ class Recorder:
         with self._guard():
             if self._closed:
                 return
-            self._flush_locked()
-            self._rec.disconnect()
+            try:
+                self._flush_locked()
+            finally:
+                self._rec.disconnect()
+                self._closed = True
+            if self.failed:
+                log.error("recording closed truncated (%s): %s", self.failed, self.path)
+            else:
+                log.info(
+                    "recording closed: %s (%d frames, %d events)",
+                    self.path,
+                    self._frames,
+                    self._events,
+                )
+
+    def abandon(self) -> None:
+        """After a failed write: stop taking data without flushing or writing the footer (a
+        stream whose file writer failed may hang in either). The file stays truncated."""
+        with self._guard():
             self._closed = True
-            log.info(
-                "recording closed: %s (%d frames, %d events)", self.path, self._frames, self._events
-            )
+            self._pending = []
+        log.error("recording abandoned truncated (%s): %s", self.failed, self.path)
 
     def __enter__(self) -> Recorder:
         return self
@@ -394,6 +420,11 @@ class Recorder:
             )
             self._rec.log(f"{entity}/{LOOP_AXES}", *loop_axes(name, unit, scale, f_scale))
         self._rec.reset_time()
+        try:
+            self._rec.flush(timeout_sec=WRITE_TIMEOUT_S)
+        except RuntimeError as exc:
+            self.failed = str(exc)
+            raise RecordingError(f"{self.path}: writing failed: {exc}") from None
 
     def _send_derived(self, indexes: list[Any], batch: np.ndarray) -> None:
         """The tracking error and the gap between sensor frames, for the viewer's tabs."""

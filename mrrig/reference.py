@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import abc
 import csv
+import io
 import math
 from pathlib import Path
 
@@ -104,14 +105,22 @@ class CsvSeries(ForceReference):
 
     kind = "csv"
 
-    def __init__(self, path: Path, time_column: str = "t_s", force_column: str = "force_n"):
-        try:
-            with Path(path).open(newline="") as fh:
-                rows = list(csv.DictReader(fh))
-        except OSError as exc:
-            raise ForceReferenceError(
-                f"{path}: cannot read force profile: {exc.strerror}"
-            ) from None
+    def __init__(
+        self,
+        path: Path,
+        time_column: str = "t_s",
+        force_column: str = "force_n",
+        text: str | None = None,
+    ):
+        """`text`: the file's content, already read (the control plane reads under limits)."""
+        if text is None:
+            try:
+                text = Path(path).read_text(encoding="utf-8")
+            except OSError as exc:
+                raise ForceReferenceError(
+                    f"{path}: cannot read force profile: {exc.strerror}"
+                ) from None
+        rows = list(csv.DictReader(io.StringIO(text)))
         if not rows:
             raise ForceReferenceError(f"{path}: force profile is empty")
         for col in (time_column, force_column):

@@ -1,9 +1,14 @@
 """`mrrig review FILE.rrd`: the metrics of a recorded run, read back with Rerun's reader;
-optionally a figure, a one-file HTML report and the check of a bus log of the same run."""
+optionally a figure, a one-file HTML report and the check of a bus log of the same run.
+
+A recording without the summary the daemon writes at its end is truncated (the recording
+failed, or the run was killed): review says so and exits 1, unless `--partial`.
+"""
 
 from __future__ import annotations
 
 import argparse
+import logging
 from pathlib import Path
 
 from mrrig import json_text
@@ -33,10 +38,19 @@ def main(argv: list[str] | None = None) -> int:
         " against the recording (exit 1 on a mismatch)",
     )
     ap.add_argument("--verify", action="store_true", help="run `rerun rrd verify` first")
+    ap.add_argument("--partial", action="store_true", help="review a truncated recording (exit 0)")
     args = ap.parse_args(argv)
     if args.verify:
         verify_rrd(args.file)
     rec = read_recording(args.file)
+    if rec.summary is None:
+        logging.getLogger("mrrig.review").error(
+            "%s: truncated: no end-of-run summary (the recording failed or the run was killed); %s",
+            args.file,
+            "reviewing what is there" if args.partial else "--partial reviews what is there",
+        )
+        if not args.partial:
+            return 1
     bus_log = None
     if args.can_log is not None:
         from mrrig.canlog import check_bus_log

@@ -15,7 +15,6 @@ from typing import Any
 import numpy as np
 
 from mrrig.config import DaemonConfig
-from mrrig.control import handle
 from mrrig.daemon import Daemon
 from mrrig.errors import MrrigError
 from mrrig.samples import SAMPLE_DTYPE, RigState
@@ -50,8 +49,9 @@ class Interrupted(Exception):
 class RigSession:
     """The daemon's loop in a background thread, driven by control requests.
 
-    `handle` is called from this thread between frames, a few times per run; the samples are
-    read from the batches the loop has already handed over (never from its live buffer).
+    Requests go through the daemon's control thread and are applied by the loop between
+    frames (`Daemon.request`), a few times per run; the samples are read from the batches
+    the loop has already handed over (never from its live buffer).
     """
 
     def __init__(self, cfg: DaemonConfig) -> None:
@@ -101,7 +101,7 @@ class RigSession:
         return self.daemon.now()
 
     def request(self, **req: Any) -> dict[str, Any]:
-        reply = handle(self.daemon, req)
+        reply = self.daemon.request(req)
         if not reply["ok"]:
             raise RigError(f"{req['cmd']}: {reply['error']}")
         return reply
@@ -159,8 +159,8 @@ class RigSession:
     def close(self) -> None:
         """SAFE, actuator STOP (the daemon's shutdown sends both), loop stopped."""
         if self._thread.is_alive():
-            handle(self.daemon, {"cmd": "disarm"})
-            handle(self.daemon, {"cmd": "actuator", "waveform": "stop"})
+            self.daemon.request({"cmd": "disarm"})
+            self.daemon.request({"cmd": "actuator", "waveform": "stop"})
             self.daemon.request_stop("session closed")
             self._thread.join(timeout=10)
             if self._thread.is_alive():

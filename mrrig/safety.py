@@ -36,13 +36,21 @@ class Fault(enum.Enum):
     BUS_ERROR = "bus_error"
     FOREIGN_COMMAND = "foreign_command"  # a command the DBC has only the daemon send, not ours
     INTERNAL_ERROR = "internal_error"  # an unexpected exception in the cycle
+    STALE_FRAME = "stale_frame"  # a sensor frame older than loop.max_frame_age_s when answered
+    TELEMETRY_LOST = "telemetry_lost"  # the telemetry process died or stopped its heartbeat
+    RECORDING_FAILED = "recording_failed"  # the recording could not be written
 
 
 # The faults a transport stall causes (a bus or a process held up past the sensor timeout or
 # the firmware's 20 ms watchdog): `mrrig validate` tries such a window again, `mrrig demo`
 # re-arms after them. The daemon itself never re-arms.
 TRANSPORT_FAULTS = frozenset(
-    {Fault.SENSOR_TIMEOUT.value, Fault.LOST_FRAMES.value, Fault.FIRMWARE_WATCHDOG.value}
+    {
+        Fault.SENSOR_TIMEOUT.value,
+        Fault.LOST_FRAMES.value,
+        Fault.FIRMWARE_WATCHDOG.value,
+        Fault.STALE_FRAME.value,
+    }
 )
 
 
@@ -91,6 +99,10 @@ class Supervisor:
     def event(self, t_s: float, kind: str, reason: str) -> dict:
         """An event of this state that is no fault (e.g. a change of the adaptation)."""
         return self._event(t_s, kind, reason)
+
+    def notice(self, t_s: float, kind: str, reason: str) -> list[dict]:
+        """A warning event that changes no state (a suspect frame)."""
+        return [{**self._event(t_s, kind, reason), "level": "warning"}]
 
     def trip(self, t_s: float, fault: Fault, reason: str) -> list[dict]:
         """Enter FAULT (or stay there, recording the new reason). Returns the events."""

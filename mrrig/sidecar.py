@@ -37,7 +37,17 @@ import numpy as np
 import zenoh
 
 from mrrig import audit, json_text
-from mrrig.ipc import ChannelFds, Msg, SidecarEnd, decode_frames, decode_json, decode_samples
+from mrrig.control import RequestError, parse_request
+from mrrig.ipc import (
+    HEARTBEAT_PERIOD_S,
+    MAX_REQUEST_PAYLOAD,
+    ChannelFds,
+    Msg,
+    SidecarEnd,
+    decode_frames,
+    decode_json,
+    decode_samples,
+)
 from mrrig.samples import FIELDS, SAMPLE_DTYPE
 from mrrig.zenoh_config import ZenohConfigError, check_secure, load_zenoh_config, zenoh_error_text
 
@@ -47,6 +57,22 @@ JSON = zenoh.Encoding.APPLICATION_JSON
 CONTROL_TIMEOUT_S = 1.0
 STATUS_REPEAT_S = 1.0
 NO_ANSWER = {"ok": False, "error": "daemon did not answer"}
+# requests waiting for the daemon, at most; more get "busy" at once (a disarm always goes on)
+MAX_IN_FLIGHT = 8
+# a `status` control request is answered here from the loop's latest status (it sends one
+# every 0.1 s) while that is younger than this; older (a stalled loop), it goes to the loop
+STATUS_FRESH_S = 0.5
+# what a status publication is compared on: not the time or the counters, which always move
+_STATUS_KEY = (
+    "state",
+    "armed",
+    "controller",
+    "reference",
+    "fault",
+    "fault_reason",
+    "firmware_blocking",
+    "recording",
+)
 _SHUTDOWN_READS = 64  # bounded final drain: a loop that keeps writing cannot hold us
 _FLOAT_FIELDS = tuple(f for f in FIELDS if SAMPLE_DTYPE[f].kind == "f")
 
@@ -63,8 +89,12 @@ class SampleSink(Protocol):
 
     def add_samples(self, arr: np.ndarray) -> None: ...
     def add_event(self, t_s: float, level: str, text: str, **fields: Any) -> None: ...
+
+    failed: str  # why writing the file failed, "" while it has not
+
     def add_summary(self, d: dict[str, Any]) -> None: ...
     def close(self) -> None: ...
+    def abandon(self) -> None: ...
 
 
 def keys(rig: str) -> dict[str, str]:
@@ -144,6 +174,9 @@ class Sidecar:
         self._batches: list[np.ndarray] = []
         self._last_t_s = 0.0
         self._last_status: bytes | None = None  # as the loop sent it
+        self._last_status_key: tuple | None = None
+        self._status_rx_s = -math.inf  # when the loop's latest status came
+        self._heartbeat_s = -math.inf
         self._status_out = b""  # as published: with the warnings
         self._warnings = list(warnings or [])
         self._status_sent_s = 0.0
@@ -208,7 +241,16 @@ class Sidecar:
         next_telemetry_s = time.monotonic() + self._period_s
         while not self._stop:
             now = time.monotonic()
-            wake_at = min((next_telemetry_s, *(p.deadline_s for p in self._pending.values())))
+            if now - self._heartbeat_s >= HEARTBEAT_PERIOD_S:
+                self._end.send_heartbeat()
+                self._heartbeat_s = now
+            wake_at = min(
+                (
+                    next_telemetry_s,
+                    self._heartbeat_s + HEARTBEAT_PERIOD_S,
+                    *(p.deadline_s for p in self._pending.values()),
+                )
+            )
             if self._last_status is not None:
                 wake_at = min(wake_at, self._status_sent_s + STATUS_REPEAT_S)
             readable, _, _ = select.select(
@@ -243,35 +285,46 @@ class Sidecar:
                 kind, item, t_rx_s = self._inbox.get_nowait()
             except queue.Empty:
                 return
-            if kind == "query":
-                self._handle_query(item)
-            elif kind == "status_query":
-                if self._status_out:
-                    self._reply(item, self._status_out, self._keys["status"])
+            try:
+                if kind == "query":
+                    self._handle_query(item)
+                elif kind == "status_query":
+                    if self._status_out:
+                        self._reply(item, self._status_out, self._keys["status"])
+                    else:
+                        item.drop()  # no status yet: no answer, as if the rig were not there
                 else:
-                    item.drop()  # no status yet: no answer, as if the rig were not there
-            else:
-                self._handle_force_ref(item, t_rx_s)
+                    self._handle_force_ref(item, t_rx_s)
+            except Exception:  # one request or sample never ends the control plane
+                log.exception("handling a %s failed", kind)
+                if kind == "query":
+                    self._reply(item, {"ok": False, "error": "internal error in the sidecar"})
 
     def _handle_query(self, query: zenoh.Query) -> None:
-        payload = query.payload.to_bytes() if query.payload else b""
+        raw = query.payload.to_bytes() if query.payload else b""
         requester = audit.requester(query, self._session)
         try:
-            request = json.loads(payload)
-            if not isinstance(request, dict):
-                raise ValueError("a control request must be a JSON object")
-        except ValueError as exc:  # JSONDecodeError and UnicodeDecodeError are ValueErrors
-            refused = {"ok": False, "error": f"invalid request: {exc}"}
-            self._answer(query, payload, requester, refused)
+            request = parse_request(raw)
+        except RequestError as exc:
+            # the audit keeps a bounded excerpt of what was refused
+            self._answer(query, raw[:200], requester, {"ok": False, "error": str(exc)})
+            return
+        now = time.monotonic()
+        if request["cmd"] == "status" and now - self._status_rx_s <= STATUS_FRESH_S:
+            status = decode_json(self._last_status)
+            status["age_s"] = round(now - self._status_rx_s, 4)
+            self._answer(query, request, requester, {"ok": True, "status": status})
+            return
+        if len(self._pending) >= MAX_IN_FLIGHT and request["cmd"] != "disarm":
+            busy = {"ok": False, "error": f"busy: {MAX_IN_FLIGHT} requests in flight"}
+            self._answer(query, request, requester, busy)
             return
         request_id = self._next_id
         self._next_id += 1
-        if not self._end.send_request({**request, "id": request_id}):
+        if len(raw) > MAX_REQUEST_PAYLOAD or not self._end.send_request(request_id, raw):
             self._answer(query, request, requester, NO_ANSWER)
             return
-        self._pending[request_id] = _Pending(
-            query, time.monotonic() + CONTROL_TIMEOUT_S, request, requester
-        )
+        self._pending[request_id] = _Pending(query, now + CONTROL_TIMEOUT_S, request, requester)
 
     def _answer(
         self,
@@ -322,31 +375,41 @@ class Sidecar:
 
     def _handle_loop_messages(self, messages: list[tuple[int, bytes]]) -> None:
         for mtype, payload in messages:
-            if mtype == Msg.SAMPLES:
-                batch = decode_samples(payload)
-                if batch.size:
-                    self._batches.append(batch)
-                    self._last_t_s = float(batch["t"][-1])
-                    self._record("add_samples", batch)
-            elif mtype == Msg.EVENT:
-                self._event(decode_json(payload), payload)
-            elif mtype == Msg.STATUS:
-                if payload != self._last_status:
-                    self._last_status = payload
-                    self._status_out = self._with_warnings(payload)
-                    self._publish_status(self._status_out, time.monotonic())
-            elif mtype == Msg.REPLY:
-                self._handle_reply(decode_json(payload))
-            elif mtype == Msg.SUMMARY:
-                self._record("add_summary", decode_json(payload))
-            elif mtype == Msg.FRAMES:
-                if self._bus_log is not None:
-                    self._bus_log.write(decode_frames(payload))
-            elif mtype == Msg.STOP:
-                log.info("STOP from the loop")
-                self._stop = True
-            else:
-                log.warning("ignored unknown message type %d from the loop", mtype)
+            try:
+                self._handle_loop_message(mtype, payload)
+            except Exception:  # a message that cannot be handled is logged, not fatal
+                log.exception("handling a %s message from the loop failed", mtype)
+
+    def _handle_loop_message(self, mtype: int, payload: bytes) -> None:
+        if mtype == Msg.SAMPLES:
+            batch = decode_samples(payload)
+            if batch.size:
+                self._batches.append(batch)
+                self._last_t_s = float(batch["t"][-1])
+                self._record("add_samples", batch)
+        elif mtype == Msg.EVENT:
+            self._event(decode_json(payload), payload)
+        elif mtype == Msg.STATUS:
+            # the loop sends one every 0.1 s; published on a change of state and every second
+            now = time.monotonic()
+            key = tuple(decode_json(payload).get(k) for k in _STATUS_KEY)
+            self._last_status, self._status_rx_s = payload, now
+            self._status_out = self._with_warnings(payload)
+            if key != self._last_status_key:
+                self._last_status_key = key
+                self._publish_status(self._status_out, now)
+        elif mtype == Msg.REPLY:
+            self._handle_reply(decode_json(payload))
+        elif mtype == Msg.SUMMARY:
+            self._record("add_summary", decode_json(payload))
+        elif mtype == Msg.FRAMES:
+            if self._bus_log is not None:
+                self._bus_log.write(decode_frames(payload))
+        elif mtype == Msg.STOP:
+            log.info("STOP from the loop")
+            self._stop = True
+        else:
+            log.warning("ignored unknown message type %d from the loop", mtype)
 
     def _handle_reply(self, reply: dict[str, Any]) -> None:
         pending = self._pending.pop(reply.pop("id", None), None)
@@ -393,29 +456,43 @@ class Sidecar:
             return
         try:
             getattr(self._recorder, method)(*args, **kwargs)
-        except Exception:
-            # keep telemetry alive; the recording is lost from here on, loudly
+        except Exception as exc:
+            # keep telemetry alive; the recording is lost from here on, loudly: an event, and
+            # the loop is told (a fault: a test run whose record is gone is stopped)
             log.exception("recording failed; recording stopped")
-            self._close_recorder()
+            path = getattr(self._recorder, "path", "the recording")
+            reason = f"{exc}; {path} is truncated"
+            # told first: closing a stream whose writer hangs may hang too
+            self._end.send_notice({"kind": "recording_failed", "reason": reason})
             self._publish(
                 "events",
                 json_text.dumps(
                     {
                         "t": self._last_t_s,
                         "level": "error",
-                        "text": "recording failed; recording stopped",
+                        "text": f"recording failed; recording stopped: {reason}",
                         "kind": "recording_failed",
+                        "reason": reason,
                     }
                 ),
             )
+            recorder, self._recorder = self._recorder, None
+            if recorder.failed:  # its file writer failed: closing could hang
+                recorder.abandon()
+            else:
+                self._close_recorder_obj(recorder)
 
     def _close_recorder(self) -> None:
         recorder, self._recorder = self._recorder, None
         if recorder is not None:
-            try:
-                recorder.close()
-            except Exception:
-                log.exception("closing the recording failed")
+            self._close_recorder_obj(recorder)
+
+    @staticmethod
+    def _close_recorder_obj(recorder: SampleSink) -> None:
+        try:
+            recorder.close()
+        except Exception:
+            log.exception("closing the recording failed")
 
     def _shutdown(self) -> None:
         # what the loop wrote just before stopping (summary, last samples) still counts
@@ -477,6 +554,9 @@ def run_sidecar(
         end.send_ready(str(exc))
         end.close()
         return 2
+    # past a file size limit a write fails (EFBIG) instead of killing the process: the
+    # recording then fails as on a full disk, and telemetry goes on
+    signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
     stop_early: list[int] = []  # a signal before the Sidecar exists still stops it
     for signum in (signal.SIGTERM, signal.SIGINT):
         signal.signal(signum, lambda num, _frame: stop_early.append(num))
@@ -530,6 +610,10 @@ def run_sidecar(
             bus_log.close()
         end.close()
     log.info("sidecar stopped")
+    if recorder is not None and recorder.failed:
+        # rerun's exit handler waits for the file writer that failed, for ever: leave without
+        logging.shutdown()
+        os._exit(0)
     return 0
 
 

@@ -149,6 +149,8 @@ def main(argv: list[str] | None = None) -> int:
         args.bus_channel,
         args.no_telemetry,
         controller={"name": "network_inversion", "model": str(args.model[0])},
+        # the models named on this command line are switched in with set_model
+        control={"model_dirs": sorted({str(p.parent) for p in args.model})},
     )
     cfg = load_config(args.rig_config, overrides)
     for path in args.model:  # a missing or unfit model stops here, before the rig moves

@@ -16,12 +16,15 @@ import can
 
 from mrrig.canbus.codec import Codec
 from mrrig.config import load_config
+from mrrig.control import Pending
 from mrrig.daemon import Daemon
 
 _channels = itertools.count()
 
 
-def write_config(tmp_path: Path, channel: str, timeout_periods: int) -> Path:
+def write_config(
+    tmp_path: Path, channel: str, timeout_periods: int, max_frame_age_s: float = 0.1
+) -> Path:
     path = tmp_path / "rig.toml"
     path.write_text(
         f"""
@@ -35,6 +38,7 @@ realtime = false
 arm_on_start = true
 arm_settle_s = 0.0
 timeout_periods = {timeout_periods}
+max_frame_age_s = {max_frame_age_s}
 [controller]
 name = "constant"
 current_a = 1.25
@@ -53,21 +57,38 @@ enabled = false
 class ScriptedRig:
     """The firmware's side of the bus, driven by the test."""
 
-    def __init__(self, tmp_path: Path, timeout_periods: int = 50, config=None, **daemon_kw):
+    def __init__(
+        self,
+        tmp_path: Path,
+        timeout_periods: int = 50,
+        config=None,
+        max_frame_age_s: float = 0.1,
+        overrides: dict[str, dict] | None = None,
+        **daemon_kw,
+    ):
         """`config(channel) -> path`: a daemon config of the test's own on that channel (else
-        `write_config`'s); `daemon_kw` go to the `Daemon` (e.g. record_path)."""
-        # a generous sensor timeout by default: the test thread plays the firmware and can be
-        # slower than 2 ms per frame on a loaded machine; the timeout test sets the real one
+        `write_config`'s); `overrides` ({section: {field: value}}) win over it; `daemon_kw`
+        go to the `Daemon` (e.g. record_path)."""
+        # a generous sensor timeout and frame age by default: the test thread plays the
+        # firmware and can be slower than 2 ms per frame on a loaded machine; the timeout and
+        # stall tests set the real ones
         self.channel = f"rig-harness-{next(_channels)}"
         if config is None:
-            cfg_path = write_config(tmp_path, self.channel, timeout_periods)
+            cfg_path = write_config(tmp_path, self.channel, timeout_periods, max_frame_age_s)
         else:
             cfg_path = config(self.channel)
-        self.cfg = load_config(cfg_path)
+        self.cfg = load_config(cfg_path, overrides)
         self.codec = Codec()
         self.packer = self.codec.packer("RIG")
         self.parser = self.codec.parser()
-        self.bus = can.Bus(interface="virtual", channel=self.channel, receive_own_messages=False)
+        # frames carry the timestamp the test gives them (`sensors(age_s=...)`): a frame
+        # that waited in a queue, as after a stall
+        self.bus = can.Bus(
+            interface="virtual",
+            channel=self.channel,
+            receive_own_messages=False,
+            preserve_timestamps=True,
+        )
         self.daemon = Daemon(self.cfg, keep_batches=True, **daemon_kw)
         self.thread = threading.Thread(target=self.daemon.run, daemon=True)
         self.counter = 0
@@ -89,8 +110,8 @@ class ScriptedRig:
         while self.bus.recv(timeout=0) is not None:
             pass
 
-    def sensors(self, x=0.001, force=250.0, counter=None, crc_ok=True, **flags) -> int:
-        """Send one RigSensors frame; returns the counter it carried."""
+    def sensors(self, x=0.001, force=250.0, counter=None, crc_ok=True, age_s=0.0, **flags) -> int:
+        """Send one RigSensors frame, received at the bus `age_s` ago; returns its counter."""
         values = {
             "ActuatorEnabled": 1,
             "LimitTripped": flags.get("LimitTripped", 0),
@@ -105,7 +126,14 @@ class ScriptedRig:
             data[0] ^= 0xFF
         if counter is None:
             self.counter = (self.counter + 1) & 0xF
-        self.bus.send(can.Message(arbitration_id=0x110, is_extended_id=False, data=bytes(data)))
+        self.bus.send(
+            can.Message(
+                arbitration_id=0x110,
+                is_extended_id=False,
+                data=bytes(data),
+                timestamp=time.time() - age_s,
+            )
+        )
         return c
 
     def status(self, state="RUNNING", fault_code=0, timeouts=0) -> None:
@@ -116,7 +144,9 @@ class ScriptedRig:
             "FaultCode": fault_code,
             "CommandTimeouts": timeouts,
         }
-        self.bus.send(self.packer.message("RigStatus", values))
+        msg = self.packer.message("RigStatus", values)
+        msg.timestamp = time.time()
+        self.bus.send(msg)
 
     def command(self, timeout=0.5) -> dict | None:
         """The next DamperCommand (decoded), skipping ActuatorCommands; None on timeout."""
@@ -130,6 +160,17 @@ class ScriptedRig:
                 assert p.ok, p.reason
                 return p.values
         return None
+
+    def request(self, req: dict, max_frames: int = 200) -> dict:
+        """A control request, answered by the loop between frames: sensor frames stream (and
+        are answered) until the reply comes, as they would on the rig."""
+        pending = Pending()
+        self.daemon.submit(req, pending)
+        for _ in range(max_frames):
+            if pending.done():
+                return pending.reply
+            self.exchange()
+        return pending.wait(1.0)
 
     def exchange(self, **kw) -> dict:
         """One sensor frame and the command that answers it."""

@@ -191,7 +191,7 @@ class ThreadRig:
             None,
             True,
             bus={"interface": "virtual"},
-            loop={"realtime": False, "timeout_periods": 25},
+            loop={"realtime": False, "timeout_periods": 25, "max_frame_age_s": 0.05},
             **sections,
         )
         return load_config(path, over)
@@ -262,11 +262,12 @@ def test_validate_switches_models_with_set_model_while_disarmed(tmp_path, sim_mo
             tmp_path,
             controller={"name": "network_inversion", "model": str(sim_model)},
             actuator={"waveform": "sine", "amplitude_m": 0.015, "frequency_hz": 2.0},
+            control={"model_dirs": [str(tmp_path)]},
         )
         with RigSession(cfg) as session:
             first = clean_window(session)
             session.request(cmd="arm")
-            refused = session.daemon.handle_request({"cmd": "set_model", "path": str(other)})
+            refused = session.daemon.request({"cmd": "set_model", "path": str(other)})
             assert not refused["ok"] and "not armed" in refused["error"]
             session.request(cmd="disarm")
             session.request(cmd="set_model", path=str(other))

@@ -245,17 +245,13 @@ def test_rearm_after_fault_is_explicit(tmp_path):
         rig.exchange(EStop=1)
         assert_safe(rig.exchange())
         assert_safe(rig.exchange())
-        from mrrig.control import handle
-
-        assert handle(rig.daemon, {"cmd": "arm"})["ok"]
+        assert rig.request({"cmd": "arm"})["ok"]
         assert rig.exchange()["Mode"] == ACTIVE
 
 
 def test_another_senders_command_on_the_bus_faults_and_blocks_arming(tmp_path):
     """A DamperCommand the daemon did not send (a second daemon on the rig's bus): FAULT, SAFE
     from the next frame, and arming refused until that sender has been quiet for a while."""
-    from mrrig.control import handle
-
     with ScriptedRig(tmp_path) as rig:
         assert rig.exchange()["Mode"] == ACTIVE
         other = can.Bus(interface="virtual", channel=rig.channel, receive_own_messages=False)
@@ -276,13 +272,13 @@ def test_another_senders_command_on_the_bus_faults_and_blocks_arming(tmp_path):
         ev = assert_fault(rig, Fault.FOREIGN_COMMAND)
         assert "another sender's DamperCommand" in ev["reason"]
         assert rig.daemon.counters["foreign_commands"] == 1
-        reply = handle(rig.daemon, {"cmd": "arm"})
+        reply = rig.request({"cmd": "arm"})
         assert not reply["ok"] and "second daemon" in reply["error"], reply
         assert_safe(rig.exchange())
 
         time.sleep(FOREIGN_HOLD_S)  # quiet since: arming is allowed again
         rig.drain()
-        assert handle(rig.daemon, {"cmd": "arm"})["ok"]
+        assert rig.request({"cmd": "arm"})["ok"]
         assert rig.exchange()["Mode"] == ACTIVE
 
 

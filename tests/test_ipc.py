@@ -85,7 +85,9 @@ def test_json_messages_roundtrip_with_their_types(ends):
     summary = {"et": 0.031, "faults": []}
     loop.send_event(event)
     loop.send_status(status)
-    loop.send_reply(reply)
+    replies = loop.reply_writer()  # the control thread's own writer on the same pipe
+    replies.send_reply(reply)
+    replies.close()
     loop.send_summary(summary)
     loop.send_stop()
     msgs = _read_all(side)
@@ -97,9 +99,14 @@ def test_json_messages_roundtrip_with_their_types(ends):
 def test_requests_and_force_refs_reach_the_loop_decoded(ends):
     loop, side = ends
     assert loop.poll() == []
-    side.send_request({"id": 3, "cmd": "arm"})
+    side.send_request(3, b'{"cmd": "arm"}')
     side.send_force_ref(-512.5, 123.0)
-    assert loop.poll() == [(Msg.REQUEST, {"id": 3, "cmd": "arm"}), (Msg.FORCE_REF, (-512.5, 123.0))]
+    side.send_heartbeat()
+    assert loop.poll() == [
+        (Msg.REQUEST, (3, b'{"cmd": "arm"}')),  # the JSON is decoded by the control thread
+        (Msg.FORCE_REF, (-512.5, 123.0)),
+        (Msg.HEARTBEAT, None),
+    ]
 
 
 def test_loop_poll_buffers_a_partial_frame_until_it_completes():

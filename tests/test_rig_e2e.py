@@ -50,7 +50,8 @@ def run_rig(tmp_path: Path, bridge: str, procs, model: Path, duration_s: float, 
     out.join()
     print(out.text())
     daemon.send_signal(signal.SIGTERM)
-    assert daemon.wait(timeout=30) == 0, daemon_out.text()
+    # exit code 1: it ended in FAULT, the sensor timeout once the simulator had stopped
+    assert daemon.wait(timeout=30) == 1, daemon_out.text()
     daemon_out.join()
     st = json.loads(sim_stats.read_text())
     s = json.loads(summary_path.read_text())
@@ -105,3 +106,18 @@ def test_a_fault_of_the_daemon_with_no_stall_of_the_simulator_fails_the_proof(
     assert s["faults"], "the daemon's stall faulted nothing"
     with pytest.raises(AssertionError, match="no measured stall explains"):
         prove(st, s["faults"], s["clock_t0_s"])
+
+
+def test_after_a_stall_of_the_daemon_no_stale_frame_is_answered_active(
+    tmp_path, bridge, procs, sim_model
+):
+    """The daemon held up for 100 ms while armed (SIGSTOP): the frames that waited for it are
+    answered SAFE, each once (the simulator counts no ACTIVE answer to a frame older than the
+    configured age, 10 ms), the stall is a fault (stale_frame), and the summary's latency max,
+    which includes the time a frame waited, shows it."""
+    st, s, _ = run_rig(tmp_path, bridge, procs, sim_model, 5.0, stop=("daemon", 2.0, 0.1))
+    a = st["answers"]
+    assert st["stale_answer_age_s"] == 0.01
+    assert a["active_to_stale"] == 0, a
+    assert any("ms old when answered" in f["reason"] for f in s["faults"]), s["faults"]
+    assert s["latency_us"]["max"] >= 90_000, s["latency_us"]

@@ -126,7 +126,8 @@ def run_once(config: Path, sim_config: Path, duration_s: float, mode: str) -> di
         bridge_cpu = _cpu_s(bridge.pid) - t_bridge0
         echo_cpu = _cpu_s(daemon.pid)
         daemon.send_signal(signal.SIGTERM)
-        if daemon.wait(timeout=60) != 0:
+        # 1: the daemon ended in FAULT, the sensor timeout once the simulator had stopped
+        if daemon.wait(timeout=60) not in (0, 1):
             raise RuntimeError(f"daemon exited with code {daemon.returncode}")
         d = json.loads((work / "daemon.json").read_text())
         s = json.loads((work / "sim.json").read_text())

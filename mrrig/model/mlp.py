@@ -160,11 +160,22 @@ class MLP:
         """Read a `mrrig-mlp/1` file; any defect raises a one-line ModelError naming the field."""
         path = Path(path)
         try:
-            doc = json.loads(path.read_text(encoding="utf-8"))
+            text = path.read_text(encoding="utf-8")
         except OSError as exc:
             raise ModelError(f"{path}: cannot read: {exc.strerror}") from None
-        except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        except UnicodeDecodeError as exc:
+            raise ModelError(f"{path}: not a JSON model file: {exc}") from None
+        return cls.from_text(text, path)
+
+    @classmethod
+    def from_text(cls, text: str, path: str | Path) -> MLP:
+        """`load` of a file's content already read (`path` names it in errors)."""
+        try:
+            doc = json.loads(text)
+        except json.JSONDecodeError as exc:
             raise ModelError(f"{path}: not a JSON model file: {exc}".replace("\n", " ")) from None
+        except RecursionError:
+            raise ModelError(f"{path}: not a model file: JSON nested too deeply") from None
         if not isinstance(doc, dict):
             raise ModelError(f"{path}: not a JSON object")
         if doc.get("format") != FORMAT:

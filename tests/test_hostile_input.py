@@ -1,0 +1,412 @@
+"""Issue 23's findings, one test (or a few) each: hostile requests and frames, stalls, and
+dead or failing parts. Each test is named after its finding and reproduced what the issue
+saw before the fix; now it checks the fixed behaviour.
+
+The daemon runs its real loop in a thread on a python-can virtual bus (tests/rig_harness.py);
+the sidecar and `mrrig run` run as processes where the finding is about them.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import resource
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import can
+import pytest
+
+from mrrig.canbus.codec import Codec
+from mrrig.client import query
+from mrrig.config import load_config
+from mrrig.ipc import LoopEnd, Msg, make_channel
+from mrrig.review_cli import main as review_main
+from mrrig.safety import Fault
+from mrrig.samples import RigState
+from mrrig.sidecar import keys
+from mrrig.typed_config import ConfigError
+from tests.conftest import REPO, rig_config
+from tests.rig_harness import ScriptedRig
+from tests.test_sidecar import RIG, _samples, _wait_for, running_sidecar
+
+ACTIVE, SAFE = 1, 0
+
+
+def _dirs(tmp_path: Path) -> dict[str, dict]:
+    """Config overrides: model and profile directories of the test's own."""
+    models, profiles = tmp_path / "models", tmp_path / "profiles"
+    models.mkdir(exist_ok=True)
+    profiles.mkdir(exist_ok=True)
+    return {"control": {"model_dirs": [str(models)], "profile_dirs": [str(profiles)]}}
+
+
+def _faults(rig: ScriptedRig) -> list[str]:
+    return [e["fault"] for e in rig.daemon.events if e["kind"] == "fault"]
+
+
+# ---- 1. one request kills the control plane ------------------------------------------------
+def test_finding1_a_deeply_nested_request_gets_an_error_and_the_sidecar_lives(tmp_path):
+    nested = '{"cmd": "status", "x": ' + "[" * 1000 + "]" * 1000 + "}"
+    with running_sidecar(tmp_path) as r:
+        replies = list(r.observer.get(keys(RIG)["control"], payload=nested, timeout=3.0))
+        reply = json.loads(replies[0].ok.payload.to_bytes())
+        assert reply == {"ok": False, "error": "request nested deeper than 4 levels"}
+        # still serving: a valid request goes on to the loop
+        list(r.observer.get(keys(RIG)["control"], payload='{"cmd": "arm"}', timeout=0.2))
+        request_id, raw = r.poll_until(Msg.REQUEST)
+        assert json.loads(raw) == {"cmd": "arm"}
+        assert r.proc.poll() is None
+
+
+def test_finding1_a_model_file_nested_deeply_is_refused_and_the_loop_goes_on(tmp_path):
+    with ScriptedRig(tmp_path, overrides=_dirs(tmp_path)) as rig:
+        bad = tmp_path / "models" / "deep.json"
+        bad.write_text("[" * 100_000 + "]" * 100_000)
+        assert rig.request({"cmd": "disarm"})["ok"]
+        reply = rig.request(
+            {"cmd": "set_controller", "name": "network_inversion", "model": str(bad)}
+        )
+        assert not reply["ok"] and "nested deeper than 32 levels" in reply["error"], reply
+        assert rig.request({"cmd": "arm"})["ok"]
+        assert rig.exchange()["Mode"] == ACTIVE
+        assert rig.daemon.controller.name == "constant"  # unchanged
+
+
+# ---- 2. files read by the loop, from anywhere ---------------------------------------------
+def test_finding2_a_profile_path_outside_the_profile_directories_is_refused(tmp_path):
+    with ScriptedRig(tmp_path, overrides=_dirs(tmp_path)) as rig:
+        rig.request({"cmd": "disarm"})
+        for path in ("../../etc/passwd", "/etc/passwd", str(tmp_path / "profiles/../x.csv")):
+            reply = rig.request({"cmd": "set_profile", "kind": "csv", "path": path})
+            assert not reply["ok"] and "outside the allowed directories" in reply["error"], reply
+            assert "root:" not in reply["error"]
+        assert rig.daemon.reference.kind == "constant"
+
+
+def test_finding2_a_named_pipe_is_refused_at_once_while_frames_are_answered(tmp_path):
+    with ScriptedRig(tmp_path, overrides=_dirs(tmp_path)) as rig:
+        fifo = tmp_path / "profiles" / "pipe.csv"
+        os.mkfifo(fifo)
+        rig.request({"cmd": "disarm"})
+        t0 = time.monotonic()
+        reply = rig.request({"cmd": "set_profile", "kind": "csv", "path": str(fifo)})
+        assert not reply["ok"] and "not a regular file" in reply["error"], reply
+        assert time.monotonic() - t0 < 1.0
+
+
+def test_finding2_an_oversize_profile_is_refused_and_a_small_one_taken_only_disarmed(tmp_path):
+    with ScriptedRig(tmp_path, overrides=_dirs(tmp_path)) as rig:
+        big = tmp_path / "profiles" / "big.csv"
+        with big.open("wb") as fh:
+            fh.truncate(15_800_000)  # sparse: the size is what is checked first
+        good = tmp_path / "profiles" / "good.csv"
+        good.write_text("t_s,force_n\n0,100\n1,200\n")
+        reply = rig.request({"cmd": "set_profile", "kind": "csv", "path": str(good)})
+        assert not reply["ok"] and "only when not armed" in reply["error"], reply
+        rig.request({"cmd": "disarm"})
+        reply = rig.request({"cmd": "set_profile", "kind": "csv", "path": str(big)})
+        assert not reply["ok"] and "over the limit of 4000000" in reply["error"], reply
+        reply = rig.request({"cmd": "set_profile", "kind": "csv", "path": str(good)})
+        assert reply == {"ok": True, "reference": "csv"}
+        assert rig.daemon.reference.kind == "csv"
+
+
+# ---- 3. frames queued during a stall answered ACTIVE ---------------------------------------
+def test_finding3_frames_older_than_the_age_limit_are_answered_safe_and_fault(tmp_path):
+    with ScriptedRig(tmp_path, max_frame_age_s=0.01) as rig:
+        for _ in range(5):
+            assert rig.exchange()["Mode"] == ACTIVE
+        # a backlog, as after a 60 ms stall of the daemon: each frame still gets one command
+        counters = [rig.sensors(age_s=0.06 - 0.002 * k) for k in range(5)]
+        answers = [rig.command() for _ in counters]
+        assert [a["SensorCounterEcho"] for a in answers] == counters
+        assert all(a["Mode"] == SAFE and a["CurrentSetpoint"] == 0.0 for a in answers)
+        assert _faults(rig) == [Fault.STALE_FRAME.value]
+        assert rig.daemon.counters["stale_frames"] == 5
+        assert "ms old when answered" in rig.daemon.supervisor.reason
+    # the summary's latency includes the time the frame waited: the stall shows
+    assert rig.daemon.summary["latency_us"]["max"] >= 50_000
+
+
+# ---- 4. 29-bit and remote frames taken as 11-bit ones --------------------------------------
+def test_finding4_extended_and_remote_frames_are_not_the_dbc_messages(tmp_path):
+    packer = Codec().packer("RIG")
+    estop = {
+        "ActuatorEnabled": 1,
+        "LimitTripped": 0,
+        "EStop": 1,
+        "SensorFault": 0,
+        "Displacement": 0.0,
+        "Force": 0.0,
+    }
+    daemon_values = {
+        "Mode": "ACTIVE",
+        "CurrentSetpoint": 1.0,
+        "SensorCounterEcho": 0,
+        "ControllerId": 6,
+        "DesiredForce": 0.0,
+    }
+    command = Codec().packer("DAEMON").encode("DamperCommand", daemon_values)
+    with ScriptedRig(tmp_path) as rig:
+        # a counter no genuine frame near it has: an answer to it would show
+        sensors = packer.encode("RigSensors", estop, counter=(rig.counter + 8) & 0xF)
+        rig.exchange()
+        for frame in (
+            can.Message(arbitration_id=0x110, is_extended_id=True, data=sensors),
+            can.Message(arbitration_id=0x210, is_extended_id=True, data=command),
+            can.Message(arbitration_id=0x110, is_extended_id=False, is_remote_frame=True, dlc=8),
+        ):
+            frame.timestamp = time.time()
+            rig.bus.send(frame)
+            # the next command answers the next genuine frame (exchange checks the echo)
+            assert rig.exchange()["Mode"] == ACTIVE
+        assert _faults(rig) == []
+        assert rig.daemon.counters["frames_ignored"] == 3
+        assert rig.daemon.counters["foreign_commands"] == 0
+
+
+# ---- 5. request bursts: the sidecar answers status itself ----------------------------------
+def test_finding5_status_requests_are_answered_by_the_sidecar_not_the_loop(tmp_path):
+    with running_sidecar(tmp_path) as r:
+        r.loop.send_status({"state": "ARMED", "armed": True, "frames_received": 12})
+        time.sleep(0.2)
+        for _ in range(50):
+            reply = query(r.observer, RIG, {"cmd": "status"}, 2.0)
+            assert reply["ok"] and reply["status"]["state"] == "ARMED", reply
+        assert [m for m, _ in r.loop.poll() if m == Msg.REQUEST] == []
+
+
+def test_finding5_more_requests_in_flight_than_allowed_get_busy_but_disarm_goes_on(tmp_path):
+    with running_sidecar(tmp_path) as r:
+        control = keys(RIG)["control"]
+        pending = [
+            r.observer.get(control, payload='{"cmd": "arm"}', timeout=3.0) for _ in range(12)
+        ]
+        disarm = r.observer.get(control, payload='{"cmd": "disarm"}', timeout=3.0)
+        errors = [json.loads(next(iter(p)).ok.payload.to_bytes())["error"] for p in pending]
+        assert errors.count("busy: 8 requests in flight") == 4, errors
+        assert errors.count("daemon did not answer") == 8
+        assert json.loads(next(iter(disarm)).ok.payload.to_bytes())["error"] == (
+            "daemon did not answer"  # forwarded, though 8 were in flight
+        )
+
+
+# ---- 6. failures silent or misreported -----------------------------------------------------
+def test_finding6_a_one_megabyte_request_gets_an_error_reply(tmp_path):
+    big = json.dumps({"cmd": "status", "pad": "x" * 1_000_000})
+    with running_sidecar(tmp_path) as r:
+        replies = list(r.observer.get(keys(RIG)["control"], payload=big, timeout=3.0))
+        reply = json.loads(replies[0].ok.payload.to_bytes())
+        assert reply["ok"] is False
+        assert reply["error"].startswith("request too large: 1000028 bytes (limit 2048)")
+
+
+def _limited_sidecar(path: Path, fsize: int) -> tuple[subprocess.Popen, LoopEnd]:
+    """A recording-only sidecar process whose files may not grow past `fsize` bytes: a full
+    disk as the writer sees it (EFBIG on write)."""
+    fds = make_channel()
+    loop = LoopEnd(*fds.loop_fds())
+    cmd = [sys.executable, "-m", "mrrig.sidecar", "--rig", RIG, "--zenoh-config", ""]
+    cmd += ["--record", str(path), "--rx-fd", str(fds.sidecar_rx), "--tx-fd", str(fds.sidecar_tx)]
+
+    def limit() -> None:
+        resource.setrlimit(resource.RLIMIT_FSIZE, (fsize, fsize))
+
+    proc = subprocess.Popen(cmd, pass_fds=fds.sidecar_fds(), preexec_fn=limit, cwd=REPO)
+    os.close(fds.sidecar_rx)
+    os.close(fds.sidecar_tx)
+    return proc, loop
+
+
+def test_finding6_a_recording_that_cannot_be_written_is_reported_and_review_says_so(tmp_path):
+    path = tmp_path / "run.rrd"
+    proc, loop = _limited_sidecar(path, 200_000)
+    try:
+        notice = None
+        end = time.monotonic() + 60
+        k = 0
+        while time.monotonic() < end:
+            batch = _samples(40)
+            batch["t"] = k * 0.08 + batch["t"] - batch["t"][0]
+            k += 1
+            loop.send_samples(batch)
+            time.sleep(0.01)
+            got = [p for m, p in loop.poll() if m == Msg.NOTICE]
+            if got:
+                notice = got[0]
+                break
+        assert notice is not None, "no recording_failed notice"
+        assert notice["kind"] == "recording_failed"
+        assert "truncated" in notice["reason"] and str(path) in notice["reason"]
+        assert proc.poll() is None  # telemetry goes on
+        loop.send_stop()
+        assert proc.wait(timeout=15) == 0
+    finally:
+        loop.close()
+        if proc.poll() is None:
+            proc.kill()
+    assert review_main([str(path)]) == 1
+    assert review_main([str(path), "--partial"]) == 0
+
+
+def test_finding6_the_loop_faults_when_its_recording_fails(tmp_path):
+    # /dev/full: every write fails with ENOSPC, as on a full disk
+    record = tmp_path / "run.rrd"
+    record.symlink_to("/dev/full")
+    # a sensor timeout of 1 s: the telemetry process starting may hold this test up
+    with ScriptedRig(tmp_path, timeout_periods=500, record_path=record) as rig:
+        end = time.monotonic() + 30
+        while rig.daemon.supervisor.fault is not Fault.RECORDING_FAILED:
+            assert time.monotonic() < end, rig.daemon.events[-3:]
+            rig.exchange()
+        assert rig.exchange()["Mode"] == SAFE
+        assert rig.daemon.status()["recording"].startswith("failed: ")
+
+
+def test_finding6_a_killed_sidecar_is_a_fault_restarted_once_then_the_daemon_stops(tmp_path):
+    rig = ScriptedRig(
+        tmp_path,
+        timeout_periods=500,
+        overrides={"telemetry": {"heartbeat_timeout_s": 0.5}},
+        record_path=tmp_path / "run.rrd",
+    )
+    with rig:
+        _wait_for(lambda: rig.exchange() and rig.daemon.link is not None)
+        first = rig.daemon.sidecar
+        first.kill()
+        while rig.daemon.supervisor.fault is not Fault.TELEMETRY_LOST:
+            rig.exchange()
+        assert "telemetry process exited" in rig.daemon.supervisor.reason
+        assert rig.exchange()["Mode"] == SAFE
+        # restarted once, into a file of its own
+        _wait_for(lambda: rig.exchange() and rig.daemon.sidecar is not first, 30.0)
+        assert rig.daemon.record_paths[-1].name == "run.restart1.rrd"
+        assert rig.request({"cmd": "arm"})["ok"]
+        # a stopped (stuck) one: no heartbeat for 0.5 s is the same fault
+        second = rig.daemon.sidecar
+        _wait_for(lambda: rig.exchange() and rig.daemon.link is not None, 30.0)
+        end = time.monotonic() + 2.0  # its first heartbeats come
+        while time.monotonic() < end:
+            rig.exchange()
+        os.kill(second.pid, signal.SIGSTOP)
+        try:
+            while rig.thread.is_alive() and rig.daemon.supervisor.state is RigState.ARMED:
+                rig.exchange()
+            assert "no heartbeat" in rig.daemon.supervisor.reason
+        finally:
+            os.kill(second.pid, signal.SIGCONT)
+        rig.thread.join(timeout=20)
+        assert not rig.thread.is_alive()
+    assert rig.daemon.exit_code == 4
+
+
+@pytest.mark.slow
+def test_finding6_a_killed_bridge_ends_mrrig_run_with_exit_code_3(tmp_path, sim_model):
+    from mrrig.canbus.bus import find_free_port, start_bridge
+
+    port = find_free_port()
+    bridge = start_bridge(port)
+    cfg = rig_config(tmp_path, f"ws://127.0.0.1:{port}/", sim_model)
+    daemon = subprocess.Popen(
+        [sys.executable, "-m", "mrrig", "run", "--config", str(cfg)],
+        cwd=REPO,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        time.sleep(4.0)
+        assert daemon.poll() is None
+        bridge.kill()
+        bridge.wait()
+        _, err = daemon.communicate(timeout=30)
+    finally:
+        if daemon.poll() is None:
+            daemon.kill()
+        if bridge.poll() is None:
+            bridge.kill()
+    assert daemon.returncode == 3, err[-2000:]
+    assert "remote CAN bus" in err and "exit code 3" in err
+
+
+# ---- 7. values that should be refused ------------------------------------------------------
+@pytest.mark.parametrize(
+    ("loop", "message"),
+    [
+        ({"bad_frame_budget": -1}, "loop.bad_frame_budget, lost_frame_budget: must be >= 0"),
+        ({"budget_window_s": -1.0}, "loop.budget_window_s: must be in (0, 60] s"),
+        ({"x_range_m": [-1e9, 1e9]}, "loop.x_range_m: must lie in [-0.5, 0.5] m"),
+        ({"f_range_n": [-1e9, 1e9]}, "loop.f_range_n: must lie in [-80000, 80000] N"),
+        ({"max_frame_age_s": 0.0}, "loop.max_frame_age_s: must be in (0, 0.1] s"),
+    ],
+)
+def test_finding7_config_values_out_of_range_are_refused(loop, message):
+    with pytest.raises(ConfigError) as err:
+        load_config(REPO / "configs/rig.toml", {"loop": loop})
+    assert str(err.value) == f"{REPO / 'configs/rig.toml'}: {message}"
+
+
+@pytest.mark.parametrize(
+    ("request_", "error"),
+    [
+        (
+            {"kind": "sine", "amplitude_n": 1e308},
+            "reference.amplitude_n: must be in [0, 80000] N",
+        ),
+        (
+            {"kind": "sine", "amplitude_n": 5000.0, "offset_n": 2000.0},
+            "amplitude_n: offset_n +- amplitude_n reaches 7000 N, outside loop.f_range_n",
+        ),
+        ({"kind": "sine", "amplitude_n": float("nan")}, "amplitude_n: not a finite number"),
+        ({"kind": "sine", "freq_hz": 1e9}, "reference.freq_hz: must be in (0, 250] Hz"),
+    ],
+)
+def test_finding7_request_values_out_of_range_are_refused(tmp_path, request_, error):
+    with ScriptedRig(tmp_path) as rig:
+        rig.request({"cmd": "disarm"})
+        reply = rig.request({"cmd": "set_profile", **request_})
+        assert not reply["ok"] and reply["error"].startswith(error), reply
+        assert rig.daemon.reference.kind == "constant"
+
+
+def test_finding7_nan_over_zenoh_is_named_not_taken_for_none(tmp_path):
+    with running_sidecar(tmp_path) as r:
+        payload = '{"cmd": "set_profile", "kind": "sine", "amplitude_n": NaN}'
+        replies = list(r.observer.get(keys(RIG)["control"], payload=payload, timeout=3.0))
+        reply = json.loads(replies[0].ok.payload.to_bytes())
+        assert reply == {
+            "ok": False,
+            "error": "amplitude_n: not a finite number (NaN and Infinity are refused)",
+        }
+
+
+def test_finding7_the_actuator_moves_only_a_bounded_step_while_armed(tmp_path):
+    with ScriptedRig(tmp_path) as rig:
+        start = {"cmd": "actuator", "waveform": "sine", "amplitude_m": 0.01, "frequency_hz": 2}
+        assert rig.request({"cmd": "disarm"})["ok"]
+        assert rig.request(start)["ok"]
+        assert rig.request({"cmd": "arm"})["ok"]
+        assert rig.request({**start, "amplitude_m": 0.014})["ok"]  # within 5 mm
+        reply = rig.request({**start, "amplitude_m": 0.04})
+        assert not reply["ok"] and "armed_amplitude_step_m" in reply["error"], reply
+        reply = rig.request({**start, "waveform": "random"})
+        assert not reply["ok"] and "only when not armed" in reply["error"], reply
+        assert rig.request({"cmd": "actuator", "waveform": "stop"})["ok"]  # always
+
+
+# ---- 8. replayed or forged frames ----------------------------------------------------------
+def test_finding8_a_counter_ahead_of_the_time_since_the_last_frame_is_seen(tmp_path):
+    with ScriptedRig(tmp_path) as rig:
+        for _ in range(3):
+            rig.exchange()
+        c = rig.sensors()
+        rig.command()
+        # a replay of an old frame: valid CRC, its counter 11 ahead, 1 ms after the last one
+        replayed = rig.sensors(counter=(c + 12) & 0xF)
+        assert rig.command()["SensorCounterEcho"] == replayed  # E2E profile 2 cannot refuse it
+        assert rig.daemon.counters["sensor_frames_early"] == 1
+        suspect = [e for e in rig.daemon.events if e["kind"] == "suspect_frame"]
+        assert len(suspect) == 1 and "advanced 12 in" in suspect[0]["reason"]
