@@ -49,6 +49,7 @@ def _faults(rig: ScriptedRig) -> list[str]:
 
 
 # ---- 1. one request kills the control plane ------------------------------------------------
+@pytest.mark.process
 def test_finding1_a_deeply_nested_request_gets_an_error_and_the_sidecar_lives(tmp_path):
     nested = '{"cmd": "status", "x": ' + "[" * 1000 + "]" * 1000 + "}"
     with running_sidecar(tmp_path) as r:
@@ -170,16 +171,19 @@ def test_finding4_extended_and_remote_frames_are_not_the_dbc_messages(tmp_path):
 
 
 # ---- 5. request bursts: the sidecar answers status itself ----------------------------------
+@pytest.mark.process
 def test_finding5_status_requests_are_answered_by_the_sidecar_not_the_loop(tmp_path):
     with running_sidecar(tmp_path) as r:
-        r.loop.send_status({"state": "ARMED", "armed": True, "frames_received": 12})
-        time.sleep(0.2)
-        for _ in range(50):
+        for k in range(50):
+            # as the loop sends it, every 0.1 s
+            r.loop.send_status({"state": "ARMED", "armed": True, "frames_received": k})
+            time.sleep(0.02)
             reply = query(r.observer, RIG, {"cmd": "status"}, 2.0)
             assert reply["ok"] and reply["status"]["state"] == "ARMED", reply
         assert [m for m, _ in r.loop.poll() if m == Msg.REQUEST] == []
 
 
+@pytest.mark.process
 def test_finding5_more_requests_in_flight_than_allowed_get_busy_but_disarm_goes_on(tmp_path):
     with running_sidecar(tmp_path) as r:
         control = keys(RIG)["control"]
@@ -196,6 +200,7 @@ def test_finding5_more_requests_in_flight_than_allowed_get_busy_but_disarm_goes_
 
 
 # ---- 6. failures silent or misreported -----------------------------------------------------
+@pytest.mark.process
 def test_finding6_a_one_megabyte_request_gets_an_error_reply(tmp_path):
     big = json.dumps({"cmd": "status", "pad": "x" * 1_000_000})
     with running_sidecar(tmp_path) as r:
@@ -222,6 +227,7 @@ def _limited_sidecar(path: Path, fsize: int) -> tuple[subprocess.Popen, LoopEnd]
     return proc, loop
 
 
+@pytest.mark.process
 def test_finding6_a_recording_that_cannot_be_written_is_reported_and_review_says_so(tmp_path):
     path = tmp_path / "run.rrd"
     proc, loop = _limited_sidecar(path, 200_000)
@@ -253,20 +259,32 @@ def test_finding6_a_recording_that_cannot_be_written_is_reported_and_review_says
     assert review_main([str(path), "--partial"]) == 0
 
 
+@pytest.mark.process
 def test_finding6_the_loop_faults_when_its_recording_fails(tmp_path):
-    # /dev/full: every write fails with ENOSPC, as on a full disk
-    record = tmp_path / "run.rrd"
-    record.symlink_to("/dev/full")
-    # a sensor timeout of 1 s: the telemetry process starting may hold this test up
-    with ScriptedRig(tmp_path, timeout_periods=500, record_path=record) as rig:
-        end = time.monotonic() + 30
+    # the telemetry process the daemon starts inherits a file size limit of 200 kB: its
+    # writes then fail as on a full disk (the limit is this process's only while it starts)
+    old_limit = resource.getrlimit(resource.RLIMIT_FSIZE)
+    old_handler = signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
+    resource.setrlimit(resource.RLIMIT_FSIZE, (200_000, old_limit[1]))
+    try:
+        rig = ScriptedRig(tmp_path, timeout_periods=500, record_path=tmp_path / "run.rrd")
+        rig.__enter__()
+    finally:
+        resource.setrlimit(resource.RLIMIT_FSIZE, old_limit)
+        signal.signal(signal.SIGXFSZ, old_handler)
+    try:
+        end = time.monotonic() + 60
         while rig.daemon.supervisor.fault is not Fault.RECORDING_FAILED:
             assert time.monotonic() < end, rig.daemon.events[-3:]
             rig.exchange()
         assert rig.exchange()["Mode"] == SAFE
         assert rig.daemon.status()["recording"].startswith("failed: ")
+        assert "truncated" in rig.daemon.supervisor.reason
+    finally:
+        rig.__exit__(None, None, None)
 
 
+@pytest.mark.process
 def test_finding6_a_killed_sidecar_is_a_fault_restarted_once_then_the_daemon_stops(tmp_path):
     rig = ScriptedRig(
         tmp_path,
@@ -304,7 +322,7 @@ def test_finding6_a_killed_sidecar_is_a_fault_restarted_once_then_the_daemon_sto
     assert rig.daemon.exit_code == 4
 
 
-@pytest.mark.slow
+@pytest.mark.process
 def test_finding6_a_killed_bridge_ends_mrrig_run_with_exit_code_3(tmp_path, sim_model):
     from mrrig.canbus.bus import find_free_port, start_bridge
 
@@ -372,6 +390,7 @@ def test_finding7_request_values_out_of_range_are_refused(tmp_path, request_, er
         assert rig.daemon.reference.kind == "constant"
 
 
+@pytest.mark.process
 def test_finding7_nan_over_zenoh_is_named_not_taken_for_none(tmp_path):
     with running_sidecar(tmp_path) as r:
         payload = '{"cmd": "set_profile", "kind": "sine", "amplitude_n": NaN}'
