@@ -100,8 +100,8 @@ class LoopSection:
             )
         if not self.arm_settle_s >= 0:
             raise ValueError("arm_settle_s: must be >= 0")
-        if self.max_frame_age_s is not None and not 0 < self.max_frame_age_s <= 0.1:
-            raise ValueError("max_frame_age_s: must be in (0, 0.1] s")
+        if self.max_frame_age_s is not None and not 0 < self.max_frame_age_s <= 1.0:
+            raise ValueError("max_frame_age_s: must be in (0, 1] s")
         if self.duration_s is not None and not self.duration_s > 0:
             raise ValueError("duration_s: must be positive")
         if not 1 <= self.telemetry_batch <= 40:

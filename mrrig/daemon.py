@@ -919,6 +919,8 @@ class Daemon:
                 break
             t_rx = time.perf_counter()
             self.notifier.pet(t_rx)
+            # a change prepared before this frame came applies to it
+            self._apply_change()
             if msg is not None:
                 self.on_frame(msg, t_rx, self._queued_s(msg))
             self.check_timeout(t_rx)
@@ -926,7 +928,6 @@ class Daemon:
             if self.link is not None:
                 self._poll_link(t_rx)
                 self._watch_sidecar(t_rx)
-            self._apply_change()
             if t - self._last_actuator_sent >= ACTUATOR_PERIOD_S:
                 self._send_actuator()
             self._send_status()

@@ -166,6 +166,10 @@ class ScriptedRig:
         are answered) until the reply comes, as they would on the rig."""
         pending = Pending()
         self.daemon.submit(req, pending)
+        # prepared first: the loop applies it before the next frame's cycle
+        end = time.monotonic() + 5.0
+        while not (pending.done() or self.daemon.control.ready()) and time.monotonic() < end:
+            time.sleep(0.001)
         for _ in range(max_frames):
             if pending.done():
                 return pending.reply

@@ -209,7 +209,7 @@ def test_adaptation_runs_only_while_armed_and_never_in_a_fault(tmp_path, sim_mod
         adapt = rig.daemon.controller.adapt
         _frames(rig, 60)
         assert adapt.updates == adapt.skipped == 0  # IDLE
-        assert rig.daemon.handle_request({"cmd": "arm"})["ok"]
+        assert rig.request({"cmd": "arm"})["ok"]
         _frames(rig, 100, 60)
         armed = _armed(rig)
         learnt = adapt.updates + adapt.skipped
@@ -222,13 +222,13 @@ def test_adaptation_runs_only_while_armed_and_never_in_a_fault(tmp_path, sim_mod
         assert adapt.updates + adapt.skipped == learnt
         np.testing.assert_array_equal(adapt.theta, theta)
         # freeze and reset on request
-        assert rig.daemon.handle_request({"cmd": "arm"})["ok"]
-        assert rig.daemon.handle_request({"cmd": "freeze_adaptation"})["ok"]
+        assert rig.request({"cmd": "arm"})["ok"]
+        assert rig.request({"cmd": "freeze_adaptation"})["ok"]
         _frames(rig, 30, 211)
         assert adapt.updates + adapt.skipped == learnt
-        reply = rig.daemon.handle_request({"cmd": "reset_adaptation"})
+        reply = rig.request({"cmd": "reset_adaptation"})
         assert reply["ok"] and reply["adaptation"]["gain"] == 1.0
-        bad = rig.daemon.handle_request({"cmd": "freeze_adaptation", "frozen": "yes"})
+        bad = rig.request({"cmd": "freeze_adaptation", "frozen": "yes"})
         assert not bad["ok"] and "frozen" in bad["error"]
 
 
