@@ -174,6 +174,10 @@ class ScriptedRig:
             if pending.done():
                 return pending.reply
             self.exchange()
+            # its reply comes from the control thread: a moment after the frame, not a frame
+            end = time.monotonic() + 0.05
+            while not pending.done() and time.monotonic() < end:
+                time.sleep(0.001)
         return pending.wait(1.0)
 
     def exchange(self, **kw) -> dict:
