@@ -259,6 +259,7 @@ def main(argv: list[str] | None = None) -> int:
                 channel,
                 "--stats",
                 str(sim_stats),
+                "--measure-echo",  # its stall windows, and the bridge's, in the stats
             ],
         )
         # the daemon's loop gets its CPU (loop.cpu) to itself

@@ -3,6 +3,7 @@ FAULT; the demo re-arms it over Zenoh as the rig's operator would, and only when
 
 from __future__ import annotations
 
+import json
 import re
 import subprocess
 import sys
@@ -13,8 +14,8 @@ import pytest
 
 from mrrig.demo import RearmLimit
 from tests.conftest import REPO, OutputWatch, rig_config, stall, zenoh_configs
+from tests.stall_proof import explain
 
-pytestmark = pytest.mark.process
 STALL_S = 0.1  # the simulator stopped this long: 50 periods without a sensor frame
 DURATION_S = 6.0
 
@@ -83,18 +84,30 @@ def _demo_with_a_stall(
     return rc, out.text()
 
 
+def _explain_faults(out: str) -> None:
+    """Every fault of the demo's daemon lies inside a stall its simulator measured (the demo
+    leaves both processes' files in its work folder, named in its log)."""
+    m = re.search(r"--summary-json (\S+)", out)
+    assert m, out
+    summary = json.loads(Path(m[1]).read_text())
+    stats = json.loads((Path(m[1]).parent / "sim-stats.json").read_text())
+    assert explain(stats, summary["faults"], summary["clock_t0_s"])
+
+
 def _armed_share(out: str) -> float:
     m = re.search(r"^duration .* (\d+) frames \((\d+) armed\)$", out, re.MULTILINE)
     assert m, out
     return int(m.group(2)) / int(m.group(1))
 
 
+@pytest.mark.process
 def test_the_demo_rearms_the_daemon_after_a_transport_fault(tmp_path, sim_model):
     # room for the VM's own stalls besides the one made here (CI's bridge stalls up to 35 ms)
     rc, out = _demo_with_a_stall(tmp_path, sim_model, max_rearms=10)
     print(out[-3000:])
     assert rc == 0, out
-    assert "mrrig.daemon: fault: " in out  # ours, or an earlier stall of the VM
+    assert "mrrig.daemon: fault: " in out
+    _explain_faults(out)
     assert "state: armed (was FAULT)" in out
     m = re.search(r"^demo: re-armed the daemon (\d+) times", out, re.MULTILINE)
     assert m and 1 <= int(m.group(1)) <= 10, out
@@ -104,24 +117,27 @@ def test_the_demo_rearms_the_daemon_after_a_transport_fault(tmp_path, sim_model)
     assert re.search(r"^demo: +\d+\.\d/6 s  Et so far ", out, re.MULTILINE), out  # progress
 
 
+@pytest.mark.process
 def test_without_rearming_the_daemon_stays_in_fault(tmp_path, sim_model):
     rc, out = _demo_with_a_stall(tmp_path, sim_model, max_rearms=0)
     print(out[-3000:])
     # armed for a third of the run: below the demo's bound, so its verdict is FAIL
     assert rc == 1, out
     assert re.search(r"^demo: FAIL$", out, re.MULTILINE) and "  FAIL armed " in out
-    assert "mrrig.daemon: fault: " in out  # ours, or an earlier stall of the VM
+    assert "mrrig.daemon: fault: " in out
+    _explain_faults(out)
     assert "state: armed (was FAULT)" not in out
     assert "demo: re-armed the daemon 0 times" in out
     # armed from about 1 s to the stall at about 2 s of the 6 s run
     assert _armed_share(out) < 0.5
 
 
+@pytest.mark.process
 def test_a_second_fault_within_the_window_ends_the_rearming(tmp_path, sim_model):
-    # one re-arm in any 60 s: the first fault (ours, or an earlier stall of the VM) is
-    # re-armed, the next one, whichever it is, is not
+    # one re-arm in any 60 s: the first fault is re-armed, the next one is not
     rc, out = _demo_with_a_stall(tmp_path, sim_model, 1, "--rearm-window", "60", stalls=2)
     print(out[-3000:])
+    _explain_faults(out)
     # the verdict depends on when the second fault came (the armed share): its exit code too
     verdict = re.search(r"^demo: (PASS|FAIL)$", out, re.MULTILINE)
     assert verdict and rc == {"PASS": 0, "FAIL": 1}[verdict[1]], out
