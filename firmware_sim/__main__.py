@@ -87,9 +87,9 @@ def main(argv: list[str] | None = None) -> int:
     try:
         try:
             bus = open_bus(interface, channel, receive_own_messages=args.measure_echo)
-        except BusError as exc:
+        except BusError as exc:  # a set-up error, as a bad config: exit 2
             logger.error("%s", exc)
-            return 1
+            return 2
         logger.info(
             "rig firmware on %s %s, %d fault injections",
             interface,

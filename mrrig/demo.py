@@ -326,7 +326,8 @@ def _refuse_a_running_daemon(rig: str, zenoh_config: Path) -> None:
     """A daemon of this rig that already answers (another demo, a `mrrig run`) would take the
     demo's Zenoh port, and the demo would re-arm it: stop before starting anything."""
     try:
-        client.request(rig, {"cmd": "status"}, zenoh_config, 0.5)
+        # as long as a client waits: a loaded machine's daemon answers late, not never
+        client.request(rig, {"cmd": "status"}, zenoh_config, 2.0)
     except client.ClientError:
         return  # nothing answers: the way is clear
     raise DemoError(

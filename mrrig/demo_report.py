@@ -126,6 +126,14 @@ def verdict(summary: Mapping[str, Any], bounds: DemoBounds = DemoBounds()) -> tu
     lines = [f"demo: {'PASS' if ok else 'FAIL'}"] + [
         f"  {'ok  ' if c else 'FAIL'} {text}" for c, text in checks
     ]
+    transport = [f for f in summary.get("faults", []) if f.get("fault") in TRANSPORT_FAULTS]
+    if transport and not checks[0][0]:
+        times = ", ".join(f"{f['t']:.1f}" for f in transport)
+        lines.append(
+            f"  note: {len(transport)} transport faults (t = {times} s; a stall of this machine"
+            " or of the bus) put their own error into the armed frames: the Tracking tab of"
+            " the recording shows it there"
+        )
     return ok, "\n".join(lines)
 
 

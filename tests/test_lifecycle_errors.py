@@ -57,6 +57,15 @@ def test_run_on_a_socketcan_bus_that_is_not_there_says_what_to_check(tmp_path):
     assert "no SocketCAN" in line or "ip link set up mrrigtest0" in line
 
 
+def test_the_simulator_with_no_bridge_says_so_in_one_line():
+    port = find_free_port()
+    proc = mrrig("sim", "-c", f"ws://127.0.0.1:{port}/", "--duration", "1")
+    assert proc.returncode == 2, proc.stderr
+    lines = [ln for ln in proc.stderr.splitlines() if " INFO " not in ln and ln.strip()]
+    assert len(lines) == 1 and f"mrrig bridge --port {port}" in lines[0], proc.stderr
+    assert "Traceback" not in proc.stderr
+
+
 def test_bridge_on_a_port_in_use(tmp_path):
     with socket.socket() as taken:
         taken.bind(("127.0.0.1", 0))
