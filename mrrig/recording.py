@@ -41,6 +41,7 @@ import rerun as rr
 import rerun.blueprint as rrb
 
 from mrrig import json_text
+from mrrig.errors import MrrigError
 from mrrig.samples import SAMPLE_DTYPE
 
 log = logging.getLogger(__name__)
@@ -118,7 +119,7 @@ _SIGNALS = {signal.SIGINT, signal.SIGTERM}
 WRITE_TIMEOUT_S = 1.0
 
 
-class RecordingError(OSError):
+class RecordingError(MrrigError, OSError):
     """The recording file could not be written; what reached it is truncated."""
 
 
