@@ -300,3 +300,18 @@ def test_the_daemon_evaluates_the_reference_once_per_frame_and_passes_the_next_t
     assert len(times) == 202  # one a frame (two at the first), and one ahead at the end
     for (_, nxt), (now, _) in zip(targets, targets[1:], strict=False):
         assert now == nxt
+
+
+def test_an_old_model_of_the_commanded_current_loads_and_says_what_it_lacks(tmp_path, caplog):
+    from mrrig.config import load_config
+    from mrrig.daemon import build_controller
+
+    path = tmp_path / "old.json"
+    random_model(np.random.default_rng(5), monotone=True).save(path)
+    cfg = load_config(rig_config(tmp_path, "ws://127.0.0.1:1/", path))
+    with caplog.at_level("WARNING", logger="mrrig.daemon"):
+        ctrl = build_controller(cfg)
+    assert ctrl.name == "network_inversion" and ctrl.ahead and ctrl.lag_tau_s is None
+    (warning,) = [r.getMessage() for r in caplog.records if r.levelname == "WARNING"]
+    assert "no current_input = 'lagged', no lag_tau_s" in warning
+    assert "mrrig train --current-input lagged" in warning
