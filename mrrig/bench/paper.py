@@ -704,10 +704,11 @@ def default_lines(r: dict) -> list[str]:
 def rnn_lines() -> list[str]:
     """What differs from the paper's RNN set-up (printed beside its row)."""
     return [
-        "  RNN, what differs from the paper's set-up: the paper gives neither its training",
-        "  procedure nor its closed-loop data; ours is eq. 40 trained on data set A by LM with",
-        "  noise on the fed-back voltages, then a parallel-mode fine-tune (mrrig/rnn_training.py),",
-        "  evaluated with the plant's damper started as the reference's.",
+        "  RNN, what differs from the paper's set-up: the paper says only that eq. 40 (30",
+        "  hidden, output v(k+1) fed back) was trained by LM (trainlm): not on which data, nor",
+        "  in series-parallel (measured past voltages) or parallel mode (its own), nor how it",
+        "  stopped. Ours: data set A, LM with noise on the fed-back voltages, then a",
+        "  parallel-mode LM fine-tune (mrrig/rnn_training.py); it drifts in the closed loop.",
     ]
 
 
