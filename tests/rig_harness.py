@@ -1,4 +1,5 @@
-"""A scripted rig for in-process daemon tests: frames built with the DBC packer on a virtual bus.
+"""In-process rigs on python-can's virtual bus: a scripted one (frames built with the DBC packer)
+and the simulator's own loop in a thread (`ThreadRig`).
 
 The test plays the firmware frame by frame (exact control over counters, CRCs, flags and
 timing) while the real `Daemon` runs its loop in a thread on the same python-can `virtual`
@@ -14,10 +15,17 @@ from pathlib import Path
 
 import can
 
+from firmware_sim.config import load_config as load_sim_config
+from firmware_sim.firmware import Firmware
+from firmware_sim.runner import RunStats
+from firmware_sim.runner import run as run_firmware
 from mrrig.canbus.codec import Codec
 from mrrig.config import load_config
 from mrrig.control import Pending
 from mrrig.daemon import Daemon
+from mrrig.rig_session import RigSession, rig_overrides
+from tests.conftest import REPO, rig_config
+from tests.stall_proof import explain
 
 _channels = itertools.count()
 
@@ -187,3 +195,67 @@ class ScriptedRig:
         assert cmd is not None, f"no command for sensor frame {c}"
         assert cmd["SensorCounterEcho"] == c
         return cmd
+
+
+class ThreadRig:
+    """firmware_sim's firmware and loop in a thread, on a python-can `virtual` channel, beside
+    a daemon in a `RigSession` of the same process. `hold(s)` holds the simulator's loop up
+    once, as a scheduler would; its RunStats measure that stall like any other."""
+
+    def __init__(self) -> None:
+        self.channel = f"thread-rig-{next(_channels)}"
+        cfg = load_sim_config(REPO / "configs/sim.toml")
+        self.firmware = Firmware(cfg, Codec(), ())
+        self.bus = can.Bus(interface="virtual", channel=self.channel, receive_own_messages=False)
+        self.stats = RunStats()
+        self._stop = False
+        self._hold_s = 0.0
+        t = cfg.timing
+        self.thread = threading.Thread(
+            target=run_firmware,
+            args=(self.firmware, self.bus, self.stats),
+            kwargs=dict(
+                lead_s=t.lead_s,
+                spin_s=t.spin_s,
+                send_timeout_s=cfg.bus.send_timeout_s,
+                should_stop=self._should_stop,
+            ),
+            daemon=True,
+        )
+
+    def _should_stop(self) -> bool:
+        if self._hold_s:
+            hold_s, self._hold_s = self._hold_s, 0.0
+            time.sleep(hold_s)
+        return self._stop
+
+    def hold(self, seconds: float) -> None:
+        """The simulator's loop stops for `seconds` once, at its next period."""
+        self._hold_s = seconds
+
+    def __enter__(self) -> ThreadRig:
+        self.thread.start()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self._stop = True
+        self.thread.join(timeout=5)
+        self.bus.shutdown()
+
+    def explain_faults(self, session: RigSession) -> None:
+        """Every fault of the session's daemon inside a stall this rig's loop measured."""
+        st = self.stats.summary(self.firmware, 1.0, 0.0)
+        faults = [e for e in session.daemon.events if e["kind"] == "fault"]
+        explain(st, faults, session.clock_t0_s)
+
+    def daemon_config(self, tmp_path: Path, **sections):
+        # one process, two 500 Hz loops sharing the GIL: a generous sensor timeout
+        path = rig_config(tmp_path, self.channel, None)
+        over = rig_overrides(
+            None,
+            True,
+            bus={"interface": "virtual"},
+            loop={"realtime": False, "timeout_periods": 25, "max_frame_age_s": 0.05},
+            **sections,
+        )
+        return load_config(path, over)

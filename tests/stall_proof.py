@@ -5,9 +5,10 @@ which frames were held up: its own (a sensor frame sent late, periods skipped) a
 transport's (its own frame echoed back late by the bridge). `prove` checks a run against them:
 
 1. every sensor frame the simulator sent on time got exactly one command;
-2. every fault of the daemon lies inside such a window: the interval in which the frames it
-   missed should have come (the gap its sensor timeout names; the firmware's watchdog trip,
-   reported in the next RigStatus, and its gap) lies inside one stall;
+2. every fault of the daemon is one a stall causes and lies inside such a window: the
+   interval in which the frames it missed should have come (the gap its sensor timeout or a
+   stale frame names; the firmware's watchdog trip, reported in the next RigStatus, and its
+   gap) lies inside one stall; any other fault (a controller's, the rig's e-stop) fails;
 3. tracking (Et, eqs 41-43) over the armed frames outside the windows meets the bound.
 
 Both processes read CLOCK_MONOTONIC (`clock_t0_s` in the simulator's stats and in the daemon's
@@ -92,21 +93,26 @@ def watchdog_trips(sim_stats: Mapping[str, Any]) -> list[tuple[float, float]]:
 def silent_interval(
     fault: Mapping[str, Any], t_s: float, trips: list[tuple[float, float]]
 ) -> tuple[float, float] | None:
-    """When the frames the fault missed should have come (CLOCK_MONOTONIC): the daemon's
-    sensor timeout names its gap; the firmware's watchdog is the trip it reported before."""
+    """When the frames the fault missed should have come (CLOCK_MONOTONIC), for the faults a
+    stall causes: the daemon's sensor timeout and a stale frame name their gap, lost frames
+    show when the next frame came, the firmware's watchdog is the trip it reported before.
+    None for any other fault: no stall explains it."""
     reason = str(fault["reason"])
     if reason.startswith("firmware watchdog"):
-        seen = [
-            (t, gap) for t, gap in trips if t - DETECT_S <= t_s <= t + STATUS_PERIOD_S + DETECT_S
-        ]
+        late = STATUS_PERIOD_S + DETECT_S
+        seen = [(t, gap) for t, gap in trips if t - DETECT_S <= t_s <= t + late]
         if not seen:
             return None
         t_trip, gap = seen[-1]
         return t_trip - gap, t_trip
-    m = re.match(r"no sensor frame for ([\d.]+) ms", reason)
+    m = re.match(
+        r"no sensor frame for ([\d.]+) ms|sensor frame ([\d.]+) ms old when answered", reason
+    )
     if m:
-        return t_s - float(m.group(1)) * 1e-3, t_s
-    return t_s, t_s
+        return t_s - float(m.group(1) or m.group(2)) * 1e-3, t_s
+    if re.match(r"\d+ sensor frames lost", reason):
+        return t_s, t_s
+    return None
 
 
 def explaining_window(

@@ -3,7 +3,6 @@ and the rig workflow characterize -> train -> validate from the command line."""
 
 from __future__ import annotations
 
-import itertools
 import json
 import math
 import shutil
@@ -13,15 +12,9 @@ import threading
 import time
 from pathlib import Path
 
-import can
 import numpy as np
 import pytest
 
-from firmware_sim.config import load_config as load_sim_config
-from firmware_sim.firmware import Firmware
-from firmware_sim.runner import RunStats
-from firmware_sim.runner import run as run_firmware
-from mrrig.canbus import Codec
 from mrrig.characterize import (
     TIDY_HEADER,
     CharacterizeConfig,
@@ -33,9 +26,7 @@ from mrrig.characterize import (
     characterize,
     load_characterize_config,
     matrix_runs,
-    rig_overrides,
 )
-from mrrig.config import load_config
 from mrrig.review import read_recording
 from mrrig.rig_session import RigSession
 from mrrig.samples import SAMPLE_DTYPE, RigState
@@ -43,9 +34,8 @@ from mrrig.training import load_tidy
 from mrrig.typed_config import ConfigError
 from mrrig.validate import track_with_attempts
 from tests.conftest import REPO, OutputWatch, rig_config, stall
+from tests.rig_harness import ThreadRig
 from tests.stall_proof import explain
-
-_channels = itertools.count()
 
 TINY = MatrixSection(
     amplitudes_m=(0.015,),
@@ -143,58 +133,6 @@ def test_an_output_directory_of_another_matrix_is_refused(tmp_path):
     other = MatrixSection(amplitudes_m=(0.02,), freqs_hz=(3.0,), currents_a=(0.0, 1.2))
     with pytest.raises(ConfigError, match="another matrix"):
         MatrixStore(tmp_path, other)
-
-
-# ------------------------------------------------------------------------------ in-process rig
-class ThreadRig:
-    """firmware_sim's firmware and loop in a thread, on a python-can `virtual` channel."""
-
-    def __init__(self) -> None:
-        self.channel = f"characterize-{next(_channels)}"
-        cfg = load_sim_config(REPO / "configs/sim.toml")
-        self.firmware = Firmware(cfg, Codec(), ())
-        self.bus = can.Bus(interface="virtual", channel=self.channel, receive_own_messages=False)
-        self.stats = RunStats()
-        self._stop = False
-        t = cfg.timing
-        self.thread = threading.Thread(
-            target=run_firmware,
-            args=(self.firmware, self.bus, self.stats),
-            kwargs=dict(
-                lead_s=t.lead_s,
-                spin_s=t.spin_s,
-                send_timeout_s=cfg.bus.send_timeout_s,
-                should_stop=lambda: self._stop,
-            ),
-            daemon=True,
-        )
-
-    def __enter__(self) -> ThreadRig:
-        self.thread.start()
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self._stop = True
-        self.thread.join(timeout=5)
-        self.bus.shutdown()
-
-    def explain_faults(self, session: RigSession) -> None:
-        """Every fault of the session's daemon inside a stall this rig's loop measured."""
-        st = self.stats.summary(self.firmware, 1.0, 0.0)
-        faults = [e for e in session.daemon.events if e["kind"] == "fault"]
-        explain(st, faults, session.clock_t0_s)
-
-    def daemon_config(self, tmp_path: Path, **sections):
-        # one process, two 500 Hz loops sharing the GIL: a generous sensor timeout
-        path = rig_config(tmp_path, self.channel, None)
-        over = rig_overrides(
-            None,
-            True,
-            bus={"interface": "virtual"},
-            loop={"realtime": False, "timeout_periods": 25, "max_frame_age_s": 0.05},
-            **sections,
-        )
-        return load_config(path, over)
 
 
 def _watch(store: MatrixStore, n_done: int, stop: threading.Event) -> threading.Thread:

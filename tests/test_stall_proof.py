@@ -3,10 +3,15 @@ what it refuses."""
 
 from __future__ import annotations
 
+import re
+import time
+
 import numpy as np
 import pytest
 
+from mrrig.rig_session import RigSession
 from mrrig.samples import SAMPLE_DTYPE, RigState
+from tests.rig_harness import ThreadRig
 from tests.stall_proof import prove
 
 T0_SIM, T0_DAEMON = 1000.0, 998.0  # the two processes' time zeros on CLOCK_MONOTONIC
@@ -61,8 +66,18 @@ def test_a_stall_that_begins_in_the_transport_and_goes_on_in_the_simulator_is_on
         ([("transport", 7.0, 7.006)], [(7.021, 0.021)], fault(7.08, "firmware watchdog tripped")),
         ((), (), fault(4.0, "non-finite controller output")),  # a controller that failed
         ([("simulator", 3.0, 3.1)], (), fault(3.5, "stale external force reference")),
+        # inside a stall, but not a fault a stall causes
+        ([("simulator", 3.9, 4.1)], (), fault(4.0, "RuntimeError: the controller's bug")),
     ],
-    ids=["none", "too-short", "elsewhere", "daemon-stall", "controller", "after-the-stall"],
+    ids=[
+        "none",
+        "too-short",
+        "elsewhere",
+        "daemon-stall",
+        "controller",
+        "after-the-stall",
+        "not-a-stalls-fault",
+    ],  # fmt: skip
 )
 def test_a_fault_no_measured_stall_explains_fails_the_proof(windows, trips, f):
     with pytest.raises(AssertionError, match="no measured stall explains"):
@@ -90,3 +105,50 @@ def test_tracking_is_scored_outside_the_stalls_and_their_settling():
     assert proof.armed_frames == int((t < 2.25).sum() + (t >= 3.0).sum())
     with pytest.raises(AssertionError, match="0.02"):  # the stall's frames scored
         prove(sim_stats(), [], T0_DAEMON, s, et_bound=0.02)
+
+
+# ----------------------------------------------- the daemon and the simulator's loop, in-process
+def _armed_session(tmp_path, rig: ThreadRig) -> RigSession:
+    cfg = rig.daemon_config(
+        tmp_path,
+        controller={"name": "constant", "current_a": 0.5},
+        actuator={"waveform": "sine", "amplitude_m": 0.01, "frequency_hz": 2.0},
+    )
+    return RigSession(cfg)
+
+
+@pytest.mark.process
+def test_a_controller_that_raises_once_is_a_fault_no_stall_explains(tmp_path):
+    """A fault of the daemon's own (its controller raised, a test's hook): the simulator ran
+    on time, so the proof refuses it, whatever else the machine did meanwhile."""
+    with ThreadRig() as rig, _armed_session(tmp_path, rig) as session:
+        session.request(cmd="arm")
+        time.sleep(0.3)
+        controller = session.daemon.controller
+        command_one = controller.command_one
+
+        def raise_once(*args):
+            controller.command_one = command_one
+            raise RuntimeError("the controller's bug")
+
+        controller.command_one = raise_once
+        time.sleep(0.3)
+        assert session.state() is RigState.FAULT
+        with pytest.raises(AssertionError, match="no measured stall explains.*controller's bug"):
+            rig.explain_faults(session)
+
+
+@pytest.mark.process
+def test_a_stall_of_the_simulator_explains_the_fault_it_causes_and_is_printed(tmp_path, capsys):
+    """The simulator's loop held up 100 ms: the daemon's sensor timeout (25 periods here)
+    faults it; the simulator measured the stall, and the proof prints its window."""
+    with ThreadRig() as rig, _armed_session(tmp_path, rig) as session:
+        session.request(cmd="arm")
+        time.sleep(0.3)
+        rig.hold(0.1)
+        time.sleep(0.3)
+        assert session.state() is RigState.FAULT
+        rig.explain_faults(session)
+    out = capsys.readouterr().out
+    print(out)
+    assert re.search(r"fault at t=.*no sensor frame.*inside the simulator stall 1\d\d\.\d ms", out)

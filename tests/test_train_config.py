@@ -93,7 +93,7 @@ def test_config_lagged_current_and_training_options_reach_the_model(tmp_path, da
     cfg = _config(
         tmp_path,
         '[features]\ncurrent_input = "lagged"\nlag_tau_s = 0.004\n'
-        "[training]\nepochs = 3\nseed = 2\nsplit = \"random\"\nn_train = 300\nn_val = 100\n"
+        '[training]\nepochs = 3\nseed = 2\nsplit = "random"\nn_train = 300\nn_val = 100\n'
         "supervised = false\n",
     )
     m = _train(data, tmp_path / "fwd.json", "--config", str(cfg))
