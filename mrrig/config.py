@@ -218,7 +218,7 @@ class TelemetrySection:
     insecure: bool = False
     # no heartbeat from the telemetry process for this long: fault telemetry_lost (the rig is
     # not left ARMED unobserved longer), and the process is restarted once
-    heartbeat_timeout_s: float = 2.0
+    heartbeat_timeout_s: float = 5.0
 
     def check(self) -> None:
         if not 1 <= self.rate_hz <= 500:

@@ -114,7 +114,7 @@ _SERIES_COLORS: dict[str, tuple[int, int, int]] = {
 _SIGNALS = {signal.SIGINT, signal.SIGTERM}
 # rerun writes the file in a thread of its own and only logs a failed write; a flush that
 # waits for that thread raises once it has died (disk full, file size limit), or times out.
-# Under the sidecar's heartbeat timeout (2 s), so a failing disk is not taken for a stuck
+# Under the sidecar's heartbeat timeout (5 s), so a failing disk is not taken for a stuck
 # sidecar; a healthy flush of 0.5 s of samples takes milliseconds
 WRITE_TIMEOUT_S = 1.0
 

@@ -59,6 +59,7 @@ STATUS_REPEAT_S = 1.0
 NO_ANSWER = {"ok": False, "error": "daemon did not answer"}
 # requests waiting for the daemon, at most; more get "busy" at once (a disarm always goes on)
 MAX_IN_FLIGHT = 8
+INBOX_BATCH = 50  # Zenoh queries and force references handled between looks at the loop
 # a `status` control request is answered here from the loop's latest status (it sends one
 # every 0.1 s) while that is younger than this; older (a stalled loop), it goes to the loop
 STATUS_FRESH_S = 0.5
@@ -241,9 +242,7 @@ class Sidecar:
         next_telemetry_s = time.monotonic() + self._period_s
         while not self._stop:
             now = time.monotonic()
-            if now - self._heartbeat_s >= HEARTBEAT_PERIOD_S:
-                self._end.send_heartbeat()
-                self._heartbeat_s = now
+            self._heartbeat(now)
             wake_at = min(
                 (
                     next_telemetry_s,
@@ -253,11 +252,14 @@ class Sidecar:
             )
             if self._last_status is not None:
                 wake_at = min(wake_at, self._status_sent_s + STATUS_REPEAT_S)
+            if self._inbox.qsize():  # a burst left some: the loop's messages first, then on
+                wake_at = now
             readable, _, _ = select.select(
                 [self._end, self._wake_r], [], [], max(0.0, wake_at - now)
             )
             if self._wake_r in readable:
                 self._drain_wake()
+            if self._inbox.qsize():
                 self._handle_inbox()
             if self._end in readable:
                 self._handle_loop_messages(self._end.read_ready())
@@ -272,6 +274,12 @@ class Sidecar:
                 self._publish_status(self._status_out, now)
             self._expire_queries(now)
 
+    def _heartbeat(self, now: float) -> None:
+        """The sign of life the daemon watches: sent while this loop makes progress."""
+        if now - self._heartbeat_s >= HEARTBEAT_PERIOD_S:
+            self._end.send_heartbeat()
+            self._heartbeat_s = now
+
     def _drain_wake(self) -> None:
         try:
             while os.read(self._wake_r, 4096):
@@ -280,11 +288,19 @@ class Sidecar:
             pass
 
     def _handle_inbox(self) -> None:
-        while True:
+        """At most INBOX_BATCH items: a burst of requests does not hold up the loop's
+        messages, the heartbeat or the telemetry. A query that waited longer than the
+        daemon's answer timeout is answered busy, unread."""
+        for _ in range(INBOX_BATCH):
             try:
                 kind, item, t_rx_s = self._inbox.get_nowait()
             except queue.Empty:
                 return
+            now = time.monotonic()
+            self._heartbeat(now)
+            if kind == "query" and now - t_rx_s > CONTROL_TIMEOUT_S:
+                self._reply(item, {"ok": False, "error": "busy: the control plane is overloaded"})
+                continue
             try:
                 if kind == "query":
                     self._handle_query(item)

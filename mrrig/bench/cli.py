@@ -16,6 +16,7 @@ BENCHES = {
     "matrix": "mrrig.bench.matrix",
     "drift": "mrrig.bench.drift",
     "train": "mrrig.bench.train",
+    "fuzz": "mrrig.bench.fuzz",
 }
 
 
