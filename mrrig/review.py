@@ -159,7 +159,9 @@ def read_recording(path: str | Path) -> Recording:
     except ReviewError:
         raise
     except Exception as e:
-        raise ReviewError(f"{path}: cannot read the recording: {e}") from e
+        raise ReviewError(
+            f"{path}: cannot read the recording (truncated? `rerun rrd verify` checks it): {e}"
+        ) from e
     finally:
         server.shutdown()
     return Recording(path=path, samples=samples, events=events, summary=summary)
