@@ -9,6 +9,7 @@ import subprocess
 import sys
 import threading
 import time
+from collections.abc import Iterator
 from pathlib import Path
 
 import can
@@ -72,6 +73,20 @@ def sim_model(tmp_path_factory) -> Path:
     return path
 
 
+@pytest.fixture(autouse=True)
+def _one_process_test_at_a_time(request: pytest.FixtureRequest, tmp_path_factory) -> Iterator:
+    """Process tests are sensitive to CPU load: across pytest-xdist's workers they take turns
+    (a file lock in the run's shared base directory); other tests run beside them."""
+    worker = os.environ.get("PYTEST_XDIST_WORKER")
+    if worker is None or request.node.get_closest_marker("process") is None:
+        yield
+        return
+    from filelock import FileLock
+
+    with FileLock(str(tmp_path_factory.getbasetemp().parent / "process-tests.lock")):
+        yield
+
+
 def pytest_addoption(parser: pytest.Parser) -> None:
     parser.addoption(
         "--all",
@@ -82,13 +97,10 @@ def pytest_addoption(parser: pytest.Parser) -> None:
 
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
     """A test on the bridge or with processes of its own is a process test; the default run
-    leaves the process and long tests out (`--all`, or a -m expression, chooses otherwise).
-    Process tests run one after another on one worker: they are sensitive to CPU load."""
+    leaves the process and long tests out (`--all`, or a -m expression, chooses otherwise)."""
     for item in items:
         if {"bridge", "procs"} & set(item.fixturenames):
             item.add_marker(pytest.mark.process)
-        if item.get_closest_marker("process"):
-            item.add_marker(pytest.mark.xdist_group("process"))
     if config.getoption("--all") or config.getoption("markexpr"):
         return
     kept, left_out = [], []
