@@ -135,25 +135,43 @@ def child(n: int, epochs: int) -> dict:
 
 
 def format_table(rows: list[dict]) -> str:
+    """The table: per size its wall time and parts, peak memory, the cost per sample (all,
+    and without LM's constant part) and their ratios to the previous size's and to 100k's."""
     lines = [
         f"{'samples':>10} {'wall s':>8} {'Kalman s':>9} {'LM s':>7} {'epochs':>6} {'other s':>8}"
-        f" {'peak MB':>8} {'us/sample':>10} {'x prev':>7} {'x 100k':>7} {'hold-out Et':>11}"
+        f" {'peak MB':>8} {'us/sample':>10} {'x prev':>7} {'x 100k':>7}"
+        f" {'no-LM us/s':>10} {'x prev':>7} {'x 100k':>7} {'marginal us/s':>13}"
+        f" {'hold-out Et':>11}"
     ]
+
+    def per(r: dict, lm: bool) -> float:
+        return (r["wall_s"] - (0.0 if lm else r["lm_s"])) / r["samples"] * 1e6
+
+    def ratio(a: dict, b: dict | None, lm: bool) -> str:
+        return f"{per(a, lm) / per(b, lm):7.2f}" if b else " " * 7
+
+    def marginal(a: dict, b: dict | None) -> str:
+        if b is None or a["samples"] == b["samples"]:
+            return " " * 13
+        return f"{(a['wall_s'] - b['wall_s']) / (a['samples'] - b['samples']) * 1e6:13.2f}"
+
     base = next((r for r in rows if r["samples"] == 100_000), None)
     prev = None
     for r in rows:
-        per = r["wall_s"] / r["samples"] * 1e6
-        vs_prev = f"{per / (prev['wall_s'] / prev['samples'] * 1e6):7.2f}" if prev else " " * 7
-        vs_base = f"{per / (base['wall_s'] / base['samples'] * 1e6):7.2f}" if base else " " * 7
         lines.append(
             f"{r['samples']:>10} {r['wall_s']:8.1f} {r['kalman_s']:9.1f} {r['lm_s']:7.1f}"
-            f" {r['epochs']:>6} {r['rest_s']:8.1f} {r['peak_rss_mb']:8.0f} {per:10.2f}"
-            f" {vs_prev} {vs_base} {r['holdout_et']:11.4f}"
+            f" {r['epochs']:>6} {r['rest_s']:8.1f} {r['peak_rss_mb']:8.0f} {per(r, True):10.2f}"
+            f" {ratio(r, prev, True)} {ratio(r, base, True)} {per(r, False):10.2f}"
+            f" {ratio(r, prev, False)} {ratio(r, base, False)} {marginal(r, prev)}"
+            f" {r['holdout_et']:11.4f}"
         )
         prev = r
     lines.append(
-        "per sample: wall time / samples; x prev, x 100k: that cost over the previous size's and"
-        " over 100k's (1 = linear). LM sees at most its coverage subsample (constant cost)."
+        "us/sample: wall time over samples; no-LM: without the LM fit, whose cost is constant"
+        " (at most its coverage subsample of rows); x prev, x 100k: over the previous size's and"
+        " over 100k's (1 = linear; under 1: cheaper per sample); marginal: the added wall time per"
+        " added sample from the previous size (the linear part's cost). Peak: the process's maximum"
+        " resident memory, data included."
     )
     return "\n".join(lines)
 
@@ -168,7 +186,11 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--epochs", type=COUNT, default=1000, help="LM epoch limit (default 1000)")
     ap.add_argument("--json", type=output_file, help="also write the numbers to this JSON file")
     ap.add_argument("--child", type=int, help=argparse.SUPPRESS)
+    ap.add_argument("--table", type=Path, help=argparse.SUPPRESS)  # reprint a --json file
     args = ap.parse_args(argv)
+    if args.table is not None:
+        print(format_table(json.loads(args.table.read_text())["sizes"]))
+        return 0
     if args.child is not None:
         print(json.dumps(child(args.child, args.epochs)))
         return 0
