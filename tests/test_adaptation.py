@@ -203,6 +203,7 @@ def _armed(rig: ScriptedRig) -> int:
     return int(sum((b["state"] == RigState.ARMED).sum() for b in batches))
 
 
+@pytest.mark.process  # the daemon's loop at frame rate (and the sidecar)
 def test_adaptation_runs_only_while_armed_and_never_in_a_fault(tmp_path, sim_model):
     cfg = _adaptive_config(tmp_path, sim_model, arm_on_start=False, telemetry_batch=1)
     with ScriptedRig(tmp_path, config=cfg) as rig:
@@ -232,6 +233,7 @@ def test_adaptation_runs_only_while_armed_and_never_in_a_fault(tmp_path, sim_mod
         assert not bad["ok"] and "frozen" in bad["error"]
 
 
+@pytest.mark.process  # the daemon's loop at frame rate (and the sidecar)
 def test_the_recording_holds_the_adapted_state_and_the_model_file_is_unchanged(tmp_path, sim_model):
     from mrrig.review import read_recording
 
@@ -256,6 +258,7 @@ def test_the_recording_holds_the_adapted_state_and_the_model_file_is_unchanged(t
     assert hashlib.sha256(sim_model.read_bytes()).hexdigest() == digest
 
 
+@pytest.mark.process  # the daemon's loop at frame rate (and the sidecar)
 def test_the_daemon_evaluates_the_reference_once_per_frame_and_passes_the_next_target(
     tmp_path, sim_model
 ):
