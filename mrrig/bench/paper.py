@@ -590,10 +590,8 @@ def labels(choice: dict, mu: float, mu_lagged: float) -> dict[str, str]:
     solve's continuity `mu`, the daemon's default's `mu_lagged`, the one-step-ahead rows').
     Only the daemon's default row has the word "default" in its label."""
     fb, mu_open = choice["feedback"], choice["open"]["continuity"]
-    tau = DEFAULT.feedback_tau_s * 1e3
     return LABELS | {
-        "default": f"Ours, the daemon's default: NI 1 step ahead, feedback {tau:g} ms,"
-        f" {DEFAULT.method}, mu {mu_lagged:g}",
+        "default": f"Ours, the daemon's default, mu {mu_lagged:g}",
         "network_inversion_exact": f"NI, exact solve, present instant, mu {mu:g}",
         "network_inversion_ahead": f"NI, lagged u, 1 step ahead, mu {mu_open:g}",
         "network_inversion_ahead_feedback": (
@@ -691,7 +689,8 @@ def default_lines(r: dict) -> list[str]:
         + (" (the default)." if best == d["method"] else f", not the default {d['method']}."),
         f"  Step cost on the real-time path (command_one): median"
         f" {c['step_ahead_feedback_us_median']:.1f} us, p99 {c['step_ahead_feedback_us_p99']:.1f}"
-        f" us; with the adaptation's update after it {c['step_adaptation_us_median']:.1f} us.",
+        f" us; with adaptation {c['step_adaptation_us_median']:.1f} us"
+        " (its update comes after send()).",
     ]
     if "default_adaptation" in t:
         worst = max(t["default_adaptation"])
