@@ -84,6 +84,9 @@ FIELD_ENTITIES: dict[str, str] = {
     "state": "state/state",
 }
 
+# fields that recordings made before them lack: `mrrig review` reads those as NaN
+LATER_FIELDS = ("adapt_gain", "adapt_offset_n", "temp_degc")
+
 # legend names: what each series is, not only its field name
 _SERIES_NAMES: dict[str, str] = {
     "f_meas": "f_meas measured (load cell)",

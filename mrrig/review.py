@@ -25,6 +25,7 @@ from mrrig.recording import (
     EVENTS_ENTITY,
     FIELD_ENTITIES,
     FRAME_TIMELINE,
+    LATER_FIELDS,
     SUMMARY_ENTITY,
 )
 from mrrig.samples import SAMPLE_DTYPE
@@ -72,9 +73,15 @@ def _read_field(dataset: Any, entity: str, path: Path) -> tuple[np.ndarray, np.n
 def _rebuild_samples(dataset: Any, path: Path) -> np.ndarray:
     """Samples from the per-field entities, aligned on the frame timeline. Frames missing a
     field (a writer killed mid-flush) are dropped."""
-    columns = {
-        field: _read_field(dataset, entity, path) for field, entity in FIELD_ENTITIES.items()
-    }
+    columns = {}
+    absent = []
+    for field, entity in FIELD_ENTITIES.items():
+        try:
+            columns[field] = _read_field(dataset, entity, path)
+        except Exception:  # noqa: BLE001 - the query's own error for an entity never logged
+            if field not in LATER_FIELDS:
+                raise
+            absent.append(field)  # a recording made before the field existed
     n = max((int(f.max()) + 1 for f, _ in columns.values() if f.size), default=0)
     complete = np.ones(n, dtype=bool)
     for frames, _ in columns.values():
@@ -88,6 +95,8 @@ def _rebuild_samples(dataset: Any, path: Path) -> np.ndarray:
         full = np.empty(n)
         full[frames] = values
         samples[field] = full[complete].astype(SAMPLE_DTYPE[field])
+    for field in absent:
+        samples[field] = np.nan
     return samples[np.argsort(samples["t"], kind="stable")]
 
 

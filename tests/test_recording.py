@@ -304,3 +304,21 @@ def test_format_summary_names_every_metric(run) -> None:
     text = format_summary(run[3])
     for word in ("Et", "frames", "p95", "p99.9", "non_finite", "frames_received"):
         assert word in text
+
+
+def test_a_recording_from_before_the_later_fields_reads_them_as_nan(tmp_path, monkeypatch):
+    """Recordings made before the adaptation's and the temperature's fields still load."""
+    import mrrig.recording as recording
+    from mrrig.recording import LATER_FIELDS
+
+    s = synthetic_run(300)
+    older = {k: v for k, v in FIELD_ENTITIES.items() if k not in LATER_FIELDS}
+    monkeypatch.setattr(recording, "FIELD_ENTITIES", older)
+    path = tmp_path / "old.rrd"
+    write_recording(path, s, run_events(s), None)
+    monkeypatch.undo()
+    back = read_recording(path).samples
+    assert back.size == s.size
+    for field in LATER_FIELDS:
+        assert np.isnan(back[field]).all()
+    np.testing.assert_array_equal(back["f_meas"], s["f_meas"])
