@@ -101,7 +101,9 @@ def test_a_bus_log_decodes_with_cantools_and_matches_the_recording(runs, name):
 def test_review_checks_the_bus_log_and_writes_a_one_file_report(runs, tmp_path):
     rrd, log = runs["run.blf"]
     html = tmp_path / "report.html"
-    proc = mrrig("-q", "review", str(rrd), "--can-log", str(log), "--html", str(html))
+    proc = mrrig(
+        "-q", "review", str(rrd), "--can-log", str(log), "--html", str(html), timeout_s=300
+    )
     assert proc.returncode == 0, proc.stdout + proc.stderr
     assert "matches the recording" in proc.stdout
     text = html.read_text()
@@ -114,7 +116,7 @@ def test_review_checks_the_bus_log_and_writes_a_one_file_report(runs, tmp_path):
 def test_review_with_the_bus_log_of_another_run_says_mismatch(runs):
     rrd, _ = runs["run.blf"]
     _, other = runs["run.log"]
-    proc = mrrig("-q", "review", str(rrd), "--can-log", str(other))
+    proc = mrrig("-q", "review", str(rrd), "--can-log", str(other), timeout_s=300)
     assert proc.returncode == 1, proc.stdout + proc.stderr
     assert "MISMATCH" in proc.stdout
 

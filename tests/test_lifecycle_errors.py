@@ -8,7 +8,6 @@ import os
 import socket
 import subprocess
 import sys
-import time
 
 import pytest
 
@@ -96,13 +95,11 @@ def test_a_telemetry_process_that_cannot_start_stops_the_daemon(tmp_path, bridge
             telemetry={"enabled": True, "zenoh_config": str(zcfg)},
             **NO_MODEL,
         )
-        t0 = time.monotonic()
         proc = mrrig("run", "--config", str(cfg), "--duration", "30", "--no-record")
-        elapsed = time.monotonic() - t0
     line = one_error_line(proc)
     assert "telemetry process could not start" in line and "Address already in use" in line
     assert "telemetry.enabled = false" in line
-    assert elapsed < 30  # it did not run its 30 s unobserved
+    assert "loop running" not in proc.stderr  # its loop never ran unobserved
     assert "frames" not in proc.stdout  # no run, so no summary
 
 
@@ -111,7 +108,7 @@ def test_a_closed_pipe_is_quiet_and_the_figure_is_still_written(tmp_path):
 
     rrd = tmp_path / "run.rrd"
     s = synthetic_run(1000)
-    write_recording(rrd, s, run_events(s), None)
+    write_recording(rrd, s, run_events(s), {"frames_received": s.size})
     png = tmp_path / "run.png"
     r, w = os.pipe()
     os.close(r)  # the reader is gone before the first line

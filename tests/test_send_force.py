@@ -49,7 +49,7 @@ def send_force(client_cfg: Path, *args: str) -> subprocess.CompletedProcess:
     )
 
 
-def wait_status(client_cfg: Path, timeout_s: float = 40.0) -> dict:
+def wait_status(client_cfg: Path, timeout_s: float = 120.0) -> dict:
     deadline = time.monotonic() + timeout_s
     while True:
         try:
