@@ -1,9 +1,13 @@
 """`mrrig train DATA...`: the forward network (and the supervised inverse) from measured data.
 
 DATA are tidy characterization CSVs, daemon recordings (.rrd) or other CSVs with a column map
-(`--columns x=Pos,force=F,current=I,t=time`) and units (`--units x=cm,force=kN`). Writes the
-model file and prints the validation report (spec/modeling.md section 5). `--history N` adds
-the previous N samples of `--history-signals` (default x,xd) to the forward network's inputs.
+(`--columns x=Pos,force=F,current=I,t=time`) and units (`--units x=cm,force=kN`), or headers
+that name field and unit (`x_cm`, `command_v`). Bad stretches (saturation, idle, transients)
+are excluded unless `--keep-all`; the end of each run is held out (`--split blocks`);
+`--features auto` (default where the command changes within runs) chooses the inputs and the
+hidden size by blocked cross-validation on the training blocks. Writes the model file and
+prints the validation report (spec/modeling.md section 5). `--history N` adds N earlier
+samples of `--history-signals` (default x,xd) to the forward network's inputs.
 `--config FILE` (configs/train.toml) gives the defaults of the options; flags win over it.
 """
 
@@ -67,6 +71,14 @@ def _history(
     except ValueError as exc:
         raise DataError(f"--history-signals: {exc}") from None
     return samples, signals
+
+
+def _fraction(text: str) -> float:
+    """The hold-out fraction: a number in (0, 0.5)."""
+    value = positive(text)
+    if not value < 0.5:
+        raise argparse.ArgumentTypeError(f"must be < 0.5, got {text}")
+    return value
 
 
 def _progress(epoch: int, train_mse: float, val_mse: float | None, mu: float) -> None:
@@ -263,7 +275,7 @@ def _parser(cfg: TrainConfig) -> argparse.ArgumentParser:
     )
     ap.add_argument(
         "--holdout-fraction",
-        type=positive,
+        type=_fraction,
         default=t.holdout_fraction,
         help="the end of each run held out by the blocks split (default %(default)g)",
     )

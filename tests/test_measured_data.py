@@ -26,7 +26,7 @@ from mrrig.training import (
 from mrrig.training import data as training_data
 from mrrig.training.data import stretches
 from mrrig.training.features import feature_rows
-from mrrig.training.select import Candidate, _folds, command_varies
+from mrrig.training.select import FOLDS, Candidate, _folds, command_varies
 
 MEASURED = Path(__file__).resolve().parents[2] / "shared" / "data" / "dyke-mr-damper-ransim-u.csv"
 needs_measured = pytest.mark.skipif(not MEASURED.is_file(), reason=f"no {MEASURED}")
@@ -87,7 +87,7 @@ def test_the_search_folds_never_touch_any_candidates_hold_out(varying):
         rows = feature_rows(varying, c.history_samples, c.history_stride)
         held = rows[block_split(st[rows], 0.15).val]
         assert np.all(fold[held] == -1)
-    assert set(np.unique(fold)) == {-1, 0, 1}
+    assert set(np.unique(fold)) == {-1, *range(FOLDS)}
     # each fold is a contiguous block of each run
     for r in range(3):
         f = fold[varying.run_id == r]
@@ -200,6 +200,7 @@ def test_evaluate_gives_the_training_reports_et_on_the_measured_holdout(tmp_path
     r, e = _train_then_evaluate(
         tmp_path, measured_short, ["--current-input", "lagged", "--history", "2"]
     )
+    assert r["split"]["kind"] == "blocks"  # mrrig train's default hold-out
     assert r["command_unit"] == "V" and e["command_unit"] == "V"
     assert e["n"] == r["n_val"]
     assert e["forward"]["et"] == r["forward"]["et"]

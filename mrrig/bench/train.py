@@ -9,8 +9,8 @@ peak memory (the process's maximum resident set) is its own: the pipeline of `mr
 on a fixed structure (lagged current, no history, one start, no supervised inverse):
 Kalman estimates, bad-stretch exclusion, features, the time-block split, LM on the coverage
 subsample, the on-line continuity choice and the hold-out report. Printed per size: wall
-time, the LM's part, peak memory, the cost per sample and its ratio to the previous size's
-and to 100k's.
+time, the LM's part, peak memory, the cost per sample (all, and without LM) and its ratio to
+the previous size's and to 100k's, and the marginal cost per added sample.
 """
 
 from __future__ import annotations

@@ -40,9 +40,9 @@ from mrrig.training.report import predict
 
 log = logging.getLogger(__name__)
 
-FOLDS = 2
+FOLDS = 3
 SEARCH_FIT_ROWS = 3000
-SEARCH_EPOCHS = 80
+SEARCH_EPOCHS = 120
 INVERSION_BUDGET_US = 20.0
 INVERSION_REPEATS = 7  # each row's inversion timed so often, its smallest time kept
 HISTORY_SPANS_S = (0.01, 0.02, 0.03, 0.04)  # history depth in time: taps over this span
