@@ -83,3 +83,12 @@ enabled = false
     assert status["Threads"] == 1, status  # no BLAS threads, no stacks of theirs locked
     # locked on first touch: the mapped libraries' unused pages stay out
     assert status["VmRSS"] < 0.6 * status["VmLck"], status
+
+
+def test_growth_per_quarter_tells_a_steady_leak_from_a_warm_up():
+    from mrrig.bench.loop import _rates
+
+    leak = [(10.0 + k, {"VmRSS": 100_000 + 10 * k}) for k in range(41)]
+    assert _rates(leak) == pytest.approx([600.0] * 4)  # 10 kB/s all along
+    warm_up = [(10.0 + k, {"VmRSS": 100_000 + min(k, 10) * 100}) for k in range(41)]
+    assert _rates(warm_up)[0] > 0 and _rates(warm_up)[1:] == [0.0, 0.0, 0.0]

@@ -211,8 +211,20 @@ class _ResidentMemory:
             "locked_end_kib": end.get("VmLck"),
             "threads": end.get("Threads"),
             "growth_from_warm_pct": 100 * (end["VmRSS"] - warm["VmRSS"]) / warm["VmRSS"],
+            # a leak grows at a steady rate; pages touched for the first time, less and less
+            "growth_kib_per_min": _rates(self.samples),
             "samples": len(rss),
+            "series_kib": [(round(t, 1), s["VmRSS"]) for t, s in self.samples[::10]],
         }
+
+
+def _rates(samples: list[tuple[float, dict[str, int]]]) -> list[float]:
+    """RSS growth in kB per minute over each quarter of the run after the warm-up."""
+    warm = [(t, s["VmRSS"]) for t, s in samples if t >= RSS_WARM_S]
+    if len(warm) < 8:
+        return []
+    edges = [warm[len(warm) * k // 4] for k in range(4)] + [warm[-1]]
+    return [60 * (b[1] - a[1]) / (b[0] - a[0]) for a, b in zip(edges, edges[1:], strict=False)]
 
 
 def format_memory(m: dict, who: str = "daemon") -> str:
@@ -228,6 +240,12 @@ def format_memory(m: dict, who: str = "daemon") -> str:
         f"{m['warm_at_s']:g} s, after the run {mib(m['end_kib'])} (max {mib(m['max_kib'])}; "
         f"growth from {m['warm_at_s']:g} s {m['growth_from_warm_pct']:+.2f} %); locked "
         f"{mib(m['locked_end_kib'])} of address space, {m['threads']} threads"
+        + (
+            "; growth per quarter of the run, kB/min: "
+            + ", ".join(f"{r:.0f}" for r in m["growth_kib_per_min"])
+            if m.get("growth_kib_per_min")
+            else ""
+        )
     )
 
 
