@@ -110,8 +110,11 @@ class RunStats:
                 break
         self.stall_windows.append([kind, start_s, end_s])
 
-    def on_sensor_sent(self, frame: Frame, ideal_s: float, sent_s: float) -> None:
-        """A RigSensors frame left at sent_s for the deadline ideal_s (same clock)."""
+    def on_sensor_sent(
+        self, frame: Frame, ideal_s: float, sent_s: float, sent_wall_s: float | None = None
+    ) -> None:
+        """A RigSensors frame left at sent_s for the deadline ideal_s (same clock); at
+        sent_wall_s on time.time(), the bus timestamps' clock."""
         self.sensor_frames_sent += 1
         self.jitter_us.append((sent_s - ideal_s) * 1e6)
         on_time = sent_s - ideal_s <= self.LATE_S
@@ -125,14 +128,18 @@ class RunStats:
                 self.stall("transport", start_s, sent_s)  # its echo never came
         if frame.expect_answer:
             self.on_time["frames"] += on_time
-            self._awaiting.append([frame.counter, sent_s, 0, False, on_time])
+            self._awaiting.append([frame.counter, sent_s, 0, False, on_time, sent_wall_s])
             if len(self._awaiting) > self.WINDOW:
                 self._close(self._awaiting.popleft())
         else:
             self.sensor_frames_faulted += 1
 
-    def on_command(self, echo: int, received_s: float, safe: bool = False) -> None:
-        """A valid DamperCommand echoing sensor counter `echo` arrived at received_s."""
+    def on_command(
+        self, echo: int, received_s: float, safe: bool = False, bus_ts_s: float | None = None
+    ) -> None:
+        """A valid DamperCommand echoing sensor counter `echo` arrived at received_s; the bus
+        stamped it bus_ts_s (time.time(): the kernel's on SocketCAN, the bridge's on the
+        Python bridge), which is when it was sent as far as the bus can tell."""
         if safe and echo == self._last_echo:
             self.safe_repeats += 1
             return
@@ -150,7 +157,13 @@ class RunStats:
             entry = awaiting.popleft()
             entry[2], entry[3] = 1, bool(awaiting)
             self.latency_us.append((received_s - entry[1]) * 1e6)
-            if not safe and received_s - entry[1] > self.stale_answer_age_s:
+            # the frame's age when the answer reached the bus (this process's own reading
+            # delay is no part of the daemon's answer), else when it reached this process
+            if bus_ts_s is not None and entry[5] is not None:
+                age_s = bus_ts_s - entry[5]
+            else:
+                age_s = received_s - entry[1]
+            if not safe and age_s > self.stale_answer_age_s:
                 self.active_answers_stale += 1
             self._answered.append(entry)
             if len(self._answered) > self.REPEATS:
@@ -287,7 +300,7 @@ def run(
                     if msg is not None:
                         _receive(firmware, stats, msg, clock() - t0, damper_id)
             for frame in frames:
-                sent_s = clock() - t0
+                sent_s, sent_wall_s = clock() - t0, time.time()
                 bus.send(
                     can.Message(
                         arbitration_id=frame.frame_id,
@@ -298,7 +311,7 @@ def run(
                     timeout=send_timeout_s,
                 )
                 if frame.frame_id == sensors_id:
-                    stats.on_sensor_sent(frame, ideal_s, sent_s)
+                    stats.on_sensor_sent(frame, ideal_s, sent_s, sent_wall_s)
                 else:
                     stats.status_frames_sent += 1
             k += 1
@@ -329,4 +342,4 @@ def _receive(
     if parsed is not None and parsed.ok and msg.arbitration_id == damper_id:
         assert parsed.values is not None
         echo, safe = int(parsed.values["SensorCounterEcho"]), int(parsed.values["Mode"]) == 0
-        stats.on_command(echo, t_s, safe)
+        stats.on_command(echo, t_s, safe, msg.timestamp or None)
