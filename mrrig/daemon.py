@@ -1105,12 +1105,14 @@ def main(argv: list[str] | None = None) -> int:
             cfg.telemetry.insecure,
         )
     record = args.record
-    if record is None and cfg.recording.enabled:
+    if args.no_record:
+        record = None
+    elif record is None and cfg.recording.enabled:
+        # imports rerun (its threads, its libraries locked with the loop's memory): only when
+        # this run records
         from mrrig.recording import recording_path
 
         record = recording_path(cfg.recording.directory, cfg.rig.name)
-    if args.no_record:
-        record = None
     daemon = Daemon(cfg, record_path=record)
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda s, _f: daemon.request_stop(signal.Signals(s).name))
