@@ -409,7 +409,8 @@ def test_user_password_and_access_control(tmp_path: Path):
         claims = audit.claims(operator, user("operator", "op-secret"))
         reply = client.query(operator, "pw", {"cmd": "arm"}, timeout_s=3.0, claims=claims)
         assert reply == {"ok": False, "error": "daemon did not answer"}
-        assert [p["cmd"] for m, p in loop.poll() if m == Msg.REQUEST] == ["arm"]
+        requests = [json.loads(p[1]) for m, p in loop.poll() if m == Msg.REQUEST]
+        assert [r["cmd"] for r in requests] == ["arm"]
         sample = events.recv()
         events.undeclare()
         event = json.loads(sample.payload.to_bytes())
