@@ -32,7 +32,12 @@ def assert_safe(cmd: dict) -> None:
 
 def assert_fault(rig: ScriptedRig, fault: Fault) -> dict:
     assert rig.daemon.supervisor.state is RigState.FAULT
+    # the loop thread records the event just after it sets the state: give it that moment
+    deadline = time.monotonic() + 1.0
     events = [e for e in rig.daemon.events if e["kind"] == "fault"]
+    while not events and time.monotonic() < deadline:
+        time.sleep(0.001)
+        events = [e for e in rig.daemon.events if e["kind"] == "fault"]
     assert events, "no fault event"
     assert events[-1]["fault"] == fault.value
     assert events[-1]["reason"]
