@@ -33,7 +33,25 @@ taskset -c 0 python -m firmware_sim --config configs/sim-vcan-vm.toml --duration
     --stats "$out/sim.json" > "$out/sim.log" 2>&1
 sleep 1
 kill -TERM "$daemon"
-wait "$daemon" || { echo "daemon exit $?"; tail -20 "$out/daemon.log"; exit 1; }
+# exit 1 is `mrrig run`'s "ended in FAULT": expected here when, and only when, its one fault is
+# the sensor_timeout that the simulator's end caused (after the last sensor frame); any other
+# fault, or a fault while frames still came, fails the check
+rc=0
+wait "$daemon" || rc=$?
+if [ "$rc" -ne 0 ]; then
+    echo "daemon exit $rc"
+    tail -20 "$out/daemon.log"
+    [ "$rc" -eq 1 ] && python - "$out/daemon.json" <<'PY' || exit 1
+import json, sys
+s = json.load(open(sys.argv[1]))
+faults = s["faults"]
+end = [f for f in faults if f.get("fault") == "sensor_timeout" and f["t"] >= s["last_frame_t_s"]]
+print(f"rig_on_vcan: faults {faults}; last sensor frame at t={s['last_frame_t_s']:.3f} s")
+if len(faults) != 1 or len(end) != 1:
+    sys.exit("rig_on_vcan: a fault other than the sensor_timeout of the simulator's end")
+print("rig_on_vcan: the one fault is the simulator's end (sensor_timeout): exit 1 as documented")
+PY
+fi
 kill -TERM "$dump"
 wait "$dump" || true
 tail -3 "$out/sim.log"
