@@ -24,8 +24,8 @@ from firmware_sim.config import FAULT_KINDS, ConfigError, FaultSpec, load_config
 from firmware_sim.firmware import Firmware
 from firmware_sim.runner import RunStats, run, tune_process
 from mrrig import json_text
-from mrrig.canbus import DEFAULT_DBC_PATH, BusError, Codec, open_bus
 from mrrig.cli_args import HelpFormatter, add_bus_options, output_file, positive
+from mrrig.rigio.canbus import DEFAULT_DBC_PATH, BusError, Codec, open_bus
 
 logger = logging.getLogger("firmware_sim")
 

@@ -30,7 +30,7 @@ _MAX_CURRENT_A = 6.5535
 
 @dataclass(frozen=True)
 class BusConfig:
-    """python-can bus (`mrrig.canbus.open_bus`) and the DBC that defines the frames."""
+    """python-can bus (`mrrig.rigio.canbus.open_bus`) and the DBC that defines the frames."""
 
     interface: str = "remote"
     channel: str = "ws://127.0.0.1:54701/"

@@ -37,7 +37,7 @@ import numpy as np
 from damper.plant import BoucWenDamper, BoucWenParams, params_at_temperature
 from damper.signals import bandlimited_noise
 from firmware_sim.config import ActuatorConfig, FaultSpec, SimConfig
-from mrrig.canbus.codec import Codec, MessageLayout, Parsed
+from mrrig.rigio.canbus.codec import Codec, MessageLayout, Parsed
 
 logger = logging.getLogger(__name__)
 

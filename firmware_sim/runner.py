@@ -24,7 +24,7 @@ import can
 import numpy as np
 
 from firmware_sim.firmware import Firmware, Frame
-from mrrig.realtime import make_realtime
+from mrrig.loop.realtime import make_realtime
 
 logger = logging.getLogger(__name__)
 

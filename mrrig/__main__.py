@@ -2,6 +2,6 @@
 
 import sys
 
-from mrrig.cli import main
+from mrrig.cli.main import main
 
 sys.exit(main())

@@ -9,8 +9,8 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, Literal
 
-from mrrig.adaptation import AdaptationSettings
-from mrrig.controllers import CONTROLLERS
+from mrrig.loop.adaptation import AdaptationSettings
+from mrrig.loop.controllers import CONTROLLERS
 from mrrig.typed_config import ConfigError, load_toml, parse
 
 __all__ = ["ConfigError", "DaemonConfig", "load_config", "reference_from_table"]
@@ -152,7 +152,7 @@ class ControllerSection:
 
 @dataclass(frozen=True)
 class AdaptationSection(AdaptationSettings):
-    """On-line adaptation of network inversion's model force (mrrig/adaptation.py): a gain and
+    """On-line adaptation of network inversion's model force (mrrig/loop/adaptation.py): a gain and
     an offset estimated from the load cell after each command, frozen while not armed."""
 
     enabled: bool = False
@@ -214,7 +214,7 @@ class TelemetrySection:
     zenoh_config: Path = Path("configs/zenoh-daemon.json5")
     rate_hz: float = 50.0
     # a config off loopback without authentication and access control runs only with this
-    # (a closed lab network), warned in every status and recording (mrrig.zenoh_config)
+    # (a closed lab network), warned in every status and recording (mrrig.rigio.zenoh_config)
     insecure: bool = False
     # no heartbeat from the telemetry process for this long: fault telemetry_lost (the rig is
     # not left ARMED unobserved longer), and the process is restarted once
@@ -258,7 +258,9 @@ class RecordingSection:
     def check(self) -> None:
         if self.can_log is None:
             return
-        from mrrig.canlog import SUFFIXES  # python-can's writers: only when a log is asked for
+        from mrrig.rigio.canlog import (
+            SUFFIXES,  # python-can's writers: only when a log is asked for
+        )
 
         if self.can_log.suffix.lower() not in SUFFIXES:
             raise ValueError(

@@ -15,8 +15,8 @@ from pathlib import Path
 import can
 import pytest
 
-from mrrig.canbus.bus import find_free_port, start_bridge, stop_bridge
-from mrrig.datasets import Series, dataset_b
+from mrrig.offline.datasets import Series, dataset_b
+from mrrig.rigio.canbus.bus import find_free_port, start_bridge, stop_bridge
 
 REPO = Path(__file__).resolve().parents[1]
 # a valid RigSensors message's signals (a machine at rest, actuator on, no fault)
@@ -61,7 +61,7 @@ def sim_model(tmp_path_factory) -> Path:
     pytest-xdist workers share the base directory and the first one trains it."""
     from filelock import FileLock
 
-    from mrrig.training import simulated_matrix_model
+    from mrrig.offline.training import simulated_matrix_model
 
     root = tmp_path_factory.getbasetemp()
     if os.environ.get("PYTEST_XDIST_WORKER"):

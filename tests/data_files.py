@@ -1,4 +1,5 @@
-"""Writing the tidy characterization CSV that `mrrig.training.load_tidy` reads, for tests."""
+"""Writing the tidy characterization CSV that `mrrig.offline.training.load_tidy` reads, for
+tests."""
 
 from __future__ import annotations
 
@@ -7,7 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
-from mrrig.datasets import TIDY_HEADER, Series
+from mrrig.offline.datasets import TIDY_HEADER, Series
 
 
 def write_tidy(path: str | Path, series: Series, current_meas_a: np.ndarray | None = None) -> None:

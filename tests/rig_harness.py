@@ -19,11 +19,11 @@ from firmware_sim.config import load_config as load_sim_config
 from firmware_sim.firmware import Firmware
 from firmware_sim.runner import RunStats
 from firmware_sim.runner import run as run_firmware
-from mrrig.canbus.codec import Codec
 from mrrig.config import load_config
-from mrrig.control import Pending
-from mrrig.daemon import Daemon
-from mrrig.rig_session import RigSession, rig_overrides
+from mrrig.loop.daemon import Daemon
+from mrrig.rigio.canbus.codec import Codec
+from mrrig.rigio.control import Pending
+from mrrig.rigio.rig_session import RigSession, rig_overrides
 from tests.conftest import REPO, rig_config
 from tests.stall_proof import explain
 

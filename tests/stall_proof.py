@@ -24,8 +24,8 @@ from typing import Any
 
 import numpy as np
 
-from mrrig.metrics import error_norm
-from mrrig.samples import RigState
+from mrrig.loop.samples import RigState
+from mrrig.offline.metrics import error_norm
 
 # A late frame marks a window (the simulator's RunStats.LATE_S); the daemon's own timeouts see
 # a stall within that much of its end.

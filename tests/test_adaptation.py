@@ -1,4 +1,4 @@
-"""On-line adaptation of network inversion's model force (mrrig/adaptation.py): off, it is
+"""On-line adaptation of network inversion's model force (mrrig/loop/adaptation.py): off, it is
 the controller without it, bit for bit; it learns only while armed and without a fault; a
 load-cell spike moves it by no more than its bound; its state reaches the recording; the
 model file is never written."""
@@ -13,10 +13,10 @@ import numpy as np
 import pytest
 
 from damper.plant import BoucWenParams
-from mrrig.adaptation import AdaptationSettings, GainOffsetRLS
-from mrrig.controllers import ControlInput, NetworkInversion
-from mrrig.samples import RigState
-from mrrig.simulation import closed_loop
+from mrrig.loop.adaptation import AdaptationSettings, GainOffsetRLS
+from mrrig.loop.controllers import ControlInput, NetworkInversion
+from mrrig.loop.samples import RigState
+from mrrig.offline.simulation import closed_loop
 from tests.conftest import rig_config
 from tests.rig_harness import ScriptedRig
 from tests.test_inversion import I_MAX, random_model
@@ -235,7 +235,7 @@ def test_adaptation_runs_only_while_armed_and_never_in_a_fault(tmp_path, sim_mod
 
 @pytest.mark.process  # the daemon's loop at frame rate (and the sidecar)
 def test_the_recording_holds_the_adapted_state_and_the_model_file_is_unchanged(tmp_path, sim_model):
-    from mrrig.review import read_recording
+    from mrrig.offline.review import read_recording
 
     digest = hashlib.sha256(sim_model.read_bytes()).hexdigest()
     record = tmp_path / "run.rrd"
@@ -307,12 +307,12 @@ def test_the_daemon_evaluates_the_reference_once_per_frame_and_passes_the_next_t
 
 def test_an_old_model_of_the_commanded_current_loads_and_says_what_it_lacks(tmp_path, caplog):
     from mrrig.config import load_config
-    from mrrig.daemon import build_controller
+    from mrrig.loop.daemon import build_controller
 
     path = tmp_path / "old.json"
     random_model(np.random.default_rng(5), monotone=True).save(path)
     cfg = load_config(rig_config(tmp_path, "ws://127.0.0.1:1/", path))
-    with caplog.at_level("WARNING", logger="mrrig.daemon"):
+    with caplog.at_level("WARNING", logger="mrrig.loop.daemon"):
         ctrl = build_controller(cfg)
     assert ctrl.name == "network_inversion" and ctrl.ahead and ctrl.lag_tau_s is None
     (warning,) = [r.getMessage() for r in caplog.records if r.levelname == "WARNING"]

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from mrrig.bench.loop import budget_verdict
+from mrrig.offline.bench.loop import budget_verdict
 
 
 def _run(p99: float, p999: float, unanswered: int) -> dict:
@@ -21,7 +21,7 @@ def test_budget_is_met_only_when_every_part_of_it_is() -> None:
 
 
 def test_bench_paper_counts_the_cases_at_or_below_each_reference() -> None:
-    from mrrig.bench.paper import acceptance_lines
+    from mrrig.offline.bench.paper import acceptance_lines
 
     paper = [0.04, 0.04, 0.04, 0.13, 0.12, 0.20, 0.13]
     table = {
@@ -46,7 +46,7 @@ def test_bench_paper_counts_the_cases_at_or_below_each_reference() -> None:
 
 
 def test_bench_paper_continuity_sweep_lines_count_and_take_the_smallest_per_case() -> None:
-    from mrrig.bench.paper import sweep_lines
+    from mrrig.offline.bench.paper import sweep_lines
 
     gradient = [0.05, 0.05, 0.05]
     sweep = {"mu 0": [0.04, 0.06, 0.05], "mu 1": [0.06, 0.03, 0.07]}
@@ -64,7 +64,7 @@ def test_bench_paper_continuity_sweep_lines_count_and_take_the_smallest_per_case
 def test_bench_help_is_the_named_benchmarks_own(capsys) -> None:
     import pytest
 
-    from mrrig.bench.cli import main
+    from mrrig.offline.bench.cli import main
 
     with pytest.raises(SystemExit) as done:
         main(["loop", "--help"])
@@ -77,7 +77,7 @@ def test_bench_help_is_the_named_benchmarks_own(capsys) -> None:
 
 
 def test_bench_paper_prints_table_6_with_the_daemons_default_and_keeps_the_rest_for_detail():
-    from mrrig.bench.paper import TABLE_ROWS, format_report, labels
+    from mrrig.offline.bench.paper import TABLE_ROWS, format_report, labels
 
     choice = {"feedback": {"feedback_tau_s": 0.0, "continuity": 0.03}, "open": {"continuity": 0.1}}
     names = [*TABLE_ROWS, "default_flow", "default_gradient", "network_inversion_root"]
@@ -110,7 +110,7 @@ def test_bench_paper_prints_table_6_with_the_daemons_default_and_keeps_the_rest_
 
 
 def test_bench_drift_sets_aside_the_half_second_after_a_stall_or_an_arming():
-    from mrrig.bench.drift import _after_stalls
+    from mrrig.offline.bench.drift import _after_stalls
 
     t = np.arange(0, 3.0, 0.002)
     t[1000:] += 0.05  # a 52 ms gap at t = 2 s

@@ -13,8 +13,8 @@ import sys
 import cantools
 import pytest
 
-from mrrig.canlog import check_bus_log, read_bus_log
-from mrrig.review import read_recording
+from mrrig.offline.review import read_recording
+from mrrig.rigio.canlog import check_bus_log, read_bus_log
 from tests.conftest import REPO, rig_config, start, stop
 from tests.test_lifecycle_errors import NO_MODEL, mrrig, one_error_line
 
@@ -55,7 +55,7 @@ def _run(tmp_path, bridge, log_name: str):
 @pytest.fixture(scope="module")
 def runs(tmp_path_factory):
     """Two 3 s runs against firmware_sim: one with a .blf, one with a candump .log."""
-    from mrrig.canbus.bus import find_free_port, start_bridge, stop_bridge
+    from mrrig.rigio.canbus.bus import find_free_port, start_bridge, stop_bridge
 
     tmp = tmp_path_factory.mktemp("buslog")
     port = find_free_port()

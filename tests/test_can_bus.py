@@ -10,8 +10,8 @@ import uuid
 import can
 import pytest
 
-from mrrig.canbus.bus import BusError, find_free_port, open_bus, start_bridge, stop_bridge
-from mrrig.canbus.codec import Codec
+from mrrig.rigio.canbus.bus import BusError, find_free_port, open_bus, start_bridge, stop_bridge
+from mrrig.rigio.canbus.codec import Codec
 from tests.conftest import SENSORS
 
 RECV_TIMEOUT_S = 5.0
@@ -20,8 +20,8 @@ RECV_TIMEOUT_S = 5.0
 # echoing its counter, as the daemon must.
 ECHO_CHILD = textwrap.dedent("""
     import sys
-    from mrrig.canbus.bus import open_bus
-    from mrrig.canbus.codec import Codec
+    from mrrig.rigio.canbus.bus import open_bus
+    from mrrig.rigio.canbus.codec import Codec
 
     codec = Codec()
     parser, packer = codec.parser(), codec.packer("DAEMON")

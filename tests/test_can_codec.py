@@ -10,7 +10,7 @@ from cantools.autosar import check_profile2_crc, compute_profile2_crc
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from mrrig.canbus.codec import (
+from mrrig.rigio.canbus.codec import (
     DEFAULT_DBC_PATH,
     Codec,
     EncodeError,

@@ -15,7 +15,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from mrrig.characterize import (
+from mrrig.loop.samples import SAMPLE_DTYPE, RigState
+from mrrig.offline.characterize import (
     TIDY_HEADER,
     CharacterizeConfig,
     Interrupted,
@@ -27,12 +28,11 @@ from mrrig.characterize import (
     load_characterize_config,
     matrix_runs,
 )
-from mrrig.review import read_recording
-from mrrig.rig_session import RigSession
-from mrrig.samples import SAMPLE_DTYPE, RigState
-from mrrig.training import load_tidy
+from mrrig.offline.review import read_recording
+from mrrig.offline.training import load_tidy
+from mrrig.offline.validate import track_with_attempts
+from mrrig.rigio.rig_session import RigSession
 from mrrig.typed_config import ConfigError
-from mrrig.validate import track_with_attempts
 from tests.conftest import REPO, OutputWatch, rig_config, stall
 from tests.rig_harness import ThreadRig
 from tests.stall_proof import explain

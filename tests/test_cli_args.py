@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import pytest
 
-from mrrig.cli import main
+from mrrig.cli.main import main
 from mrrig.cli_args import output_file
 
 CASES = [

@@ -2,8 +2,8 @@
 
 from __future__ import annotations
 
-from mrrig.client import no_telemetry_line
-from mrrig.client_cli import format_status
+from mrrig.cli.client import format_status
+from mrrig.rigio.client import no_telemetry_line
 
 STATUS = {
     "rig": "rig1",

@@ -6,10 +6,10 @@ from __future__ import annotations
 import numpy as np
 
 from damper.plant import BoucWenParams
-from mrrig.controllers import ConstantCurrent
-from mrrig.datasets import dataset_a_validation
-from mrrig.metrics import error_norm
-from mrrig.simulation import closed_loop
+from mrrig.loop.controllers import ConstantCurrent
+from mrrig.offline.datasets import dataset_a_validation
+from mrrig.offline.metrics import error_norm
+from mrrig.offline.simulation import closed_loop
 
 
 def test_the_references_own_command_tracks_it_exactly_from_the_references_initial_state():

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from mrrig.controllers import (
+from mrrig.loop.controllers import (
     ContinuousState,
     ControlInput,
     Controller,

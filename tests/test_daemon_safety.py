@@ -13,11 +13,11 @@ import can
 import numpy as np
 import pytest
 
-from mrrig import reference as ref
-from mrrig.canbus.codec import Codec
-from mrrig.controllers import Controller
-from mrrig.safety import FOREIGN_HOLD_S, Fault, Limits, Supervisor
-from mrrig.samples import RigState
+from mrrig.loop import reference as ref
+from mrrig.loop.controllers import Controller
+from mrrig.loop.safety import FOREIGN_HOLD_S, Fault, Limits, Supervisor
+from mrrig.loop.samples import RigState
+from mrrig.rigio.canbus.codec import Codec
 from tests.rig_harness import ScriptedRig
 
 SAFE = 0
@@ -238,7 +238,7 @@ def test_bus_error_faults_and_stops_the_loop(tmp_path):
 
 def test_commands_are_clamped_to_i_max(tmp_path):
     with ScriptedRig(tmp_path) as rig:
-        from mrrig.controllers import ConstantCurrent
+        from mrrig.loop.controllers import ConstantCurrent
 
         rig.daemon.controller = ConstantCurrent(10.0, 9.0)  # a controller that asks too much
         cmd = rig.exchange()

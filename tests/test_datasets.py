@@ -2,7 +2,7 @@ import numpy as np
 import pytest
 from scipy.signal import correlate
 
-from mrrig.datasets import (
+from mrrig.offline.datasets import (
     DATASET_A_VALIDATION_NAMES,
     DataError,
     Series,
@@ -234,7 +234,7 @@ def test_bad_value_after_comment_and_blank_lines_names_its_file_line(tmp_path):
 
 
 def test_csv_is_read_in_chunks_equal_to_one_read(si_and_cm_csv, monkeypatch):
-    import mrrig.datasets as ds
+    import mrrig.offline.datasets as ds
 
     whole = load_csv(si_and_cm_csv[0], _COLS)
     monkeypatch.setattr(ds, "CSV_CHUNK_ROWS", 2)  # 5 rows: chunks of 2, 2, 1

@@ -12,7 +12,7 @@ from pathlib import Path
 
 import pytest
 
-from mrrig.demo import RearmLimit
+from mrrig.cli.demo import RearmLimit
 from tests.conftest import REPO, OutputWatch, rig_config, stall, zenoh_configs
 from tests.stall_proof import explain
 
@@ -106,7 +106,7 @@ def test_the_demo_rearms_the_daemon_after_a_transport_fault(tmp_path, sim_model)
     rc, out = _demo_with_a_stall(tmp_path, sim_model, max_rearms=10)
     print(out[-3000:])
     assert rc == 0, out
-    assert "mrrig.daemon: fault: " in out
+    assert "mrrig.loop.daemon: fault: " in out
     _explain_faults(out)
     assert "state: armed (was FAULT)" in out
     m = re.search(r"^demo: re-armed the daemon (\d+) times", out, re.MULTILINE)
@@ -124,7 +124,7 @@ def test_without_rearming_the_daemon_stays_in_fault(tmp_path, sim_model):
     # armed for a third of the run: below the demo's bound, so its verdict is FAIL
     assert rc == 1, out
     assert re.search(r"^demo: FAIL$", out, re.MULTILINE) and "  FAIL armed " in out
-    assert "mrrig.daemon: fault: " in out
+    assert "mrrig.loop.daemon: fault: " in out
     _explain_faults(out)
     assert "state: armed (was FAULT)" not in out
     assert "demo: re-armed the daemon 0 times" in out

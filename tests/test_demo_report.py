@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from mrrig.demo_report import RunningEt, verdict
-from mrrig.metrics import error_norm
-from mrrig.samples import RigState
+from mrrig.cli.demo_report import RunningEt, verdict
+from mrrig.loop.samples import RigState
+from mrrig.offline.metrics import error_norm
 
 
 def test_running_et_over_batches_is_the_papers_et_over_the_armed_samples():

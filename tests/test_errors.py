@@ -16,7 +16,7 @@ import mrrig
 from mrrig.errors import MrrigError
 
 # Exceptions that are signals between parts of one tool, not errors shown to anyone.
-SIGNALS = {"mrrig.rig_session.Interrupted"}
+SIGNALS = {"mrrig.rigio.rig_session.Interrupted"}
 
 
 def _exception_classes() -> list[type[BaseException]]:
@@ -37,7 +37,7 @@ ERRORS = _exception_classes()
 
 def test_every_error_of_the_project_derives_from_mrrig_error() -> None:
     names = {f"{e.__module__}.{e.__qualname__}" for e in ERRORS}
-    assert {"mrrig.typed_config.ConfigError", "mrrig.control.RequestError"} <= names
+    assert {"mrrig.typed_config.ConfigError", "mrrig.rigio.control.RequestError"} <= names
     loose = sorted(
         n
         for e, n in ((e, f"{e.__module__}.{e.__qualname__}") for e in ERRORS)

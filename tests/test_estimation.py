@@ -1,9 +1,9 @@
 import numpy as np
 import pytest
 
-from mrrig.bench.estimation import AMPLITUDES_M, FREQUENCIES_HZ, noisy_sine_run
-from mrrig.estimation import KalmanEstimator, finite_difference
-from mrrig.metrics import rmse
+from mrrig.loop.estimation import KalmanEstimator, finite_difference
+from mrrig.offline.bench.estimation import AMPLITUDES_M, FREQUENCIES_HZ, noisy_sine_run
+from mrrig.offline.metrics import rmse
 
 DT_S = 0.002
 
@@ -113,7 +113,7 @@ def _noisy_sine(seconds: float, seed: int) -> np.ndarray:
 
 
 def test_realtime_kalman_equals_filterpy_kalman():
-    from mrrig.estimation import KalmanEstimator, RealtimeKalman
+    from mrrig.loop.estimation import KalmanEstimator, RealtimeKalman
 
     x = _noisy_sine(2.0, seed=3)
     ref, fast = KalmanEstimator(0.002), RealtimeKalman(0.002)
@@ -126,7 +126,7 @@ def test_realtime_kalman_equals_filterpy_kalman():
 
 
 def test_realtime_kalman_prepared_ahead_is_the_same_filter_and_affine_in_the_measurement():
-    from mrrig.estimation import RealtimeKalman
+    from mrrig.loop.estimation import RealtimeKalman
 
     x = _noisy_sine(1.0, seed=4)
     plain, ahead = RealtimeKalman(0.002), RealtimeKalman(0.002)

@@ -27,7 +27,7 @@ from firmware_sim.firmware import (
     Firmware,
     Frame,
 )
-from mrrig.canbus import Codec, Parsed
+from mrrig.rigio.canbus import Codec, Parsed
 
 CODEC = Codec()
 SENSORS_ID = CODEC.layout("RigSensors").frame_id

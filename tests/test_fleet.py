@@ -17,8 +17,8 @@ from pathlib import Path
 import pytest
 import zenoh
 
-from mrrig import fleet
-from mrrig.canbus.bus import find_free_port, start_bridge, stop_bridge
+from mrrig.rigio import fleet
+from mrrig.rigio.canbus.bus import find_free_port, start_bridge, stop_bridge
 from tests.conftest import REPO, rig_config, stop
 
 pytestmark = pytest.mark.process

@@ -22,7 +22,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from hypothesis.stateful import RuleBasedStateMachine, invariant, rule
 
-from mrrig.control import RequestError, parse_request
+from mrrig.rigio.control import RequestError, parse_request
 from tests.rig_harness import ScriptedRig
 
 I_MAX_A = 2.0

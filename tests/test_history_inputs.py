@@ -10,13 +10,13 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from mrrig.cli import main as mrrig_main
-from mrrig.controllers import ControlInput, NetworkInversion, SupervisedInverse
-from mrrig.daemon import build_controller
-from mrrig.datasets import Series
-from mrrig.model.mlp import MLP
-from mrrig.samples import RigState
-from mrrig.training import (
+from mrrig.cli.main import main as mrrig_main
+from mrrig.loop.controllers import ControlInput, NetworkInversion, SupervisedInverse
+from mrrig.loop.daemon import build_controller
+from mrrig.loop.mlp import MLP
+from mrrig.loop.samples import RigState
+from mrrig.offline.datasets import Series
+from mrrig.offline.training import (
     COIL_LAG_TAU_S,
     INPUT_NAMES,
     feature_names,

@@ -20,15 +20,15 @@ from pathlib import Path
 import can
 import pytest
 
-from mrrig.canbus.codec import Codec
-from mrrig.client import query
+from mrrig.cli.review import main as review_main
 from mrrig.config import load_config
-from mrrig.ipc import LoopEnd, Msg, make_channel
-from mrrig.review import ReviewError
-from mrrig.review_cli import main as review_main
-from mrrig.safety import Fault
-from mrrig.samples import RigState
-from mrrig.sidecar import keys
+from mrrig.loop.safety import Fault
+from mrrig.loop.samples import RigState
+from mrrig.offline.review import ReviewError
+from mrrig.rigio.canbus.codec import Codec
+from mrrig.rigio.client import query
+from mrrig.rigio.ipc import LoopEnd, Msg, make_channel
+from mrrig.rigio.sidecar import keys
 from mrrig.typed_config import ConfigError
 from tests.conftest import REPO, rig_config
 from tests.rig_harness import ScriptedRig
@@ -224,7 +224,7 @@ def _limited_sidecar(path: Path, fsize: int) -> tuple[subprocess.Popen, LoopEnd]
     disk as the writer sees it (EFBIG on write)."""
     fds = make_channel()
     loop = LoopEnd(*fds.loop_fds())
-    cmd = [sys.executable, "-m", "mrrig.sidecar", "--rig", RIG, "--zenoh-config", ""]
+    cmd = [sys.executable, "-m", "mrrig.rigio.sidecar", "--rig", RIG, "--zenoh-config", ""]
     cmd += ["--record", str(path), "--rx-fd", str(fds.sidecar_rx), "--tx-fd", str(fds.sidecar_tx)]
 
     def limit() -> None:
@@ -338,7 +338,7 @@ def test_finding6_a_killed_sidecar_is_a_fault_restarted_once_then_the_daemon_sto
 
 @pytest.mark.process
 def test_finding6_a_killed_bridge_ends_mrrig_run_with_exit_code_3(tmp_path, sim_model):
-    from mrrig.canbus.bus import find_free_port, start_bridge
+    from mrrig.rigio.canbus.bus import find_free_port, start_bridge
 
     port = find_free_port()
     bridge = start_bridge(port)

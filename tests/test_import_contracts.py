@@ -1,5 +1,7 @@
 """The walls of the house (pyproject.toml's `[tool.importlinter]` contracts): `mrrig` never
-imports `firmware_sim`; the damper's physics and the numerics never import I/O."""
+imports `firmware_sim`; the damper's physics and the numerics never import I/O; the loop never
+imports torch, Zenoh or Rerun; the loop and the rig's I/O never import the offline work or the
+CLI."""
 
 from __future__ import annotations
 

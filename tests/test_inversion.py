@@ -9,15 +9,15 @@ import numpy as np
 import pytest
 import torch
 
-from mrrig import inversion
-from mrrig.inversion import (
+from mrrig.loop import inversion
+from mrrig.loop.inversion import (
     ScalarInverter,
     eq14_gradient,
     exact_inversion,
     gradient_inversion,
 )
-from mrrig.model.mlp import MLP
-from mrrig.model.train import MLPModule
+from mrrig.loop.mlp import MLP
+from mrrig.offline.training.lm import MLPModule
 
 NAMES = ["x", "xd", "xdd", "current"]
 UNITS = ["m", "m/s", "m/s^2", "A"]

@@ -8,7 +8,8 @@ import threading
 import numpy as np
 import pytest
 
-from mrrig.ipc import (
+from mrrig.loop.samples import FIELDS, SAMPLE_DTYPE
+from mrrig.rigio.ipc import (
     FORCE_REF,
     HEADER,
     PIPE_BUF,
@@ -20,7 +21,6 @@ from mrrig.ipc import (
     decode_samples,
     make_channel,
 )
-from mrrig.samples import FIELDS, SAMPLE_DTYPE
 
 
 def _samples(n: int, seed: int = 0) -> np.ndarray:

@@ -11,7 +11,7 @@ import sys
 
 import pytest
 
-from mrrig.canbus.bus import find_free_port
+from mrrig.rigio.canbus.bus import find_free_port
 from tests.conftest import REPO, rig_config, zenoh_configs
 
 pytestmark = pytest.mark.process

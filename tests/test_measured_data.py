@@ -9,11 +9,11 @@ import pytest
 
 from damper.plant import BoucWenParams, simulate
 from damper.signals import bandlimited_noise
-from mrrig.datasets import Series
-from mrrig.estimation import KalmanEstimator, kalman_lanes
-from mrrig.evaluate import main as evaluate_main
-from mrrig.train_cli import main as train_main
-from mrrig.training import (
+from mrrig.cli.train import main as train_main
+from mrrig.loop.estimation import KalmanEstimator, kalman_lanes
+from mrrig.offline.datasets import Series
+from mrrig.offline.evaluate import main as evaluate_main
+from mrrig.offline.training import (
     COIL_LAG_TAU_S,
     block_split,
     coverage_subsample,
@@ -23,10 +23,10 @@ from mrrig.training import (
     load_training_data,
     train_and_validate,
 )
-from mrrig.training import data as training_data
-from mrrig.training.data import stretches
-from mrrig.training.features import feature_rows
-from mrrig.training.select import FOLDS, Candidate, _folds, command_varies
+from mrrig.offline.training import data as training_data
+from mrrig.offline.training.data import stretches
+from mrrig.offline.training.features import feature_rows
+from mrrig.offline.training.select import FOLDS, Candidate, _folds, command_varies
 
 MEASURED = Path(__file__).resolve().parents[2] / "shared" / "data" / "dyke-mr-damper-ransim-u.csv"
 needs_measured = pytest.mark.skipif(not MEASURED.is_file(), reason=f"no {MEASURED}")
@@ -151,7 +151,7 @@ def test_bad_stretches_found_by_kind_with_their_times_and_keep_all_keeps_them(va
 
 
 def test_no_bad_stretch_in_the_simulated_matrix(small_b):
-    from mrrig.training import measured_series
+    from mrrig.offline.training import measured_series
 
     _, ex = exclude_bad_stretches(measured_series(small_b))
     assert ex["excluded_samples"] == 0
@@ -210,8 +210,8 @@ def test_evaluate_gives_the_training_reports_et_on_the_measured_holdout(tmp_path
 
 @pytest.mark.long
 def test_evaluate_on_a_simulator_recording_equals_the_training_report(tmp_path, capsys):
-    from mrrig.recording import Recorder
-    from mrrig.samples import SAMPLE_DTYPE, RigState
+    from mrrig.loop.samples import SAMPLE_DTYPE, RigState
+    from mrrig.rigio.recording import Recorder
 
     v = _sim_varying(n_runs=1, seconds=8.0, seed=11)
     s = np.zeros(len(v), dtype=SAMPLE_DTYPE)
@@ -232,7 +232,7 @@ def test_evaluate_on_a_simulator_recording_equals_the_training_report(tmp_path, 
 
 @pytest.mark.long
 def test_evaluate_refuses_a_command_in_other_units(tmp_path, varying):
-    from mrrig.cli import main as mrrig_main
+    from mrrig.cli.main import main as mrrig_main
 
     model = tmp_path / "m.json"
     csv_a = tmp_path / "a.csv"

@@ -10,8 +10,8 @@ from pathlib import Path
 
 import pytest
 
-from mrrig import memory
-from mrrig.bench.loop import _ResidentMemory, format_memory
+from mrrig.loop import memory
+from mrrig.offline.bench.loop import _ResidentMemory, format_memory
 from tests.conftest import REPO
 
 
@@ -88,7 +88,7 @@ enabled = false
 
 
 def test_growth_per_quarter_tells_a_steady_leak_from_a_warm_up():
-    from mrrig.bench.loop import _rates
+    from mrrig.offline.bench.loop import _rates
 
     leak = [(10.0 + k, {"VmRSS": 100_000 + 10 * k}) for k in range(41)]
     assert _rates(leak) == pytest.approx([600.0] * 4)  # 10 kB/s all along

@@ -3,9 +3,9 @@ import math
 import numpy as np
 import pytest
 
-from mrrig.metrics import error_norm, percentiles, rmse
-from mrrig.samples import SAMPLE_DTYPE, RigState
-from mrrig.summary import summarize
+from mrrig.loop.samples import SAMPLE_DTYPE, RigState
+from mrrig.loop.summary import summarize
+from mrrig.offline.metrics import error_norm, percentiles, rmse
 
 
 def test_error_norm_matches_hand_computed_example():

@@ -12,8 +12,8 @@ import numpy as np
 import pytest
 import torch
 
-from mrrig.model.mlp import MLP, ModelError
-from mrrig.model.train import MLPModule, train_lm
+from mrrig.loop.mlp import MLP, ModelError
+from mrrig.offline.training.lm import MLPModule, train_lm
 
 NAMES = ["x", "xd", "xdd", "current"]
 UNITS = ["m", "m/s", "m/s^2", "A"]
@@ -139,7 +139,7 @@ def test_model_file_loads_without_torch_and_gives_the_torch_module_forces(
         import sys
         sys.modules["torch"] = None
         import numpy as np
-        from mrrig.model.mlp import MLP
+        from mrrig.loop.mlp import MLP
         m = MLP.load({str(tmp_path / "forward.json")!r})
         np.save({str(tmp_path / "f.npy")!r}, m.predict(np.load({str(tmp_path / "X.npy")!r})))
         assert "torch" not in sys.modules or sys.modules["torch"] is None

@@ -17,12 +17,12 @@ import pytest
 from damper.plant import BoucWenDamper, BoucWenParams
 from damper.signals import sine
 from mrrig.config import load_config
-from mrrig.daemon import build_controller
-from mrrig.metrics import error_norm
-from mrrig.model.mlp import MLP, ModelError
-from mrrig.simulation import closed_loop
-from mrrig.summary import COMMAND_JUMP_A
-from mrrig.training import ONLINE_CONTINUITY_CANDIDATES
+from mrrig.loop.daemon import build_controller
+from mrrig.loop.mlp import MLP, ModelError
+from mrrig.loop.summary import COMMAND_JUMP_A
+from mrrig.offline.metrics import error_norm
+from mrrig.offline.simulation import closed_loop
+from mrrig.offline.training import ONLINE_CONTINUITY_CANDIDATES
 from tests.conftest import rig_config
 
 DT_S = 0.002  # the rig's period

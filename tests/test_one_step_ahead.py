@@ -9,10 +9,10 @@ import numpy as np
 import pytest
 
 from damper.plant import BoucWenParams
-from mrrig.controllers import ControlInput, Controller, NetworkInversion
-from mrrig.inversion import ScalarInverter, exact_inversion, flow_inversion, gradient_inversion
-from mrrig.model.mlp import MLP
-from mrrig.simulation import closed_loop
+from mrrig.loop.controllers import ControlInput, Controller, NetworkInversion
+from mrrig.loop.inversion import ScalarInverter, exact_inversion, flow_inversion, gradient_inversion
+from mrrig.loop.mlp import MLP
+from mrrig.offline.simulation import closed_loop
 from tests.test_inversion import I_MAX, random_model
 
 DT_S = 1e-3

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from mrrig.inversion import exact_inversion
-from mrrig.training import ONLINE_CONTINUITY_CANDIDATES, choose_continuity, online_inversion
+from mrrig.loop.inversion import exact_inversion
+from mrrig.offline.training import ONLINE_CONTINUITY_CANDIDATES, choose_continuity, online_inversion
 from tests.test_inversion import I_MAX, random_features, random_model
 
 

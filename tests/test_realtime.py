@@ -8,7 +8,7 @@ import sys
 
 import pytest
 
-from mrrig.realtime import keep_off_cpu
+from mrrig.loop.realtime import keep_off_cpu
 
 
 def test_keep_off_cpu_moves_a_process_to_the_other_cpus():

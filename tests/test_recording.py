@@ -14,10 +14,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from mrrig.recording import FIELD_ENTITIES, Recorder, recording_path
-from mrrig.review import ReviewError, plot_recording, read_recording, verify_rrd
-from mrrig.samples import FIELDS, SAMPLE_DTYPE, RigState
-from mrrig.summary import format_summary, summarize
+from mrrig.loop.samples import FIELDS, SAMPLE_DTYPE, RigState
+from mrrig.loop.summary import format_summary, summarize
+from mrrig.offline.review import ReviewError, plot_recording, read_recording, verify_rrd
+from mrrig.rigio.recording import FIELD_ENTITIES, Recorder, recording_path
 
 REPO = Path(__file__).resolve().parents[1]
 PERIOD_S = 0.002
@@ -228,8 +228,8 @@ _WRITER = textwrap.dedent(
     """
     import signal, sys, time
     import numpy as np
-    from mrrig.recording import Recorder
-    from mrrig.samples import SAMPLE_DTYPE
+    from mrrig.rigio.recording import Recorder
+    from mrrig.loop.samples import SAMPLE_DTYPE
 
     path, handled = sys.argv[1], sys.argv[2] == "handled"
     rec = Recorder(path, "rig1", flush_interval_s=0.2)
@@ -308,8 +308,8 @@ def test_format_summary_names_every_metric(run) -> None:
 
 def test_a_recording_from_before_the_later_fields_reads_them_as_nan(tmp_path, monkeypatch):
     """Recordings made before the adaptation's and the temperature's fields still load."""
-    import mrrig.recording as recording
-    from mrrig.recording import LATER_FIELDS
+    import mrrig.rigio.recording as recording
+    from mrrig.rigio.recording import LATER_FIELDS
 
     s = synthetic_run(300)
     older = {k: v for k, v in FIELD_ENTITIES.items() if k not in LATER_FIELDS}

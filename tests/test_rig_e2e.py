@@ -14,7 +14,7 @@ from pathlib import Path
 
 import pytest
 
-from mrrig.review import read_recording
+from mrrig.offline.review import read_recording
 from tests.conftest import OutputWatch, rig_config, stall
 from tests.stall_proof import prove
 

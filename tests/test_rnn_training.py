@@ -1,14 +1,15 @@
-"""`mrrig.rnn_training`: the RNN of paper eq. 40 trained for closed-loop (parallel-mode) use."""
+"""`mrrig.offline.rnn_training`: the RNN of paper eq. 40 trained for closed-loop (parallel-mode)
+use."""
 
 import numpy as np
 import pytest
 
 from damper.plant import BoucWenParams, simulate
 from damper.signals import bandlimited_noise
-from mrrig.controllers import RNN_INPUTS, ControlInput, RecurrentInverse, rnn_features
-from mrrig.datasets import Series, dataset_a_training
-from mrrig.metrics import error_norm
-from mrrig.rnn_training import (
+from mrrig.loop.controllers import RNN_INPUTS, ControlInput, RecurrentInverse, rnn_features
+from mrrig.offline.datasets import Series, dataset_a_training
+from mrrig.offline.metrics import error_norm
+from mrrig.offline.rnn_training import (
     LAGS,
     V_COLUMNS,
     Segments,
@@ -20,7 +21,7 @@ from mrrig.rnn_training import (
     rollout,
     train_rnn,
 )
-from mrrig.simulation import closed_loop
+from mrrig.offline.simulation import closed_loop
 
 DT_S = 1e-3
 VMAX_V = 12.0

@@ -15,10 +15,10 @@ import numpy as np
 import pytest
 import zenoh
 
-from mrrig import client
-from mrrig.review import read_recording
-from mrrig.safety import TRANSPORT_FAULTS
-from mrrig.samples import RigState
+from mrrig.loop.safety import TRANSPORT_FAULTS
+from mrrig.loop.samples import RigState
+from mrrig.offline.review import read_recording
+from mrrig.rigio import client
 from tests.conftest import REPO, rig_config, start, stop, zenoh_configs
 from tests.stall_proof import explain
 from tests.test_lifecycle_errors import NO_MODEL, one_error_line
@@ -65,7 +65,7 @@ def rig(tmp_path_factory):
     """firmware_sim and a daemon whose force reference is `zenoh` (0.5 s stale timeout), with
     telemetry and a recording; yields (client config, recording path). At the end, every fault
     but the stale references the tests make lies inside a stall the simulator measured."""
-    from mrrig.canbus.bus import find_free_port, start_bridge, stop_bridge
+    from mrrig.rigio.canbus.bus import find_free_port, start_bridge, stop_bridge
 
     tmp = tmp_path_factory.mktemp("sendforce")
     port = find_free_port()

@@ -15,7 +15,7 @@ from pathlib import Path
 
 import pytest
 
-from mrrig.sdnotify import Notifier
+from mrrig.rigio.sdnotify import Notifier
 from tests.conftest import REPO
 
 UNITS = sorted((REPO / "configs" / "systemd").glob("*.service"))
@@ -166,7 +166,7 @@ def test_the_abstract_namespace_address(tmp_path: Path):
 
 @pytest.mark.process
 def test_the_router_notifies_ready_and_pets_its_watchdog(tmp_path: Path):
-    from mrrig.canbus.bus import find_free_port
+    from mrrig.rigio.canbus.bus import find_free_port
 
     sock, path = _notify_socket(tmp_path)
     conf = tmp_path / "router.json5"

@@ -22,14 +22,14 @@ import numpy as np
 import pytest
 import zenoh
 
-from mrrig import client, force_stream
-from mrrig.canbus.bus import find_free_port
-from mrrig.ipc import LoopEnd, Msg, SidecarEnd, make_channel
-from mrrig.recording import Recorder
-from mrrig.review import read_recording, verify_rrd
-from mrrig.samples import FIELDS, SAMPLE_DTYPE, RigState
-from mrrig.sidecar import JSON, Sidecar, keys, start_sidecar
-from mrrig.zenoh_config import INSECURE_WARNING, load_zenoh_config, local_config
+from mrrig.loop.samples import FIELDS, SAMPLE_DTYPE, RigState
+from mrrig.offline.review import read_recording, verify_rrd
+from mrrig.rigio import client, force_stream
+from mrrig.rigio.canbus.bus import find_free_port
+from mrrig.rigio.ipc import LoopEnd, Msg, SidecarEnd, make_channel
+from mrrig.rigio.recording import Recorder
+from mrrig.rigio.sidecar import JSON, Sidecar, keys, start_sidecar
+from mrrig.rigio.zenoh_config import INSECURE_WARNING, load_zenoh_config, local_config
 from tests.conftest import zenoh_configs
 
 pytestmark = pytest.mark.process

@@ -18,7 +18,7 @@ import pytest
 
 from firmware_sim.firmware import Frame
 from firmware_sim.runner import RunStats
-from mrrig.canbus import Codec, find_free_port, open_bus, start_bridge, stop_bridge
+from mrrig.rigio.canbus import Codec, find_free_port, open_bus, start_bridge, stop_bridge
 
 REPO = Path(__file__).resolve().parents[1]
 CODEC = Codec()

@@ -9,8 +9,8 @@ import time
 import numpy as np
 import pytest
 
-from mrrig.rig_session import RigSession
-from mrrig.samples import SAMPLE_DTYPE, RigState
+from mrrig.loop.samples import SAMPLE_DTYPE, RigState
+from mrrig.rigio.rig_session import RigSession
 from tests.rig_harness import ThreadRig
 from tests.stall_proof import prove
 

@@ -9,10 +9,9 @@ import numpy as np
 import pytest
 
 from mrrig.config import load_config
-from mrrig.daemon import Daemon
-from mrrig.metrics import error_norm
-from mrrig.samples import SAMPLE_DTYPE, RigState
-from mrrig.summary import (
+from mrrig.loop.daemon import Daemon
+from mrrig.loop.samples import SAMPLE_DTYPE, RigState
+from mrrig.loop.summary import (
     ERROR_BIN_N,
     LATENCY_BIN_US,
     Histogram,
@@ -20,6 +19,7 @@ from mrrig.summary import (
     format_summary,
     summarize,
 )
+from mrrig.offline.metrics import error_norm
 from tests.rig_harness import ScriptedRig, write_config
 
 

@@ -13,9 +13,9 @@ import numpy as np
 import pytest
 import zenoh
 
-from mrrig.review import read_recording, verify_rrd
-from mrrig.review_cli import main as review_main
-from mrrig.zenoh_config import local_config
+from mrrig.cli.review import main as review_main
+from mrrig.offline.review import read_recording, verify_rrd
+from mrrig.rigio.zenoh_config import local_config
 from tests.conftest import rig_config, zenoh_configs
 from tests.stall_proof import explain
 

@@ -10,11 +10,11 @@ from pathlib import Path
 
 import pytest
 
-from mrrig.cli import main as mrrig_main
-from mrrig.datasets import Series, dataset_b
-from mrrig.model.mlp import MLP
-from mrrig.train_config import ConfigError, TrainConfig, load_train_config
-from mrrig.training import (
+from mrrig.cli.main import main as mrrig_main
+from mrrig.loop.mlp import MLP
+from mrrig.offline.datasets import Series, dataset_b
+from mrrig.offline.train_config import ConfigError, TrainConfig, load_train_config
+from mrrig.offline.training import (
     load_training_data,
     series_fingerprint,
     train_and_validate,

@@ -1,4 +1,5 @@
-"""`mrrig train` and `mrrig.training`: data loading, features, split, model file and report."""
+"""`mrrig train` and `mrrig.offline.training`: data loading, features, split, model file and
+report."""
 
 import json
 import math
@@ -7,12 +8,12 @@ import numpy as np
 import pytest
 
 from damper.plant import BoucWenParams
-from mrrig.bench.matrix import make_plant_force
-from mrrig.cli import main as mrrig_main
-from mrrig.datasets import DataError, Series, dataset_b, dataset_b_conditions
-from mrrig.model.mlp import MLP
-from mrrig.train_cli import main as train_main
-from mrrig.training import (
+from mrrig.cli.main import main as mrrig_main
+from mrrig.cli.train import main as train_main
+from mrrig.loop.mlp import MLP
+from mrrig.offline.bench.matrix import make_plant_force
+from mrrig.offline.datasets import DataError, Series, dataset_b, dataset_b_conditions
+from mrrig.offline.training import (
     COIL_LAG_TAU_S,
     concatenate,
     features,
@@ -205,8 +206,8 @@ def test_data_errors_are_one_line_and_name_the_file(tmp_path, capsys):
 
 
 def test_recording_gives_x_est_i_cmd_f_meas_without_fault_samples_and_splits_runs(tmp_path):
-    from mrrig.recording import Recorder
-    from mrrig.samples import SAMPLE_DTYPE, RigState
+    from mrrig.loop.samples import SAMPLE_DTYPE, RigState
+    from mrrig.rigio.recording import Recorder
 
     n = 300
     s = np.zeros(n, dtype=SAMPLE_DTYPE)

@@ -8,8 +8,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from mrrig.layout_check import read_blueprint, read_strips
-from mrrig.recording import (
+from mrrig.offline.layout_check import read_blueprint, read_strips
+from mrrig.rigio.recording import (
     ERROR_ENTITY,
     GAP_ENTITY,
     LOOP_FV_ENTITY,

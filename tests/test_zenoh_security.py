@@ -14,11 +14,11 @@ import zenoh
 from cryptography import x509
 from cryptography.x509.oid import NameOID
 
-from mrrig import audit, certs, client
-from mrrig.canbus.bus import find_free_port
-from mrrig.ipc import LoopEnd, Msg, make_channel
-from mrrig.sidecar import keys, start_sidecar
-from mrrig.zenoh_config import (
+from mrrig.rigio import audit, certs, client
+from mrrig.rigio.canbus.bus import find_free_port
+from mrrig.rigio.ipc import LoopEnd, Msg, make_channel
+from mrrig.rigio.sidecar import keys, start_sidecar
+from mrrig.rigio.zenoh_config import (
     INSECURE_WARNING,
     TEMPLATE,
     ZenohConfigError,

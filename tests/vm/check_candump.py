@@ -13,7 +13,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from mrrig.canbus.codec import Codec
+from mrrig.rigio.canbus.codec import Codec
 
 SENSORS, STATUS, COMMAND, ACTUATOR = 0x110, 0x111, 0x210, 0x211
 

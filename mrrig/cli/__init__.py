@@ -1,0 +1,1 @@
+"""The `mrrig` command (`main`) and the front ends of the operator's subcommands."""

@@ -1,0 +1,164 @@
+"""`mrrig status | arm | disarm | control | watch | send-force`: a person at a terminal.
+
+Each opens a Zenoh session (client mode, 127.0.0.1, multicast off: configs/zenoh-client.json5
+by default), talks to the daemon's keys `mrrig/<rig>/...` and closes the session.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+from pathlib import Path
+from typing import Any
+
+from mrrig import json_text
+from mrrig.cli_args import HelpFormatter, finite, non_negative, positive
+from mrrig.rigio import client
+
+
+def _common(ap: argparse.ArgumentParser) -> None:
+    ap.add_argument("--rig", default="sim", help="rig name (the Zenoh key prefix mrrig/<rig>)")
+    ap.add_argument(
+        "--zenoh-config",
+        type=Path,
+        default=client.DEFAULT_CONFIG,
+        help="Zenoh config reaching the daemon (JSON5)",
+    )
+    ap.add_argument(
+        "--timeout", type=positive, default=2.0, help="seconds to wait for the daemon's answer"
+    )
+
+
+def _print_reply(reply: dict) -> int:
+    print(json_text.dumps(reply, indent=2, sort_keys=True))
+    return 0 if reply.get("ok") else 1
+
+
+_STATUS_HEAD = ("rig", "state", "armed", "controller", "reference", "fault", "fault_reason", "t")
+
+
+def format_status(status: dict[str, Any]) -> str:
+    """`mrrig status` for a person: state, controller, reference, fault, then the counters."""
+    state = status.get("state", "?")
+    mode = {"ARMED": "commands ACTIVE", "IDLE": "commands SAFE 0 A", "FAULT": "SAFE 0 A"}
+    lines = [
+        f"rig {status.get('rig')}: {state} ({mode.get(state, '?')}), up {status.get('t', 0):.1f} s",
+        f"  controller {status.get('controller')}, force reference {status.get('reference')}",
+    ]
+    if status.get("fault"):
+        lines.append(f"  fault {status['fault']}: {status.get('fault_reason')}")
+        lines.append(f"  re-arm after checking the rig: mrrig arm --rig {status.get('rig')}")
+    counters = {k: v for k, v in status.items() if k not in _STATUS_HEAD}
+    width = max((len(k) for k in counters), default=0)
+    lines += [f"  {k:<{width}}  {_value(v)}" for k, v in counters.items()]
+    return "\n".join(lines)
+
+
+def _value(v: Any) -> str:
+    return f"{v:.3f}" if isinstance(v, float) else str(v)
+
+
+def main(argv: list[str]) -> int:
+    command, rest = argv[0], argv[1:]
+    ap = argparse.ArgumentParser(formatter_class=HelpFormatter, prog=f"mrrig {command}")
+    _common(ap)
+    if command == "status":
+        ap.add_argument("--json", action="store_true", help="the daemon's JSON reply, for scripts")
+    elif command == "control":
+        ap.add_argument("request", help='a JSON request, e.g. \'{"cmd": "status"}\'')
+    elif command == "watch":
+        ap.add_argument("--duration", type=positive, help="seconds (default: until Ctrl-C)")
+        ap.add_argument("--all", action="store_true", help="one line per live rig (a fleet)")
+    elif command == "send-force":
+        src = ap.add_mutually_exclusive_group(required=True)
+        src.add_argument(
+            "--csv", type=Path, help="profile file: a header with columns t_s (s) and force_n (N)"
+        )
+        src.add_argument(
+            "--sine",
+            nargs=3,
+            type=finite,
+            metavar=("OFFSET_N", "AMP_N", "FREQ_HZ"),
+            help="offset + amplitude sin(2 pi f t): N, N, Hz",
+        )
+        ap.add_argument("--rate", type=positive, default=100.0, help="samples per second (Hz)")
+        ap.add_argument("--duration", type=positive, help="seconds (default: the CSV's length)")
+        ap.add_argument(
+            "--arm", action="store_true", help="arm the daemon once it has the first sample"
+        )
+        ap.add_argument(
+            "--no-disarm",
+            action="store_true",
+            help="leave the daemon armed after the ramp (another source must follow, or it"
+            " faults stale_reference)",
+        )
+        ap.add_argument(
+            "--ramp", type=non_negative, default=0.5, help="ramp to 0 N after the profile (s)"
+        )
+    args = ap.parse_args(rest)
+    zc = args.zenoh_config
+    if command == "status":
+        reply = client.status(args.rig, zc, args.timeout)
+        if args.json or not reply.get("ok"):
+            return _print_reply(reply)
+        print(format_status(reply["status"]))
+        return 0
+    if command == "arm":
+        return _print_reply(client.arm(args.rig, zc, args.timeout))
+    if command == "disarm":
+        return _print_reply(client.disarm(args.rig, zc, args.timeout))
+    if command == "control":
+        try:
+            payload = json.loads(args.request)
+        except json.JSONDecodeError as exc:
+            raise ValueError(f"request: not valid JSON: {exc}") from None
+        return _print_reply(client.request(args.rig, payload, zc, args.timeout))
+    if command == "watch":
+        if args.all:
+            from mrrig.rigio.fleet import watch_all
+
+            return 0 if watch_all(zc, args.duration, out=sys.stdout) else 1
+        n = client.watch(args.rig, zc, args.duration, out=sys.stdout)
+        return 0 if n else 1
+    return _send_force(args)
+
+
+def _send_force(args: argparse.Namespace) -> int:
+    from mrrig.rigio import force_stream
+
+    if args.csv is not None:
+        fn, length_s = force_stream.csv_profile(args.csv)
+        duration_s = args.duration or length_s
+    else:
+        if args.duration is None:
+            raise ValueError("--duration is needed with --sine")
+        offset, amp, freq = args.sine
+
+        def fn(t: float) -> float:
+            return offset + amp * math.sin(2 * math.pi * freq * t)
+
+        duration_s = args.duration
+    result = force_stream.send_force(
+        args.rig,
+        args.zenoh_config,
+        fn,
+        duration_s,
+        args.rate,
+        arm=args.arm,
+        disarm=not args.no_disarm,
+        ramp_s=args.ramp,
+        timeout_s=args.timeout,
+        out=sys.stdout,
+    )
+    end = "disarmed" if result.disarmed else "left armed" if args.no_disarm else "not armed"
+    print(
+        f"sent {result.sent} force references to mrrig/{args.rig}/force_ref"
+        f" ({result.sent - result.ramp_samples} of the profile, {result.ramp_samples} of the"
+        f" ramp to 0 N); {end}"
+    )
+    if result.faults:
+        print(f"the daemon faulted while streaming: {', '.join(result.faults)}")
+        return 1
+    return 130 if result.interrupted else 0

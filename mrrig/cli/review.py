@@ -1,0 +1,94 @@
+"""`mrrig review FILE.rrd`: the metrics of a recorded run, read back with Rerun's reader;
+optionally a figure, a one-file HTML report and the check of a bus log of the same run.
+
+A recording without the summary the daemon writes at its end is truncated (the recording
+failed, or the run was killed): review says so and exits 1, unless `--partial`.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+from pathlib import Path
+
+from mrrig import json_text
+from mrrig.cli_args import HelpFormatter, finite, output_file
+from mrrig.loop.summary import format_summary, summarize
+from mrrig.offline.review import read_recording, verify_rrd
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(
+        formatter_class=HelpFormatter, prog="mrrig review", description=__doc__
+    )
+    ap.add_argument("file", type=Path, help="a recording (.rrd) written by the daemon")
+    ap.add_argument("--from", dest="t_from", type=finite, help="window start, sensor time (s)")
+    ap.add_argument("--to", dest="t_to", type=finite, help="window end, sensor time (s)")
+    ap.add_argument("--plot", type=output_file, help="also write a figure (PNG) of the window")
+    ap.add_argument(
+        "--html",
+        type=output_file,
+        help="also write a one-file HTML report (figure embedded, summary table, faults)",
+    )
+    ap.add_argument("--json", type=output_file, help="also write the metrics as JSON")
+    ap.add_argument(
+        "--can-log",
+        type=Path,
+        help="a bus log of the same run (.blf, .asc, .log, ...): check its frames and counters"
+        " against the recording (exit 1 on a mismatch)",
+    )
+    ap.add_argument("--verify", action="store_true", help="run `rerun rrd verify` first")
+    ap.add_argument("--partial", action="store_true", help="review a truncated recording (exit 0)")
+    args = ap.parse_args(argv)
+    if args.verify:
+        verify_rrd(args.file)
+    rec = read_recording(args.file)
+    if rec.summary is None:
+        logging.getLogger("mrrig.offline.review").error(
+            "%s: truncated: no end-of-run summary (the recording failed or the run was killed); %s",
+            args.file,
+            "reviewing what is there" if args.partial else "--partial reviews what is there",
+        )
+        if not args.partial:
+            return 1
+    bus_log = None
+    if args.can_log is not None:
+        from mrrig.rigio.canlog import check_bus_log
+
+        bus_log = check_bus_log(args.can_log, rec.samples, rec.summary)
+    windowed = args.t_from is not None or args.t_to is not None
+    window_text = None
+    if windowed:
+        from mrrig.offline.review_report import window
+
+        rec = window(rec, args.t_from, args.t_to)
+        window_text = f"{_bound(args.t_from)} to {_bound(args.t_to)} s of sensor time"
+    # the run's counters describe the whole run, not a window of it
+    counters = {} if windowed else rec.summary or {}
+    keep = {k: v for k, v in counters.items() if not isinstance(v, dict | list)}
+    metrics = summarize(rec.samples, rec.events, keep)
+    # the files first: output cut short by a closed pipe (`| head`) must not lose them
+    if args.plot or args.html:
+        from mrrig.offline import review_report
+
+        if args.plot:
+            review_report.plot(rec, metrics, args.plot)
+        if args.html:
+            bus_text = bus_log.text() if bus_log is not None else None
+            review_report.write_html(rec, metrics, args.html, bus_text, window_text)
+    if args.json:
+        args.json.write_text(json_text.dumps(metrics, indent=2))
+    if window_text:
+        print(f"window        {window_text}")
+    print(format_summary(metrics))
+    for label, path in (("figure", args.plot), ("report", args.html)):
+        if path:
+            print(f"{label}: {path}")
+    if bus_log is not None:
+        print(bus_log.text())
+        return 0 if bus_log.ok else 1
+    return 0
+
+
+def _bound(t: float | None) -> str:
+    return "start" if t is None else f"{t:g}"

@@ -1,0 +1,415 @@
+"""`mrrig train DATA...`: the forward network (and the supervised inverse) from measured data.
+
+DATA are tidy characterization CSVs, daemon recordings (.rrd) or other CSVs with a column map
+(`--columns x=Pos,force=F,current=I,t=time`) and units (`--units x=cm,force=kN`), or headers
+that name field and unit (`x_cm`, `command_v`). Bad stretches (saturation, idle, transients)
+are excluded unless `--keep-all`; the end of each run is held out (`--split blocks`);
+`--features auto` (default where the command changes within runs) chooses the inputs and the
+hidden size by blocked cross-validation on the training blocks. Writes the model file and
+prints the validation report (spec/modeling.md section 5). `--history N` adds N earlier
+samples of `--history-signals` (default x,xd) to the forward network's inputs.
+`--config FILE` (configs/train.toml) gives the defaults of the options; flags win over it.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+from pathlib import Path
+from typing import Any
+
+from mrrig import json_text
+from mrrig.cli_args import COUNT, SEED, HelpFormatter, output_file, positive
+from mrrig.offline.datasets import DataError
+from mrrig.offline.train_config import TrainConfig, load_train_config
+from mrrig.offline.training import (
+    CURRENT_INPUTS,
+    HISTORY_SIGNALS,
+    SPLITS,
+    check_history,
+    exclude_bad_stretches,
+    load_training_data,
+    train_and_validate,
+)
+from mrrig.offline.training.select import choose_features, command_varies
+
+log = logging.getLogger(__name__)
+
+PROGRESS_EVERY_EPOCHS = 10
+
+
+def _mapping(text: str | None, option: str) -> dict[str, str] | None:
+    """`a=b,c=d` -> {"a": "b", "c": "d"}; a one-line DataError on anything else."""
+    if text is None:
+        return None
+    out = {}
+    for item in text.split(","):
+        key, sep, value = item.partition("=")
+        if not sep or not key.strip() or not value.strip():
+            raise DataError(f"{option}: expected FIELD=NAME[,FIELD=NAME...], got {item!r}")
+        out[key.strip()] = value.strip()
+    return out
+
+
+def _history(
+    samples: int, signals_text: str | None, default_signals: tuple[str, ...]
+) -> tuple[int, tuple[str, ...]]:
+    """The history options (flags over the config's `default_signals`), checked; a one-line
+    DataError if wrong."""
+    if samples < 0:
+        raise DataError(f"--history must be >= 0, got {samples}")
+    if signals_text is None:
+        return samples, default_signals
+    if samples == 0:
+        raise DataError(
+            "--history-signals needs --history N (or features.history_samples) with N >= 1"
+        )
+    signals = tuple(s.strip() for s in signals_text.split(","))
+    try:
+        check_history(samples, signals)
+    except ValueError as exc:
+        raise DataError(f"--history-signals: {exc}") from None
+    return samples, signals
+
+
+def _fraction(text: str) -> float:
+    """The hold-out fraction: a number in (0, 0.5)."""
+    value = positive(text)
+    if not value < 0.5:
+        raise argparse.ArgumentTypeError(f"must be < 0.5, got {text}")
+    return value
+
+
+def _progress(epoch: int, train_mse: float, val_mse: float | None, mu: float) -> None:
+    if epoch % PROGRESS_EVERY_EPOCHS == 0:
+        val = f"{val_mse:.4g}" if val_mse is not None else "-"
+        log.info("epoch %4d  train MSE %.4g  val MSE %s  mu %.3g", epoch, train_mse, val, mu)
+
+
+def _pct(d: dict[str, float] | None) -> str:
+    if d is None:
+        return "n/a (no plant: offline data)"
+    return f"p50 {d['p50']:.1f}  p95 {d['p95']:.1f}  max {d['max']:.1f}"
+
+
+def format_excluded(ex: dict[str, Any] | None) -> list[str]:
+    if ex is None:
+        return []
+    if ex["keep_all"]:
+        return ["excluded: nothing (--keep-all)"]
+    if not ex["excluded_samples"]:
+        return ["excluded: nothing (no saturation, idle or transient stretch found)"]
+    kinds = ", ".join(f"{k} {n}" for k, n in ex["by_kind"].items())
+    lines = [f"excluded {ex['excluded_samples']} of {ex['of_samples']} samples ({kinds}):"]
+    lines += [
+        f"  {st['kind']}: run {st['run']}, {st['t_start_s']:.4f}-{st['t_end_s']:.4f} s"
+        f" ({st['samples']} samples)"
+        for st in ex["stretches"]
+    ]
+    return lines
+
+
+def format_search(fs: dict[str, Any] | None) -> list[str]:
+    if fs is None:
+        return []
+    lines = [
+        f"features auto: {fs['method']}",
+        "  inversion: median CPU us of the daemon's per-frame solve (prepared ahead), and of"
+        " the full solve",
+    ]
+    if fs["lag_fit"]:
+        lines.append(f"  command lag by 1-D search: tau {fs['lag_fit']['tau_s'] * 1e3:.2f} ms")
+    for c in fs["candidates"]:
+        budget = "" if c["in_budget"] else f" (over the {fs['inversion_budget_us']:g} us budget)"
+        lines.append(
+            f"  CV Et {c['cv_et']:.4f}  inversion {c['inversion_us']:5.1f} us"
+            f" (full solve {c['inversion_full_us']:5.1f})  {c['label']}{budget}"
+        )
+    lines += [f"  not tried (search time spent): {label}" for label in fs["not_tried"]]
+    lines.append(f"  chosen: {fs['chosen']['label']} (CV Et {fs['chosen']['cv_et']:.4f})")
+    return lines
+
+
+def format_report(r: dict[str, Any]) -> str:
+    ni = r["network_inversion"]
+    unit = r.get("command_unit", "A")
+    stride = r.get("history_stride", 1)
+    lines = [
+        *format_excluded(r.get("excluded")),
+        *format_search(r.get("features_search")),
+        f"split: {r['split']['rule']} (seed {r['split']['seed']})",
+        f"command input ({unit}): {r['current_input']}"
+        + (f" (lag tau {r['lag_tau_s'] * 1e3:.2f} ms)" if r["lag_tau_s"] else ""),
+        "history inputs: "
+        + (
+            f"the previous {r['history_samples']} samples of {', '.join(r['history_signals'])}"
+            + (f" ({stride} samples apart)" if stride > 1 else "")
+            if r["history_samples"]
+            else "none"
+        ),
+        f"hidden neurons: {r.get('hidden', 30)}",
+        f"forward network: {r['epochs']} epochs ({r['stop_reason']}), {r['seconds']:.1f} s",
+        *(
+            [
+                f"  kept start {st['kept'] + 1} of {len(st['init_seeds'])} (initial weights"
+                f" seeds {', '.join(map(str, st['init_seeds']))}): on-line inverse current RMSE"
+                " on the training rows "
+                + " / ".join(f"{e:.4f}" for e in st["training_rmse_a"])
+                + " A"
+            ]
+            if (st := r.get("starts"))
+            else []
+        ),
+        f"forward Et on the {r['n_val']} held-out samples ({r['split']['kind']}):"
+        f" {r['forward']['et']:.4f}"
+        f" (RMSE {r['forward']['rmse_n']:.2f} N)",
+        f"network inversion: inverse-current RMSE {ni['current_rmse_a']:.4f} A (paper 0.09 A),"
+        f" i_max {r['i_max_a']:g} A",
+        "  tracking error, forward model at the inverted current (N): "
+        + _pct(ni["tracking_model_n"]),
+    ]
+    on = r.get("network_inversion_online")
+    if on is not None:
+        lines += [
+            f"network inversion on-line (runs in time order, continuity {on['continuity']:g}"
+            f" chosen on the training rows): inverse-current RMSE {on['current_rmse_a']:.4f} A",
+            "  tracking error, forward model at the inverted current (N): "
+            + _pct(on["tracking_model_n"]),
+            f"  (the model file keeps continuity {on['continuity']:g}: the daemon inverts this"
+            " way unless [controller] continuity is set)",
+        ]
+    sup = r.get("supervised")
+    if sup is not None:
+        lines += [
+            f"supervised inverse MLP: current RMSE {sup['current_rmse_a']:.4f} A (paper 0.20 A)",
+            f"  tracking error, forward model at its current (N): {_pct(sup['tracking_model_n'])}",
+        ]
+    lines.append(f"(tracking: desired force = {r['definitions']['desired force']})")
+    return "\n".join(lines)
+
+
+def _parser(cfg: TrainConfig) -> argparse.ArgumentParser:
+    """The flags, their defaults taken from `cfg` (the config file's, or the built-in ones)."""
+    f, t = cfg.features, cfg.training
+    ap = argparse.ArgumentParser(
+        formatter_class=HelpFormatter,
+        prog="mrrig train",
+        description=__doc__.splitlines()[0],
+        epilog="With --config FILE the file's [features], [training] and [csv] tables give the "
+        "defaults (`--config FILE --help` shows them); a flag given on the command line wins "
+        "over the file.",
+    )
+    ap.add_argument("data", nargs="+", type=Path, help="tidy CSV, .rrd recording or CSV")
+    ap.add_argument(
+        "--config",
+        type=Path,
+        metavar="FILE",
+        help="training config (TOML, e.g. configs/train.toml): the defaults of the options",
+    )
+    ap.add_argument(
+        "--out",
+        type=output_file,
+        default="models/forward.json",
+        help="the forward model file (default models/forward.json)",
+    )
+    ap.add_argument(
+        "--columns",
+        help="CSV column map, e.g. x=Pos,force=F,current=I,t=time (replaces the config's "
+        "[csv] columns)",
+    )
+    ap.add_argument(
+        "--units",
+        help="CSV units, e.g. x=cm,xd=cm/s,force=kN,current=mA,t=ms (replaces the config's "
+        "[csv] units)",
+    )
+    ap.add_argument(
+        "--features",
+        choices=("auto", "manual"),
+        default=f.mode,
+        help="auto: choose the command input (lag fitted), history and hidden size by blocked "
+        "cross-validation on the training blocks; manual: the flags below. Default: auto "
+        "where the command changes within runs, manual where it is held per run (the "
+        "characterization matrix) or where --current-input or --history is given",
+    )
+    ap.add_argument(
+        "--current-input",
+        choices=CURRENT_INPUTS,
+        default=None,
+        help=f"current input of the network: as commanded, or through the coil lag "
+        f"(manual; default {f.current_input})",
+    )
+    ap.add_argument(
+        "--lag-tau-s",
+        type=positive,
+        default=f.lag_tau_s,
+        help="coil lag time constant for --current-input lagged (default %(default).6g s)",
+    )
+    ap.add_argument(
+        "--history",
+        type=int,
+        default=None,
+        metavar="N",
+        help=f"history inputs: N earlier samples of --history-signals (manual; default "
+        f"{f.history_samples}; 0: none)",
+    )
+    ap.add_argument(
+        "--history-stride",
+        type=COUNT,
+        default=f.history_stride,
+        help="samples between the history taps (default %(default)s)",
+    )
+    ap.add_argument(
+        "--hidden",
+        type=COUNT,
+        default=f.hidden,
+        help="hidden neurons (manual; default %(default)s)",
+    )
+    ap.add_argument(
+        "--split",
+        choices=SPLITS,
+        default=t.split,
+        help="hold-out: blocks (the last --holdout-fraction of each run, default) or random "
+        "(the paper's --n-train / --n-val random samples: optimistic, neighbours of held-out "
+        "samples are trained on)",
+    )
+    ap.add_argument(
+        "--holdout-fraction",
+        type=_fraction,
+        default=t.holdout_fraction,
+        help="the end of each run held out by the blocks split (default %(default)g)",
+    )
+    ap.add_argument(
+        "--keep-all",
+        action="store_true",
+        help="keep the bad stretches (saturation, idle, transients) that are excluded by default",
+    )
+    ap.add_argument(
+        "--history-signals",
+        metavar="S[,S...]",
+        help=f"signals of the history inputs, of {', '.join(HISTORY_SIGNALS)} (default "
+        f"{','.join(f.history_signals)}; past currents only where the data varies the "
+        "current within a run)",
+    )
+    ap.add_argument(
+        "--epochs", type=COUNT, default=t.epochs, help="LM epoch limit (default %(default)s)"
+    )
+    ap.add_argument(
+        "--seed", type=SEED, default=t.seed, help="split and initial weights (default %(default)s)"
+    )
+    ap.add_argument(
+        "--restarts",
+        type=COUNT,
+        default=t.restarts,
+        help="forward-network starts from different initial weights; the one with the best "
+        "on-line inverse on the training rows is kept (default %(default)s)",
+    )
+    ap.add_argument(
+        "--n-train",
+        type=COUNT,
+        default=t.n_train,
+        help="training samples (default %(default)s; 90/10 of all samples where fewer)",
+    )
+    ap.add_argument(
+        "--n-val", type=COUNT, default=t.n_val, help="validation samples (default %(default)s)"
+    )
+    ap.add_argument(
+        "--i-max",
+        type=positive,
+        default=t.i_max_a,
+        help="inversion bound, A (default: "
+        + ("the data's largest" if t.i_max_a is None else f"{t.i_max_a:g}")
+        + ")",
+    )
+    ap.add_argument(
+        "--supervised-out", type=output_file, help="also write the supervised inverse MLP"
+    )
+    ap.add_argument(
+        "--supervised",
+        action=argparse.BooleanOptionalAction,
+        default=t.supervised,
+        help="train the supervised inverse MLP (--no-supervised: skip it, faster)",
+    )
+    ap.add_argument("--report", type=output_file, help="write the validation report as JSON")
+    return ap
+
+
+def main(argv: list[str] | None = None) -> int:
+    # the config first: its values become the flags' defaults, so a flag given wins over it
+    pre = argparse.ArgumentParser(add_help=False)
+    pre.add_argument("--config", type=Path)
+    config_path = pre.parse_known_args(argv)[0].config
+    cfg = TrainConfig() if config_path is None else load_train_config(config_path)
+    args = _parser(cfg).parse_args(argv)
+    if not args.supervised and args.supervised_out:
+        raise DataError(
+            "--supervised-out needs the supervised model: drop --no-supervised "
+            "(or training.supervised = false in the config)"
+        )
+    manual_flags = args.current_input is not None or args.history is not None
+    current_input = args.current_input or cfg.features.current_input
+    history_samples, history_signals = _history(
+        cfg.features.history_samples if args.history is None else args.history,
+        args.history_signals,
+        cfg.features.history_signals,
+    )
+    history_stride, hidden = args.history_stride, args.hidden
+    columns = _mapping(args.columns, "--columns") if args.columns else dict(cfg.csv.columns)
+    units = _mapping(args.units, "--units") if args.units else dict(cfg.csv.units)
+    series = load_training_data(args.data, columns or None, units or None)
+    series, excluded = exclude_bad_stretches(series, args.keep_all)
+    log.info("training on %d samples from %d file(s)", len(series), len(args.data))
+    mode = args.features or ("manual" if manual_flags or not command_varies(series) else "auto")
+    search = None
+    if mode == "auto":
+        cand, search = choose_features(series, args.seed, args.holdout_fraction)
+        current_input, lag_tau_s = cand.current_input, cand.lag_tau_s
+        history_samples, history_signals = cand.history_samples, cand.history_signals
+        history_stride, hidden = cand.history_stride, cand.hidden
+    else:
+        lag_tau_s = args.lag_tau_s
+    fwd, sup, report = train_and_validate(
+        series,
+        n_train=args.n_train,
+        n_val=args.n_val,
+        seed=args.seed,
+        progress=_progress,
+        current_input=current_input,
+        lag_tau_s=lag_tau_s,
+        max_epochs=args.epochs,
+        i_max=args.i_max,
+        supervised=args.supervised,
+        history_samples=history_samples,
+        history_signals=history_signals,
+        restarts=args.restarts,
+        split=args.split,
+        holdout_fraction=args.holdout_fraction,
+        history_stride=history_stride,
+        hidden=hidden,
+    )
+    report["excluded"] = excluded
+    report["features_mode"] = mode
+    report["features_search"] = search
+    fwd.meta["excluded"] = excluded
+    fwd.meta["features_mode"] = mode
+    if search is not None:
+        fwd.meta["features_search"] = search
+    fwd.meta["data_files"] = [str(p) for p in args.data]
+    if config_path is not None:
+        fwd.meta["train_config"] = str(config_path)
+    fwd.save(args.out)
+    log.info("wrote %s", args.out)
+    if sup is not None and args.supervised_out:
+        sup.save(args.supervised_out)
+        log.info("wrote %s", args.supervised_out)
+    if args.report:
+        args.report.write_text(json_text.dumps(report, indent=2), encoding="utf-8")
+        log.info("wrote %s", args.report)
+    print(format_report(report))
+    return 0
+
+
+if __name__ == "__main__":
+    from mrrig.cli.main import main as mrrig_main
+
+    raise SystemExit(mrrig_main(["train", *sys.argv[1:]]))

@@ -1,0 +1,1137 @@
+"""The rig daemon: one DamperCommand per valid RigSensors frame.
+
+read -> check -> Kalman -> force reference -> controller -> clamp -> send, paced by the sensor
+frames, in one thread that never waits on telemetry: samples, events and status are handed to
+the sidecar process (Zenoh + Rerun) through a non-blocking pipe. The loop owns the bus, the
+packer, the controller and the safety state; control requests are checked and prepared by
+`mrrig.rigio.control.ControlWorker` in its own thread, and the loop swaps in what it prepared
+between frames.
+
+`mrrig run --config configs/rig.toml`
+"""
+
+from __future__ import annotations
+
+import argparse
+import gc
+import logging
+import math
+import resource
+import signal
+import sys
+import threading
+import time
+from dataclasses import replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from mrrig import json_text
+from mrrig.cli_args import HelpFormatter, add_bus_options, output_file, positive
+from mrrig.config import DaemonConfig, ReferenceSection, load_config
+from mrrig.errors import MrrigError
+from mrrig.loop import reference as ref
+from mrrig.loop.controllers import (
+    CONTROLLERS,
+    FORWARD_INPUTS,
+    ControlInput,
+    Controller,
+    ControllerSettings,
+    make_controller,
+)
+from mrrig.loop.estimation import RealtimeKalman
+from mrrig.loop.inversion import DEFAULT_CONTINUITY
+from mrrig.loop.mlp import MLP, ModelError
+from mrrig.loop.realtime import keep_off_cpu, make_realtime
+from mrrig.loop.safety import Fault, Limits, Supervisor
+from mrrig.loop.samples import SAMPLE_DTYPE, RigState
+from mrrig.loop.summary import (
+    LATENCY_BIN_US,
+    LATENCY_TOP_US,
+    Histogram,
+    SummaryAccumulator,
+    format_summary,
+)
+from mrrig.rigio import sdnotify
+from mrrig.rigio.canbus.bus import open_bus
+from mrrig.rigio.canbus.codec import Codec
+from mrrig.rigio.control import (
+    Change,
+    ControlWorker,
+    Pending,
+    Preparer,
+    RequestError,
+    check_actuator_step,
+)
+from mrrig.rigio.ipc import LoopEnd, Msg, ReplyWriter, make_channel
+from mrrig.rigio.zenoh_config import check_secure, load_zenoh_config
+from mrrig.typed_config import ConfigError
+
+log = logging.getLogger(__name__)
+
+DESIRED_FORCE_LIMIT_N = 80000.0  # inside DamperCommand.DesiredForce's 24-bit range
+ACTUATOR_PERIOD_S = 0.1
+STATUS_PERIOD_S = 0.1  # to the sidecar, which answers `status` requests and publishes at 1 Hz
+# the longest a control-thread computation holds the GIL against the loop (Python's default
+# of 5 ms is two and a half sensor periods)
+SWITCH_INTERVAL_S = 0.0002
+SIDECAR_START_S = 20.0  # a new telemetry process's first heartbeat may take this long
+MAX_SIDECAR_RESTARTS = 1
+MAX_REPLAYED_EVENTS = 20  # events a restarted telemetry process is told again
+CLOCK_SANE_S = 60.0  # a frame timestamp further off than this is not on this machine's clock
+WAVEFORMS = {"stop": "STOP", "sine": "SINE", "random": "RANDOM", "hold": "HOLD"}
+# importing rerun and zenoh and opening both, on a loaded 2-core machine; a live_url that
+# nothing listens on alone blocks the recorder about 6 s
+SIDECAR_START_TIMEOUT_S = 30.0
+
+
+class SidecarStartError(MrrigError, OSError):
+    """The telemetry process (Zenoh, recording) could not start: the daemon does not run."""
+
+
+class Exit:
+    """`mrrig run`'s exit codes (README: Exit codes)."""
+
+    OK = 0  # stopped by its duration or a signal, not in FAULT
+    FAULT = 1  # ended in FAULT (a fault that nobody re-armed)
+    USAGE = 2  # a bad config, model or argument (the CLI's one-line error)
+    BUS_LOST = 3  # the CAN bus failed or went away (a killed bridge)
+    TELEMETRY_LOST = 4  # the telemetry process died again after its one restart
+
+
+def build_controller(cfg: DaemonConfig, section=None, model: MLP | None = None) -> Controller:
+    """The configured controller, from the registry (`controllers.make_controller`); a model
+    that does not fit stops here with one line. `model`: the section's model, already read
+    (the control plane reads it under limits)."""
+    c = section or cfg.controller
+    i_max, dt = cfg.loop.i_max_a, cfg.loop.period_s
+    if c.name == "constant" and not 0 <= c.current_a <= i_max:
+        raise ConfigError(f"{cfg.source}: controller.current_a: outside [0, {i_max}] A")
+    if model is None and CONTROLLERS[c.name].needs_model:
+        model = load_model(c.model, cfg.source)
+    settings = ControllerSettings(i_max, dt_s=dt, model=model, current_a=c.current_a)
+    if c.name == "network_inversion":
+        continuity = c.continuity
+        if continuity is None:
+            continuity = model_continuity(model, c.model)
+            log.info("%s: continuity %g, the model's own", c.model, continuity)
+        ahead = c.ahead
+        if ahead and len(model.input_names) > len(FORWARD_INPUTS):
+            log.warning(
+                "%s: a model with history inputs: network inversion solves for the present "
+                "instant (the one-step-ahead solve takes a model of x, xd, xdd, current)",
+                c.model,
+            )
+            ahead = False
+        if ahead and model.meta.get("current_input", "commanded") != "lagged":
+            log.warning(
+                "%s: a model of the commanded current (no current_input = 'lagged', no "
+                "lag_tau_s): network inversion solves one step ahead without inverting the "
+                "coil's lag; for that, train on the lagged current "
+                "(mrrig train --current-input lagged)",
+                c.model,
+            )
+        settings = replace(
+            settings,
+            method=c.method,
+            feedback_tau_s=c.feedback_tau_s if c.feedback else None,
+            continuity=continuity,
+            ahead=ahead,
+            adaptation=cfg.adaptation.settings(),
+        )
+    try:
+        return make_controller(c.name, settings)
+    except ValueError as exc:
+        raise ModelError(f"{c.model}: input_names: {exc}") from None
+
+
+def model_continuity(model: MLP, path: Path | None) -> float:
+    """The continuity `mrrig train` chose for the model on its training rows (the on-line
+    inversion's smallest current RMSE there: `training.choose_continuity`); for a model
+    without one, `DEFAULT_CONTINUITY` (the root)."""
+    mu = model.meta.get("online_continuity", DEFAULT_CONTINUITY)
+    if isinstance(mu, bool) or not isinstance(mu, int | float) or not 0 <= mu < math.inf:
+        raise ModelError(f"{path}: meta.online_continuity: expected a number >= 0, got {mu!r}")
+    return float(mu)
+
+
+def load_model(path: Path | None, source: str) -> MLP:
+    if path is None:
+        raise ModelError(f"{source}: controller.model: no model file given")
+    if not Path(path).is_file():
+        raise ModelError(
+            f"{source}: controller.model: {path} not found (train one: mrrig train ...)"
+        )
+    return MLP.load(path)
+
+
+def build_reference(r: ReferenceSection, dt_s: float) -> ref.ForceReference:
+    if r.kind == "constant":
+        return ref.Constant(r.offset_n)
+    if r.kind == "sine":
+        return ref.Sine(r.offset_n, r.amplitude_n, r.freq_hz)
+    if r.kind == "noise":
+        return ref.Noise(r.offset_n, r.amplitude_n, r.freq_hz, r.seed, dt_s)
+    if r.kind == "csv":
+        return ref.CsvSeries(r.path)
+    if r.kind == "bouc_wen":
+        return ref.BoucWenReference(r.preset, r.current_a, r.current_amp_a, r.current_freq_hz, dt_s)
+    return ref.External(r.timeout_s)
+
+
+def loop_realtime(cfg: DaemonConfig) -> None:
+    """SCHED_FIFO, CPU affinity and locked memory where permitted; a warning where not."""
+    make_realtime(
+        50 if cfg.loop.realtime else 0,
+        cpu=cfg.loop.cpu,
+        lock_memory=cfg.loop.realtime,
+        who="daemon",
+    )
+
+
+class Daemon:
+    """The loop and its state; `run()` until stopped, then a SAFE command and a summary."""
+
+    def __init__(
+        self, cfg: DaemonConfig, record_path: Path | None = None, keep_batches: bool = False
+    ) -> None:
+        """`keep_batches`: keep every sample batch for `handed_over` (an in-process consumer
+        such as characterize); otherwise the loop keeps none and its memory stays fixed."""
+        self.cfg = cfg
+        self.period_s = cfg.loop.period_s
+        self.codec = Codec()
+        self.packer = self.codec.packer("DAEMON")
+        self._own_messages = frozenset(self.packer.messages)
+        self.parser = self.codec.parser()
+        self.controller = build_controller(cfg)
+        self.reference = build_reference(cfg.reference, self.period_s)
+        self.kf = RealtimeKalman(self.period_s, q=cfg.estimator.q, r0=cfg.estimator.r0_m2)
+        self.supervisor = Supervisor(
+            Limits(
+                cfg.loop.x_range_m,
+                cfg.loop.f_range_n,
+                cfg.loop.bad_frame_budget,
+                cfg.loop.lost_frame_budget,
+                cfg.loop.budget_window_s,
+            )
+        )
+        self.actuator = cfg.actuator
+        self.record_path = record_path
+        self.exit_code = Exit.OK
+        self.record_paths = [record_path] if record_path is not None else []
+        self._clock_warned = False
+        self._sidecar_deadline = math.inf
+        self.control = ControlWorker(Preparer(self, build_controller, build_reference))
+        self.control.on_start = self._control_thread_started
+        self.stop_reason = ""
+        self._stop = False
+        self.started = threading.Event()  # set when the loop listens for frames
+        self._safe_sent_at_stop = False  # the stop's SAFE command answered a sensor frame
+        self.bus = None
+        self.link: LoopEnd | None = None  # to the sidecar, when telemetry or recording is on
+        self._replies: ReplyWriter | None = None  # the control thread's end of the same pipe
+        self.tap = None  # canlog.FrameTap: every frame for the bus log, when one is asked for
+        if cfg.recording.can_log is not None:
+            from mrrig.rigio.canlog import FrameTap
+
+            self.tap = FrameTap()
+        self.sidecar = None
+        self._sidecar_restarts = 0
+        self._sidecar_restarting = False
+        self.recording_failed = ""  # why the recording stopped, if it did
+        self.t0 = time.perf_counter()
+        self._cpu0 = time.process_time()
+        self.counters = {
+            "frames_received": 0,
+            "sensor_frames_valid": 0,
+            "sensor_frames_invalid": 0,
+            "status_frames": 0,
+            "commands_sent": 0,
+            "commands_active": 0,
+            "safe_commands_unprompted": 0,
+            "send_failures": 0,
+            "foreign_commands": 0,
+            "lost_frames": 0,
+            "frames_ignored": 0,  # 29-bit, remote, error and unknown-id frames
+            "stale_frames": 0,  # answered SAFE: older than loop.max_frame_age_s
+            "sensor_frames_early": 0,  # counter ahead of the time since the last frame
+            "telemetry_dropped": 0,
+            "force_refs_received": 0,  # on force_ref, with the zenoh reference
+            "can_log_dropped": 0,  # frames the pipe to the bus log's writer could not take
+        }
+        self.events: list[dict] = []
+        self._keep_batches = keep_batches
+        self._chunks: list[np.ndarray] = []  # only with keep_batches
+        self._summary = SummaryAccumulator()  # the exit summary, built batch by batch
+        # per answered frame, the two parts of latency_us: up to the bus's send() and inside it
+        self._send_call_s = math.nan
+        self._split = np.full((cfg.loop.telemetry_batch, 2), np.nan)
+        self._before_send_us = Histogram(LATENCY_BIN_US, LATENCY_TOP_US)
+        self._send_call_us = Histogram(LATENCY_BIN_US, LATENCY_TOP_US)
+        self._buf = np.zeros(cfg.loop.telemetry_batch, dtype=SAMPLE_DTYPE)
+        self._n = 0
+        self._last_sensor_t = None
+        self._last_sensor_bus_ts = None  # the bus's receive timestamp of that frame
+        self._early_event_t = -math.inf
+        self._frame_age_limit_s = cfg.loop.frame_age_limit_s
+        self._first_sensor_t = 0.0
+        self._arm_pending = False
+        self._last_counter = 0
+        self._i_meas = 0.0
+        self._temp_degc = math.nan  # the damper's, from RigStatus
+        self.last_x = 0.0  # the latest displacement estimate, m
+        self._last_status_sent = -math.inf
+        self._last_actuator_sent = -math.inf
+        self._status_key = None
+        self.notifier = sdnotify.Notifier.from_env()  # systemd's READY=1 and watchdog
+        self._targets: list[float] = []  # desired forces of the coming frames (`_targets_now`)
+
+    # ---- time and hand-off -------------------------------------------------------------
+    def now(self) -> float:
+        return time.perf_counter() - self.t0
+
+    def _emit(self, events: list[dict]) -> None:
+        for e in events:
+            self.events.append(e)
+            level = logging.INFO if e["level"] == "info" else logging.WARNING
+            log.log(level, "%s: %s", e["kind"], e["reason"])
+            if self.link is not None:
+                self.link.send_event(e)
+        if events:
+            self._send_status(force=True)
+
+    def status(self) -> dict[str, Any]:
+        s = self.supervisor
+        return {
+            "rig": self.cfg.rig.name,
+            "state": s.state.name,
+            "armed": s.active,
+            "controller": self.controller.name,
+            "adaptation": self.controller.adaptation_state(),
+            "reference": self.reference.kind,
+            "fault": s.fault.value if s.fault else None,
+            "fault_reason": s.reason,
+            "firmware_blocking": s.firmware_blocking,
+            "recording": "failed: " + self.recording_failed if self.recording_failed else None,
+            "telemetry_restarts": self._sidecar_restarts,
+            "t": self.now(),
+            **self.counters,
+        }
+
+    def _send_status(self, force: bool = False) -> None:
+        t = self.now()
+        key = (self.supervisor.state, self.supervisor.reason, self.controller.name)
+        if force or key != self._status_key or t - self._last_status_sent >= STATUS_PERIOD_S:
+            self._status_key = key
+            self._last_status_sent = t
+            if self.link is not None:
+                self.link.send_status(self.status())
+
+    # ---- CAN ---------------------------------------------------------------------------
+    def _send(self, name: str, values: dict[str, Any]) -> bool:
+        msg = self.packer.message(name, values)
+        try:
+            t = time.perf_counter()
+            self.bus.send(msg, timeout=self.cfg.bus.send_timeout_s)
+            self._send_call_s = time.perf_counter() - t
+            if self.tap is not None:
+                self.tap.tx(msg)
+            return True
+        except Exception as exc:  # noqa: BLE001 - any bus failure is a BUS_ERROR fault
+            self.counters["send_failures"] += 1
+            self._emit(self.supervisor.trip(self.now(), Fault.BUS_ERROR, f"send {name}: {exc}"))
+            return False
+
+    def _send_command(self, active: bool, current_a: float, f_des: float, echo: int) -> None:
+        ok = self._send(
+            "DamperCommand",
+            {
+                "Mode": 1 if active else 0,
+                "CurrentSetpoint": current_a if active else 0.0,
+                "SensorCounterEcho": echo,
+                "ControllerId": self.controller.controller_id if active else 0,
+                "DesiredForce": f_des if active else 0.0,
+            },
+        )
+        if ok:
+            self.counters["commands_sent"] += 1
+            self.counters["commands_active"] += active
+
+    def _send_actuator(self) -> None:
+        a = self.actuator
+        self._send(
+            "ActuatorCommand",
+            {
+                "Waveform": WAVEFORMS[a.waveform],
+                "Amplitude": a.amplitude_m,
+                "Frequency": a.frequency_hz,
+            },
+        )
+        self._last_actuator_sent = self.now()
+
+    # ---- the cycle ---------------------------------------------------------------------
+    def cycle(
+        self, values: dict[str, float], counter: int, t_rx: float, queued_s: float = 0.0
+    ) -> None:
+        """One valid RigSensors frame -> exactly one DamperCommand.
+
+        `queued_s`: how long the frame waited between its receive timestamp at the bus and
+        `t_rx` (the loop reading it); its age when answered is that plus the cycle's time.
+        A frame older than `loop.max_frame_age_s` is answered SAFE, and while armed the stall
+        is a fault. An unexpected error in the computation does not unwind the loop: it is a
+        fault, and the frame is still answered, SAFE.
+        """
+        sup = self.supervisor
+        t = t_rx - self.t0
+        x_meas, f_meas = values["Displacement"], values["Force"]
+        events = sup.sensors(t, values)
+        x = xd = xdd = f_des = math.nan
+        i_cmd = 0.0
+        try:
+            x, xd, xdd = self.kf.update(x_meas)
+            if self._last_sensor_t is None:
+                self.reset_reference(t, x)
+            events += sup.finite(t, "the Kalman estimate", x, xd, xdd)
+            f_next = None
+            try:
+                if self._pipelined():
+                    f_des, f_next = self._targets_now(t, x, xd, xdd)
+                else:
+                    f_des = float(self.reference.force(t, x, xd))
+            except ref.StaleReference as exc:
+                f_des = 0.0
+                if sup.active:
+                    events += sup.trip(t, Fault.STALE_REFERENCE, f"stale force reference: {exc}")
+            if f_next is None and self.controller.wants_next_target:
+                f_next = f_des  # a reference not known ahead holds its present value
+            # the clamp below passes NaN, and a controller may map it to a finite current
+            what = f"the {self.reference.kind} force reference"
+            events += sup.finite(t, what, f_des, f_des if f_next is None else f_next)
+            f_des = min(max(f_des, -DESIRED_FORCE_LIMIT_N), DESIRED_FORCE_LIMIT_N)
+            if f_next is not None:
+                f_next = min(max(f_next, -DESIRED_FORCE_LIMIT_N), DESIRED_FORCE_LIMIT_N)
+            if sup.active:
+                i = self.controller.command_one(x, xd, xdd, f_meas, f_des, f_next)
+                events += sup.finite(t, f"the {self.controller.name} controller's command", i)
+                if sup.active:
+                    i_cmd = min(max(i, 0.0), self.cfg.loop.i_max_a)
+        except Exception as exc:  # noqa: BLE001 - a bug must not leave a frame unanswered
+            log.exception("cycle failed")
+            events += sup.trip(t, Fault.INTERNAL_ERROR, f"{type(exc).__name__}: {exc}")
+            i_cmd = 0.0
+        if self._stop and sup.active:
+            # the stop answers this frame SAFE: the rig is disarmed from this frame on, and the
+            # frame is recorded so (not as an armed frame whose command fell to 0 A)
+            events += sup.disarm(t, f"stopping: {self.stop_reason}")
+        age_s = queued_s + (time.perf_counter() - t_rx)
+        if age_s > self._frame_age_limit_s:
+            self.counters["stale_frames"] += 1
+            if sup.active:
+                events += sup.trip(
+                    t,
+                    Fault.STALE_FRAME,
+                    f"sensor frame {age_s * 1e3:.1f} ms old when answered (limit "
+                    f"{self._frame_age_limit_s * 1e3:g} ms): the daemon or the bus stalled",
+                )
+        active = sup.active
+        safe_f = f_des if math.isfinite(f_des) else 0.0
+        self._send_command(active, i_cmd if active else 0.0, safe_f, counter)
+        if self._stop:
+            self._safe_sent_at_stop = True
+        latency_us = (time.perf_counter() - t_rx + queued_s) * 1e6
+        self._split[self._n] = (latency_us - self._send_call_s * 1e6, self._send_call_s * 1e6)
+        self._send_call_s = math.nan
+        self.last_x = x
+        f_model = math.nan
+        try:
+            if active:
+                self.controller.after_send()  # on-line adaptation: armed, no fault this frame
+            # off the latency path: the next frame's Kalman step, reference and controller
+            # work, from the predicted state
+            self._prepare_next(t + self.period_s, active)
+            if active:
+                s = ControlInput(
+                    np.array([x]),
+                    np.array([xd]),
+                    np.array([xdd]),
+                    np.array([f_meas]),
+                    np.array([f_des]),
+                )
+                f_model = float(self.controller.model_force(s, np.array([i_cmd]))[0])
+        except Exception as exc:  # noqa: BLE001
+            log.exception("after-send work failed")
+            events += sup.trip(t, Fault.INTERNAL_ERROR, f"{type(exc).__name__}: {exc}")
+        row = self._buf[self._n]
+        row["t"], row["counter"], row["x"], row["x_est"] = t, counter, x_meas, x
+        row["xd"], row["xdd"], row["f_meas"], row["f_des"] = xd, xdd, f_meas, f_des
+        row["f_model"], row["i_cmd"] = f_model, i_cmd if active else 0.0
+        row["i_meas"], row["latency_us"], row["state"] = self._i_meas, latency_us, sup.state
+        row["temp_degc"] = self._temp_degc
+        adapt = getattr(self.controller, "adapt", None)
+        if adapt is None:
+            row["adapt_gain"] = row["adapt_offset_n"] = math.nan
+        else:
+            row["adapt_gain"], row["adapt_offset_n"] = adapt.theta[0, 0], adapt.offset_n[0]
+        self._n += 1
+        if self._n == len(self._buf):
+            self._flush_samples()
+        if events:
+            self._emit(events)
+
+    def _pipelined(self) -> bool:
+        """Whether the desired forces are computed a frame ahead (`_targets`): for a controller
+        that solves for the instant its command acts on, with a reference known ahead."""
+        return self.controller.wants_next_target and self.reference.known_ahead
+
+    def reset_reference(self, t: float, x: float, reference: ref.ForceReference | None = None):
+        """(Re)start the force reference (a new one if given) at time t; forget its forces
+        computed ahead."""
+        if reference is not None:
+            self.reference = reference
+        self.reference.reset(t, x)
+        self._targets = []
+
+    def _targets_now(self, t: float, x: float, xd: float, xdd: float) -> tuple[float, float]:
+        """This frame's desired force and the next frame's: computed after the previous
+        frames' commands (`_prepare_next`) where they were, else now, the next one at the
+        state one period on (eq. 21). The reference is evaluated once per instant, in
+        order (a reference damper steps once per frame), on the frame sequence rather than
+        on receive times, which jitter."""
+        T = self.period_s
+        q = self._targets
+        f_des = q[0] if q else float(self.reference.force(t, x, xd))
+        if len(q) > 1:
+            f_next = q[1]
+        else:
+            xn, xdn = x + xd * T + 0.5 * xdd * T * T, xd + xdd * T
+            f_next = float(self.reference.force(t + T, xn, xdn))
+        self._targets = [f_next]
+        return f_des, f_next
+
+    def _prepare_next(self, t_next: float, active: bool) -> None:
+        """What the next frame's cycle can know before the frame: the Kalman filter's
+        prediction, gain and covariance, the reference for the predicted state (one instant
+        further for a controller that solves one step ahead: `_targets_now`), and the
+        controller's solve on it (`Controller.prepare_one`)."""
+        kf = self.kf
+        kf.prepare()
+        xp, xdp, xddp = kf.prior
+        if self._pipelined():
+            if len(self._targets) != 1:
+                return  # not after a frame's targets: the next frame computes its own
+            T = self.period_s
+            xn, xdn = xp + xdp * T + 0.5 * xddp * T * T, xdp + xddp * T
+            self._targets.append(float(self.reference.force(t_next + T, xn, xdn)))
+            if active:
+                f_now, f_after = (
+                    min(max(f, -DESIRED_FORCE_LIMIT_N), DESIRED_FORCE_LIMIT_N)
+                    for f in self._targets
+                )
+                self.controller.prepare_one(xp, xdp, xddp, f_now, f_after)
+            return
+        self.reference.prepare(t_next, xp, xdp)
+        if not active:
+            return
+        try:
+            f_next = float(self.reference.force(t_next, xp, xdp))
+        except ref.StaleReference:
+            return  # the frame itself will say so
+        f_next = min(max(f_next, -DESIRED_FORCE_LIMIT_N), DESIRED_FORCE_LIMIT_N)
+        wants = self.controller.wants_next_target
+        self.controller.prepare_one(xp, xdp, xddp, f_next, f_next if wants else None)
+
+    def _flush_samples(self) -> None:
+        batch = self._buf[: self._n].copy()
+        if self._keep_batches:
+            self._chunks.append(batch)
+        self._summary.add(batch)
+        self._before_send_us.add(self._split[: self._n, 0])
+        self._send_call_us.add(self._split[: self._n, 1])
+        self._split[:] = np.nan
+        self._n = 0
+        if self.link is not None and not self.link.send_samples(batch):
+            self.counters["telemetry_dropped"] += len(batch)
+        self._flush_frames()
+
+    def _flush_frames(self, force: bool = False) -> None:
+        frames = self.tap.take(force) if self.tap is not None else None
+        if frames is not None and self.link is not None:
+            self.counters["can_log_dropped"] += self.link.send_frames(frames)
+
+    def handed_over(self, start: int = 0) -> list[np.ndarray]:
+        """The sample batches completed so far, from batch `start` on (needs keep_batches).
+
+        Safe from another thread while the loop runs: the loop only appends whole batches,
+        and a list slice is atomic.
+        """
+        if not self._keep_batches:
+            raise RuntimeError("the daemon keeps no batches: construct it with keep_batches=True")
+        return self._chunks[start:]
+
+    # ---- frames ------------------------------------------------------------------------
+    def on_frame(self, msg, t_rx: float, queued_s: float = 0.0) -> None:
+        """One received frame; `queued_s` as in `cycle`."""
+        self.counters["frames_received"] += 1
+        if self.tap is not None:
+            self.tap.rx(msg)
+        # 29-bit, remote and error frames are none of the DBC's 11-bit messages
+        p = self.parser.parse_message(msg, t_rx)
+        if p.name == "RigSensors":
+            if not p.ok:
+                self.counters["sensor_frames_invalid"] += 1
+                self._emit(self.supervisor.bad_frame(t_rx - self.t0, p.reason))
+                return
+            self.counters["sensor_frames_valid"] += 1
+            self._check_counter_timing(msg.timestamp, p.lost_frames, t_rx)
+            if p.lost_frames:
+                self.counters["lost_frames"] += p.lost_frames
+                self._emit(self.supervisor.lost_frames(t_rx - self.t0, p.lost_frames))
+                del self._targets[: p.lost_frames]  # those computed for the missing frames
+                for _ in range(p.lost_frames):  # the estimate goes on through the missing periods
+                    self.kf.predict_only()
+            if self._last_sensor_t is None:
+                self._first_sensor_t = t_rx
+            if self._arm_pending and t_rx - self._first_sensor_t >= self.cfg.loop.arm_settle_s:
+                self._arm_at_start(t_rx)
+            self.cycle(p.values, p.counter, t_rx, queued_s)
+            self._last_sensor_t = t_rx
+            self._last_counter = p.counter
+        elif p.name == "RigStatus" and p.ok:
+            v = p.values
+            self.counters["status_frames"] += 1
+            self._i_meas = v["CoilCurrent"]
+            self._temp_degc = v["DamperTemperature"]
+            state = self.codec.choices("RigStatus", "State").get(int(v["State"]), "?")
+            code = int(v["FaultCode"])
+            label = self.codec.choices("RigStatus", "FaultCode").get(code, str(code))
+            self._emit(
+                self.supervisor.firmware_status(
+                    t_rx - self.t0, state, code, label, int(v["CommandTimeouts"])
+                )
+            )
+        elif p.name in self._own_messages:
+            self.counters["foreign_commands"] += 1
+            self._emit(self.supervisor.foreign_command(t_rx - self.t0, p.name))
+        elif not p.ok and p.name is None:
+            self.counters["frames_ignored"] += 1
+            log.debug("ignored frame: %s", p.reason)
+
+    def _check_counter_timing(self, bus_ts: float, lost: int, t_rx: float) -> None:
+        """A sensor frame whose counter moved on more periods than time has passed since the
+        last one (a counter jump inside one period): a replayed or forged frame with a valid
+        CRC, or a second sender. E2E profile 2's 4-bit counter cannot stop such frames (README,
+        security); this only makes them seen: counted, and an event per budget window."""
+        last, self._last_sensor_bus_ts = self._last_sensor_bus_ts, bus_ts
+        if last is None or lost == 0 or bus_ts - last >= lost * self.period_s:
+            return
+        self.counters["sensor_frames_early"] += 1
+        t = t_rx - self.t0
+        if t - self._early_event_t >= self.cfg.loop.budget_window_s:
+            self._early_event_t = t
+            self._emit(
+                self.supervisor.notice(
+                    t,
+                    "suspect_frame",
+                    f"sensor counter advanced {lost + 1} in {(bus_ts - last) * 1e3:.2f} ms: "
+                    "a replayed or forged frame, or a second sender?",
+                )
+            )
+
+    def _arm_at_start(self, t_rx: float) -> None:
+        """arm_on_start: once the sensor frames have streamed for arm_settle_s."""
+        self._arm_pending = False
+        if self.supervisor.state is not RigState.IDLE:
+            log.warning("not armed at start: the daemon is in %s", self.supervisor.state.name)
+            return
+        ok, msg, events = self.supervisor.arm(t_rx - self.t0)
+        if not ok:
+            log.warning("arm at start refused: %s", msg)
+        self.controller.reset(1)
+        self._emit(events)
+
+    def check_timeout(self, now_abs: float) -> None:
+        """No sensor frame for timeout_periods: FAULT, and a SAFE command on its own."""
+        limit = self.cfg.loop.timeout_periods * self.period_s
+        if self._last_sensor_t is None or now_abs - self._last_sensor_t <= limit:
+            return
+        if self.supervisor.state is not RigState.FAULT:
+            self._emit(
+                self.supervisor.trip(
+                    now_abs - self.t0,
+                    Fault.SENSOR_TIMEOUT,
+                    f"no sensor frame for {(now_abs - self._last_sensor_t) * 1e3:.1f} ms",
+                )
+            )
+        self._send_command(False, 0.0, 0.0, self._last_counter)
+        self.counters["safe_commands_unprompted"] += 1
+        self._last_sensor_t = now_abs  # again after another timeout period
+
+    # ---- control requests (from Zenoh through the sidecar, or in process) ----------------
+    def submit(self, req: dict[str, Any] | bytes, reply) -> None:
+        """Queue a control request (any thread, never blocks); `reply(dict)` is called from
+        the control thread with the answer once the loop has applied it, or refused it."""
+        self.control.submit(req, reply)
+
+    def request(self, req: dict[str, Any], timeout_s: float = 5.0) -> dict[str, Any]:
+        """A control request from another thread of this process (characterize, tests):
+        blocks that thread until the loop has answered. Never call it from the loop."""
+        pending = Pending()
+        self.control.submit(req, pending)
+        return pending.wait(timeout_s)
+
+    def _control_thread_started(self) -> None:
+        keep_off_cpu(threading.get_native_id(), self.cfg.loop.cpu, "control thread")
+
+    def _apply_change(self) -> None:
+        """At most one prepared change per pass of the loop, between frames."""
+        taken = self.control.take()
+        if taken is None:
+            return
+        change, item = taken
+        try:
+            reply = {"ok": True, **self.apply(change)}
+        except RequestError as exc:
+            reply = {"ok": False, "error": str(exc)}
+        except Exception as exc:  # noqa: BLE001 - a failed change must not stop the loop
+            log.exception("applying %s failed", change.cmd)
+            reply = {"ok": False, "error": f"{type(exc).__name__}: {exc}"}
+        self.control.done(item, reply)
+
+    def apply(self, c: Change) -> dict[str, Any]:
+        """Swap in a prepared change (loop thread). The state is checked again here: an arm
+        that came after the change was prepared wins."""
+        sup = self.supervisor
+        if c.cmd == "arm":
+            ok, msg, events = sup.arm(self.now())
+            if not ok:
+                raise RequestError(msg)
+            if events:
+                self.controller.reset(1)
+                self.reset_reference(self.now(), self.last_x)
+            self._emit(events)
+            return {"state": sup.state.name, "message": msg}
+        if c.cmd == "disarm":
+            self._emit(sup.disarm(self.now(), "disarmed by request"))
+            return {"state": sup.state.name}
+        if c.cmd == "status":
+            return {"status": self.status()}
+        if c.cmd in ("reset_adaptation", "freeze_adaptation"):  # allowed while armed
+            return self._adaptation_change(c)
+        if c.cmd == "sidecar":
+            if c.sidecar is None:
+                self.exit_code = Exit.TELEMETRY_LOST
+                self.request_stop("telemetry lost: its restart failed")
+            else:
+                self._sidecar_back(*c.sidecar)
+            return {}
+        if c.cmd in ("set_controller", "set_profile") and sup.state is RigState.ARMED:
+            raise RequestError(f"{c.cmd} only when not armed (disarm first)")
+        if c.cmd == "set_controller":
+            self.controller = c.controller
+            self.controller.reset(1)
+            self.reset_reference(self.now(), self.last_x)  # its desired forces ahead, if any
+            self.cfg = replace(self.cfg, controller=c.controller_section)
+            self._send_status(force=True)
+            return {"controller": self.controller.name}
+        if c.cmd == "set_profile":
+            self.reset_reference(self.now(), self.last_x, c.reference)
+            self.cfg = replace(self.cfg, reference=c.reference_section)
+            self._send_status(force=True)
+            return {"reference": self.reference.kind}
+        a = c.actuator
+        check_actuator_step(sup.state, self.actuator, a, self.cfg)
+        self.actuator = a
+        self._send_actuator()
+        return {
+            "waveform": a.waveform,
+            "amplitude_m": a.amplitude_m,
+            "frequency_hz": a.frequency_hz,
+        }
+
+    def _adaptation_change(self, c: Change) -> dict[str, Any]:
+        adapt = getattr(self.controller, "adapt", None)
+        if adapt is None:
+            raise RequestError(
+                f"controller {self.controller.name} has no on-line adaptation "
+                "([adaptation] enabled)"
+            )
+        if c.cmd == "reset_adaptation":  # back to the model as trained (gain 1, offset 0)
+            adapt.reset(adapt.theta.shape[0])
+            what = "reset"
+        else:  # frozen: the adapted state stays in use, without updates
+            adapt.frozen = c.frozen
+            what = "frozen" if c.frozen else "resumed"
+        self._emit(
+            [self.supervisor.event(self.now(), "adaptation", f"adaptation {what} by request")]
+        )
+        return {"adaptation": adapt.state()}
+
+    def on_force_ref(self, force_n: float, t_rx_mono: float) -> None:
+        if isinstance(self.reference, ref.External):
+            self.counters["force_refs_received"] += 1
+            # the sidecar stamps with time.monotonic(); both clocks tick at the same rate
+            delay = time.monotonic() - t_rx_mono
+            self.reference.receive(force_n, self.now() - delay)
+
+    def _poll_link(self, now: float) -> None:
+        for mtype, payload in self.link.poll():
+            if mtype == Msg.REQUEST:
+                request_id, raw = payload
+                self.control.submit(raw, self._replies.reply_to(request_id))
+            elif mtype == Msg.FORCE_REF:
+                self.on_force_ref(*payload)
+            elif mtype == Msg.HEARTBEAT:
+                self._sidecar_deadline = now + self.cfg.telemetry.heartbeat_timeout_s
+            elif mtype == Msg.NOTICE and payload.get("kind") == "recording_failed":
+                self._recording_failed(str(payload.get("reason", "")))
+
+    def _recording_failed(self, reason: str) -> None:
+        self.recording_failed = reason or "unknown"
+        self._emit(
+            self.supervisor.trip(self.now(), Fault.RECORDING_FAILED, f"recording failed: {reason}")
+        )
+
+    # ---- supervision of the telemetry process ------------------------------------------
+    def _watch_sidecar(self, now: float) -> None:
+        """A dead sidecar (its pipe closed) or one without a heartbeat for
+        `telemetry.heartbeat_timeout_s`: fault `telemetry_lost`, then one restart."""
+        if self._sidecar_restarting:
+            return
+        if self.link.closed:
+            code = self.sidecar.poll() if self.sidecar is not None else None
+            why = f"the telemetry process exited (code {code})"
+        elif now > self._sidecar_deadline:
+            why = (
+                "no heartbeat from the telemetry process for "
+                f"{self.cfg.telemetry.heartbeat_timeout_s:g} s (stopped or stuck)"
+            )
+        else:
+            return
+        self._emit(self.supervisor.trip(self.now(), Fault.TELEMETRY_LOST, why))
+        old = (self.sidecar, self.link, self._replies)
+        self.link = None
+        if self._sidecar_restarts >= MAX_SIDECAR_RESTARTS:
+            log.error("telemetry lost again after its restart: stopping the daemon")
+            self.exit_code = Exit.TELEMETRY_LOST
+            self.request_stop(f"telemetry lost: {why}")
+            self.control.submit_job(lambda: self._end_sidecar(*old))
+            return
+        self._sidecar_restarts += 1
+        self._sidecar_restarting = True
+        log.warning("%s: restarting it", why)
+        self.control.submit_job(lambda: self._restart_sidecar(*old))
+
+    def _end_sidecar(self, proc, link, replies) -> None:
+        """Kill and reap a lost sidecar and close its pipes (control thread)."""
+        if proc is not None and proc.poll() is None:
+            proc.kill()
+        if proc is not None:
+            try:
+                proc.wait(timeout=5)
+            except Exception:  # noqa: BLE001
+                log.warning("telemetry process %d not reaped", proc.pid)
+        replies.close()
+        link.close()
+
+    def _restart_sidecar(self, proc, link, replies) -> Change:
+        """Control thread: the lost process ended, a new one started (its own recording);
+        a Change for the loop either way (`sidecar` None: it could not start)."""
+        self._end_sidecar(proc, link, replies)
+        if self.record_path is not None:
+            n = self._sidecar_restarts
+            self.record_path = self.record_path.with_name(
+                f"{self.record_path.stem.split('.restart')[0]}.restart{n}.rrd"
+            )
+            self.record_paths.append(self.record_path)
+        if self.tap is not None:
+            log.warning("the bus log ends here: a restarted telemetry process does not continue it")
+        try:
+            return Change("sidecar", sidecar=self._spawn_sidecar(can_log=False))
+        except Exception as exc:  # noqa: BLE001 - the loop is told and stops
+            log.error("restarting the telemetry process failed: %s", exc)
+            return Change("sidecar")
+
+    def _sidecar_back(self, proc, link, replies) -> None:
+        self.sidecar, self.link, self._replies = proc, link, replies
+        self._sidecar_deadline = time.perf_counter() + SIDECAR_START_S
+        self._sidecar_restarting = False
+        log.info("telemetry process restarted (pid %d)", proc.pid)
+        for e in self.events[-MAX_REPLAYED_EVENTS:]:
+            link.send_event(e)
+        self._send_status(force=True)
+
+    # ---- run ---------------------------------------------------------------------------
+    def request_stop(self, reason: str) -> None:
+        self.stop_reason = reason
+        self._stop = True
+
+    def run(self) -> dict[str, Any]:
+        cfg = self.cfg
+        self.bus = open_bus(cfg.bus.interface, cfg.bus.channel, **cfg.bus.options)
+        try:
+            if cfg.telemetry.enabled or self.record_path is not None or self.tap is not None:
+                self.sidecar, self.link, self._replies = self._spawn_sidecar()
+                self._sidecar_deadline = time.perf_counter() + SIDECAR_START_S
+            # started before the loop takes real-time priority: it runs at normal priority
+            sys.setswitchinterval(SWITCH_INTERVAL_S)
+            self.control.start()
+            self.controller.reset(1)
+            # collect and freeze before raising the priority: a full collection at
+            # SCHED_FIFO would starve the simulator and the bridge on a 2-core machine
+            gc.collect()
+            gc.freeze()
+            loop_realtime(cfg)
+            self.t0 = time.perf_counter()
+            self._cpu0 = time.process_time()
+            self._arm_pending = cfg.loop.arm_on_start
+            self._loop()
+        finally:
+            self._shutdown()
+        return self.summary
+
+    def _loop(self) -> None:
+        cfg = self.cfg
+        recv = self.bus.recv
+        timeout_s = cfg.loop.timeout_periods * self.period_s
+        end = None if cfg.loop.duration_s is None else self.t0 + cfg.loop.duration_s
+        # frames queued while the daemon started are stale: the rig has moved on
+        stale = 0
+        while recv(timeout=0) is not None:
+            stale += 1
+        if stale:
+            log.info("discarded %d frames queued before the loop started", stale)
+        self._send_actuator()
+        self.started.set()
+        self.notifier.ready(f"rig {cfg.rig.name}: listening on {cfg.bus.channel}")
+        log.info("loop running: one command per sensor frame")
+        stop_deadline = None
+        while not self._safe_sent_at_stop:
+            if self._stop and stop_deadline is None:
+                stop_deadline = time.perf_counter() + timeout_s
+            if stop_deadline is not None and time.perf_counter() > stop_deadline:
+                break  # no sensor frame to answer: _shutdown sends SAFE on its own
+            try:
+                msg = recv(timeout=timeout_s)
+            except Exception as exc:  # noqa: BLE001 - a dead bus stops the loop safely
+                self._emit(self.supervisor.trip(self.now(), Fault.BUS_ERROR, f"receive: {exc}"))
+                self.exit_code = Exit.BUS_LOST
+                self.request_stop(f"bus error: {exc}")
+                break
+            t_rx = time.perf_counter()
+            self.notifier.pet(t_rx)
+            # a change prepared before this frame came applies to it
+            self._apply_change()
+            if msg is not None:
+                self.on_frame(msg, t_rx, self._queued_s(msg))
+            self.check_timeout(t_rx)
+            t = t_rx - self.t0
+            if self.link is not None:
+                self._poll_link(t_rx)
+                self._watch_sidecar(t_rx)
+            if t - self._last_actuator_sent >= ACTUATOR_PERIOD_S:
+                self._send_actuator()
+            self._send_status()
+            if end is not None and t_rx >= end:
+                self.request_stop(f"duration {cfg.loop.duration_s:g} s reached")
+
+    def _queued_s(self, msg) -> float:
+        """How long ago the bus received `msg` (its timestamp: the kernel's on SocketCAN, the
+        bridge's on the Python bridge; both time.time())."""
+        q = time.time() - msg.timestamp
+        if 0.0 <= q < CLOCK_SANE_S:
+            return q
+        if -CLOCK_SANE_S < q < 0.0:
+            return 0.0  # stamped a hair in our future: the two clocks' reads, not an age
+        if not self._clock_warned:
+            self._clock_warned = True
+            log.warning(
+                "frame timestamps are not on this machine's clock (%.0f s off): frame age "
+                "is measured from the loop's read only",
+                q,
+            )
+        return 0.0
+
+    def _spawn_sidecar(self, can_log: bool = True) -> tuple[Any, LoopEnd, ReplyWriter]:
+        """Start the telemetry process and wait for it to be ready; `can_log` False: without
+        the bus log (a restarted process would start the run's bus log over)."""
+        from mrrig.rigio.sidecar import start_sidecar
+
+        fds = make_channel()
+        proc = start_sidecar(
+            rig=self.cfg.rig.name,
+            zenoh_config=self.cfg.telemetry.zenoh_config if self.cfg.telemetry.enabled else None,
+            record=self.record_path,
+            fds=fds,
+            telemetry_hz=self.cfg.telemetry.rate_hz,
+            live_url=self.cfg.recording.live_url,
+            insecure=self.cfg.telemetry.insecure,
+            can_log=self._can_log() if can_log else None,
+        )
+        keep_off_cpu(proc.pid, self.cfg.loop.cpu, "telemetry process")
+        link = LoopEnd(*fds.loop_fds())
+        # a rig must not run unobserved: no telemetry or recording, no loop
+        error = link.wait_ready(SIDECAR_START_TIMEOUT_S)
+        if error is not None:
+            link.close()
+            off = ""
+            if self.cfg.telemetry.enabled:
+                off = " (to run without Zenoh: telemetry.enabled = false, or --no-telemetry)"
+            raise SidecarStartError(f"the telemetry process could not start: {error}{off}")
+        return proc, link, link.reply_writer()
+
+    def _can_log(self) -> tuple[Path, str] | None:
+        """The bus log and the channel name it shows (the interface's, a rig name otherwise)."""
+        path = self.cfg.recording.can_log
+        if path is None:
+            return None
+        bus = self.cfg.bus
+        return path, bus.channel if bus.interface == "socketcan" else self.cfg.rig.name
+
+    def _shutdown(self) -> None:
+        """SAFE first, then the actuator to rest, the summary, the sidecar, the bus."""
+        gc.unfreeze()
+        self.control.stop()
+        while (taken := self.control.take()) is not None:
+            if taken[0].cmd == "sidecar" and taken[0].sidecar is not None:
+                self._sidecar_back(*taken[0].sidecar)  # a restart that finished as it ended
+        if self.bus is not None:
+            if self._last_sensor_t is not None and not self._safe_sent_at_stop:
+                self._send_command(False, 0.0, 0.0, self._last_counter)
+            self.actuator = replace(self.actuator, waveform="stop")
+            try:
+                self._send_actuator()
+            finally:
+                self.bus.shutdown()
+        self.notifier.stopping()  # after the SAFE command
+        self.counters["cpu_loop_s"] = time.process_time() - self._cpu0
+        adaptation = self.controller.adaptation_state()
+        ahead, missed = self.controller.solved_ahead()
+        self.counters["commands_solved_ahead"] = ahead
+        self.counters["commands_ahead_missed"] = missed
+        self.counters["loop_wall_s"] = self.now()
+        if self._n:
+            self._flush_samples()
+        self._flush_frames(force=True)
+        self.counters["telemetry_dropped"] += self.link.dropped if self.link else 0
+        self.summary = self._summary.result(self.events, dict(self.counters))
+        self.summary["stop_reason"] = self.stop_reason
+        # the loop's time zero on CLOCK_MONOTONIC: its times set beside another process's
+        self.summary["clock_t0_s"] = self.t0
+        self.summary["controller"] = self.controller.name
+        self.summary["reference"] = self.reference.kind
+        if adaptation is not None:
+            self.summary["adaptation"] = adaptation
+        if self.exit_code == Exit.OK and self.supervisor.state is RigState.FAULT:
+            self.exit_code = Exit.FAULT
+        self.summary["exit_code"] = self.exit_code
+        qs = (50, 99, 99.9)
+        self.summary["latency_split_us"] = {
+            "before_send": self._before_send_us.percentiles(qs),
+            "send_call": self._send_call_us.percentiles(qs),
+        }
+        if self.link is not None:
+            self.link.send_summary(self.summary)
+            self.link.send_stop()
+            self.link.close()
+            self._replies.close()
+        if self.sidecar is not None:
+            try:
+                self.sidecar.wait(timeout=15)
+            except Exception:  # noqa: BLE001
+                log.warning("telemetry process did not stop in 15 s; terminating it")
+                self.sidecar.terminate()
+            self.summary["cpu_sidecar_s"] = (
+                resource.getrusage(resource.RUSAGE_CHILDREN).ru_utime
+                + resource.getrusage(resource.RUSAGE_CHILDREN).ru_stime
+            )
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(
+        prog="mrrig run", description="Run the rig daemon.", formatter_class=HelpFormatter
+    )
+    ap.add_argument("--config", required=True, type=Path, help="daemon config (TOML)")
+    ap.add_argument("--duration", type=positive, help="stop after this many seconds (s)")
+    ap.add_argument("--arm", action="store_true", help="arm at start (commands ACTIVE)")
+    ap.add_argument(
+        "--record", type=Path, help="recording file (default: recordings/<rig>-<UTC>.rrd)"
+    )
+    ap.add_argument("--no-record", action="store_true", help="no Rerun recording")
+    ap.add_argument(
+        "--can-log",
+        type=Path,
+        help="also write every frame to this bus log (.blf, .asc, .log candump, .trc, .csv,"
+        " .mf4 with asammdf; overrides recording.can_log)",
+    )
+    ap.add_argument("--summary-json", type=output_file, help="also write the summary to this file")
+    add_bus_options(ap)
+    ap.add_argument("--no-telemetry", action="store_true", help="no Zenoh telemetry")
+    ap.add_argument(
+        "--adaptation",
+        choices=("on", "off"),
+        help="override adaptation.enabled: on-line gain and offset of the model's force",
+    )
+    ap.add_argument(
+        "--insecure",
+        action="store_true",
+        help="allow a Zenoh config off loopback without authentication and access control "
+        "(a closed lab network only); warned in every status and recording",
+    )
+    args = ap.parse_args(argv)
+    overrides: dict[str, dict] = {}
+    bus = {k: v for k, v in (("interface", args.bus_interface), ("channel", args.bus_channel)) if v}
+    if bus:
+        overrides["bus"] = bus
+    if args.no_telemetry:
+        overrides["telemetry"] = {"enabled": False}
+    if args.can_log is not None:
+        overrides["recording"] = {"can_log": str(args.can_log)}
+    if args.adaptation:
+        overrides["adaptation"] = {"enabled": args.adaptation == "on"}
+    if args.insecure:
+        overrides.setdefault("telemetry", {})["insecure"] = True
+    loop = {}
+    if args.duration is not None:
+        loop["duration_s"] = args.duration
+    if args.arm:
+        loop["arm_on_start"] = True
+    if loop:
+        overrides["loop"] = loop
+    cfg = load_config(args.config, overrides)
+    if cfg.telemetry.enabled:  # the sidecar checks it too; refused here before the bus opens
+        check_secure(
+            load_zenoh_config(cfg.telemetry.zenoh_config),
+            str(cfg.telemetry.zenoh_config),
+            cfg.telemetry.insecure,
+        )
+    record = args.record
+    if args.no_record:
+        record = None
+    elif record is None and cfg.recording.enabled:
+        # imports rerun (its threads, its libraries locked with the loop's memory): only when
+        # this run records
+        from mrrig.rigio.recording import recording_path
+
+        record = recording_path(cfg.recording.directory, cfg.rig.name)
+    daemon = Daemon(cfg, record_path=record)
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda s, _f: daemon.request_stop(signal.Signals(s).name))
+    log.info(
+        "rig %s: %s on %s/%s",
+        cfg.rig.name,
+        daemon.controller.name,
+        cfg.bus.interface,
+        cfg.bus.channel,
+    )
+    summary = daemon.run()
+    print(format_summary(summary))
+    for path in daemon.record_paths:
+        print(f"recording: {path}")
+    if cfg.recording.can_log is not None:
+        print(f"bus log: {cfg.recording.can_log}")
+    if args.summary_json:
+        args.summary_json.write_text(json_text.dumps(summary, indent=2))
+    if daemon.exit_code != Exit.OK:
+        log.warning("exit code %d: %s", daemon.exit_code, summary["stop_reason"] or "a fault")
+    return daemon.exit_code

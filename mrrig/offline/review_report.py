@@ -1,0 +1,215 @@
+"""`mrrig review`'s figure and its one-file HTML report, for a test engineer's record.
+
+The figure: forces (desired, measured, model) and the tracking error f_meas - f_des over
+time, armed time shaded, each fault marked and labelled with its reason; the damper current;
+the force-velocity and force-displacement loops; the latency histogram. Its title names the
+file, the controller and Et. A window of more frames than the axes have pixels is drawn as
+its per-pixel min-max band with the mean, so a long run is not a solid block of ink; `--from`
+and `--to` zoom in. The HTML report embeds the figure (base64 PNG), the summary table, the
+faults and, when given, the bus log's check: one file to attach to a test record.
+"""
+
+from __future__ import annotations
+
+import base64
+import html
+import io
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from mrrig.loop.samples import RigState
+from mrrig.offline.review import Recording
+
+_MAX_POINTS = 4000  # per line: about twice the pixels of a panel's width at 100 dpi
+
+
+def window(rec: Recording, t_from: float | None, t_to: float | None) -> Recording:
+    """The samples and events with sensor time in [t_from, t_to] (None: no bound)."""
+    lo = -np.inf if t_from is None else t_from
+    hi = np.inf if t_to is None else t_to
+    if lo >= hi:
+        raise ValueError(f"--from {t_from:g} must be before --to {t_to:g}")
+    s = rec.samples
+    keep = (s["t"] >= lo) & (s["t"] <= hi)
+    if s.size and not keep.any():
+        raise ValueError(
+            f"{rec.path}: no frame between {lo:g} and {hi:g} s (the recording has"
+            f" {s['t'][0]:.3f} to {s['t'][-1]:.3f} s)"
+        )
+    events = [e for e in rec.events if e.get("t") is not None and lo <= e["t"] <= hi]
+    return Recording(rec.path, s[keep], events, rec.summary)
+
+
+def _line(ax, t: np.ndarray, y: np.ndarray, **kw) -> None:
+    """y(t) as a line, or as its min-max band per bin and the bin means when it has more
+    points than the panel can show."""
+    if t.size <= _MAX_POINTS:
+        ax.plot(t, y, lw=0.8, **kw)
+        return
+    bins = np.linspace(t[0], t[-1], _MAX_POINTS // 2 + 1)
+    idx = np.clip(np.searchsorted(bins, t, side="right") - 1, 0, bins.size - 2)
+    counts = np.bincount(idx, minlength=bins.size - 1)
+    ok = counts > 0
+    finite = np.where(np.isfinite(y), y, np.nan)
+    lo = np.full(bins.size - 1, np.nan)
+    hi = np.full(bins.size - 1, np.nan)
+    np.fmin.at(lo, idx, finite)
+    np.fmax.at(hi, idx, finite)
+    mean = np.bincount(idx, weights=np.nan_to_num(finite), minlength=bins.size - 1)
+    mid = 0.5 * (bins[:-1] + bins[1:])
+    (line,) = ax.plot(mid[ok], mean[ok] / counts[ok], lw=0.8, **kw)
+    ax.fill_between(mid[ok], lo[ok], hi[ok], color=line.get_color(), alpha=0.25, lw=0)
+
+
+def _armed_spans(s: np.ndarray) -> list[tuple[float, float]]:
+    armed = (s["state"] == RigState.ARMED).astype(np.int8)
+    if not armed.size:
+        return []
+    edges = np.flatnonzero(np.diff(np.concatenate(([0], armed, [0]))))
+    t = s["t"]
+    return [(float(t[a]), float(t[b - 1])) for a, b in zip(edges[::2], edges[1::2], strict=True)]
+
+
+def _faults(rec: Recording) -> list[tuple[float, str]]:
+    return [
+        (float(e["t"]), str(e.get("reason") or e.get("text")))
+        for e in rec.events
+        if e.get("kind") == "fault" and e.get("t") is not None
+    ]
+
+
+def title(rec: Recording, metrics: Mapping[str, Any]) -> str:
+    summary = rec.summary or {}
+    et = metrics.get("et")
+    et_text = f"Et {et:.4f}" if isinstance(et, float) and np.isfinite(et) else "Et n/a"
+    controller = summary.get("controller", "controller not recorded")
+    return (
+        f"{rec.path.name}: {controller}, {et_text} ({metrics.get('armed_frames', 0)} armed frames)"
+    )
+
+
+def plot(rec: Recording, metrics: Mapping[str, Any], out_png: str | Path | io.BytesIO) -> None:
+    """The review figure as a PNG (a path or a buffer)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    s = rec.samples
+    t = s["t"]
+    fig = plt.figure(figsize=(13, 11), layout="constrained")
+    grid = fig.add_gridspec(4, 3, height_ratios=[3, 2, 2, 3])
+    ax_f = fig.add_subplot(grid[0, :])
+    ax_e = fig.add_subplot(grid[1, :], sharex=ax_f)
+    ax_i = fig.add_subplot(grid[2, :], sharex=ax_f)
+    ax_fv, ax_fx, ax_lat = (fig.add_subplot(grid[3, k]) for k in range(3))
+    # measured first: the desired and commanded lines are drawn over its band
+    _line(ax_f, t, s["f_meas"], label="f_meas measured (load cell)", color="tab:blue")
+    _line(ax_f, t, s["f_des"], label="f_des desired (reference)", color="tab:red")
+    _line(ax_f, t, s["f_model"], label="f_model network model", color="tab:green", ls="--")
+    _line(ax_e, t, s["f_meas"] - s["f_des"], label="f_meas - f_des", color="tab:purple")
+    ax_e.axhline(0.0, color="0.5", lw=0.5)
+    _line(ax_i, t, s["i_meas"], label="i_meas measured (coil driver)", color="tab:blue")
+    _line(ax_i, t, s["i_cmd"], label="i_cmd commanded", color="tab:red")
+    spans = _armed_spans(s)
+    for ax in (ax_f, ax_e, ax_i):
+        for k, (a, b) in enumerate(spans):
+            ax.axvspan(a, b, color="gold", alpha=0.15, lw=0, label="armed" if k == 0 else None)
+    for k, (tf, reason) in enumerate(_faults(rec)):
+        for ax in (ax_f, ax_e, ax_i):
+            ax.axvline(tf, color="red", lw=0.8, alpha=0.7)
+        # stagger the labels so that faults close together stay readable
+        ax_f.annotate(
+            reason,
+            (tf, 1.0 - 0.08 * (k % 4)),
+            xycoords=("data", "axes fraction"),
+            fontsize=8,
+            color="red",
+            ha="left",
+            va="top",
+            rotation=0,
+            bbox={"boxstyle": "round,pad=0.2", "fc": "white", "ec": "red", "alpha": 0.8},
+        )
+    ax_f.set(ylabel="force (N)", title="Force tracking")
+    ax_e.set(ylabel="error (N)", title="Tracking error")
+    ax_i.set(xlabel="sensor time (s)", ylabel="current (A)", title="Damper current")
+    for ax in (ax_f, ax_e, ax_i):
+        # outside the axes, so that no legend covers a trace
+        ax.legend(loc="upper left", bbox_to_anchor=(1.0, 1.0), fontsize=8, frameon=False)
+    armed = s["state"] == RigState.ARMED
+    for ax, xfield, xlabel, name in (
+        (ax_fv, "xd", "velocity (m/s)", "Force-velocity"),
+        (ax_fx, "x", "displacement (m)", "Force-displacement"),
+    ):
+        ax.plot(s[xfield][~armed], s["f_meas"][~armed], ".", ms=1, color="0.7", label="not armed")
+        ax.plot(s[xfield][armed], s["f_meas"][armed], ".", ms=1, label="armed")
+        ax.set(xlabel=xlabel, ylabel="measured force (N)", title=name)
+        ax.legend(loc="lower right", markerscale=8, fontsize=8)
+    lat = s["latency_us"][np.isfinite(s["latency_us"])]
+    ax_lat.hist(lat, bins=100, log=True)
+    if lat.size:
+        p99 = float(np.percentile(lat, 99))
+        ax_lat.axvline(p99, color="red", lw=0.8, label=f"p99 {p99:.0f} us")
+        ax_lat.legend(loc="upper right", fontsize=8)
+    ax_lat.set(xlabel="cycle latency (us)", ylabel="frames", title="Latency receive -> send")
+    fig.suptitle(title(rec, metrics))
+    fig.savefig(out_png, dpi=100, format="png")
+    plt.close(fig)
+
+
+def _rows(d: Mapping[str, Any], prefix: str = "") -> list[tuple[str, str]]:
+    rows: list[tuple[str, str]] = []
+    for k, v in d.items():
+        if k == "faults":
+            continue
+        if isinstance(v, Mapping):
+            rows += _rows(v, f"{prefix}{k}.")
+        elif isinstance(v, float):
+            rows.append((prefix + k, f"{v:.6g}"))
+        elif not isinstance(v, list):
+            rows.append((prefix + k, str(v)))
+    return rows
+
+
+def write_html(
+    rec: Recording,
+    metrics: Mapping[str, Any],
+    out_html: str | Path,
+    bus_log_text: str | None = None,
+    window_text: str | None = None,
+) -> Path:
+    """One self-contained HTML file: title, the figure (base64 PNG), summary, faults."""
+    png = io.BytesIO()
+    plot(rec, metrics, png)
+    image = base64.b64encode(png.getvalue()).decode("ascii")
+    esc = html.escape
+    faults = "".join(
+        f"<tr><td>{f['t']:.3f}</td><td>{esc(str(f['reason']))}</td></tr>"
+        for f in metrics.get("faults", [])
+    )
+    table = "".join(f"<tr><th>{esc(k)}</th><td>{esc(v)}</td></tr>" for k, v in _rows(metrics))
+    parts = [
+        "<!DOCTYPE html><html><head><meta charset='utf-8'>",
+        f"<title>{esc(rec.path.name)}</title>",
+        "<style>body{font-family:sans-serif;margin:2em}table{border-collapse:collapse}"
+        "td,th{border:1px solid #ccc;padding:2px 8px;text-align:left}th{background:#f4f4f4}"
+        "img{max-width:100%}</style></head><body>",
+        f"<h1>{esc(title(rec, metrics))}</h1>",
+        f"<p>recording <code>{esc(str(rec.path))}</code>"
+        + (f", window {esc(window_text)}" if window_text else "")
+        + "</p>",
+        f"<img alt='review figure' src='data:image/png;base64,{image}'>",
+        f"<h2>Faults ({len(metrics.get('faults', []))})</h2>",
+        f"<table><tr><th>t (s)</th><th>reason</th></tr>{faults}</table>" if faults else "",
+        "<h2>Summary</h2>",
+        f"<table>{table}</table>",
+    ]
+    if bus_log_text:
+        parts += ["<h2>Bus log</h2>", f"<pre>{esc(bus_log_text)}</pre>"]
+    parts.append("</body></html>")
+    out_html = Path(out_html)
+    out_html.write_text("\n".join(parts))
+    return out_html

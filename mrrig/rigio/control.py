@@ -1,0 +1,485 @@
+"""Control requests to the daemon (`mrrig/<rig>/control`): checked and prepared off the loop.
+
+A request is a JSON object with a `cmd`; the reply is `{"ok": true, ...}` or
+`{"ok": false, "error": "..."}`. An invalid request (too large or too deep, not JSON, unknown
+command, a value of the wrong type, out of range or not finite, a file outside the configured
+directories or over its limits, the wrong state) changes nothing.
+
+The loop owns the daemon (spec/system.md): nothing here runs in the loop thread. The sidecar
+checks size, depth and JSON (`parse_request`); the daemon's `ControlWorker` thread checks the
+values against the config and the state, reads files under limits, builds models and profiles
+(`prepare`), and puts the ready `Change` into one bounded mailbox. The loop takes at most one
+change between frames (`ControlWorker.take`), applies it (`Daemon.apply`) and hands the reply
+back to the worker, which writes it.
+
+What needs DISARMED (not ARMED: IDLE or FAULT): `set_controller`, `set_model`, `set_profile`
+(a new force target or controller under an armed damper would step its current), and an
+`actuator` change of waveform or frequency, or of amplitude by more than
+`control.armed_amplitude_step_m`, while ARMED; `actuator` STOP is always taken (the firmware
+ramps to rest). The loop checks the state again when it applies a change: an `arm` that came
+first wins.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import os
+import queue
+import stat
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from mrrig.config import (
+    ActuatorSection,
+    ControllerSection,
+    DaemonConfig,
+    ReferenceSection,
+    reference_from_table,
+)
+from mrrig.errors import MrrigError
+from mrrig.loop.controllers import CONTROLLER_NAMES, CONTROLLERS
+from mrrig.loop.samples import RigState
+from mrrig.typed_config import ConfigError, parse
+
+log = logging.getLogger(__name__)
+
+# a request is a flat object of a few fields: 2 kB and 4 levels leave room and stop abuse
+MAX_REQUEST_BYTES = 2048
+MAX_REQUEST_DEPTH = 4
+# a model file is an object of lists of lists (W1): depth 3; 32 stops a stack-exhausting file
+MAX_FILE_DEPTH = 32
+MAILBOX_SIZE = 4  # ready changes waiting for the loop
+JOB_PUT_TIMEOUT_S = 5.0
+
+
+class RequestError(MrrigError, ValueError):
+    """A control request that cannot be carried out; nothing was changed."""
+
+
+# ---------------------------------------------------------------------------- parsing
+def json_depth_exceeds(raw: bytes | str, limit: int) -> bool:
+    """True when JSON text nests arrays/objects deeper than `limit` (strings skipped).
+
+    Checked before `json.loads`, whose recursion a deeply nested text exhausts.
+    """
+    text = raw.decode("utf-8", "replace") if isinstance(raw, bytes) else raw
+    depth = 0
+    in_string = escaped = False
+    for ch in text:
+        if in_string:
+            if escaped:
+                escaped = False
+            elif ch == "\\":
+                escaped = True
+            elif ch == '"':
+                in_string = False
+        elif ch == '"':
+            in_string = True
+        elif ch in "[{":
+            depth += 1
+            if depth > limit:
+                return True
+        elif ch in "]}":
+            depth -= 1
+    return False
+
+
+def _non_finite_path(value: Any, path: str) -> str | None:
+    """The dotted key of the first NaN/Infinity in a decoded request, if any."""
+    if isinstance(value, float) and not math.isfinite(value):
+        return path
+    if isinstance(value, dict):
+        items = value.items()
+    elif isinstance(value, list):
+        items = ((f"[{i}]", v) for i, v in enumerate(value))
+    else:
+        return None
+    for k, v in items:
+        sub = f"{path}{k}" if str(k).startswith("[") else f"{path}.{k}" if path else str(k)
+        found = _non_finite_path(v, sub)
+        if found is not None:
+            return found
+    return None
+
+
+def parse_request(raw: bytes) -> dict[str, Any]:
+    """The request's JSON object; RequestError with one line saying what is wrong."""
+    if len(raw) > MAX_REQUEST_BYTES:
+        raise RequestError(f"request too large: {len(raw)} bytes (limit {MAX_REQUEST_BYTES})")
+    try:
+        text = raw.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        raise RequestError(f"request is not UTF-8 text: {exc}") from None
+    if json_depth_exceeds(text, MAX_REQUEST_DEPTH):
+        raise RequestError(f"request nested deeper than {MAX_REQUEST_DEPTH} levels")
+    try:
+        req = json.loads(text)
+    except ValueError as exc:
+        raise RequestError(f"invalid request: not JSON: {exc}") from None
+    return check_request(req)
+
+
+def check_request(req: Any) -> dict[str, Any]:
+    """A decoded request that is an object, of a known command, without NaN or Infinity."""
+    if not isinstance(req, dict):
+        raise RequestError("invalid request: a control request must be a JSON object")
+    bad = _non_finite_path(req, "")
+    if bad is not None:
+        raise RequestError(f"{bad}: not a finite number (NaN and Infinity are refused)")
+    cmd = req.get("cmd")
+    if not isinstance(cmd, str) or cmd not in COMMANDS:
+        raise RequestError(f"unknown command {cmd!r} (known: {', '.join(COMMANDS)})")
+    return req
+
+
+# ---------------------------------------------------------------------------- changes
+@dataclass(frozen=True)
+class Change:
+    """A checked, ready request for the loop: `cmd` and what it swaps in."""
+
+    cmd: str
+    controller_section: ControllerSection | None = None
+    controller: Any = None
+    reference_section: ReferenceSection | None = None
+    reference: Any = None
+    actuator: ActuatorSection | None = None
+    sidecar: Any = None  # "sidecar": a restarted telemetry process (process, link, replies)
+    frozen: bool = True  # "freeze_adaptation"
+
+
+def read_limited(path: Path, dirs: tuple[Path, ...], max_bytes: int, timeout_s: float) -> str:
+    """A file's text, read under the control plane's limits: inside one of `dirs` (after
+    symlinks), a regular file (a FIFO or device is refused without blocking), at most
+    `max_bytes`, read within `timeout_s`."""
+    real = Path(os.path.realpath(path))
+    roots = [Path(os.path.realpath(d)) for d in dirs]
+    if not any(real.is_relative_to(r) for r in roots):
+        allowed = ", ".join(str(d) for d in dirs) or "none configured"
+        raise RequestError(f"{path}: outside the allowed directories ({allowed})")
+    try:
+        fd = os.open(real, os.O_RDONLY | os.O_NONBLOCK)
+    except OSError as exc:
+        raise RequestError(f"{path}: cannot open: {exc.strerror}") from None
+    try:
+        st = os.fstat(fd)
+        if not stat.S_ISREG(st.st_mode):
+            raise RequestError(f"{path}: not a regular file")
+        if st.st_size > max_bytes:
+            raise RequestError(f"{path}: {st.st_size} bytes, over the limit of {max_bytes}")
+        deadline = time.monotonic() + timeout_s
+        chunks: list[bytes] = []
+        total = 0
+        while chunk := os.read(fd, 1 << 16):
+            chunks.append(chunk)
+            total += len(chunk)
+            if total > max_bytes:
+                raise RequestError(f"{path}: grew over the limit of {max_bytes} bytes")
+            if time.monotonic() > deadline:
+                raise RequestError(f"{path}: not read within {timeout_s:g} s")
+    finally:
+        os.close(fd)
+    try:
+        return b"".join(chunks).decode("utf-8")
+    except UnicodeDecodeError as exc:
+        raise RequestError(f"{path}: not UTF-8 text: {exc}") from None
+
+
+def _section(cls, table: dict, prefix: str):
+    try:
+        return parse(cls, table, "request", prefix)
+    except ConfigError as exc:
+        raise RequestError(str(exc).removeprefix("request: ")) from None
+
+
+def _require_not_armed(state: RigState, what: str) -> None:
+    if state is RigState.ARMED:
+        raise RequestError(f"{what} only when not armed (disarm first)")
+
+
+Builders = tuple[Callable[..., Any], Callable[..., Any]]
+
+
+class Preparer:
+    """Turns a parsed request into a `Change` (worker thread): every check, every file read,
+    every object built. Reads the daemon's config, state and actuator; changes nothing."""
+
+    def __init__(self, daemon: Any, build_controller: Callable, build_reference: Callable):
+        self._d = daemon
+        self._build_controller = build_controller
+        self._build_reference = build_reference
+
+    @property
+    def cfg(self) -> DaemonConfig:
+        return self._d.cfg
+
+    def _read(self, path: Path, dirs: tuple[Path, ...], what: str) -> str:
+        c = self.cfg.control
+        text = read_limited(path, dirs, c.max_file_bytes, c.read_timeout_s)
+        if json_depth_exceeds(text, MAX_FILE_DEPTH) and path.suffix == ".json":
+            raise RequestError(f"{path}: {what} nested deeper than {MAX_FILE_DEPTH} levels")
+        return text
+
+    def model_dirs(self) -> tuple[Path, ...]:
+        """The configured model directories and the configured model's own."""
+        own = self.cfg.controller.model
+        return (*self.cfg.control.model_dirs, *((own.parent,) if own is not None else ()))
+
+    def profile_dirs(self) -> tuple[Path, ...]:
+        own = self.cfg.reference.path if self.cfg.reference.kind == "csv" else None
+        return (*self.cfg.control.profile_dirs, *((own.parent,) if own is not None else ()))
+
+    def prepare(self, req: dict[str, Any]) -> Change:
+        cmd = req["cmd"]
+        if cmd in ("arm", "disarm", "status", "reset_adaptation"):
+            return Change(cmd)
+        return getattr(self, f"_{cmd}")(req)
+
+    def _freeze_adaptation(self, req: dict) -> Change:
+        frozen = req.get("frozen", True)
+        if not isinstance(frozen, bool):
+            raise RequestError(f"frozen: expected true or false, got {frozen!r}")
+        return Change("freeze_adaptation", frozen=frozen)
+
+    def _set_controller(self, req: dict) -> Change:
+        from mrrig.loop.mlp import MLP
+
+        _require_not_armed(self._d.supervisor.state, "set_controller")
+        name = req.get("name")
+        if name not in CONTROLLER_NAMES:
+            raise RequestError(
+                f"name: unknown controller {name!r} (known: {', '.join(CONTROLLER_NAMES)})"
+            )
+        keys = ("model", "method", "ahead", "feedback", "feedback_tau_s", "continuity", "current_a")
+        table = {k: v for k, v in req.items() if k in keys}
+        table["name"] = name
+        if "model" not in table and self.cfg.controller.model is not None:
+            table["model"] = str(self.cfg.controller.model)
+        section = _section(ControllerSection, table, "controller")
+        model = None
+        if CONTROLLERS[section.name].needs_model:
+            text = self._read(section.model, self.model_dirs(), "model file")
+            try:
+                model = MLP.from_text(text, section.model)
+            except ValueError as exc:
+                raise RequestError(str(exc)) from None
+        try:
+            controller = self._build_controller(self.cfg, section, model)
+        except (ValueError, OSError) as exc:
+            raise RequestError(str(exc)) from None
+        return Change("set_controller", controller_section=section, controller=controller)
+
+    def _set_model(self, req: dict) -> Change:
+        path = req.get("path")
+        if not isinstance(path, str) or not path:
+            raise RequestError("path: a model file path is required")
+        name = self.cfg.controller.name
+        if not CONTROLLERS[name].needs_model:
+            raise RequestError(f"controller {name} uses no model")
+        return self._set_controller({"name": name, "model": path})
+
+    def _set_profile(self, req: dict) -> Change:
+        from mrrig.loop.reference import CsvSeries
+
+        _require_not_armed(self._d.supervisor.state, "set_profile")
+        table = {k: v for k, v in req.items() if k not in ("cmd", "id")}
+        try:
+            section = reference_from_table(table, "request")
+        except ConfigError as exc:
+            raise RequestError(str(exc).removeprefix("request: ")) from None
+        lo, hi = self.cfg.loop.f_range_n
+        peak = abs(section.offset_n) + section.amplitude_n
+        if section.kind in ("constant", "sine", "noise") and peak > max(-lo, hi):
+            raise RequestError(
+                f"amplitude_n: offset_n +- amplitude_n reaches {peak:g} N, outside "
+                f"loop.f_range_n [{lo:g}, {hi:g}] N"
+            )
+        try:
+            if section.kind == "csv":
+                text = self._read(section.path, self.profile_dirs(), "force profile")
+                new = CsvSeries(section.path, text=text)
+            else:
+                new = self._build_reference(section, self.cfg.loop.period_s)
+        except (ValueError, OSError) as exc:
+            raise RequestError(str(exc)) from None
+        return Change("set_profile", reference_section=section, reference=new)
+
+    def _actuator(self, req: dict) -> Change:
+        table = {k: v for k, v in req.items() if k not in ("cmd", "id")}
+        section = _section(ActuatorSection, table, "actuator")
+        check_actuator_step(self._d.supervisor.state, self._d.actuator, section, self.cfg)
+        return Change("actuator", actuator=section)
+
+
+def check_actuator_step(
+    state: RigState, now: ActuatorSection, new: ActuatorSection, cfg: DaemonConfig
+) -> None:
+    """While ARMED the motion may stop, or change amplitude by a bounded step; nothing else."""
+    if state is not RigState.ARMED or new.waveform == "stop" or new == now:
+        return
+    if new.waveform != now.waveform:
+        raise RequestError(
+            f"waveform: {now.waveform} -> {new.waveform} only when not armed (disarm first)"
+        )
+    if new.frequency_hz != now.frequency_hz:
+        raise RequestError("frequency_hz: changes only when not armed (disarm first)")
+    step = cfg.control.armed_amplitude_step_m
+    if abs(new.amplitude_m - now.amplitude_m) > step:
+        raise RequestError(
+            f"amplitude_m: a step of {abs(new.amplitude_m - now.amplitude_m):g} m while armed "
+            f"(limit control.armed_amplitude_step_m = {step:g} m; disarm first)"
+        )
+
+
+# ---------------------------------------------------------------------------- the worker
+Reply = Callable[[dict[str, Any]], None]
+
+
+@dataclass
+class _Item:
+    req: Any  # raw bytes (from the sidecar) or a dict (in process)
+    reply: Reply
+    change: Change | None = None
+
+
+class ControlWorker:
+    """The daemon's control thread: requests in, ready changes to the loop, replies out.
+
+    `submit` (any thread, never blocks) queues a request with the callable that delivers its
+    reply; the worker prepares it; the loop `take`s the change between frames and gives the
+    reply back with `done`. Replies are delivered from the worker thread only.
+    """
+
+    def __init__(self, preparer: Preparer) -> None:
+        self._prep = preparer
+        self._inbox: queue.SimpleQueue[tuple[str, _Item, dict | None]] = queue.SimpleQueue()
+        self._mailbox: queue.Queue[_Item] = queue.Queue(maxsize=MAILBOX_SIZE)
+        self._thread = threading.Thread(target=self._run, name="mrrig-control", daemon=True)
+        self._started = False
+        self.on_start: Callable[[], None] | None = None  # runs first in the worker thread
+
+    def start(self) -> None:
+        if not self._started:
+            self._started = True
+            self._thread.start()
+
+    def stop(self) -> None:
+        if self._started:
+            self._inbox.put(("stop", _Item(None, lambda _r: None), None))
+            self._thread.join(timeout=5)
+
+    def submit(self, req: Any, reply: Reply) -> None:
+        self._inbox.put(("request", _Item(req, reply), None))
+
+    def submit_job(self, job: Callable[[], Change | None]) -> None:
+        """Slow work the loop asks for (restarting the telemetry process): run in the worker
+        thread; a Change it returns goes to the loop like a request's."""
+        self._inbox.put(("job", _Item(job, _log_reply), None))
+
+    def ready(self) -> int:
+        """How many prepared changes wait for the loop."""
+        return self._mailbox.qsize()
+
+    def take(self) -> tuple[Change, _Item] | None:
+        """The next ready change (loop thread), or None."""
+        try:
+            item = self._mailbox.get_nowait()
+        except queue.Empty:
+            return None
+        return item.change, item
+
+    def done(self, item: _Item, reply: dict[str, Any]) -> None:
+        """The loop's reply to a change it took (loop thread; never blocks)."""
+        self._inbox.put(("done", item, reply))
+
+    def _run(self) -> None:
+        if self.on_start is not None:
+            self.on_start()
+        while True:
+            kind, item, reply = self._inbox.get()
+            if kind == "stop":
+                return
+            if kind == "done":
+                self._deliver(item, reply)
+                continue
+            if kind == "job":
+                self._job(item)
+                continue
+            try:
+                raw = item.req
+                req = parse_request(raw) if isinstance(raw, bytes) else check_request(raw)
+                item.change = self._prep.prepare(req)
+            except RequestError as exc:
+                self._deliver(item, {"ok": False, "error": str(exc)})
+                continue
+            except Exception as exc:  # noqa: BLE001 - one request never ends the control plane
+                log.exception("control request failed")
+                self._deliver(item, {"ok": False, "error": f"{type(exc).__name__}: {exc}"})
+                continue
+            try:
+                self._mailbox.put_nowait(item)
+            except queue.Full:
+                self._deliver(item, {"ok": False, "error": "busy: too many changes waiting"})
+
+    def _job(self, item: _Item) -> None:
+        try:
+            item.change = item.req()
+        except Exception as exc:  # noqa: BLE001 - the worker outlives a failed job
+            log.exception("control thread job failed")
+            self._deliver(item, {"ok": False, "error": f"{type(exc).__name__}: {exc}"})
+            return
+        if item.change is not None:
+            try:
+                self._mailbox.put(item, timeout=JOB_PUT_TIMEOUT_S)
+            except queue.Full:
+                log.error("the loop took no change for %g s: job result lost", JOB_PUT_TIMEOUT_S)
+
+    @staticmethod
+    def _deliver(item: _Item, reply: dict[str, Any] | None) -> None:
+        try:
+            item.reply(reply or {"ok": False, "error": "no reply"})
+        except Exception:  # noqa: BLE001 - a reply that cannot go out must not stop the worker
+            log.exception("could not deliver a control reply")
+
+
+def _log_reply(reply: dict[str, Any]) -> None:
+    if not reply.get("ok", True):
+        log.error("control thread: %s", reply.get("error"))
+
+
+class Pending:
+    """An in-process request's reply (`Daemon.submit`): `wait()` for it."""
+
+    def __init__(self) -> None:
+        self._event = threading.Event()
+        self.reply: dict[str, Any] | None = None
+
+    def __call__(self, reply: dict[str, Any]) -> None:
+        self.reply = reply
+        self._event.set()
+
+    def done(self) -> bool:
+        return self._event.is_set()
+
+    def wait(self, timeout_s: float) -> dict[str, Any]:
+        if not self._event.wait(timeout_s):
+            return {"ok": False, "error": f"daemon did not answer within {timeout_s:g} s"}
+        return self.reply
+
+
+COMMANDS = (
+    "arm",
+    "disarm",
+    "status",
+    "set_controller",
+    "set_model",
+    "set_profile",
+    "actuator",
+    "reset_adaptation",
+    "freeze_adaptation",
+)

@@ -1,0 +1,295 @@
+"""`mrrig send-force`: stream a desired-force profile to a daemon so that it cannot mislead.
+
+Before the first sample it asks the daemon for its status: no daemon, or a daemon whose force
+reference is not `zenoh` (it would ignore every sample), is a one-line error (exit 2) and
+nothing is sent. With `arm`, it arms the daemon once the daemon has counted the first sample
+(its `force_refs_received`), so the first armed frame has a fresh reference. The profile ends
+with a ramp to 0 N and a disarm while the reference is still fresh, so a finished profile is
+not a stale-reference fault (`disarm=False` leaves the daemon armed for another source, and
+it faults `stale_reference` if none follows). Ctrl-C ramps down and disarms the same way.
+Progress goes to `out` once a second: time, the force sent, the daemon's state and fault.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import csv
+import json
+import logging
+import math
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, TextIO
+
+import numpy as np
+import zenoh
+
+from mrrig.errors import MrrigError
+from mrrig.rigio.client import ClientError, ZenohConfigLike, open_session, query
+from mrrig.rigio.sidecar import JSON, keys
+
+log = logging.getLogger(__name__)
+
+TIME_COLUMN, FORCE_COLUMN = "t_s", "force_n"
+DELIVERY_TIMEOUT_S = 2.0  # first sample -> counted by the daemon, before arming
+_STATUS_POLL_S = 0.05
+
+
+class SendForceError(MrrigError, RuntimeError):
+    """send-force cannot (or can no longer) do what was asked; nothing is left armed by it."""
+
+
+def load_force_csv(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
+    """A force profile CSV: time (s) and force (N). With a header, the columns are found by
+    name (`t_s`, `force_n`, any order, other columns ignored); without one, the first two
+    columns are t_s, force_n. Blank lines are skipped. Returns (t_s, force_n), t increasing.
+    Any row that is not finite numbers is an error naming it: a dropped row would be bridged
+    by interpolation and streamed as if it were the profile."""
+    path = Path(path)
+    lines = [(n, line) for n, line in enumerate(path.read_text().splitlines(), 1) if line.strip()]
+    if not lines:
+        raise ValueError(f"{path}: empty force profile (expected columns t_s,force_n)")
+    first = next(csv.reader([lines[0][1]]))
+    cols = (0, 1)
+    if not _numbers(first):
+        names = [c.strip() for c in first]
+        missing = [c for c in (TIME_COLUMN, FORCE_COLUMN) if c not in names]
+        if missing:
+            raise ValueError(
+                f"{path}:{lines[0][0]}: header {','.join(names)!r} has no column"
+                f" {' or '.join(missing)} (expected t_s and force_n)"
+            )
+        cols = (names.index(TIME_COLUMN), names.index(FORCE_COLUMN))
+        lines = lines[1:]
+    rows = []
+    for number, line in lines:
+        cells = next(csv.reader([line]))
+        try:
+            row = (float(cells[cols[0]]), float(cells[cols[1]]))
+        except (ValueError, IndexError):
+            raise ValueError(
+                f"{path}:{number}: expected t_s,force_n numbers, got {line!r}"
+            ) from None
+        if not all(map(math.isfinite, row)):
+            raise ValueError(f"{path}:{number}: t_s and force_n must be finite, got {line!r}")
+        rows.append(row)
+    if len(rows) < 2:
+        raise ValueError(f"{path}: a force profile needs at least two rows t_s,force_n")
+    data = np.array(rows)
+    if not np.all(np.diff(data[:, 0]) > 0):
+        raise ValueError(f"{path}: time column must be strictly increasing")
+    return data[:, 0], data[:, 1]
+
+
+def _numbers(cells: list[str]) -> bool:
+    try:
+        [float(c) for c in cells]
+    except ValueError:
+        return False
+    return bool(cells)
+
+
+def csv_profile(path: str | Path) -> tuple[Callable[[float], float], float]:
+    """The CSV as a function of time (linear interpolation) and its length (s)."""
+    t_s, force_n = load_force_csv(path)
+    return (lambda t: float(np.interp(t, t_s, force_n))), float(t_s[-1])
+
+
+def ramp(f_from: float, ramp_s: float, rate_hz: float) -> list[float]:
+    """The samples of a linear ramp from `f_from` to exactly 0 N over `ramp_s` at `rate_hz`
+    (at least one sample: the final 0)."""
+    n = max(1, math.ceil(ramp_s * rate_hz))
+    return [f_from * (1.0 - k / n) for k in range(1, n + 1)]
+
+
+def stream(
+    pub: zenoh.Publisher,
+    values: Callable[[int], float | None],
+    rate_hz: float,
+    on_put: Callable[[int, float], None] | None = None,
+) -> int:
+    """Put {"force_n": values(k)} at absolute deadlines k / rate_hz (no drift) until
+    `values` returns None; `on_put(k, f)` after each. Returns the puts sent."""
+    period_s = 1.0 / rate_hz
+    t0 = time.monotonic()
+    k = 0
+    while (f := values(k)) is not None:
+        delay_s = t0 + k * period_s - time.monotonic()
+        if delay_s > 0:
+            time.sleep(delay_s)
+        pub.put(json.dumps({"force_n": f}))
+        if on_put is not None:
+            on_put(k, f)
+        k += 1
+    return k
+
+
+class _LatestStatus:
+    """Subscriber callback keeping the daemon's newest published status."""
+
+    def __init__(self) -> None:
+        self.status: dict[str, Any] | None = None
+
+    def __call__(self, sample: zenoh.Sample) -> None:
+        self.status = json.loads(sample.payload.to_bytes())
+
+
+@dataclass
+class SendResult:
+    sent: int = 0  # every put, ramp included
+    ramp_samples: int = 0
+    armed_by_us: bool = False
+    disarmed: bool = False
+    interrupted: bool = False
+    faults: list[str] = field(default_factory=list)  # fault reasons seen while streaming
+
+
+def check_daemon(session: zenoh.Session, rig: str, timeout_s: float) -> dict[str, Any]:
+    """The daemon's status, if it will take a streamed profile; else SendForceError."""
+    status = query(session, rig, {"cmd": "status"}, timeout_s)["status"]
+    kind = status.get("reference")
+    if kind != "zenoh":
+        raise SendForceError(
+            f"rig {rig!r}: the daemon's force reference is {kind!r}, not 'zenoh': it would"
+            " ignore the profile (to take it: mrrig control --rig"
+            f' {rig} \'{{"cmd": "set_profile", "kind": "zenoh", "timeout_s": 0.1}}\')'
+        )
+    return status
+
+
+def send_force(
+    rig: str,
+    zenoh_config: ZenohConfigLike,
+    fn: Callable[[float], float],
+    duration_s: float,
+    rate_hz: float = 100.0,
+    *,
+    arm: bool = False,
+    disarm: bool = True,
+    ramp_s: float = 0.5,
+    timeout_s: float = 2.0,
+    out: TextIO | None = None,
+) -> SendResult:
+    """Check the daemon, stream fn(t) for t in [0, duration_s], ramp to 0 N, disarm."""
+    result = SendResult()
+    n_profile = int(math.floor(duration_s * rate_hz)) + 1
+    with open_session(zenoh_config) as session, contextlib.ExitStack() as stack:
+        status = check_daemon(session, rig, timeout_s)
+        received0 = status.get("force_refs_received", 0)
+        if not arm and not status.get("armed"):
+            _say(
+                out,
+                f"note: rig {rig!r} is {status['state']}: the profile is its desired force,"
+                " but its commands stay SAFE (0 A) until armed (--arm)",
+            )
+        latest = _LatestStatus()
+        sub = session.declare_subscriber(keys(rig)["status"], latest)
+        stack.callback(sub.undeclare)
+        # BLOCK: a loaded machine's Zenoh drops puts by default (14 of 201 seen here), and a
+        # dropped sample of the ramp is a step the daemon was never asked for
+        pub = session.declare_publisher(
+            keys(rig)["force_ref"],
+            encoding=JSON,
+            express=True,
+            congestion_control=zenoh.CongestionControl.BLOCK,
+        )
+        stack.callback(pub.undeclare)
+        last = [0.0]
+        report = _Progress(out, duration_s, latest, result)
+
+        def on_put(k: int, f: float) -> None:
+            last[0] = f
+            result.sent += 1
+            if arm and not result.armed_by_us:
+                _arm_when_delivered(session, rig, received0, timeout_s, result)
+            report(k / rate_hz, f)
+
+        try:
+            stream(pub, lambda k: fn(k / rate_hz) if k < n_profile else None, rate_hz, on_put)
+        except KeyboardInterrupt:
+            result.interrupted = True
+            _say(out, "interrupted: ramping to 0 N")
+        except SendForceError:
+            _finish(session, pub, rig, last[0], ramp_s, rate_hz, False, timeout_s, result)
+            raise
+        _finish(session, pub, rig, last[0], ramp_s, rate_hz, disarm, timeout_s, result)
+    return result
+
+
+def _arm_when_delivered(
+    session: zenoh.Session, rig: str, received0: int, timeout_s: float, result: SendResult
+) -> None:
+    """Arm once the daemon has counted a sample of ours (polled here, so the stream waits:
+    nothing is armed on a reference that has not arrived)."""
+    deadline = time.monotonic() + DELIVERY_TIMEOUT_S
+    while True:
+        status = query(session, rig, {"cmd": "status"}, timeout_s)["status"]
+        if status.get("force_refs_received", 0) > received0:
+            break
+        if time.monotonic() > deadline:
+            raise SendForceError(
+                f"rig {rig!r}: the daemon did not receive the force reference within"
+                f" {DELIVERY_TIMEOUT_S:g} s; not arming"
+            )
+        time.sleep(_STATUS_POLL_S)
+    reply = query(session, rig, {"cmd": "arm"}, timeout_s)
+    if not reply.get("ok"):
+        raise SendForceError(f"rig {rig!r}: arming refused: {reply.get('error')}")
+    result.armed_by_us = True
+
+
+def _finish(
+    session: zenoh.Session,
+    pub: zenoh.Publisher,
+    rig: str,
+    f_last: float,
+    ramp_s: float,
+    rate_hz: float,
+    disarm: bool,
+    timeout_s: float,
+    result: SendResult,
+) -> None:
+    """The ramp to 0 N, then the disarm while the reference is fresh."""
+    values = ramp(f_last, ramp_s, rate_hz)
+    result.ramp_samples = stream(pub, lambda k: values[k] if k < len(values) else None, rate_hz)
+    result.sent += result.ramp_samples
+    if disarm:
+        try:
+            reply = query(session, rig, {"cmd": "disarm"}, timeout_s)
+        except ClientError as exc:
+            raise SendForceError(f"rig {rig!r}: could not disarm after the profile: {exc}") from exc
+        result.disarmed = bool(reply.get("ok"))
+
+
+class _Progress:
+    """One line a second: time, the force sent, the daemon's state and any new fault."""
+
+    def __init__(
+        self, out: TextIO | None, duration_s: float, latest: _LatestStatus, result: SendResult
+    ) -> None:
+        self.out, self.duration_s, self.latest, self.result = out, duration_s, latest, result
+        self.next_t = 0.0
+
+    def __call__(self, t: float, f: float) -> None:
+        st = self.latest.status
+        if st and st.get("state") == "FAULT":
+            reason = st.get("fault_reason") or st.get("fault")
+            if reason and reason not in self.result.faults:
+                self.result.faults.append(reason)
+        if t < self.next_t:
+            return
+        self.next_t += 1.0
+        state = st["state"] if st else "?"
+        fault = f"  fault {st.get('fault_reason')}" if st and st.get("state") == "FAULT" else ""
+        _say(
+            self.out,
+            f"t {t:6.1f}/{self.duration_s:g} s  force {f:9.1f} N  sent {self.result.sent}"
+            f"  daemon {state}{fault}",
+        )
+
+
+def _say(out: TextIO | None, line: str) -> None:
+    if out is not None:
+        print(line, file=out, flush=True)

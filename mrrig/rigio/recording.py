@@ -1,0 +1,476 @@
+"""Rerun recording of a run: one .rrd per run, written by the telemetry sidecar process.
+
+Layout of the recording (the contract `mrrig.offline.review` reads back):
+
+- Every SAMPLE_DTYPE field is a `Scalars` series (float64, so f8 fields are kept bit for bit
+  and the u1 fields exactly) at the entity in `FIELD_ENTITIES`, on two timelines:
+  `sensor_time` (duration, the sample's `t`; nanosecond resolution) and `frame` (sequence,
+  the sample's running index in this recording, so rows are unique even if two samples
+  share a time). `t` itself is also stored as a scalar (`frame/t`) because the timeline
+  rounds it to whole nanoseconds.
+- `loops/force_velocity` and `loops/force_displacement`: one `LineStrips2D` strip per flush
+  window, at the window's last sensor time, in normalised coordinates (value / full scale,
+  so both axes span about +-1); `<loop>/axes` beside each strip draws the axes and labels
+  their full scales (1-2-5 steps that only grow during a run).
+- For the viewer only: `tracking_error/f_err` (f_meas - f_des, N), `frame_gap/gap_ms` (time
+  since the previous sensor frame) and `summary_text` (the summary as the daemon prints it).
+- `events`: `TextLog` (text, level) plus `AnyValues` `t_s` (exact time, s) and `fields`
+  (JSON object of the extra fields: kind, reason, ...), on `sensor_time` and the `event`
+  sequence timeline.
+- `summary`: static `TextDocument` holding the JSON of `add_summary`'s dict (NaN allowed).
+
+Samples are buffered and sent with `send_columns` every `flush_interval_s`: one `log` call
+per sample would cost 30-60 us.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import datetime as dt
+import logging
+import math
+import signal
+import threading
+import uuid
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import rerun as rr
+import rerun.blueprint as rrb
+
+from mrrig import json_text
+from mrrig.errors import MrrigError
+from mrrig.loop.samples import SAMPLE_DTYPE
+
+log = logging.getLogger(__name__)
+
+APPLICATION_ID = "mrrig"
+SENSOR_TIMELINE = "sensor_time"
+FRAME_TIMELINE = "frame"
+EVENT_TIMELINE = "event"
+EVENTS_ENTITY = "events"
+SUMMARY_ENTITY = "summary"
+LOOP_FV_ENTITY = "loops/force_velocity"
+LOOP_FX_ENTITY = "loops/force_displacement"
+# derived series for the viewer only (review reads FIELD_ENTITIES)
+ERROR_ENTITY = "tracking_error/f_err"
+GAP_ENTITY = "frame_gap/gap_ms"
+REPORT_ENTITY = "summary_text"
+LOOP_AXES = "axes"  # child of each loop entity: its axes, labelled with their full scales
+# per loop: (x field, its name and unit), the y field is f_meas
+_LOOPS = {
+    LOOP_FV_ENTITY: ("xd", "velocity", "m/s"),
+    LOOP_FX_ENTITY: ("x", "displacement", "m"),
+}
+
+FIELD_ENTITIES: dict[str, str] = {
+    "t": "frame/t",
+    "counter": "frame/counter",
+    "x": "displacement/x",
+    "x_est": "displacement/x_est",
+    "xd": "velocity/xd",
+    "xdd": "acceleration/xdd",
+    "f_meas": "forces/f_meas",
+    "f_des": "forces/f_des",
+    "f_model": "forces/f_model",
+    "i_cmd": "current/i_cmd",
+    "i_meas": "current/i_meas",
+    "latency_us": "latency/latency_us",
+    "adapt_gain": "adaptation/gain",
+    "adapt_offset_n": "adaptation/offset_n",
+    "temp_degc": "temperature/temp_degc",
+    "state": "state/state",
+}
+
+# fields that recordings made before them lack: `mrrig review` reads those as NaN
+LATER_FIELDS = ("adapt_gain", "adapt_offset_n", "temp_degc")
+
+# legend names: what each series is, not only its field name
+_SERIES_NAMES: dict[str, str] = {
+    "f_meas": "f_meas measured (load cell)",
+    "f_des": "f_des desired",
+    "f_model": "f_model network model",
+    "i_cmd": "i_cmd commanded",
+    "i_meas": "i_meas measured",
+    "x": "x measured",
+    "x_est": "x_est estimated (Kalman)",
+    "xd": "xd estimated (Kalman)",
+    "xdd": "xdd estimated (Kalman)",
+    "adapt_gain": "gain on the model force",
+    "adapt_offset_n": "offset of the model force (N)",
+}
+
+_SERIES_COLORS: dict[str, tuple[int, int, int]] = {
+    "f_meas": (31, 119, 180),
+    "f_des": (214, 39, 40),
+    "f_model": (44, 160, 44),
+    "i_cmd": (214, 39, 40),
+    "i_meas": (31, 119, 180),
+    "x": (31, 119, 180),
+    "x_est": (255, 127, 14),
+    "adapt_gain": (31, 119, 180),
+    "adapt_offset_n": (255, 127, 14),
+}
+
+_SIGNALS = {signal.SIGINT, signal.SIGTERM}
+# rerun writes the file in a thread of its own and only logs a failed write; a flush that
+# waits for that thread raises once it has died (disk full, file size limit), or times out.
+# Under the sidecar's heartbeat timeout (5 s), so a failing disk is not taken for a stuck
+# sidecar; a healthy flush of 0.5 s of samples takes milliseconds
+WRITE_TIMEOUT_S = 1.0
+
+
+class RecordingError(MrrigError, OSError):
+    """The recording file could not be written; what reached it is truncated."""
+
+
+def recording_path(directory: str | Path, rig: str, now: dt.datetime | None = None) -> Path:
+    """`<directory>/<rig>-<UTC time>.rrd`, e.g. `rig1-20250114T093012Z.rrd`."""
+    now = dt.datetime.now(dt.UTC) if now is None else now.astimezone(dt.UTC)
+    return Path(directory) / f"{rig}-{now:%Y%m%dT%H%M%SZ}.rrd"
+
+
+def nice_scale(value: float) -> float:
+    """The smallest 1, 2 or 5 x 10^k at or above `value` (> 0): a full scale people read."""
+    if not math.isfinite(value) or value <= 0:
+        return 1.0
+    k = math.floor(math.log10(value))
+    for mantissa in (1.0, 2.0, 5.0, 10.0):
+        scale = mantissa * 10.0**k
+        if scale >= value * (1 - 1e-12):
+            return scale
+    return 10.0 ** (k + 1)
+
+
+def _series_view(origin: str, name: str) -> rrb.TimeSeriesView:
+    """A time series view without a legend (one drawn over the plot hides the traces that pass
+    under it): a view of several series names their colours in its title, and hovering a
+    trace shows its name."""
+    return rrb.TimeSeriesView(origin=origin, name=name, plot_legend=rrb.PlotLegend(visible=False))
+
+
+def _loop_view(origin: str, name: str) -> rrb.Spatial2DView:
+    # both coordinates are normalised to +-1 of their full scale (LOOP_AXES_ENTITY labels
+    # the scales), so a loop fills the square view instead of a vertical line of N over m/s
+    recent = rrb.VisibleTimeRange(
+        SENSOR_TIMELINE,
+        start=rrb.TimeRangeBoundary.cursor_relative(seconds=-2.0),
+        end=rrb.TimeRangeBoundary.cursor_relative(),
+    )
+    return rrb.Spatial2DView(
+        origin=origin,
+        name=name,
+        time_ranges=recent,
+        visual_bounds=rrb.VisualBounds2D(x_range=[-1.25, 1.25], y_range=[-1.25, 1.25]),
+    )
+
+
+def default_blueprint() -> rrb.Blueprint:
+    """One tab per task: tracking (forces, their error, the loops), current, motion, the
+    on-line adaptation and the damper's temperature, timing, events with the run's summary."""
+    return rrb.Blueprint(
+        rrb.Tabs(
+            rrb.Horizontal(
+                rrb.Vertical(
+                    _series_view("forces", "Force (N): desired red, measured blue, model green"),
+                    _series_view(ERROR_ENTITY, "Tracking error f_meas - f_des (N)"),
+                    row_shares=[3, 2],
+                ),
+                rrb.Vertical(
+                    _loop_view(LOOP_FV_ENTITY, "Force-velocity loop (normalised)"),
+                    _loop_view(LOOP_FX_ENTITY, "Force-displacement loop (normalised)"),
+                ),
+                column_shares=[2, 1],
+                name="Tracking",
+            ),
+            rrb.Vertical(
+                _series_view("current", "Damper current (A): commanded red, measured blue"),
+                _series_view("state", "State (0 IDLE, 1 ARMED, 2 FAULT)"),
+                row_shares=[3, 1],
+                name="Current",
+            ),
+            rrb.Vertical(
+                _series_view(
+                    "displacement", "Displacement (m): measured blue, Kalman estimate orange"
+                ),
+                _series_view("velocity", "Velocity, estimated (m/s)"),
+                _series_view("acceleration", "Acceleration, estimated (m/s^2)"),
+                name="Motion",
+            ),
+            rrb.Vertical(
+                _series_view("adaptation", "On-line adaptation: gain blue, offset (N) orange"),
+                _series_view("temperature", "Damper temperature (degC)"),
+                name="Adaptation",
+            ),
+            rrb.Vertical(
+                _series_view("latency", "Cycle latency, receive -> send (us)"),
+                _series_view(GAP_ENTITY, "Gap between sensor frames (ms)"),
+                _series_view("state", "State (0 IDLE, 1 ARMED, 2 FAULT)"),
+                row_shares=[2, 2, 1],
+                name="Timing",
+            ),
+            rrb.Horizontal(
+                rrb.TextLogView(origin=EVENTS_ENTITY, name="Events (faults, state changes)"),
+                rrb.TextDocumentView(origin=REPORT_ENTITY, name="Run summary"),
+                column_shares=[1, 1],
+                name="Events and summary",
+            ),
+            active_tab=0,
+        ),
+        # the views get the window: the blueprint and selection panels start collapsed, the
+        # time panel as its bar (the sensor_time timeline, where the loops' 2 s window moves)
+        rrb.BlueprintPanel(state="collapsed"),
+        rrb.SelectionPanel(state="collapsed"),
+        rrb.TimePanel(state="collapsed", timeline=SENSOR_TIMELINE),
+    )
+
+
+class Recorder:
+    """Writes one run to an .rrd file (and optionally streams it to a running viewer).
+
+    `live_url` (e.g. rerun+http://127.0.0.1:9876/proxy) also streams to a running viewer or
+    `rerun --serve-grpc` proxy. With nothing listening there, the constructor and `close()`
+    block for rerun's connect timeout (seconds); the file is complete either way.
+
+    Meant for one thread plus signal handlers: a SIGTERM/SIGINT handler may call `close()`.
+    Each public method holds a lock with SIGINT/SIGTERM blocked in the calling thread, so a
+    handler can neither interrupt a half-sent flush nor deadlock on the lock.
+    """
+
+    def __init__(
+        self,
+        path: str | Path,
+        rig: str,
+        flush_interval_s: float = 0.5,
+        live_url: str | None = None,
+    ) -> None:
+        self.path = Path(path)
+        self.rig = rig
+        self.flush_interval_s = flush_interval_s
+        self._lock = threading.Lock()
+        self._pending: list[np.ndarray] = []
+        self._first_pending_t_s: float | None = None
+        self._frames = 0
+        self._events = 0
+        self._closed = False
+        self._dropped_after_close = 0
+        self.failed = ""  # why writing the file failed: what it holds is truncated
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self._rec = rr.RecordingStream(APPLICATION_ID, recording_id=uuid.uuid4())
+        sinks: list[Any] = [rr.FileSink(self.path)]
+        if live_url is not None:
+            sinks.append(rr.GrpcSink(live_url))
+        self._rec.set_sinks(*sinks, default_blueprint=default_blueprint())
+        self._rec.log("rig", rr.TextDocument(rig), static=True)
+        for field, entity in FIELD_ENTITIES.items():
+            color = _SERIES_COLORS.get(field)
+            self._rec.log(
+                entity,
+                rr.SeriesLines(
+                    names=_SERIES_NAMES.get(field, field), colors=[color] if color else None
+                ),
+                static=True,
+            )
+        self._rec.log(ERROR_ENTITY, rr.SeriesLines(names="f_meas - f_des"), static=True)
+        self._rec.log(GAP_ENTITY, rr.SeriesLines(names="sensor frame gap"), static=True)
+        # full scales of the loops' normalised axes: they only grow, to 1-2-5 steps
+        self._scales = {"x": 0.0, "xd": 0.0, "f_meas": 0.0}
+        self._last_t: float | None = None
+        log.info("recording to %s%s", self.path, f" and {live_url}" if live_url else "")
+
+    @contextlib.contextmanager
+    def _guard(self) -> Iterator[None]:
+        old = signal.pthread_sigmask(signal.SIG_BLOCK, _SIGNALS)
+        try:
+            with self._lock:
+                yield
+        finally:
+            signal.pthread_sigmask(signal.SIG_SETMASK, old)
+
+    @property
+    def frames(self) -> int:
+        """Samples sent to the recording so far (not counting the buffer)."""
+        return self._frames
+
+    def add_samples(self, arr: np.ndarray) -> None:
+        """Buffer a batch of SAMPLE_DTYPE records; sends once `flush_interval_s` of sensor
+        time has been buffered."""
+        if arr.dtype != SAMPLE_DTYPE:
+            raise TypeError(f"samples must have SAMPLE_DTYPE, got {arr.dtype}")
+        if arr.size == 0:
+            return
+        with self._guard():
+            if self._closed:
+                self._drop(arr.size)
+                return
+            self._pending.append(arr.copy())
+            if self._first_pending_t_s is None:
+                self._first_pending_t_s = float(arr["t"][0])
+            if float(arr["t"][-1]) - self._first_pending_t_s >= self.flush_interval_s:
+                self._flush_locked()
+
+    def add_event(self, t_s: float, level: str, text: str, **fields: Any) -> None:
+        """A fault or state change as a text log entry at sensor time `t_s`.
+
+        Extra fields (kind, reason, ...) are kept as JSON beside the text.
+        """
+        with self._guard():
+            if self._closed:
+                self._drop(1)
+                return
+            self._rec.reset_time()
+            self._rec.set_time(SENSOR_TIMELINE, duration=t_s)
+            self._rec.set_time(EVENT_TIMELINE, sequence=self._events)
+            self._rec.log(
+                EVENTS_ENTITY,
+                rr.TextLog(text, level=level),
+                rr.AnyValues(t_s=float(t_s), fields=json_text.dumps(fields)),
+            )
+            self._rec.reset_time()
+            self._events += 1
+
+    def add_summary(self, d: dict[str, Any]) -> None:
+        """Store the run's final summary/counters (static JSON `TextDocument` at `summary`)."""
+        with self._guard():
+            if self._closed:
+                self._drop(1)
+                return
+            self._rec.log(SUMMARY_ENTITY, rr.TextDocument(json_text.dumps(d)), static=True)
+            self._rec.log(REPORT_ENTITY, summary_document(d, self.rig), static=True)
+
+    def flush(self) -> None:
+        """Send everything buffered now."""
+        with self._guard():
+            if not self._closed:
+                self._flush_locked()
+
+    def close(self) -> None:
+        """Flush and write the footer (disconnect). Idempotent; later calls drop data."""
+        with self._guard():
+            if self._closed:
+                return
+            try:
+                self._flush_locked()
+            finally:
+                self._rec.disconnect()
+                self._closed = True
+            if self.failed:
+                log.error("recording closed truncated (%s): %s", self.failed, self.path)
+            else:
+                log.info(
+                    "recording closed: %s (%d frames, %d events)",
+                    self.path,
+                    self._frames,
+                    self._events,
+                )
+
+    def abandon(self) -> None:
+        """After a failed write: stop taking data without flushing or writing the footer (a
+        stream whose file writer failed may hang in either). The file stays truncated."""
+        with self._guard():
+            self._closed = True
+            self._pending = []
+        log.error("recording abandoned truncated (%s): %s", self.failed, self.path)
+
+    def __enter__(self) -> Recorder:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def _drop(self, n: int) -> None:
+        if self._dropped_after_close == 0:
+            log.warning("recorder %s is closed: dropping data", self.path)
+        self._dropped_after_close += n
+
+    def _flush_locked(self) -> None:
+        if not self._pending:
+            return
+        batch = np.concatenate(self._pending)
+        self._pending = []
+        self._first_pending_t_s = None
+        n = batch.size
+        indexes = [
+            rr.TimeColumn(SENSOR_TIMELINE, duration=batch["t"]),
+            rr.TimeColumn(FRAME_TIMELINE, sequence=np.arange(self._frames, self._frames + n)),
+        ]
+        for field, entity in FIELD_ENTITIES.items():
+            self._rec.send_columns(
+                entity,
+                indexes=indexes,
+                columns=rr.Scalars.columns(scalars=batch[field].astype(np.float64)),
+            )
+        self._frames += n
+        t = batch["t"]
+        self._send_derived(indexes, batch)
+        self._last_t = float(t[-1])
+        self._rec.reset_time()
+        self._rec.set_time(SENSOR_TIMELINE, duration=float(t[-1]))
+        for field in self._scales:
+            peak = float(np.nanmax(np.abs(batch[field]), initial=0.0))
+            if peak > self._scales[field]:
+                self._scales[field] = nice_scale(peak)
+        f_scale = self._scales["f_meas"] or 1.0
+        for entity, (field, name, unit) in _LOOPS.items():
+            scale = self._scales[field] or 1.0
+            # the 2D view's y axis points down: -force, so that pulling is up as on paper
+            self._rec.log(
+                entity,
+                rr.LineStrips2D(
+                    [np.column_stack((batch[field] / scale, -batch["f_meas"] / f_scale))]
+                ),
+            )
+            self._rec.log(f"{entity}/{LOOP_AXES}", *loop_axes(name, unit, scale, f_scale))
+        self._rec.reset_time()
+        try:
+            self._rec.flush(timeout_sec=WRITE_TIMEOUT_S)
+        except RuntimeError as exc:
+            self.failed = str(exc)
+            raise RecordingError(f"{self.path}: writing failed: {exc}") from None
+
+    def _send_derived(self, indexes: list[Any], batch: np.ndarray) -> None:
+        """The tracking error and the gap between sensor frames, for the viewer's tabs."""
+        t = batch["t"]
+        prev = t[0] if self._last_t is None else self._last_t
+        gaps_ms = np.diff(t, prepend=prev) * 1e3
+        error = batch["f_meas"] - batch["f_des"]
+        self._rec.send_columns(
+            ERROR_ENTITY, indexes=indexes, columns=rr.Scalars.columns(scalars=error)
+        )
+        self._rec.send_columns(
+            GAP_ENTITY, indexes=indexes, columns=rr.Scalars.columns(scalars=gaps_ms)
+        )
+
+
+def loop_axes(name: str, unit: str, scale: float, f_scale: float) -> tuple[Any, Any]:
+    """A loop view's axes: two grey lines through 0 and their ends labelled with the full
+    scale and its unit (the drawn coordinates are value / full scale, force negated: the
+    view's y axis points down)."""
+    grey = [(150, 150, 150)]
+    lines = rr.LineStrips2D([[(-1.0, 0.0), (1.0, 0.0)], [(0.0, -1.0), (0.0, 1.0)]], colors=grey)
+    ticks = rr.Points2D(
+        [(1.0, 0.0), (-1.0, 0.0), (0.0, 1.0), (0.0, -1.0)],
+        labels=[
+            f"{name} +{scale:g} {unit}",
+            f"-{scale:g} {unit}",
+            f"-{f_scale:g} N",
+            f"force +{f_scale:g} N",
+        ],
+        colors=grey,
+        radii=0.01,
+    )
+    return lines, ticks
+
+
+def summary_document(d: dict[str, Any], rig: str) -> rr.TextDocument:
+    """The run's summary as the daemon prints it, for the viewer's summary view."""
+    from mrrig.loop.summary import format_summary
+
+    try:
+        text = format_summary(d)
+    except (KeyError, TypeError, ValueError):  # a partial summary: its JSON is still shown
+        text = json_text.dumps(d, indent=2)
+    body = f"# Run summary: rig {rig}\n\n```\n{text}\n```\n"
+    return rr.TextDocument(body, media_type=rr.MediaType.MARKDOWN)

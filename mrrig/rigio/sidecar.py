@@ -1,0 +1,735 @@
+"""The telemetry sidecar: every Zenoh (and Rerun) action of the daemon, in its own process.
+
+The control loop talks to it over the pipes of `mrrig.rigio.ipc` and never runs a Zenoh callback.
+The sidecar publishes `mrrig/<rig>/telemetry` (columnar JSON batches at `telemetry_hz`),
+`mrrig/<rig>/status` (on change and every second) and `mrrig/<rig>/events`, holds the
+liveliness token `mrrig/<rig>/alive`, forwards `mrrig/<rig>/control` queries to the loop as
+REQUESTs and `mrrig/<rig>/force_ref` puts as FORCE_REFs, answers `mrrig/<rig>/status` queries
+with the latest status (what `mrrig rigs` reads), and writes the recording. Every control
+request, answered or refused, becomes an audit event (`mrrig.rigio.audit`).
+
+Zenoh callbacks only queue their item and wake the main thread through a pipe; all the work
+is done by the main thread, which also closes the session (close waits for callbacks).
+
+Run: python -m mrrig.rigio.sidecar --rig NAME --zenoh-config FILE|'' --record PATH|'' --rx-fd N
+--tx-fd M [--telemetry-hz 50] [--live-url URL] [--nice 10] [--insecure]; or
+`start_sidecar(...)` from the daemon. An empty Zenoh config runs without Zenoh (recording only).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import math
+import os
+import queue
+import select
+import signal
+import subprocess
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Protocol
+
+import numpy as np
+import zenoh
+
+from mrrig import json_text
+from mrrig.loop.samples import FIELDS, SAMPLE_DTYPE
+from mrrig.rigio import audit
+from mrrig.rigio.control import RequestError, parse_request
+from mrrig.rigio.ipc import (
+    HEARTBEAT_PERIOD_S,
+    MAX_REQUEST_PAYLOAD,
+    ChannelFds,
+    Msg,
+    SidecarEnd,
+    decode_frames,
+    decode_json,
+    decode_samples,
+)
+from mrrig.rigio.zenoh_config import (
+    ZenohConfigError,
+    check_secure,
+    load_zenoh_config,
+    zenoh_error_text,
+)
+
+log = logging.getLogger(__name__)
+
+JSON = zenoh.Encoding.APPLICATION_JSON
+CONTROL_TIMEOUT_S = 1.0
+STATUS_REPEAT_S = 1.0
+NO_ANSWER = {"ok": False, "error": "daemon did not answer"}
+# requests waiting for the daemon, at most; more get "busy" at once (a disarm always goes on)
+MAX_IN_FLIGHT = 8
+INBOX_BATCH = 50  # Zenoh queries and force references handled between looks at the loop
+# a `status` control request is answered here from the loop's latest status (it sends one
+# every 0.1 s) while that is younger than this; older (a stalled loop), it goes to the loop
+STATUS_FRESH_S = 0.5
+# what a status publication is compared on: not the time or the counters, which always move
+_STATUS_KEY = (
+    "state",
+    "armed",
+    "controller",
+    "reference",
+    "fault",
+    "fault_reason",
+    "firmware_blocking",
+    "recording",
+)
+_SHUTDOWN_READS = 64  # bounded final drain: a loop that keeps writing cannot hold us
+_FLOAT_FIELDS = tuple(f for f in FIELDS if SAMPLE_DTYPE[f].kind == "f")
+
+
+class BusLog(Protocol):
+    """What the sidecar needs of `mrrig.rigio.canlog.BusLogWriter`."""
+
+    def write(self, frames: np.ndarray) -> None: ...
+    def close(self) -> None: ...
+
+
+class SampleSink(Protocol):
+    """What the sidecar needs of `mrrig.rigio.recording.Recorder`."""
+
+    def add_samples(self, arr: np.ndarray) -> None: ...
+    def add_event(self, t_s: float, level: str, text: str, **fields: Any) -> None: ...
+
+    failed: str  # why writing the file failed, "" while it has not
+
+    def add_summary(self, d: dict[str, Any]) -> None: ...
+    def close(self) -> None: ...
+    def abandon(self) -> None: ...
+
+
+def keys(rig: str) -> dict[str, str]:
+    """The rig's Zenoh key expressions (spec/system.md)."""
+    return {
+        name: f"mrrig/{rig}/{name}"
+        for name in ("telemetry", "status", "events", "force_ref", "control", "alive")
+    }
+
+
+def telemetry_json(rig: str, batch: np.ndarray) -> str:
+    """Columnar telemetry message: {"rig", "fields": {name: [values]}}.
+
+    Non-finite floats become null (JSON has no NaN/Infinity).
+    """
+    fields: dict[str, list[Any]] = {}
+    for name in FIELDS:
+        col = batch[name]
+        values = col.tolist()
+        if name in _FLOAT_FIELDS and not np.isfinite(col).all():
+            values = [v if math.isfinite(v) else None for v in values]
+        fields[name] = values
+    return json.dumps({"rig": rig, "fields": fields}, separators=(",", ":"))
+
+
+def parse_force_ref(payload: bytes) -> float:
+    """A force_ref payload (JSON number or {"force_n": x}) -> finite force in N.
+
+    Raises ValueError on anything else.
+    """
+    value = json.loads(payload)
+    if isinstance(value, dict):
+        value = value.get("force_n")
+    if isinstance(value, bool) or not isinstance(value, int | float):
+        raise ValueError('expected a JSON number or {"force_n": number}')
+    force_n = float(value)
+    if not math.isfinite(force_n):
+        raise ValueError("force is not finite")
+    return force_n
+
+
+@dataclass
+class _Pending:
+    query: zenoh.Query
+    deadline_s: float
+    request: dict[str, Any]
+    requester: dict[str, Any]
+
+
+class Sidecar:
+    """The sidecar's state and main loop (main thread); uses the session, does not close it."""
+
+    def __init__(
+        self,
+        rig: str,
+        session: zenoh.Session | None,
+        end: SidecarEnd,
+        recorder: SampleSink | None,
+        telemetry_hz: float,
+        warnings: list[str] | None = None,
+        bus_log: BusLog | None = None,
+    ) -> None:
+        """`warnings` (an insecure Zenoh config's) go into every status and the recording;
+        `bus_log` writes the loop's FRAMES."""
+        self._bus_log = bus_log
+        self.rig = rig
+        self._keys = keys(rig)
+        self._session = session
+        self._end = end
+        self._recorder = recorder
+        self._period_s = 1.0 / telemetry_hz
+        self._inbox: queue.SimpleQueue[tuple[str, Any, float]] = queue.SimpleQueue()
+        self._wake_r, self._wake_w = os.pipe()
+        os.set_blocking(self._wake_r, False)
+        os.set_blocking(self._wake_w, False)
+        self._stop = False
+        self._batches: list[np.ndarray] = []
+        self._last_t_s = 0.0
+        self._last_status: bytes | None = None  # as the loop sent it
+        self._last_status_key: tuple | None = None
+        self._status_rx_s = -math.inf  # when the loop's latest status came
+        self._heartbeat_s = -math.inf
+        self._status_out = b""  # as published: with the warnings
+        self._warnings = list(warnings or [])
+        self._status_sent_s = 0.0
+        self._pending: dict[int, _Pending] = {}
+        self._next_id = 1
+        self._entities: list[Any] = []
+        self._pubs: dict[str, zenoh.Publisher] = {}  # empty without a session
+
+    # -- called from Zenoh threads or signal handlers: queue and wake only ------------------
+    def _wake(self) -> None:
+        try:
+            os.write(self._wake_w, b"\0")
+        except BlockingIOError:
+            pass  # already awake: the pipe holds unread wake bytes
+
+    def _on_query(self, query: zenoh.Query) -> None:
+        self._inbox.put(("query", query, time.monotonic()))
+        self._wake()
+
+    def _on_status_query(self, query: zenoh.Query) -> None:
+        self._inbox.put(("status_query", query, time.monotonic()))
+        self._wake()
+
+    def _on_force_ref(self, sample: zenoh.Sample) -> None:
+        self._inbox.put(("force_ref", sample.payload.to_bytes(), time.monotonic()))
+        self._wake()
+
+    def request_stop(self, *_: Any) -> None:
+        """Signal-handler safe: ask the main loop to finish."""
+        self._stop = True
+        self._wake()
+
+    # -- main thread --------------------------------------------------------------------------
+    def run(self) -> None:
+        """Declare everything, serve until STOP / EOF / request_stop, then undeclare."""
+        s = self._session
+        if s is not None:
+            self._pubs = {
+                name: s.declare_publisher(self._keys[name], encoding=JSON)
+                for name in ("telemetry", "status", "events")
+            }
+            self._entities = [
+                *self._pubs.values(),
+                s.declare_queryable(self._keys["control"], self._on_query),
+                s.declare_queryable(self._keys["status"], self._on_status_query),
+                s.declare_subscriber(self._keys["force_ref"], self._on_force_ref),
+            ]
+            # last, so a token seen by others means the sidecar is ready
+            self._entities.append(s.liveliness().declare_token(self._keys["alive"]))
+            log.info("sidecar for rig %r serving on mrrig/%s/*", self.rig, self.rig)
+        else:
+            log.info("sidecar for rig %r: recording only, no Zenoh", self.rig)
+        for warning in self._warnings:
+            log.warning("%s", warning)
+            self._event({"t": 0.0, "level": "warning", "text": warning, "kind": "insecure"})
+        try:
+            self._serve()
+        finally:
+            self._shutdown()
+
+    def _serve(self) -> None:
+        next_telemetry_s = time.monotonic() + self._period_s
+        while not self._stop:
+            now = time.monotonic()
+            self._heartbeat(now)
+            wake_at = min(
+                (
+                    next_telemetry_s,
+                    self._heartbeat_s + HEARTBEAT_PERIOD_S,
+                    *(p.deadline_s for p in self._pending.values()),
+                )
+            )
+            if self._last_status is not None:
+                wake_at = min(wake_at, self._status_sent_s + STATUS_REPEAT_S)
+            if self._inbox.qsize():  # a burst left some: the loop's messages first, then on
+                wake_at = now
+            readable, _, _ = select.select(
+                [self._end, self._wake_r], [], [], max(0.0, wake_at - now)
+            )
+            if self._wake_r in readable:
+                self._drain_wake()
+            if self._inbox.qsize():
+                self._handle_inbox()
+            if self._end in readable:
+                self._handle_loop_messages(self._end.read_ready())
+                if self._end.eof:
+                    log.info("loop pipe closed: stopping")
+                    self._stop = True
+            now = time.monotonic()
+            if now >= next_telemetry_s:
+                self._publish_telemetry()
+                next_telemetry_s = max(next_telemetry_s + self._period_s, now)
+            if self._last_status is not None and now >= self._status_sent_s + STATUS_REPEAT_S:
+                self._publish_status(self._status_out, now)
+            self._expire_queries(now)
+
+    def _heartbeat(self, now: float) -> None:
+        """The sign of life the daemon watches: sent while this loop makes progress."""
+        if now - self._heartbeat_s >= HEARTBEAT_PERIOD_S:
+            self._end.send_heartbeat()
+            self._heartbeat_s = now
+
+    def _drain_wake(self) -> None:
+        try:
+            while os.read(self._wake_r, 4096):
+                pass
+        except BlockingIOError:
+            pass
+
+    def _handle_inbox(self) -> None:
+        """At most INBOX_BATCH items: a burst of requests does not hold up the loop's
+        messages, the heartbeat or the telemetry. A query that waited longer than the
+        daemon's answer timeout is answered busy, unread."""
+        for _ in range(INBOX_BATCH):
+            try:
+                kind, item, t_rx_s = self._inbox.get_nowait()
+            except queue.Empty:
+                return
+            now = time.monotonic()
+            self._heartbeat(now)
+            if kind == "query" and now - t_rx_s > CONTROL_TIMEOUT_S:
+                self._reply(item, {"ok": False, "error": "busy: the control plane is overloaded"})
+                continue
+            try:
+                if kind == "query":
+                    self._handle_query(item)
+                elif kind == "status_query":
+                    if self._status_out:
+                        self._reply(item, self._status_out, self._keys["status"])
+                    else:
+                        item.drop()  # no status yet: no answer, as if the rig were not there
+                else:
+                    self._handle_force_ref(item, t_rx_s)
+            except Exception:  # one request or sample never ends the control plane
+                log.exception("handling a %s failed", kind)
+                if kind == "query":
+                    self._reply(item, {"ok": False, "error": "internal error in the sidecar"})
+
+    def _handle_query(self, query: zenoh.Query) -> None:
+        raw = query.payload.to_bytes() if query.payload else b""
+        requester = audit.requester(query, self._session)
+        try:
+            request = parse_request(raw)
+        except RequestError as exc:
+            # the audit keeps a bounded excerpt of what was refused
+            self._answer(query, raw[:200], requester, {"ok": False, "error": str(exc)})
+            return
+        now = time.monotonic()
+        if request["cmd"] == "status" and now - self._status_rx_s <= STATUS_FRESH_S:
+            status = decode_json(self._last_status)
+            status["age_s"] = round(now - self._status_rx_s, 4)
+            self._answer(query, request, requester, {"ok": True, "status": status})
+            return
+        if len(self._pending) >= MAX_IN_FLIGHT and request["cmd"] != "disarm":
+            busy = {"ok": False, "error": f"busy: {MAX_IN_FLIGHT} requests in flight"}
+            self._answer(query, request, requester, busy)
+            return
+        request_id = self._next_id
+        self._next_id += 1
+        if len(raw) > MAX_REQUEST_PAYLOAD or not self._end.send_request(request_id, raw):
+            self._answer(query, request, requester, NO_ANSWER)
+            return
+        self._pending[request_id] = _Pending(query, now + CONTROL_TIMEOUT_S, request, requester)
+
+    def _answer(
+        self,
+        query: zenoh.Query,
+        request: dict[str, Any] | bytes,
+        requester: dict[str, Any],
+        reply: dict[str, Any],
+    ) -> None:
+        """Reply to a control query, and audit the request with its result."""
+        self._event(audit.event(self._last_t_s, request, reply, requester))
+        if self._warnings and isinstance(reply.get("status"), dict):
+            reply = {**reply, "status": {**reply["status"], "security_warning": self._warnings}}
+        self._reply(query, reply)
+
+    def _reply(
+        self, query: zenoh.Query, reply: dict[str, Any] | bytes, key: str | None = None
+    ) -> None:
+        text = reply if isinstance(reply, bytes) else json_text.dumps(reply)
+        try:
+            query.reply(key or self._keys["control"], text, encoding=JSON)
+        except zenoh.ZError as exc:
+            log.warning("could not reply to a control query: %s", exc)
+        query.drop()  # sends the final answer now instead of at garbage collection
+
+    def _expire_queries(self, now: float) -> None:
+        for request_id in [i for i, p in self._pending.items() if now >= p.deadline_s]:
+            log.warning("daemon did not answer control request %d", request_id)
+            p = self._pending.pop(request_id)
+            self._answer(p.query, p.request, p.requester, NO_ANSWER)
+
+    def _handle_force_ref(self, payload: bytes, t_rx_s: float) -> None:
+        try:
+            force_n = parse_force_ref(payload)
+        except ValueError as exc:
+            text = f"malformed force_ref ignored: {exc}"
+            log.warning("%s (payload %r)", text, payload[:80])
+            self._event(
+                {
+                    "t": self._last_t_s,
+                    "level": "warning",
+                    "text": text,
+                    "kind": "force_ref_malformed",
+                }
+            )
+            return
+        if not self._end.send_force_ref(force_n, t_rx_s):
+            log.warning("force_ref dropped: the pipe to the loop is full")
+
+    def _handle_loop_messages(self, messages: list[tuple[int, bytes]]) -> None:
+        for mtype, payload in messages:
+            try:
+                self._handle_loop_message(mtype, payload)
+            except Exception:  # a message that cannot be handled is logged, not fatal
+                log.exception("handling a %s message from the loop failed", mtype)
+
+    def _handle_loop_message(self, mtype: int, payload: bytes) -> None:
+        if mtype == Msg.SAMPLES:
+            batch = decode_samples(payload)
+            if batch.size:
+                self._batches.append(batch)
+                self._last_t_s = float(batch["t"][-1])
+                self._record("add_samples", batch)
+        elif mtype == Msg.EVENT:
+            self._event(decode_json(payload), payload)
+        elif mtype == Msg.STATUS:
+            # the loop sends one every 0.1 s; published on a change of state and every second
+            now = time.monotonic()
+            key = tuple(decode_json(payload).get(k) for k in _STATUS_KEY)
+            self._last_status, self._status_rx_s = payload, now
+            self._status_out = self._with_warnings(payload)
+            if key != self._last_status_key:
+                self._last_status_key = key
+                self._publish_status(self._status_out, now)
+        elif mtype == Msg.REPLY:
+            self._handle_reply(decode_json(payload))
+        elif mtype == Msg.SUMMARY:
+            self._record("add_summary", decode_json(payload))
+        elif mtype == Msg.FRAMES:
+            if self._bus_log is not None:
+                self._bus_log.write(decode_frames(payload))
+        elif mtype == Msg.STOP:
+            log.info("STOP from the loop")
+            self._stop = True
+        else:
+            log.warning("ignored unknown message type %d from the loop", mtype)
+
+    def _handle_reply(self, reply: dict[str, Any]) -> None:
+        pending = self._pending.pop(reply.pop("id", None), None)
+        if pending is None:
+            log.warning("reply to an unknown or expired request: %s", reply)
+            return
+        self._answer(pending.query, pending.request, pending.requester, reply)
+
+    def _with_warnings(self, status: bytes) -> bytes:
+        if not self._warnings:
+            return status
+        return json_text.dumps({**decode_json(status), "security_warning": self._warnings}).encode()
+
+    def _event(self, event: dict[str, Any], raw: bytes | None = None) -> None:
+        self._publish("events", raw if raw is not None else json_text.dumps(event))
+        fields = {k: v for k, v in event.items() if k not in ("t", "level", "text")}
+        self._record(
+            "add_event",
+            float(event.get("t", self._last_t_s)),
+            str(event.get("level", "info")),
+            str(event.get("text", "")),
+            **fields,
+        )
+
+    def _publish_status(self, payload: bytes, now: float) -> None:
+        self._publish("status", payload)
+        self._status_sent_s = now
+
+    def _publish(self, name: str, payload: bytes | str) -> None:
+        pub = self._pubs.get(name)
+        if pub is not None:
+            pub.put(payload)
+
+    def _publish_telemetry(self) -> None:
+        if not self._batches:
+            return
+        batch = np.concatenate(self._batches)
+        self._batches = []
+        if "telemetry" in self._pubs:
+            self._publish("telemetry", telemetry_json(self.rig, batch))
+
+    def _record(self, method: str, *args: Any, **kwargs: Any) -> None:
+        if self._recorder is None:
+            return
+        try:
+            getattr(self._recorder, method)(*args, **kwargs)
+        except Exception as exc:
+            # keep telemetry alive; the recording is lost from here on, loudly: an event, and
+            # the loop is told (a fault: a test run whose record is gone is stopped)
+            log.exception("recording failed; recording stopped")
+            path = getattr(self._recorder, "path", "the recording")
+            reason = f"{exc}; {path} is truncated"
+            # told first: closing a stream whose writer hangs may hang too
+            self._end.send_notice({"kind": "recording_failed", "reason": reason})
+            self._publish(
+                "events",
+                json_text.dumps(
+                    {
+                        "t": self._last_t_s,
+                        "level": "error",
+                        "text": f"recording failed; recording stopped: {reason}",
+                        "kind": "recording_failed",
+                        "reason": reason,
+                    }
+                ),
+            )
+            recorder, self._recorder = self._recorder, None
+            if recorder.failed:  # its file writer failed: closing could hang
+                recorder.abandon()
+            else:
+                self._close_recorder_obj(recorder)
+
+    def _close_recorder(self) -> None:
+        recorder, self._recorder = self._recorder, None
+        if recorder is not None:
+            self._close_recorder_obj(recorder)
+
+    @staticmethod
+    def _close_recorder_obj(recorder: SampleSink) -> None:
+        try:
+            recorder.close()
+        except Exception:
+            log.exception("closing the recording failed")
+
+    def _shutdown(self) -> None:
+        # what the loop wrote just before stopping (summary, last samples) still counts
+        for _ in range(_SHUTDOWN_READS):
+            if self._end.eof or not select.select([self._end], [], [], 0)[0]:
+                break
+            self._handle_loop_messages(self._end.read_ready())
+        self._publish_telemetry()
+        for p in self._pending.values():
+            self._answer(p.query, p.request, p.requester, {"ok": False, "error": "daemon stopping"})
+        self._pending.clear()
+        for entity in reversed(self._entities):
+            try:
+                entity.undeclare()
+            except zenoh.ZError as exc:
+                log.warning("undeclare failed: %s", exc)
+        self._entities = []
+        self._close_recorder()
+        os.close(self._wake_r)
+        os.close(self._wake_w)
+
+
+def lower_priority(nice: int) -> None:
+    """SCHED_BATCH + nice for this thread and the threads it starts later (Zenoh's): at
+    normal priority the sidecar, woken by the loop's pipe writes, preempts the loop."""
+    try:
+        os.sched_setscheduler(0, os.SCHED_BATCH, os.sched_param(0))
+        os.nice(nice)
+    except (OSError, AttributeError) as exc:  # not Linux, or not permitted
+        log.warning("could not lower the sidecar's priority: %s", exc)
+
+
+def run_sidecar(
+    rig: str,
+    zenoh_config: str | Path | None,
+    record: str | Path | None,
+    rx_fd: int,
+    tx_fd: int,
+    telemetry_hz: float = 50.0,
+    live_url: str | None = None,
+    insecure: bool = False,
+    can_log: tuple[str, str] | None = None,
+) -> int:
+    """Run until STOP, EOF, SIGTERM or SIGINT; returns the exit status: 0, 2 for a refused
+    config (`check_secure`: off loopback without authentication and access control, unless
+    `insecure`), 3 if the session cannot open (port taken) or the recording cannot be written.
+
+    Once its session and recording are open (or have failed) it sends READY to the loop, with
+    the failure as one line: the daemon stops its start-up on it (a rig must not run
+    unobserved)."""
+    warnings: list[str] = []
+    end = SidecarEnd(rx_fd, tx_fd)
+    try:
+        conf = load_zenoh_config(zenoh_config) if zenoh_config else None
+        if conf is not None:
+            warnings = check_secure(conf, str(zenoh_config), insecure)
+    except ZenohConfigError as exc:
+        log.debug("%s", exc)
+        end.send_ready(str(exc))
+        end.close()
+        return 2
+    # past a file size limit a write fails (EFBIG) instead of killing the process: the
+    # recording then fails as on a full disk, and telemetry goes on
+    signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
+    stop_early: list[int] = []  # a signal before the Sidecar exists still stops it
+    for signum in (signal.SIGTERM, signal.SIGINT):
+        signal.signal(signum, lambda num, _frame: stop_early.append(num))
+    recorder: SampleSink | None = None
+    session: zenoh.Session | None = None
+    bus_log = None
+    try:
+        if can_log is not None:
+            from mrrig.rigio.canlog import BusLogError, BusLogWriter
+
+            try:
+                bus_log = BusLogWriter(*can_log)
+            except BusLogError as exc:
+                end.send_ready(str(exc))
+                return 3
+        if record:
+            from mrrig.rigio.recording import Recorder  # rerun is heavy: only when recording
+
+            try:
+                recorder = Recorder(record, rig, flush_interval_s=0.5, live_url=live_url)
+            except Exception as exc:  # noqa: BLE001 - reported to the daemon as one line
+                text = exc.strerror if isinstance(exc, OSError) and exc.strerror else exc
+                end.send_ready(f"cannot write the recording {record}: {text}")
+                return 3
+        try:
+            session = zenoh.open(conf) if conf is not None else None
+        except zenoh.ZError as exc:  # e.g. the listen port is taken
+            text = zenoh_error_text(exc)
+            hint = ""
+            if "address already in use" in text.lower():
+                hint = (
+                    " (another daemon or zenohd listens there: stop it, or give this rig"
+                    " another port in its Zenoh config)"
+                )
+            log.debug("%s: cannot open the Zenoh session: %s", zenoh_config, text)
+            end.send_ready(f"{zenoh_config}: cannot open the Zenoh session: {text}{hint}")
+            return 3
+        sidecar = Sidecar(rig, session, end, recorder, telemetry_hz, warnings, bus_log)
+        for signum in (signal.SIGTERM, signal.SIGINT):
+            signal.signal(signum, sidecar.request_stop)
+        if stop_early:
+            sidecar.request_stop()
+        end.send_ready()
+        sidecar.run()
+    finally:
+        if session is not None:
+            session.close()
+        if recorder is not None:
+            recorder.close()  # idempotent; covers a failure before run() took it over
+        if bus_log is not None:
+            bus_log.close()
+        end.close()
+    log.info("sidecar stopped")
+    if recorder is not None and recorder.failed:
+        # rerun's exit handler waits for the file writer that failed, for ever: leave without
+        logging.shutdown()
+        os._exit(0)
+    return 0
+
+
+def start_sidecar(
+    rig: str,
+    zenoh_config: str | Path | None,
+    fds: ChannelFds,
+    record: str | Path | None = None,
+    telemetry_hz: float = 50.0,
+    live_url: str | None = None,
+    insecure: bool = False,
+    can_log: tuple[str | Path, str] | None = None,
+) -> subprocess.Popen[bytes]:
+    """Start the sidecar process on the sidecar's ends of `fds`, and close those ends here.
+
+    `zenoh_config` None: no Zenoh at all (recording only); `record` None: no recording;
+    `can_log` (path, channel name written in it): the bus log of `mrrig.rigio.canlog`.
+
+    The child gets its own session (process group), so a Ctrl-C at the terminal reaches only
+    the daemon, which then sends its summary and STOP.
+    """
+    cmd = [
+        sys.executable,
+        "-m",
+        "mrrig.rigio.sidecar",
+        "--rig",
+        rig,
+        "--zenoh-config",
+        str(zenoh_config or ""),
+        "--record",
+        str(record or ""),
+        "--rx-fd",
+        str(fds.sidecar_rx),
+        "--tx-fd",
+        str(fds.sidecar_tx),
+        "--telemetry-hz",
+        str(telemetry_hz),
+    ]
+    if live_url:
+        cmd += ["--live-url", live_url]
+    if insecure:
+        cmd.append("--insecure")
+    if can_log is not None:
+        cmd += ["--can-log", str(can_log[0]), "--can-log-channel", can_log[1]]
+    proc = subprocess.Popen(cmd, pass_fds=fds.sidecar_fds(), start_new_session=True)
+    # the loop must see EOF / EPIPE when the sidecar dies, so it holds no copy of these
+    os.close(fds.sidecar_rx)
+    os.close(fds.sidecar_tx)
+    return proc
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m mrrig.rigio.sidecar", description=__doc__)
+    parser.add_argument("--rig", required=True)
+    parser.add_argument("--zenoh-config", required=True, help="'' for no Zenoh (recording only)")
+    parser.add_argument("--record", default="", help="recording path; '' records nothing")
+    parser.add_argument("--rx-fd", type=int, required=True)
+    parser.add_argument("--tx-fd", type=int, required=True)
+    parser.add_argument("--telemetry-hz", type=float, default=50.0)
+    parser.add_argument("--live-url", default=None, help="also stream to a Rerun viewer")
+    parser.add_argument(
+        "--nice",
+        type=int,
+        default=10,
+        help="niceness increment (SCHED_BATCH too), so waking the sidecar "
+        "does not preempt the control loop; 0 keeps the priority",
+    )
+    parser.add_argument(
+        "--insecure",
+        action="store_true",
+        help="allow a config off loopback without authentication and access control "
+        "(a closed lab network); warned in every status and the recording",
+    )
+    parser.add_argument("--can-log", default=None, help="bus log file (.blf, .asc, .log, ...)")
+    parser.add_argument("--can-log-channel", default="can0", help="channel name in the bus log")
+    parser.add_argument("--log-level", default="INFO")
+    args = parser.parse_args(argv)
+    logging.basicConfig(
+        level=args.log_level, format="%(asctime)s sidecar %(levelname)s %(name)s: %(message)s"
+    )
+    if args.nice:
+        lower_priority(args.nice)
+    return run_sidecar(
+        args.rig,
+        args.zenoh_config or None,
+        args.record or None,
+        args.rx_fd,
+        args.tx_fd,
+        args.telemetry_hz,
+        args.live_url,
+        args.insecure,
+        (args.can_log, args.can_log_channel) if args.can_log else None,
+    )
+
+
+if __name__ == "__main__":
+    sys.exit(main())
