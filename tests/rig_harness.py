@@ -100,6 +100,7 @@ class ScriptedRig:
         self.daemon = Daemon(self.cfg, keep_batches=True, **daemon_kw)
         self.thread = threading.Thread(target=self.daemon.run, daemon=True)
         self.counter = 0
+        self.unprompted_seen = 0  # SAFE commands of the daemon's own skipped by `command`
 
     def __enter__(self) -> ScriptedRig:
         self.thread.start()
@@ -113,6 +114,11 @@ class ScriptedRig:
         self.thread.join(timeout=5)
         self.bus.shutdown()
         assert not self.thread.is_alive(), "daemon did not stop"
+        sent = self.daemon.counters["safe_commands_unprompted"]
+        assert self.unprompted_seen <= sent, (
+            f"{self.unprompted_seen} SAFE commands echoed another frame's counter, but the "
+            f"daemon sent only {sent} on its own"
+        )
 
     def drain(self) -> None:
         while self.bus.recv(timeout=0) is not None:
@@ -156,8 +162,13 @@ class ScriptedRig:
         msg.timestamp = time.time()
         self.bus.send(msg)
 
-    def command(self, timeout=0.5) -> dict | None:
-        """The next DamperCommand (decoded), skipping ActuatorCommands; None on timeout."""
+    def command(self, timeout=0.5, expect: int | None = None) -> dict | None:
+        """The next DamperCommand (decoded), skipping ActuatorCommands; None on timeout.
+
+        With `expect` (the counter of the frame just sent): a SAFE command that echoes another
+        counter is the daemon's own after a sensor timeout (the test thread was slower than
+        the timeout between two frames) and is skipped; each one skipped must be one the
+        daemon counted as sent unprompted (checked on exit). An ACTIVE one is returned."""
         end = time.monotonic() + timeout
         while (left := end - time.monotonic()) > 0:
             msg = self.bus.recv(timeout=left)
@@ -166,7 +177,11 @@ class ScriptedRig:
             if msg.arbitration_id == 0x210:
                 p = self.parser.parse(msg.arbitration_id, msg.data, time.monotonic())
                 assert p.ok, p.reason
-                return p.values
+                v = p.values
+                if expect is not None and v["SensorCounterEcho"] != expect and v["Mode"] == 0:
+                    self.unprompted_seen += 1
+                    continue
+                return v
         return None
 
     def request(self, req: dict, max_frames: int = 200) -> dict:
@@ -191,7 +206,7 @@ class ScriptedRig:
     def exchange(self, **kw) -> dict:
         """One sensor frame and the command that answers it."""
         c = self.sensors(**kw)
-        cmd = self.command()
+        cmd = self.command(expect=c)
         assert cmd is not None, f"no command for sensor frame {c}"
         assert cmd["SensorCounterEcho"] == c
         return cmd

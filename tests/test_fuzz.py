@@ -109,7 +109,7 @@ def test_random_and_mutated_frames_never_get_a_command_and_genuine_ones_get_one(
             rig.bus.send(junk)
             stale = data.draw(st.booleans())
             counter = rig.sensors(age_s=0.2 if stale else 0.0)
-            _check(rig.command(), counter, stale)
+            _check(rig.command(expect=counter), counter, stale)
         assert rig.command(timeout=0.02) is None, "a command for a frame that was no valid one"
         assert rig.thread.is_alive()
 
@@ -169,7 +169,7 @@ class RequestSequences(RuleBasedStateMachine):
     @rule(stale=st.booleans(), flags=st.sampled_from([{}, {"EStop": 1}, {"SensorFault": 1}]))
     def frame(self, stale, flags) -> None:
         counter = self.rig.sensors(age_s=0.2 if stale else 0.0, **flags)
-        _check(self.rig.command(), counter, stale)
+        _check(self.rig.command(expect=counter), counter, stale)
 
     @rule()
     def rearm(self) -> None:
