@@ -197,7 +197,10 @@ class BoucWenDamper:
         self._dt_s = -1.0
         self._m = 0
         self._nodes: tuple[tuple[float, ...], ...] = ()
-        self._fast_nodes: dict[int, tuple[tuple[float, ...], ...]] = {}  # more sub-steps, same dt
+        # the last fast step's nodes (more sub-steps, same dt) and their number: one table, so
+        # that a run's memory does not grow with every new speed its stalls bring
+        self._fast_m = 0
+        self._fast_nodes: tuple[tuple[float, ...], ...] = ()
         self.reset(0.0)
 
     def set_params(self, params: BoucWenParams) -> None:
@@ -234,7 +237,7 @@ class BoucWenDamper:
                 raise ValueError(f"dt_s must be positive, got {dt_s}")
             self._m = max(1, math.ceil(dt_s / self.substep_s - 1e-9))
             self._nodes = _hermite_nodes(dt_s, self._m)
-            self._fast_nodes = {}
+            self._fast_m, self._fast_nodes = 0, ()
             self._dt_s = dt_s
         k = self._k
         x0, v0, x1, v1 = self._x, self._xd, x_m, xd_m_s
@@ -242,9 +245,9 @@ class BoucWenDamper:
         travel_m = _speed_bound(x0, v0, x1, v1, dt_s) * dt_s
         if travel_m > m * self._max_substep_travel_m and math.isfinite(travel_m):
             m = min(math.ceil(travel_m / self._max_substep_travel_m), _MAX_SUBSTEPS)
-            if m not in self._fast_nodes:
-                self._fast_nodes[m] = _hermite_nodes(dt_s, m)
-            nodes = self._fast_nodes[m]
+            if m != self._fast_m:  # a sustained fast motion reuses them
+                self._fast_m, self._fast_nodes = m, _hermite_nodes(dt_s, m)
+            nodes = self._fast_nodes
         h = dt_s / m
         h2, h6 = 0.5 * h, h / 6.0
         z, y, u = self._z, self._y, self._u

@@ -1,4 +1,5 @@
 import dataclasses
+import tracemalloc
 
 import numpy as np
 import pytest
@@ -156,6 +157,31 @@ def test_a_step_faster_than_its_substeps_are_stable_for_takes_more_of_them(speed
         forces.append(f)
     assert np.all(np.isfinite(forces[0]))
     np.testing.assert_allclose(forces[0], forces[1], atol=1.0)
+
+
+def test_fast_steps_keep_one_table_of_sub_steps_not_one_per_speed():
+    # the daemon's Bouc-Wen reference after each bus stall: the stall's travel in one step, a
+    # new speed and so a new number of sub-steps each time; a node table kept per number
+    # grew the daemon by MBs over a 10-minute run (docs/measurements.md)
+    from damper.plant import _MAX_SUBSTEPS, _hermite_nodes
+
+    damper = BoucWenDamper(BoucWenParams.preset("rig-current"), 2.5e-4)
+    damper.reset(0.0, 0.0, 0.5)
+    tracemalloc.start()
+    try:
+        before = tracemalloc.get_traced_memory()[0]
+        largest = _hermite_nodes(2e-3, _MAX_SUBSTEPS)
+        one_table = tracemalloc.get_traced_memory()[0] - before
+        del largest
+        x, sign = 0.0, 1.0
+        for speed in np.linspace(0.4, 17.0, 20):  # 9 to 384 sub-steps
+            x = sign * 0.5 * speed * 2e-3
+            damper.step(x, sign * speed, 0.5, 2e-3)
+            sign = -sign
+        kept = tracemalloc.get_traced_memory()[0] - before
+    finally:
+        tracemalloc.stop()
+    assert kept < 2 * one_table, f"{kept} bytes kept after 20 speeds, one table {one_table}"
 
 
 def test_step_rejects_non_positive_interval():
