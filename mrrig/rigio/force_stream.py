@@ -187,7 +187,7 @@ def send_force(
         latest = _LatestStatus()
         sub = session.declare_subscriber(keys(rig)["status"], latest)
         stack.callback(sub.undeclare)
-        # BLOCK: a loaded machine's Zenoh drops puts by default (14 of 201 seen here), and a
+        # BLOCK: Zenoh drops puts under congestion by default on a loaded machine, and a
         # dropped sample of the ramp is a step the daemon was never asked for
         pub = session.declare_publisher(
             keys(rig)["force_ref"],
