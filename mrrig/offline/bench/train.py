@@ -10,7 +10,9 @@ on a fixed structure (lagged current, no history, one start, no supervised inver
 Kalman estimates, bad-stretch exclusion, features, the time-block split, LM on the coverage
 subsample, the on-line continuity choice and the hold-out report. Printed per size: wall
 time, the LM's part, peak memory, the cost per sample (all, and without LM) and its ratio to
-the previous size's and to 100k's, and the marginal cost per added sample.
+the previous size's and to 100k's, and the marginal cost per added sample. Then the scaling
+(`scaling`): from 100k (or the smallest size) to the largest, the ratio of the cost per sample
+and the spread of the marginal cost between the steps, each against a factor of 2.
 """
 
 from __future__ import annotations
@@ -39,6 +41,8 @@ log = logging.getLogger(__name__)
 FS_HZ = 500.0
 RUN_S = 4.0
 POOL_RUNS = 500  # x 2000 samples: 1M
+SCALING_BASE = 100_000  # the scaling is judged from this size (or the smallest) upwards
+SCALING_FACTOR = 2.0
 SUBSTEP_S = 2e-4
 SIZES = (10_000, 100_000, 1_000_000, 10_000_000)
 DISPLACEMENT_NOISE_M = 1e-5
@@ -46,24 +50,24 @@ FORCE_NOISE_N = 2.0
 SEED = 4404
 
 
-def _pool_path() -> Path:
-    return Path(tempfile.gettempdir()) / f"mrrig-bench-train-pool-{SEED}-{POOL_RUNS}.npz"
+def _pool_path(runs: int) -> Path:
+    return Path(tempfile.gettempdir()) / f"mrrig-bench-train-pool-{SEED}-{runs}.npz"
 
 
-def make_pool() -> Path:
-    """Simulate (or reuse) the pool of runs: x, xd, current, force, each (POOL_RUNS, T)."""
-    path = _pool_path()
+def make_pool(runs: int = POOL_RUNS) -> Path:
+    """Simulate (or reuse) the pool of runs: x, current, force, each (runs, T)."""
+    path = _pool_path(runs)
     if path.is_file():
         return path
     rng = np.random.default_rng(SEED)
     n = round(RUN_S * FS_HZ)
     dt = 1.0 / FS_HZ
-    x, xd, cur = (np.empty((POOL_RUNS, n)) for _ in range(3))
-    for j in range(POOL_RUNS):
+    x, xd, cur = (np.empty((runs, n)) for _ in range(3))
+    for j in range(runs):
         x[j], xd[j], _ = bandlimited_noise(n, dt, 5.0, 0.02, rng)
         cur[j] = np.clip(bandlimited_noise(n, dt, 3.0, 1.2, rng)[0] + 1.0, 0.0, 2.0)
     t0 = time.perf_counter()
-    log.info("simulating the pool: %d runs x %d samples (once; cached at %s)", POOL_RUNS, n, path)
+    log.info("simulating the pool: %d runs x %d samples (once; cached at %s)", runs, n, path)
     f = simulate(BoucWenParams.preset("rig-current"), np.arange(n) * dt, x, xd, cur, SUBSTEP_S)
     log.info("pool simulated in %.0f s", time.perf_counter() - t0)
     tmp = path.with_suffix(".tmp.npz")
@@ -100,7 +104,7 @@ def _rss_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0  # Linux: kB
 
 
-def child(n: int, epochs: int) -> dict:
+def child(n: int, epochs: int, pool_runs: int = POOL_RUNS) -> dict:
     """One size, in this process: the numbers of `run`'s table."""
     import torch
 
@@ -111,7 +115,7 @@ def child(n: int, epochs: int) -> dict:
     )
 
     torch.set_num_threads(1)
-    s = series_of_size(make_pool(), n)
+    s = series_of_size(make_pool(pool_runs), n)
     data_mb = _rss_mb()
     t0 = time.perf_counter()
     s = estimate_derivatives(s)
@@ -180,6 +184,67 @@ def format_table(rows: list[dict]) -> str:
     return "\n".join(lines)
 
 
+def scaling(rows: list[dict]) -> dict | None:
+    """How the cost grows with the data, from `SCALING_BASE` samples (or the smallest size)
+    to the largest; None with one size. `per_sample_ratio`: the wall time per sample at the
+    largest size over the base's (1: linear; under 1: cheaper per sample, the fixed part
+    spread over more samples). `marginal_steps`: the added wall time per added sample of
+    each step above the base; `marginal_spread`: their largest over their smallest (the part
+    of the cost that grows with the data: linear where it stays within `SCALING_FACTOR`)."""
+    ordered = sorted(rows, key=lambda r: r["samples"])
+    base = next((r for r in ordered if r["samples"] == SCALING_BASE), ordered[0])
+    above = [r for r in ordered if r["samples"] > base["samples"]]
+    if not above:
+        return None
+
+    def per(r: dict) -> float:
+        return r["wall_s"] / r["samples"] * 1e6
+
+    steps, prev = [], base
+    for r in above:
+        added = (r["wall_s"] - prev["wall_s"]) / (r["samples"] - prev["samples"]) * 1e6
+        steps.append({"from": prev["samples"], "to": r["samples"], "marginal_us": added})
+        prev = r
+    marginal = [st["marginal_us"] for st in steps]
+    spread = max(marginal) / min(marginal) if len(steps) > 1 and min(marginal) > 0.0 else None
+    ratio = per(above[-1]) / per(base)
+    return {
+        "from": base["samples"],
+        "to": above[-1]["samples"],
+        "per_sample_us": [per(base), per(above[-1])],
+        "per_sample_ratio": ratio,
+        "per_sample_within_factor": 1.0 / SCALING_FACTOR <= ratio <= SCALING_FACTOR,
+        "marginal_steps": steps,
+        "marginal_spread": spread,
+        "marginal_within_factor": spread is not None and spread <= SCALING_FACTOR,
+        "factor": SCALING_FACTOR,
+    }
+
+
+def scaling_lines(sc: dict | None) -> list[str]:
+    """`scaling` in words: the raw per-sample ratio and the marginal costs' spread."""
+    if sc is None:
+        return ["scaling: one size only"]
+    f = sc["factor"]
+    a, b = sc["per_sample_us"]
+    steps = ", ".join(
+        f"{st['from']}->{st['to']} {st['marginal_us']:.2f} us" for st in sc["marginal_steps"]
+    )
+    spread = sc["marginal_spread"]
+    return [
+        f"scaling {sc['from']} -> {sc['to']} samples, against a factor of {f:g}:",
+        f"  cost per sample {a:.2f} -> {b:.2f} us: x {sc['per_sample_ratio']:.3f}"
+        f" (within a factor of {f:g}: {'yes' if sc['per_sample_within_factor'] else 'no'})",
+        f"  marginal cost per added sample: {steps};"
+        + (
+            f" largest / smallest {spread:.2f}"
+            f" (within a factor of {f:g}: {'yes' if sc['marginal_within_factor'] else 'no'})"
+            if spread is not None
+            else " (a spread needs two steps with a positive cost)"
+        ),
+    ]
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="mrrig bench train", description=__doc__.splitlines()[0])
     ap.add_argument(
@@ -188,15 +253,23 @@ def main(argv: list[str] | None = None) -> int:
         help="sample counts, comma-separated (default %(default)s)",
     )
     ap.add_argument("--epochs", type=COUNT, default=1000, help="LM epoch limit (default 1000)")
+    ap.add_argument(
+        "--pool-runs",
+        type=COUNT,
+        default=POOL_RUNS,
+        help="distinct simulated runs of 2000 samples, repeated with fresh noise for larger"
+        " sizes (default %(default)s)",
+    )
     ap.add_argument("--json", type=output_file, help="also write the numbers to this JSON file")
     ap.add_argument("--child", type=int, help=argparse.SUPPRESS)
     ap.add_argument("--table", type=Path, help=argparse.SUPPRESS)  # reprint a --json file
     args = ap.parse_args(argv)
     if args.table is not None:
-        print(format_table(json.loads(args.table.read_text())["sizes"]))
+        rows = json.loads(args.table.read_text())["sizes"]
+        print("\n".join([format_table(rows), *scaling_lines(scaling(rows))]))
         return 0
     if args.child is not None:
-        print(json.dumps(child(args.child, args.epochs)))
+        print(json.dumps(child(args.child, args.epochs, args.pool_runs)))
         return 0
     try:
         sizes = [int(v) for v in args.sizes.split(",")]
@@ -204,7 +277,7 @@ def main(argv: list[str] | None = None) -> int:
         ap.error(f"argument --sizes: expected integers, got {args.sizes!r}")
     if any(n < 5_000 for n in sizes):
         ap.error("argument --sizes: each must be >= 5000")
-    make_pool()
+    make_pool(args.pool_runs)
     rows = []
     for n in sizes:
         log.info("training on %d samples (own process)", n)
@@ -217,6 +290,8 @@ def main(argv: list[str] | None = None) -> int:
                 str(n),
                 "--epochs",
                 str(args.epochs),
+                "--pool-runs",
+                str(args.pool_runs),
             ],
             check=True,
             stdout=subprocess.PIPE,
@@ -226,9 +301,12 @@ def main(argv: list[str] | None = None) -> int:
         log.info(
             "%d samples: %.1f s wall, peak %.0f MB", n, rows[-1]["wall_s"], rows[-1]["peak_rss_mb"]
         )
-    print(format_table(rows))
+    sc = scaling(rows)
+    print("\n".join([format_table(rows), *scaling_lines(sc)]))
     if args.json:
-        args.json.write_text(json_text.dumps({"sizes": rows}, indent=2), encoding="utf-8")
+        args.json.write_text(
+            json_text.dumps({"sizes": rows, "scaling": sc}, indent=2), encoding="utf-8"
+        )
     return 0
 
 
