@@ -5,7 +5,7 @@ import tempfile
 
 import pytest
 
-from mrrig.bench.train import main, scaling, scaling_lines
+from mrrig.offline.bench.train import main, scaling, scaling_lines
 
 
 def _row(samples: int, wall_s: float) -> dict:
