@@ -2,6 +2,7 @@
 structure search's folds, `mrrig evaluate` (spec/modeling.md 4 C; issue 27)."""
 
 import json
+import math
 from pathlib import Path
 
 import numpy as np
@@ -15,17 +16,22 @@ from mrrig.offline.datasets import Series
 from mrrig.offline.evaluate import main as evaluate_main
 from mrrig.offline.training import (
     COIL_LAG_TAU_S,
+    INPUT_NAMES,
+    INPUT_UNITS,
     block_split,
     coverage_subsample,
     estimate_derivatives,
     exclude_bad_stretches,
+    features,
     fit_lag_tau,
     load_training_data,
+    select,
     train_and_validate,
 )
 from mrrig.offline.training import data as training_data
 from mrrig.offline.training.data import stretches
 from mrrig.offline.training.features import feature_rows
+from mrrig.offline.training.lm import train_lm
 from mrrig.offline.training.select import FOLDS, Candidate, _folds, command_varies
 
 MEASURED = Path(__file__).resolve().parents[2] / "shared" / "data" / "dyke-mr-damper-ransim-u.csv"
@@ -93,6 +99,28 @@ def test_the_search_folds_never_touch_any_candidates_hold_out(varying):
         f = fold[varying.run_id == r]
         f = f[f >= 0]
         assert np.all(np.diff(f) >= 0)
+
+
+def test_inversion_over_the_budget_is_timed_again_before_a_candidate_is_refused(
+    varying, monkeypatch
+):
+    X, y = features(varying, "lagged")
+    model, _ = train_lm(X[:400], y[:400], INPUT_NAMES, INPUT_UNITS, "force", "N", hidden=5,
+                        max_epochs=2)  # fmt: skip
+    made = []
+
+    class Counted(select.ScalarInverter):  # the real inverter, its passes counted
+        def __init__(self, *args, **kwargs):
+            made.append(1)
+            super().__init__(*args, **kwargs)
+
+    monkeypatch.setattr(select, "ScalarInverter", Counted)
+    fast = select._inversion_us(model, X, y, repeats=2, budget_us=math.inf, rounds=3)
+    assert len(made) == 2 * 2  # one round: each repeat prepared and full
+    made.clear()
+    slow = select._inversion_us(model, X, y, repeats=2, budget_us=0.0, rounds=3)
+    assert len(made) == 3 * 2 * 2  # no time is within 0 us: every round
+    assert 0.0 < slow[0] and 0.0 < fast[0]
 
 
 def test_command_lag_is_found_by_the_1d_search(varying):
