@@ -169,3 +169,29 @@ def test_rearm_limit_counts_the_rearms_within_its_window():
     assert limit.ended
     assert not limit.allows(100.0)
     assert RearmLimit(0, 10.0).ended
+
+
+@pytest.mark.process
+def test_a_terminated_demo_stops_its_bridge_simulator_and_daemon(tmp_path, sim_model):
+    cfg = rig_config(tmp_path, "ws://127.0.0.1:1/", sim_model, rig={"name": "demo-term"})
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "mrrig", "demo", "--config", str(cfg), "--model", str(sim_model),
+         "--duration", "60", "--record", str(tmp_path / "demo.rrd")],
+        cwd=REPO,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+    )  # fmt: skip
+    out = OutputWatch(proc, "loop running")
+    try:
+        assert out.seen.wait(120), out.text()
+        children = Path(f"/proc/{proc.pid}/task/{proc.pid}/children").read_text().split()
+        assert len(children) >= 3, (children, out.text())  # the bridge, the simulator, the daemon
+        proc.terminate()
+        assert proc.wait(30) == 130, out.text()
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    out.join()
+    left = [pid for pid in children if Path(f"/proc/{pid}").exists()]
+    assert not left, f"still running after the demo: {left}\n{out.text()}"

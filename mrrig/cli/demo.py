@@ -68,6 +68,10 @@ def ensure_sim_model(path: Path, seed: int = 0) -> Path:
     return path
 
 
+def _interrupt(signum: int, frame) -> None:
+    raise KeyboardInterrupt(f"signal {signum}")
+
+
 def _stop(proc: subprocess.Popen, name: str, timeout_s: float = 10.0) -> int:
     if proc.poll() is None:
         proc.send_signal(signal.SIGTERM)
@@ -244,6 +248,9 @@ def main(argv: list[str] | None = None) -> int:
     port = find_free_port()
     work = Path(tempfile.mkdtemp(prefix="mrrig-demo-"))
     channel = f"ws://127.0.0.1:{port}/"
+    # SIGTERM (a service manager, a test's timeout) stops the demo as Ctrl-C does: through
+    # the `finally` below, so that the bridge, the simulator and the daemon stop with it
+    signal.signal(signal.SIGTERM, _interrupt)
     bridge = start_bridge(port)
     sim = daemon = None
     try:
