@@ -143,6 +143,22 @@ def test_full_pipe_drops_and_counts_instead_of_blocking(ends):
     assert all(p == arr.tobytes() for _, p in msgs)
 
 
+def test_a_summary_with_more_faults_than_a_message_holds_lists_the_first_and_counts_the_rest(
+    ends,
+):
+    loop, side = ends
+    faults = [
+        {"t": 0.01 * k, "reason": f"no sensor frame for {20 + k % 7}.1 ms"} for k in range(300)
+    ]
+    assert loop.send_summary({"et": 0.02, "faults": faults})
+    [(mtype, payload)] = _read_all(side)
+    got = decode_json(payload)
+    assert mtype == Msg.SUMMARY and got["et"] == 0.02
+    assert 0 < len(got["faults"]) < 300 and got["faults"] == faults[: len(got["faults"])]
+    assert got["faults_not_listed"] == 300 - len(got["faults"])
+    assert loop.dropped == 0
+
+
 def test_oversize_json_is_dropped_and_counted_not_raised(ends):
     loop, side = ends
     assert not loop.send_event({"text": "x" * PIPE_BUF})

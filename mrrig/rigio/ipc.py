@@ -232,7 +232,17 @@ class LoopEnd:
         return self._w.write(Msg.STATUS, _encode_json(status))
 
     def send_summary(self, summary: dict[str, Any]) -> bool:
-        return self._w.write(Msg.SUMMARY, _encode_json(summary))
+        """The run's summary for the recording. A run with many faults lists more than one
+        message holds: the first ones that fit are listed and the rest counted
+        (`faults_not_listed`); each fault is an event of the recording in any case."""
+        raw = _encode_json(summary)
+        faults = summary.get("faults") or []
+        keep = len(faults)
+        while len(raw) > MAX_PAYLOAD and keep:
+            keep //= 2
+            short = dict(summary, faults=faults[:keep], faults_not_listed=len(faults) - keep)
+            raw = _encode_json(short)
+        return self._w.write(Msg.SUMMARY, raw)
 
     def send_frames(self, frames: np.ndarray) -> int:
         """CAN frames for the bus log (`canlog.FRAME_DTYPE`), in messages of at most PIPE_BUF
