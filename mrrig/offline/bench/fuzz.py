@@ -296,7 +296,8 @@ def run(minutes: float, config: Path, sim_config: Path, seed: int, out: Path | N
         procs["firmware_sim"] = subprocess.Popen(
             [sys.executable, "-m", "firmware_sim", "--config", str(sim_config),
              "--bus-channel", channel, "--stats", str(sim_stats),
-             "--duration", str(total_s + 60)],
+             # a net for an orphan, not an end: a loaded machine stretches the phases
+             "--duration", str(3 * total_s + 120)],
             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
         )  # fmt: skip
         listener = Listener(channel, cfg.loop.i_max_a)
