@@ -153,10 +153,11 @@ def _send_force(args: argparse.Namespace) -> int:
         out=sys.stdout,
     )
     end = "disarmed" if result.disarmed else "left armed" if args.no_disarm else "not armed"
+    held = f"{result.hold_samples} while arming, " if result.hold_samples else ""
     print(
-        f"sent {result.sent} force references to mrrig/{args.rig}/force_ref"
-        f" ({result.sent - result.ramp_samples} of the profile, {result.ramp_samples} of the"
-        f" ramp to 0 N); {end}"
+        f"sent {result.hold_samples + result.sent} force references to"
+        f" mrrig/{args.rig}/force_ref ({held}{result.sent - result.ramp_samples} of the profile,"
+        f" {result.ramp_samples} of the ramp to 0 N); {end}"
     )
     if result.faults:
         print(f"the daemon faulted while streaming: {', '.join(result.faults)}")

@@ -34,7 +34,6 @@ log = logging.getLogger(__name__)
 
 TIME_COLUMN, FORCE_COLUMN = "t_s", "force_n"
 DELIVERY_TIMEOUT_S = 2.0  # first sample -> counted by the daemon, before arming
-_STATUS_POLL_S = 0.05
 
 
 class SendForceError(MrrigError, RuntimeError):
@@ -139,6 +138,7 @@ class _LatestStatus:
 @dataclass
 class SendResult:
     sent: int = 0  # every put, ramp included
+    hold_samples: int = 0  # the first value, put while --arm waited for its delivery
     ramp_samples: int = 0
     armed_by_us: bool = False
     disarmed: bool = False
@@ -202,11 +202,11 @@ def send_force(
         def on_put(k: int, f: float) -> None:
             last[0] = f
             result.sent += 1
-            if arm and not result.armed_by_us:
-                _arm_when_delivered(session, rig, received0, timeout_s, result)
             report(k / rate_hz, f)
 
         try:
+            if arm:
+                _hold_and_arm(session, pub, rig, fn(0.0), rate_hz, received0, timeout_s, result)
             stream(pub, lambda k: fn(k / rate_hz) if k < n_profile else None, rate_hz, on_put)
         except KeyboardInterrupt:
             result.interrupted = True
@@ -218,13 +218,24 @@ def send_force(
     return result
 
 
-def _arm_when_delivered(
-    session: zenoh.Session, rig: str, received0: int, timeout_s: float, result: SendResult
+def _hold_and_arm(
+    session: zenoh.Session,
+    pub: zenoh.Publisher,
+    rig: str,
+    f0: float,
+    rate_hz: float,
+    received0: int,
+    timeout_s: float,
+    result: SendResult,
 ) -> None:
-    """Arm once the daemon has counted a sample of ours (polled here, so the stream waits:
-    nothing is armed on a reference that has not arrived)."""
+    """Put the profile's first value at `rate_hz` until the daemon has counted one (nothing is
+    armed on a reference that has not arrived), then arm; the profile starts after. The
+    reference stays fresh meanwhile: an armed daemon faults on one older than its timeout."""
+    period_s = 1.0 / rate_hz
     deadline = time.monotonic() + DELIVERY_TIMEOUT_S
     while True:
+        pub.put(json.dumps({"force_n": f0}))
+        result.hold_samples += 1
         status = query(session, rig, {"cmd": "status"}, timeout_s)["status"]
         if status.get("force_refs_received", 0) > received0:
             break
@@ -233,7 +244,9 @@ def _arm_when_delivered(
                 f"rig {rig!r}: the daemon did not receive the force reference within"
                 f" {DELIVERY_TIMEOUT_S:g} s; not arming"
             )
-        time.sleep(_STATUS_POLL_S)
+        time.sleep(period_s)
+    pub.put(json.dumps({"force_n": f0}))
+    result.hold_samples += 1
     reply = query(session, rig, {"cmd": "arm"}, timeout_s)
     if not reply.get("ok"):
         raise SendForceError(f"rig {rig!r}: arming refused: {reply.get('error')}")
