@@ -185,6 +185,29 @@ def test_interrupted_matrix_resumes_without_repeating_finished_runs(tmp_path):
     assert f1 > 2 * f0  # the current reached the damper
 
 
+@pytest.mark.process
+def test_a_run_that_succeeds_on_its_second_attempt_is_no_failed_run(tmp_path):
+    runs = matrix_runs(TINY)
+    with ThreadRig() as rig:
+        cfg = rig.daemon_config(tmp_path, controller={"name": "constant", "current_a": 0.0})
+        store = MatrixStore(tmp_path / "char", TINY)
+
+        def stall_the_last_run() -> None:  # 0.2 s without a sensor frame, 0.5 s into it
+            end = time.monotonic() + 60
+            while len(store.done) < 1 and time.monotonic() < end:
+                time.sleep(0.005)
+            time.sleep(0.5)
+            rig.hold(0.2)
+
+        threading.Thread(target=stall_the_last_run, daemon=True).start()
+        with RigSession(cfg) as session:
+            failed = characterize(session, store, runs, threading.Event())
+            rig.explain_faults(session)
+    assert failed == []
+    last = store.done[runs[-1].run_id]
+    assert last["attempts"] == 2 and len(last["failed_attempts"]) == 1, last
+
+
 def clean_window(session: RigSession) -> dict:
     """A tracking window as `mrrig validate` keeps it: tried again (3 windows at most) while
     only a transport fault faulted it; the test then proves those faults were stalls."""

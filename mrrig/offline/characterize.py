@@ -338,16 +338,16 @@ def characterize(
     in_a_row = 0
     for run in todo:
         progress.start(run)
-        failed: list[dict] = []
+        attempts_failed: list[dict] = []
         for attempt in range(1, store.m.attempts + 1):
             try:
                 s = record_run(session, run, store.m, stop)
             except RunFailed as exc:
                 log.warning("run %d, attempt %d: %s", run.run_id, attempt, exc)
-                failed.append(_failed_attempt(session, attempt, exc))
+                attempts_failed.append(_failed_attempt(session, attempt, exc))
                 session.wait_until(session.now() + RETRY_PAUSE_S, stop, fail_on_fault=False)
                 continue
-            store.save(rig, run, s, attempt, failed)
+            store.save(rig, run, s, attempt, attempts_failed)
             in_a_row = 0
             break
         else:
