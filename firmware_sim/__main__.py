@@ -25,6 +25,7 @@ from firmware_sim.firmware import Firmware
 from firmware_sim.runner import RunStats, run, tune_process
 from mrrig import json_text
 from mrrig.cli_args import HelpFormatter, add_bus_options, output_file, positive
+from mrrig.loop.realtime import leave_realtime
 from mrrig.rigio.canbus import DEFAULT_DBC_PATH, BusError, Codec, open_bus
 
 logger = logging.getLogger("firmware_sim")
@@ -120,6 +121,7 @@ def main(argv: list[str] | None = None) -> int:
             rc = 1
         wall_s, cpu_s = time.monotonic() - wall0, time.process_time() - cpu0
         _shutdown(bus)
+        leave_realtime("firmware_sim")  # the summary and the exit must not starve another rig
         stats.finish()
         summary = stats.summary(firmware, wall_s, cpu_s)
         if args.stats is not None:

@@ -43,7 +43,7 @@ from mrrig.loop.controllers import (
 from mrrig.loop.estimation import RealtimeKalman
 from mrrig.loop.inversion import DEFAULT_CONTINUITY
 from mrrig.loop.mlp import MLP, ModelError
-from mrrig.loop.realtime import keep_off_cpu, make_realtime
+from mrrig.loop.realtime import keep_off_cpu, leave_realtime, make_realtime
 from mrrig.loop.safety import Fault, Limits, Supervisor
 from mrrig.loop.samples import SAMPLE_DTYPE, RigState
 from mrrig.loop.summary import (
@@ -1012,6 +1012,8 @@ class Daemon:
                 self._send_actuator()
             finally:
                 self.bus.shutdown()
+        # the loop is over: what follows (and the exit) must not starve another rig's loop
+        leave_realtime("daemon")
         self.notifier.stopping()  # after the SAFE command
         self.counters["cpu_loop_s"] = time.process_time() - self._cpu0
         adaptation = self.controller.adaptation_state()

@@ -78,3 +78,13 @@ def keep_off_cpu(pid: int, cpu: int | None, who: str) -> None:
             os.sched_setaffinity(pid, others)
     except (OSError, AttributeError) as exc:
         log.warning("%s: could not keep it off CPU %d: %s", who, cpu, exc)
+
+
+def leave_realtime(who: str = "process") -> None:
+    """Back to normal scheduling: the work of a process that has stopped its loop (summary,
+    exit, the interpreter's teardown) must not starve another rig's loop on the same CPU."""
+    try:
+        if os.sched_getscheduler(0) != os.SCHED_OTHER:
+            os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
+    except (OSError, AttributeError) as exc:
+        log.warning("%s: could not return to normal scheduling: %s", who, exc)

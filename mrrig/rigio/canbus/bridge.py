@@ -34,7 +34,7 @@ def main(argv: list[str] | None = None) -> int:
         raise ValueError(f"--host {args.host}: the bridge serves loopback only")
     from can_remote.server import RemoteServer
 
-    from mrrig.loop.realtime import make_realtime
+    from mrrig.loop.realtime import leave_realtime, make_realtime
 
     logging.getLogger("can").setLevel(logging.WARNING)
     try:
@@ -60,6 +60,7 @@ def main(argv: list[str] | None = None) -> int:
         pass
     finally:
         server.server_close()
+        leave_realtime("bridge")  # its exit must not starve another rig's bridge
     return 0
 
 
