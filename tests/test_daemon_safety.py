@@ -216,6 +216,29 @@ def test_the_estimate_goes_on_through_lost_frames(tmp_path):
     assert np.all(np.abs(xd_after - speed_m_s) < 0.01), xd_after
 
 
+def test_the_estimate_restarts_after_a_gap_the_counter_cannot_tell(tmp_path):
+    # x ramps at 50 mm/s; the rig stalls 0.2 s (100 periods: the 4-bit counter moves on only
+    # 4). Predicting through the counter's 4 periods read 100 periods of travel as 4 and put
+    # the velocity estimate far off for many frames; restarted, it is the ramp's again soon
+    speed_m_s, period_s, gap_periods = 0.05, 2e-3, 100
+    with ScriptedRig(tmp_path) as rig:
+        x = -0.01
+        for _ in range(150):
+            rig.exchange(x=x)
+            x += speed_m_s * period_s
+        time.sleep(gap_periods * period_s)  # longer than the sensor timeout: a fault
+        rig.counter = (rig.counter + gap_periods - 1) & 0xF
+        x += (gap_periods - 1) * speed_m_s * period_s
+        for _ in range(30):
+            rig.exchange(x=x)
+            x += speed_m_s * period_s
+        assert rig.daemon.counters["estimate_restarts"] == 1
+        assert_fault(rig, Fault.SENSOR_TIMEOUT)
+    samples = np.concatenate(rig.daemon.handed_over())
+    xd_after = samples["xd"][-20:]
+    assert np.all(np.abs(xd_after - speed_m_s) < 0.01), xd_after
+
+
 def test_stale_external_force_reference_faults(tmp_path):
     with ScriptedRig(tmp_path) as rig:
         rig.daemon.reference = ref.External(timeout_s=0.05)

@@ -253,6 +253,7 @@ class Daemon:
             "send_failures": 0,
             "foreign_commands": 0,
             "lost_frames": 0,
+            "estimate_restarts": 0,  # after a gap longer than the sensor timeout
             "frames_ignored": 0,  # 29-bit, remote, error and unknown-id frames
             "stale_frames": 0,  # answered SAFE: older than loop.max_frame_age_s
             "sensor_frames_early": 0,  # counter ahead of the time since the last frame
@@ -583,10 +584,14 @@ class Daemon:
                 self._emit(self.supervisor.bad_frame(t_rx - self.t0, p.reason))
                 return
             self.counters["sensor_frames_valid"] += 1
+            gap_s = self._sensor_gap_s(msg.timestamp)
             self._check_counter_timing(msg.timestamp, p.lost_frames, t_rx)
             if p.lost_frames:
                 self.counters["lost_frames"] += p.lost_frames
                 self._emit(self.supervisor.lost_frames(t_rx - self.t0, p.lost_frames))
+            if gap_s > self.cfg.loop.timeout_periods * self.period_s:
+                self._restart_estimate(t_rx, p.values["Displacement"], gap_s)
+            elif p.lost_frames:
                 del self._targets[: p.lost_frames]  # those computed for the missing frames
                 for _ in range(p.lost_frames):  # the estimate goes on through the missing periods
                     self.kf.predict_only()
@@ -616,6 +621,24 @@ class Daemon:
         elif not p.ok and p.name is None:
             self.counters["frames_ignored"] += 1
             log.debug("ignored frame: %s", p.reason)
+
+    def _sensor_gap_s(self, bus_ts: float) -> float:
+        """Time since the previous sensor frame by the bus's receive timestamps (0 for the
+        first one)."""
+        last = self._last_sensor_bus_ts
+        return 0.0 if last is None else bus_ts - last
+
+    def _restart_estimate(self, t_rx: float, x_meas: float, gap_s: float) -> None:
+        """After a gap longer than the sensor timeout the 4-bit counter no longer tells how
+        many periods passed (a 100 ms stall moved it on 2, not 50): predicting through the
+        counter's periods would read the travel of the whole gap as a few periods' and the
+        velocity would spike. The estimate and the force reference start again from this
+        frame, as at the first one."""
+        self.kf.reset(x_meas)
+        self.reset_reference(t_rx - self.t0, x_meas)
+        self.controller.reset(1)
+        self.counters["estimate_restarts"] += 1
+        log.info("estimate restarted after %.1f ms without sensor frames", gap_s * 1e3)
 
     def _check_counter_timing(self, bus_ts: float, lost: int, t_rx: float) -> None:
         """A sensor frame whose counter moved on more periods than time has passed since the
