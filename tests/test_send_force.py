@@ -146,7 +146,7 @@ def test_profile_arms_after_delivery_ramps_to_zero_and_disarms(rig, tmp_path):
     out = proc.stdout
     after = wait_status(client_z)
     if proc.returncode == 1 and "faulted while streaming" in out:
-        faults = out.rsplit("faulted while streaming: ", 1)[1].strip().split(", ")
+        faults = out.rsplit("faulted while streaming: ", 1)[1].strip().split("; ")
         # a stall's fault: the rig fixture proves it against the simulator's stall windows
         assert _transport_only([f.split(":")[0] for f in faults]), out
         pytest.skip(f"a transport fault during the profile: {faults}")

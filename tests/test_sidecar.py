@@ -462,6 +462,19 @@ def test_a_force_profile_may_have_a_header_and_blank_lines(tmp_path: Path):
     assert t_s.tolist() == [0.0, 0.1] and force_n.tolist() == [0.0, 100.0]
 
 
+def test_send_force_names_each_fault_by_its_code_then_its_reason():
+    # the code is what a script tests (a transport fault is set aside by code, not by the
+    # words of its reason); each fault once, however many samples saw it
+    latest = force_stream._LatestStatus()
+    result = force_stream.SendResult()
+    progress = force_stream._Progress(None, 1.0, latest, result)
+    timeout = {"state": "FAULT", "fault": "sensor_timeout", "fault_reason": "no sensor frame"}
+    for k, status in enumerate([{"state": "ARMED"}, timeout, timeout, {"state": "IDLE"}]):
+        latest.status = status
+        progress(k * 0.01, 100.0)
+    assert result.faults == ["sensor_timeout: no sensor frame"]
+
+
 def test_request_without_a_daemon_is_a_clear_error(tmp_path: Path):
     port = find_free_port()
     with pytest.raises(client.ClientError, match="daemon"):

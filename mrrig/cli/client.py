@@ -160,6 +160,6 @@ def _send_force(args: argparse.Namespace) -> int:
         f" {result.ramp_samples} of the ramp to 0 N); {end}"
     )
     if result.faults:
-        print(f"the daemon faulted while streaming: {', '.join(result.faults)}")
+        print(f"the daemon faulted while streaming: {'; '.join(result.faults)}")
         return 1
     return 130 if result.interrupted else 0

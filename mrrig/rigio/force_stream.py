@@ -143,7 +143,7 @@ class SendResult:
     armed_by_us: bool = False
     disarmed: bool = False
     interrupted: bool = False
-    faults: list[str] = field(default_factory=list)  # fault reasons seen while streaming
+    faults: list[str] = field(default_factory=list)  # "code: reason" seen while streaming
 
 
 def check_daemon(session: zenoh.Session, rig: str, timeout_s: float) -> dict[str, Any]:
@@ -288,9 +288,10 @@ class _Progress:
     def __call__(self, t: float, f: float) -> None:
         st = self.latest.status
         if st and st.get("state") == "FAULT":
-            reason = st.get("fault_reason") or st.get("fault")
-            if reason and reason not in self.result.faults:
-                self.result.faults.append(reason)
+            # the code first: what a script can test; then the reason, for the operator
+            fault = ": ".join(str(v) for v in (st.get("fault"), st.get("fault_reason")) if v)
+            if fault and fault not in self.result.faults:
+                self.result.faults.append(fault)
         if t < self.next_t:
             return
         self.next_t += 1.0
