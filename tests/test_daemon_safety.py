@@ -195,6 +195,39 @@ def test_non_finite_force_reference_faults_within_the_frame(tmp_path):
         assert "broken force reference" in assert_fault(rig, Fault.NON_FINITE)["reason"]
 
 
+class _DivergedReference(ref.ForceReference):
+    """A reference damper whose state went NaN: NaN until it is started again."""
+
+    kind = "diverged"
+
+    def __init__(self) -> None:
+        self.diverged = True
+
+    def reset(self, t_s, x_m):
+        self.diverged = False
+
+    def force(self, t_s, x_m, xd_m_s):
+        return math.nan if self.diverged else 300.0
+
+
+def test_a_diverged_force_reference_faults_once_and_starts_again(tmp_path):
+    # its NaN state used to stay: the disarm out of FAULT was faulted again on the next frame
+    with ScriptedRig(tmp_path) as rig:
+        assert rig.exchange()["Mode"] == ACTIVE
+        rig.daemon.reference = _DivergedReference()
+        assert_safe(rig.exchange())
+        assert_fault(rig, Fault.NON_FINITE)
+        assert rig.request({"cmd": "disarm"})["ok"]
+        for _ in range(5):
+            assert_safe(rig.exchange())
+        faults = [e for e in rig.daemon.events if e["kind"] == "fault"]
+        assert len(faults) == 1, faults
+        assert rig.daemon.supervisor.state is RigState.IDLE
+        assert rig.request({"cmd": "arm"})["ok"]
+        cmd = rig.exchange()
+        assert cmd["Mode"] == ACTIVE and cmd["DesiredForce"] == pytest.approx(300.0)
+
+
 def test_the_estimate_goes_on_through_lost_frames(tmp_path):
     # x ramps at 50 mm/s; three frames go missing: the velocity estimate must not read the
     # four periods of travel as one (it read 0.10-0.12 m/s before)
@@ -218,8 +251,10 @@ def test_the_estimate_goes_on_through_lost_frames(tmp_path):
 
 def test_the_estimate_restarts_after_a_gap_the_counter_cannot_tell(tmp_path):
     # x ramps at 50 mm/s; the rig stalls 0.2 s (100 periods: the 4-bit counter moves on only
-    # 4). Predicting through the counter's 4 periods read 100 periods of travel as 4 and put
-    # the velocity estimate far off for many frames; restarted, it is the ramp's again soon
+    # 4), and the first frame after it holds the sample taken before it. Predicting through
+    # the counter's 4 periods read 100 periods of travel as 4 and put the velocity estimate
+    # far off for many frames; restarted on the stale frame, it read the next one's jump as
+    # speed; restarted on the frame after it, it is the ramp's again soon
     speed_m_s, period_s, gap_periods = 0.05, 2e-3, 100
     with ScriptedRig(tmp_path) as rig:
         x = -0.01
@@ -227,8 +262,9 @@ def test_the_estimate_restarts_after_a_gap_the_counter_cannot_tell(tmp_path):
             rig.exchange(x=x)
             x += speed_m_s * period_s
         time.sleep(gap_periods * period_s)  # longer than the sensor timeout: a fault
+        rig.exchange(x=x)  # sampled before the gap, sent after it
         rig.counter = (rig.counter + gap_periods - 1) & 0xF
-        x += (gap_periods - 1) * speed_m_s * period_s
+        x += gap_periods * speed_m_s * period_s
         for _ in range(30):
             rig.exchange(x=x)
             x += speed_m_s * period_s

@@ -274,6 +274,7 @@ class Daemon:
         self._n = 0
         self._last_sensor_t = None
         self._last_sensor_bus_ts = None  # the bus's receive timestamp of that frame
+        self._restart_next, self._gap_s = False, 0.0  # the estimate, after a gap
         self._early_event_t = -math.inf
         self._frame_age_limit_s = cfg.loop.frame_age_limit_s
         self._first_sensor_t = 0.0
@@ -408,7 +409,12 @@ class Daemon:
                 f_next = f_des  # a reference not known ahead holds its present value
             # the clamp below passes NaN, and a controller may map it to a finite current
             what = f"the {self.reference.kind} force reference"
-            events += sup.finite(t, what, f_des, f_des if f_next is None else f_next)
+            targets = (f_des, f_des if f_next is None else f_next)
+            events += sup.finite(t, what, *targets)
+            if not all(math.isfinite(f) for f in targets):
+                # a reference damper driven off its range keeps a NaN state: it starts again
+                # here, or it would fault the rig again as soon as it left FAULT
+                self.reset_reference(t, x_meas)
             f_des = min(max(f_des, -DESIRED_FORCE_LIMIT_N), DESIRED_FORCE_LIMIT_N)
             if f_next is not None:
                 f_next = min(max(f_next, -DESIRED_FORCE_LIMIT_N), DESIRED_FORCE_LIMIT_N)
@@ -589,8 +595,12 @@ class Daemon:
             if p.lost_frames:
                 self.counters["lost_frames"] += p.lost_frames
                 self._emit(self.supervisor.lost_frames(t_rx - self.t0, p.lost_frames))
+            restart, self._restart_next = self._restart_next, False
             if gap_s > self.cfg.loop.timeout_periods * self.period_s:
-                self._restart_estimate(t_rx, p.values["Displacement"], gap_s)
+                self._restart_next = True  # this frame may hold a sample from before the gap
+                self._gap_s = gap_s
+            if restart:
+                self._restart_estimate(t_rx, p.values["Displacement"], self._gap_s)
             elif p.lost_frames:
                 del self._targets[: p.lost_frames]  # those computed for the missing frames
                 for _ in range(p.lost_frames):  # the estimate goes on through the missing periods
@@ -632,8 +642,10 @@ class Daemon:
         """After a gap longer than the sensor timeout the 4-bit counter no longer tells how
         many periods passed (a 100 ms stall moved it on 2, not 50): predicting through the
         counter's periods would read the travel of the whole gap as a few periods' and the
-        velocity would spike. The estimate and the force reference start again from this
-        frame, as at the first one."""
+        velocity would spike. The estimate and the force reference start again, as at the
+        first frame, from the second frame after the gap: the first may carry a sample taken
+        before it (the firmware sampled, then stalled before sending), and a filter started
+        on it read the next frame's jump as a velocity of 1.8 m/s."""
         self.kf.reset(x_meas)
         self.reset_reference(t_rx - self.t0, x_meas)
         self.controller.reset(1)
