@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import re
 
 import can
 import numpy as np
@@ -118,7 +119,13 @@ def test_the_daemons_exit_summary_is_the_summary_of_its_samples(tmp_path):
     assert d.summary["et"] == pytest.approx(want["et"], rel=1e-9, nan_ok=True)
     assert d.summary["latency_us"] == want["latency_us"]
     split = d.summary["latency_split_us"]
-    assert split["before_send"]["max"] <= d.summary["latency_us"]["max"]
+    # the latency is the wait plus the work, and the send() call is part of the work
+    assert split["work"]["max"] <= d.summary["latency_us"]["max"]
+    assert split["waited"]["max"] <= d.summary["latency_us"]["max"]
+    assert split["send_call"]["max"] <= split["work"]["max"]
+    text = format_summary(d.summary)
+    assert "the spec's budget of the work per frame p99 <= 300 us" in text
+    assert re.search(r"of it work  p50 [\d.]+ us", text), text
 
 
 def test_a_daemon_without_kept_batches_holds_no_samples(tmp_path):

@@ -48,6 +48,7 @@ from mrrig.loop.safety import Fault, Limits, Supervisor
 from mrrig.loop.samples import SAMPLE_DTYPE, RigState
 from mrrig.loop.summary import (
     LATENCY_BIN_US,
+    LATENCY_PARTS,
     LATENCY_TOP_US,
     Histogram,
     SummaryAccumulator,
@@ -265,11 +266,12 @@ class Daemon:
         self._keep_batches = keep_batches
         self._chunks: list[np.ndarray] = []  # only with keep_batches
         self._summary = SummaryAccumulator()  # the exit summary, built batch by batch
-        # per answered frame, the two parts of latency_us: up to the bus's send() and inside it
+        # per answered frame, the parts of latency_us: the wait between the bus's receive
+        # timestamp and the loop's read, the loop's work from its read to the end of send()
+        # (the spec's budget), and the send() call within that work
         self._send_call_s = math.nan
-        self._split = np.full((cfg.loop.telemetry_batch, 2), np.nan)
-        self._before_send_us = Histogram(LATENCY_BIN_US, LATENCY_TOP_US)
-        self._send_call_us = Histogram(LATENCY_BIN_US, LATENCY_TOP_US)
+        self._split = np.full((cfg.loop.telemetry_batch, 3), np.nan)
+        self._split_us = {k: Histogram(LATENCY_BIN_US, LATENCY_TOP_US) for k in LATENCY_PARTS}
         self._buf = np.zeros(cfg.loop.telemetry_batch, dtype=SAMPLE_DTYPE)
         self._n = 0
         self._last_sensor_t = None
@@ -446,8 +448,9 @@ class Daemon:
         self._send_command(active, i_cmd if active else 0.0, safe_f, counter)
         if self._stop:
             self._safe_sent_at_stop = True
-        latency_us = (time.perf_counter() - t_rx + queued_s) * 1e6
-        self._split[self._n] = (latency_us - self._send_call_s * 1e6, self._send_call_s * 1e6)
+        work_us = (time.perf_counter() - t_rx) * 1e6
+        latency_us = work_us + queued_s * 1e6
+        self._split[self._n] = (queued_s * 1e6, work_us, self._send_call_s * 1e6)
         self._send_call_s = math.nan
         self.last_x = x
         f_model = math.nan
@@ -553,8 +556,8 @@ class Daemon:
         if self._keep_batches:
             self._chunks.append(batch)
         self._summary.add(batch)
-        self._before_send_us.add(self._split[: self._n, 0])
-        self._send_call_us.add(self._split[: self._n, 1])
+        for k, part in enumerate(LATENCY_PARTS):
+            self._split_us[part].add(self._split[: self._n, k])
         self._split[:] = np.nan
         self._n = 0
         if self.link is not None and not self.link.send_samples(batch):
@@ -1072,10 +1075,7 @@ class Daemon:
             self.exit_code = Exit.FAULT
         self.summary["exit_code"] = self.exit_code
         qs = (50, 99, 99.9)
-        self.summary["latency_split_us"] = {
-            "before_send": self._before_send_us.percentiles(qs),
-            "send_call": self._send_call_us.percentiles(qs),
-        }
+        self.summary["latency_split_us"] = {k: h.percentiles(qs) for k, h in self._split_us.items()}
         if self.link is not None:
             self.link.send_summary(self.summary)
             self.link.send_stop()

@@ -2,8 +2,9 @@
 
 Starts the bridge, firmware_sim and the daemon (as the demo does) and runs for `--duration`
 seconds, once with telemetry (Zenoh) and recording (Rerun) off and once with both on, then
-prints per run: receive->send latency p50/p99/p99.9/max (the daemon's own measure, per frame)
-split into the part before the bus's send() and the send() call itself, frames without a
+prints per run: receive->send latency p50/p99/p99.9/max (the daemon's own measure, per frame,
+from the bus's receive timestamp) split into the wait before the loop read the frame and the
+loop's work from its read to the end of send() (the spec's budget), frames without a
 command (the simulator's count), the simulator's period jitter, CPU per process, and the on/off
 ratio of the latency p99. A first run replaces the daemon by `mrrig.offline.bench.echo`, which
 answers every frame with a SAFE command and does nothing else: the floor that the transport (bridge,
@@ -274,8 +275,9 @@ def format_run(r: dict) -> str:
                 f"    {label:<14} p50 {q['p50']:.0f}  p99 {q['p99']:.0f}  "
                 f"p99.9 {q['p99.9']:.0f}  max {q['max']:.0f}"
                 for label, q in (
-                    ("before send():", split.get("before_send")),
-                    ("send() call:", split.get("send_call")),
+                    ("waited:", split.get("waited")),
+                    ("work:", split.get("work")),
+                    ("  send() call:", split.get("send_call")),
                 )
                 if q
             ),
