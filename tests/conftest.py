@@ -73,12 +73,22 @@ def sim_model(tmp_path_factory) -> Path:
     return path
 
 
-@pytest.fixture(autouse=True)
-def _one_process_test_at_a_time(request: pytest.FixtureRequest, tmp_path_factory) -> Iterator:
-    """Process tests are sensitive to CPU load: across pytest-xdist's workers they take turns
-    (a file lock in the run's shared base directory); other tests run beside them."""
+@pytest.fixture(scope="module", autouse=True)
+def _one_rig_at_a_time(request: pytest.FixtureRequest, tmp_path_factory) -> Iterator:
+    """Modules with process tests take turns across pytest-xdist's workers (a file lock in
+    the run's shared base directory), their module fixtures included: those start rigs too
+    (send-force's, the bus logs' runs). One rig at a time, as the product is configured: each
+    rig's daemon runs SCHED_FIFO on the loop's CPU and its simulator and bridge on the
+    other, and two rigs' real-time processes took those CPUs from each other for tens of ms.
+    Other modules run beside them."""
     worker = os.environ.get("PYTEST_XDIST_WORKER")
-    if worker is None or request.node.get_closest_marker("process") is None:
+    module = request.module
+    process = any(
+        item.get_closest_marker("process") is not None
+        for item in request.session.items
+        if getattr(item, "module", None) is module
+    )
+    if worker is None or not process:
         yield
         return
     from filelock import FileLock
