@@ -45,7 +45,7 @@ from mrrig.offline.datasets import DATASET_A_VMAX_V as VMAX_V
 from mrrig.offline.datasets import Series, dataset_a_training, dataset_a_validation
 from mrrig.offline.metrics import error_norm
 from mrrig.offline.rnn_training import BLOCK_S, holdout_blocks, train_rnn
-from mrrig.offline.simulation import closed_loop
+from mrrig.offline.simulation import closed_loop, recording
 from mrrig.offline.training import ONLINE_CONTINUITY_CANDIDATES, choose_continuity, features
 from mrrig.offline.training.lm import train_lm
 
@@ -135,11 +135,44 @@ def train_models(train: Series, seed: int, epochs: int) -> tuple[dict[str, MLP],
         "forward 4-30-1, lagged current", features(train, "lagged", LAG_TAU_S)[0]
     )
     models["forward_lagged"].meta.update(current_input="lagged", lag_tau_s=LAG_TAU_S)
-    # noise on the fed-back voltages, then a parallel-mode fine-tune
-    # (mrrig/offline/rnn_training.py):
-    # fitted series-parallel alone, the RNN learns v(k) ~ v(k-1) and drifts in closed loop
-    models["rnn"], info["rnn"] = train_rnn(train, seed + 2, epochs, i_max=VMAX_V)
     return models, info
+
+
+# the RNN's training series: data set A's, or the daemon's default tracking its force
+RNN_DATA = ("dataset-a", "closed-loop")
+
+
+def train_paper_rnn(
+    train: Series,
+    seed: int,
+    epochs: int,
+    data: str = "dataset-a",
+    controller: Controller | None = None,
+    params: BoucWenParams | None = None,
+) -> tuple[MLP, dict]:
+    """The RNN of eq. 40: noise on the fed-back voltages, then a parallel-mode fine-tune
+    (mrrig/offline/rnn_training.py; fitted series-parallel alone, it learns v(k) ~ v(k-1) and
+    drifts in closed loop), on `data`: "dataset-a", data set A's training signal (its random
+    voltages and their force); "closed-loop", the same motion with `controller` tracking its
+    force against the plant `params`, as the rig would record it (`recording`: the commands
+    and the force they made). Where the force hardly depends on the voltage, data set A's
+    voltage is noise that no input of eq. 40 tells; a controller's command there is its own
+    deterministic choice."""
+    info: dict = {"data": data}
+    if data == "closed-loop":
+        t0 = time.perf_counter()
+        rec = recording(controller, params, DT_S, train)
+        info["recording_seconds"] = time.perf_counter() - t0
+        info["recording_tracking_et"] = error_norm(train.force, rec.force)
+        log.info(
+            "RNN training data: %s on data set A's training force, Et %.4f (%.1f s)",
+            controller.name,
+            info["recording_tracking_et"],
+            info["recording_seconds"],
+        )
+        train = rec
+    model, trained = train_rnn(train, seed + 2, epochs, i_max=VMAX_V)
+    return model, info | trained
 
 
 def _make(name: str, model: MLP | None = None, **settings) -> Controller:
@@ -455,11 +488,7 @@ def sweep_lines(
     return lines
 
 
-def run(
-    seed: int = 0, epochs: int = 1000, sweep_continuity: bool = False, sweep_descent: bool = False
-) -> dict:
-    """The whole benchmark; returns every number it prints."""
-    params = BoucWenParams.preset("paper-volt")
+def _data_set_a() -> tuple[Series, list[Series]]:
     t0 = time.perf_counter()
     train = dataset_a_training()
     cases = dataset_a_validation()
@@ -469,6 +498,52 @@ def run(
         len(cases),
         time.perf_counter() - t0,
     )
+    return train, cases
+
+
+def _validation_loop(cases: list[Series]) -> tuple[tuple, np.ndarray]:
+    """The cases' stacked x, xd, xdd, f_des, and each damper's initial coil state: as the one
+    that made the desired force (`simulate`: at rest, the coil at the case's first voltage),
+    so that only the tracking is scored."""
+    loop = tuple(np.stack([getattr(c, a) for c in cases]) for a in ("x", "xd", "xdd", "force"))
+    return loop, np.array([c.current[0] for c in cases])
+
+
+def run_rnn(seed: int = 0, epochs: int = 1000, rnn_data: str = "dataset-a") -> dict:
+    """The RNN row alone (`--rnn-only`): trained as `run` trains it, run on the seven cases."""
+    params = BoucWenParams.preset("paper-volt")
+    train, cases = _data_set_a()
+    controller = None
+    if rnn_data == "closed-loop":
+        models, _ = train_models(train, seed, epochs)
+        lagged = models["forward_lagged"]
+        controller = daemon_default(
+            lagged, default_continuity(lagged, train, seed, lagged=True)["continuity"]
+        )
+    model, info = train_paper_rnn(train, seed, epochs, rnn_data, controller, params)
+    loop, u0 = _validation_loop(cases)
+    return {
+        "cases": [c.name for c in cases],
+        "vmax_v": VMAX_V,
+        "dt_s": DT_S,
+        "seed": seed,
+        "table6": {"rnn": _loop_et(_make("rnn", model), params, loop, u0)},
+        "paper_table6": {"rnn": PAPER_TABLE_6["rnn"]},
+        "training": {"rnn": info},
+        "labels": LABELS,
+    }
+
+
+def run(
+    seed: int = 0,
+    epochs: int = 1000,
+    sweep_continuity: bool = False,
+    sweep_descent: bool = False,
+    rnn_data: str = "dataset-a",
+) -> dict:
+    """The whole benchmark; returns every number it prints."""
+    params = BoucWenParams.preset("paper-volt")
+    train, cases = _data_set_a()
     models, training = train_models(train, seed, epochs)
     t0 = time.perf_counter()
     choice = choose_on_training_blocks(models["forward_lagged"], train, params)
@@ -480,6 +555,9 @@ def run(
     mu_lagged = default_lagged["continuity"]
     models["forward_lagged"].meta["online_continuity"] = mu_lagged
     log.info("the daemon's default: continuity %g of the training rows", mu_lagged)
+    models["rnn"], training["rnn"] = train_paper_rnn(
+        train, seed, epochs, rnn_data, daemon_default(models["forward_lagged"], mu_lagged), params
+    )
 
     fwd = models["forward"]
     open_loop = [
@@ -490,10 +568,7 @@ def run(
         error_norm(c.force, models["forward_lagged"].predict(features(c, "lagged", LAG_TAU_S)[0]))
         for c in cases
     ]
-    loop = tuple(np.stack([getattr(c, a) for c in cases]) for a in ("x", "xd", "xdd", "force"))
-    # each damper starts as the one that made the desired force did (`simulate`: at rest, the
-    # coil at the case's first voltage), so that only the tracking is scored
-    u0 = np.array([c.current[0] for c in cases])
+    loop, u0 = _validation_loop(cases)
     table: dict[str, list[float]] = {}
     starts: dict[str, dict[str, list[float]]] = {}
     seconds: dict[str, float] = {}
@@ -726,16 +801,31 @@ def table_lines(r: dict, names) -> list[str]:
     return lines
 
 
-def format_report(r: dict, detail: bool = False) -> str:
-    """Table 6: the paper's rows beside ours, then the daemon's default with and without
-    adaptation, and why it is the default; `detail`: every other row and number."""
-    cases = r["cases"]
-    head = f"{'controller':<38}" + "".join(f"{c:>9}" for c in cases)
-    lines = [
+def _table_head(r: dict) -> list[str]:
+    head = f"{'controller':<38}" + "".join(f"{c:>9}" for c in r["cases"])
+    return [
         f"Table 6: error norm Et, closed loop at {r['dt_s'] * 1e3:g} ms, Vmax = {r['vmax_v']:g} V",
         head,
         "-" * len(head),
     ]
+
+
+def format_rnn_report(r: dict) -> str:
+    """The RNN row alone (`run_rnn`), the paper's beside it, and how it was trained."""
+    t = r["training"]["rnn"]
+    lines = _table_head(r) + table_lines(r, ["rnn"])
+    lines.append(
+        f"RNN trained on {t['data']} (seed {r['seed']}): {t['epochs']} + "
+        f"{t.get('parallel', {}).get('epochs', 0)} LM epochs, {t['seconds']:.1f} s;"
+        f" closed-loop voltage Et on held-out training blocks {t['held_out_et']:.4f}"
+    )
+    return "\n".join(lines)
+
+
+def format_report(r: dict, detail: bool = False) -> str:
+    """Table 6: the paper's rows beside ours, then the daemon's default with and without
+    adaptation, and why it is the default; `detail`: every other row and number."""
+    lines = _table_head(r)
     lines += table_lines(r, [n for n in TABLE_ROWS if n in r["table6"]])
     lines += default_lines(r)
     if not detail:
@@ -857,14 +947,31 @@ def main(argv: list[str] | None = None) -> int:
         action="store_true",
         help="also run the paper's descent for longer descent times, and the root it ends at",
     )
-    args = ap.parse_args(argv)
-    result = run(
-        seed=args.seed,
-        epochs=args.epochs,
-        sweep_continuity=args.continuity_sweep,
-        sweep_descent=args.descent_sweep,
+    ap.add_argument(
+        "--rnn-only",
+        action="store_true",
+        help="train and run only the RNN (eq. 40): its row beside the paper's (about a minute)",
     )
-    print(format_report(result, detail=args.detail))
+    ap.add_argument(
+        "--rnn-data",
+        choices=RNN_DATA,
+        default="dataset-a",
+        help="the RNN's training series: data set A's, or the daemon's default tracking its"
+        " force (closed-loop; default dataset-a)",
+    )
+    args = ap.parse_args(argv)
+    if args.rnn_only:
+        result = run_rnn(seed=args.seed, epochs=args.epochs, rnn_data=args.rnn_data)
+        print(format_rnn_report(result))
+    else:
+        result = run(
+            seed=args.seed,
+            epochs=args.epochs,
+            sweep_continuity=args.continuity_sweep,
+            sweep_descent=args.descent_sweep,
+            rnn_data=args.rnn_data,
+        )
+        print(format_report(result, detail=args.detail))
     if args.json:
         args.json.write_text(json_text.dumps(result, indent=2))
         log.info("wrote %s", args.json)
