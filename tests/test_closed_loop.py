@@ -5,11 +5,11 @@ from __future__ import annotations
 
 import numpy as np
 
-from damper.plant import BoucWenParams, simulate
+from damper.plant import BoucWenParams
 from mrrig.loop.controllers import ConstantCurrent
 from mrrig.offline.datasets import dataset_a_validation
 from mrrig.offline.metrics import error_norm
-from mrrig.offline.simulation import closed_loop, recording
+from mrrig.offline.simulation import closed_loop
 
 
 def test_the_references_own_command_tracks_it_exactly_from_the_references_initial_state():
@@ -29,19 +29,3 @@ def test_the_references_own_command_tracks_it_exactly_from_the_references_initia
     # from a coil at 0 V the damper lags behind the reference for tens of ms: no controller
     # could avoid that error, so the benchmark starts it at the reference's 1.5 V
     assert min(run(0.0)) > 0.01
-
-
-def test_a_recording_holds_the_commands_and_the_force_they_made_not_the_desired_force():
-    case = dataset_a_validation()[3]  # noise motion, v = 2 V + noise: f_des is not 3 V's force
-    params = BoucWenParams.preset("paper-volt")
-    rec = recording(ConstantCurrent(12.0, 3.0), params, 1e-3, case, u0=3.0)
-    np.testing.assert_array_equal(rec.current, 3.0)
-    for a in ("t", "x", "xd", "xdd"):
-        np.testing.assert_array_equal(getattr(rec, a), getattr(case, a))
-    np.testing.assert_allclose(
-        rec.force, simulate(params, case.t, case.x, case.xd, rec.current), rtol=0, atol=1e-6
-    )
-    assert error_norm(case.force, rec.force) > 0.1
-    # by default the damper starts as the series' own did: the coil at its first command
-    rec0 = recording(ConstantCurrent(12.0, 3.0), params, 1e-3, case)
-    assert rec0.force[0] == case.force[0] and rec0.force[50] != rec.force[50]

@@ -1,6 +1,8 @@
 """`mrrig.offline.rnn_training`: the RNN of paper eq. 40 trained for closed-loop (parallel-mode)
 use."""
 
+import json
+
 import numpy as np
 import pytest
 
@@ -175,3 +177,25 @@ def test_rnn_tracks_held_out_stretches_of_data_set_a_in_closed_loop():
     et = [error_norm(res.f_des[b, 100:], res.f_act[b, 100:]) for b in range(len(held))]
     print("closed-loop Et on held-out training blocks:", np.round(et, 4))
     assert max(et) < 0.1
+
+
+@pytest.mark.long
+def test_bench_paper_rnn_only_trains_and_prints_the_rnn_row_alone(tmp_path, capsys):
+    """`mrrig bench paper --rnn-only`: the RNN trained as the full run trains it, run in the
+    paper's loop on the seven cases, its row printed beside the paper's (epochs cut to 2)."""
+    from mrrig.offline.bench.paper import PAPER_TABLE_6, main
+
+    out = tmp_path / "rnn.json"
+    assert main(["--rnn-only", "--epochs", "2", "--json", str(out)]) == 0
+    r = json.loads(out.read_text())
+    assert list(r["table6"]) == ["rnn"] and len(r["table6"]["rnn"]) == 7
+    assert all(np.isfinite(r["table6"]["rnn"]))
+    assert r["training"]["rnn"]["epochs"] <= 2 and r["training"]["rnn"]["parallel"]["epochs"] <= 2
+    lines = capsys.readouterr().out.splitlines()
+    row, paper = lines[3], lines[4]
+    assert row.startswith("RNN (eq. 40)") and row.split()[-7:] == [
+        f"{e:.4f}" for e in r["table6"]["rnn"]
+    ]
+    assert paper.split()[-7:] == [f"{e:.4f}" for e in PAPER_TABLE_6["rnn"]]
+    assert any("what differs from the paper" in line for line in lines)
+    assert lines[-1].startswith("RNN trained on data set A (seed 0)")

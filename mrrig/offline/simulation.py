@@ -12,7 +12,6 @@ import numpy as np
 
 from damper.plant import BoucWenDamper, BoucWenParams
 from mrrig.loop.controllers import ControlInput, Controller
-from mrrig.offline.datasets import Series
 
 
 @dataclass
@@ -74,39 +73,3 @@ def closed_loop(
                 [p.step(xs[b][k + 1], xds[b][k + 1], cmd[b], dt_s) for b, p in enumerate(plants)]
             )
     return ClosedLoopResult(f_des=f_des, f_act=f_act, command=command)
-
-
-def recording(
-    controller: Controller,
-    params: BoucWenParams,
-    dt_s: float,
-    series: Series,
-    substep_s: float = 1e-4,
-    u0: float | None = None,
-) -> Series:
-    """What the rig would record running `controller` to track `series.force` along the
-    series' motion: the same motion, the controller's commands as `current` and the damper's
-    force as `force`, so that the commands made that force. One damper, the whole series; it
-    starts at rest with the coil at `u0` (default: the series' first command, as a series made
-    by `simulate` started)."""
-    u0 = float(series.current[0]) if u0 is None else u0
-    res = closed_loop(
-        controller,
-        params,
-        dt_s,
-        series.x,
-        series.xd,
-        series.xdd,
-        series.force,
-        substep_s=substep_s,
-        u0=u0,
-    )
-    return Series(
-        t=series.t,
-        x=series.x,
-        xd=series.xd,
-        xdd=series.xdd,
-        current=res.command[0],
-        force=res.f_act[0],
-        name=f"{series.name} in closed loop ({controller.name})",
-    )
