@@ -1037,7 +1037,6 @@ class Daemon:
 
     def _shutdown(self) -> None:
         """SAFE first, then the actuator to rest, the summary, the sidecar, the bus."""
-        gc.unfreeze()
         self.control.stop()
         while (taken := self.control.take()) is not None:
             if taken[0].cmd == "sidecar" and taken[0].sidecar is not None:
@@ -1050,8 +1049,10 @@ class Daemon:
                 self._send_actuator()
             finally:
                 self.bus.shutdown()
-        # the loop is over: what follows (and the exit) must not starve another rig's loop
+        # the loop is over: what follows (and the exit) must not starve another rig's loop;
+        # a full collection of the unfrozen heap is one such thing
         leave_realtime("daemon")
+        gc.unfreeze()
         self.notifier.stopping()  # after the SAFE command
         self.counters["cpu_loop_s"] = time.process_time() - self._cpu0
         adaptation = self.controller.adaptation_state()
