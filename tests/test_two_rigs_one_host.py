@@ -27,13 +27,20 @@ B_RUNS, B_RUN_S = 3, 2.0
 A_LOOP = {"max_frame_age_s": 0.05, "timeout_periods": 25}
 
 
-def _rig(tmp: Path, name: str, duration_s: float | None, sim_stats: Path | None = None, **loop):
+def _rig(
+    tmp: Path,
+    name: str,
+    model: Path,
+    duration_s: float | None,
+    sim_stats: Path | None = None,
+    **loop,
+):
     """bridge, firmware_sim and an armed daemon (network inversion, no telemetry); without
     `duration_s` the daemon runs until stopped."""
     port = find_free_port()
     bridge = start_bridge(port)
     channel = f"ws://127.0.0.1:{port}/"
-    cfg = rig_config(tmp, channel, None, rig={"name": name}, loop=loop)
+    cfg = rig_config(tmp, channel, model, rig={"name": name}, loop=loop)
     stats = ["--measure-echo", "--stats", str(sim_stats)] if sim_stats else []
     sim = start(["-m", "firmware_sim", "--config", "configs/sim.toml", "-c", channel, *stats])
     summary = tmp / "summary.json"
@@ -44,15 +51,15 @@ def _rig(tmp: Path, name: str, duration_s: float | None, sim_stats: Path | None 
     return bridge, sim, daemon, summary
 
 
-def test_a_daemon_stopping_does_not_stall_another_rigs_loop(tmp_path):
+def test_a_daemon_stopping_does_not_stall_another_rigs_loop(tmp_path, sim_model):
     a_dir, a_stats = tmp_path / "a", tmp_path / "a-sim.json"
     a_dir.mkdir()
-    a = _rig(a_dir, "a", None, a_stats, **A_LOOP)
+    a = _rig(a_dir, "a", sim_model, None, a_stats, **A_LOOP)
     try:
         for k in range(B_RUNS):
             b_dir = tmp_path / f"b{k}"
             b_dir.mkdir()
-            b = _rig(b_dir, "b", B_RUN_S)
+            b = _rig(b_dir, "b", sim_model, B_RUN_S)
             try:
                 rc = b[2].wait(timeout=60)
             finally:
