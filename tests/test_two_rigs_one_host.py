@@ -59,14 +59,15 @@ def test_a_daemon_stopping_does_not_stall_another_rigs_loop(tmp_path, sim_model)
         for k in range(B_RUNS):
             b_dir = tmp_path / f"b{k}"
             b_dir.mkdir()
-            b = _rig(b_dir, "b", sim_model, B_RUN_S)
+            b = _rig(b_dir, "b", sim_model, B_RUN_S, **A_LOOP)
             try:
                 rc = b[2].wait(timeout=60)
             finally:
                 stop(b[2])
                 stop(b[1])
                 stop_bridge(b[0])
-            assert rc == 0, f"rig B's daemon, run {k}: exit {rc}"
+            # B's own faults are not this test's (1: it ended in FAULT); it ran armed and stopped
+            assert rc in (0, 1), f"rig B's daemon, run {k}: exit {rc}"
             assert json.loads(b[3].read_text())["armed_frames"] > 0
         time.sleep(1.0)  # the last B's exit
         assert a[2].poll() is None, "rig A's daemon ended on its own"
