@@ -18,6 +18,9 @@ if [ ! -f "$stamp" ] || [ pyproject.toml -nt "$stamp" ]; then
     echo "bootstrap: installing mrrig and its dependencies"
     .venv/bin/pip install --quiet --disable-pip-version-check -e '.[dev]'
     touch "$stamp"
+    # the 2 GB just written go to disk now, not during the next command's 500 Hz run: the
+    # demo right after a fresh install stalled 15-30 ms on the writeback and failed
+    sync
 fi
 # the rerun CLI asks about analytics once; never in CI or at a rig
 .venv/bin/rerun analytics disable >/dev/null 2>&1 || true
