@@ -97,7 +97,7 @@ def main(argv: list[str] | None = None) -> int:
             channel,
             len(config.faults) + len(args.fault),
         )
-        tune_process(config.timing.realtime_priority)
+        tune_process(config.timing.realtime_priority, config.timing.poll_idle)
         stats = RunStats(
             measure_echo=args.measure_echo,
             stale_answer_age_s=config.commands.stale_answer_age_s,

@@ -49,6 +49,8 @@ class TimingConfig:
     lead_s: float = 0.0008  # compute the frame this long before its deadline
     spin_s: float = 0.0001  # busy-wait this last part before the deadline
     realtime_priority: int = 0  # SCHED_FIFO priority 1..99; 0 = normal scheduling
+    # with a realtime priority: idle CPUs poll rather than halt while it runs (PM QoS)
+    poll_idle: bool = True
     time_scale: float = 1.0  # > 1: everything that many times slower (emulated VMs only)
 
     def check(self) -> None:

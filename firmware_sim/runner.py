@@ -237,9 +237,14 @@ def _percentiles(values: array) -> dict[str, float | int | None]:
     return {"n": int(a.size), "p50": float(p50), "p99": float(p99), "max": float(a.max())}
 
 
-def tune_process(realtime_priority: int) -> None:
-    """Timer slack 1 ns (select wakes on time), locked memory and, if asked, SCHED_FIFO."""
-    make_realtime(realtime_priority, who="firmware_sim")
+def tune_process(realtime_priority: int, poll_idle: bool = True) -> None:
+    """Timer slack 1 ns (select wakes on time), locked memory and, if asked, SCHED_FIFO and
+    idle CPUs that poll rather than halt."""
+    make_realtime(
+        realtime_priority,
+        who="firmware_sim",
+        wakeup_latency_us=0 if realtime_priority > 0 and poll_idle else None,
+    )
 
 
 def run(

@@ -63,6 +63,9 @@ class LoopSection:
     f_range_n: tuple[float, float] = (-6000.0, 6000.0)
     realtime: bool = True  # SCHED_FIFO where permitted
     cpu: int | None = None  # pin the loop to this CPU where permitted
+    # with realtime: idle CPUs poll rather than halt while the loop runs (PM QoS wake-up
+    # latency 0 us): a halted CPU of a virtual machine can wake tens of ms late
+    poll_idle: bool = True
     arm_on_start: bool = False
     arm_settle_s: float = 1.0  # arm_on_start arms after this long of valid sensor frames
     duration_s: float | None = None  # stop by itself after this long (tests, demo)

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import contextlib
+import fcntl
 import json
 import os
 import signal
@@ -34,9 +36,10 @@ SMALL = dict(amplitudes_m=(0.010, 0.020), freqs_hz=(2.0, 5.0), currents_a=(0.0, 
 
 
 @pytest.fixture(scope="session")
-def small_b():
+def small_b(tmp_path_factory):
     """A small characterization matrix (data set B: 2 x 2 x 3 runs of 0.4 s), simulated once."""
-    return dataset_b(duration_s=0.4, **SMALL)
+    with _Machine.hold(_shared_base(tmp_path_factory), alone=False):
+        return dataset_b(duration_s=0.4, **SMALL)
 
 
 @pytest.fixture(scope="session")
@@ -63,37 +66,67 @@ def sim_model(tmp_path_factory) -> Path:
 
     from mrrig.offline.training import simulated_matrix_model
 
-    root = tmp_path_factory.getbasetemp()
-    if os.environ.get("PYTEST_XDIST_WORKER"):
-        root = root.parent
+    root = _shared_base(tmp_path_factory)
     path = root / "sim-forward.json"
-    with FileLock(f"{path}.lock"):
+    with _Machine.hold(root, alone=False), FileLock(f"{path}.lock"):
         if not path.is_file():
             simulated_matrix_model(path, seed=0)
     return path
 
 
+class _Machine:
+    """The machine, shared by pytest-xdist's workers through two file locks in the run's
+    shared base directory: a process module (its tests start rigs: a simulator, a bridge, a
+    daemon that runs SCHED_FIFO on the loop's CPU) holds it alone; any other module, and the
+    session's training, hold it shared. A rig on this 2-core machine uses both CPUs; a torch
+    training or a second rig beside it stalls its processes for tens of ms, and a process test
+    cannot tell that from a fault of the daemon. The turnstile keeps a waiting process module
+    from being starved by the other worker's stream of shared holders."""
+
+    held: str | None = None  # "shared" or "alone" while this worker holds the machine
+
+    @classmethod
+    @contextlib.contextmanager
+    def hold(cls, base: Path, alone: bool) -> Iterator[None]:
+        if os.environ.get("PYTEST_XDIST_WORKER") is None or cls.held is not None:
+            yield  # one worker only, or this worker holds it already
+            return
+        with (
+            open(base / "machine.turnstile", "a") as turnstile,
+            open(base / "machine.lock", "a") as machine,
+        ):
+            fcntl.flock(turnstile, fcntl.LOCK_EX)
+            try:
+                fcntl.flock(machine, fcntl.LOCK_EX if alone else fcntl.LOCK_SH)
+            finally:
+                fcntl.flock(turnstile, fcntl.LOCK_UN)
+            cls.held = "alone" if alone else "shared"
+            try:
+                yield
+            finally:
+                cls.held = None
+                fcntl.flock(machine, fcntl.LOCK_UN)
+
+
+def _shared_base(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The base directory all of the run's workers share."""
+    root = tmp_path_factory.getbasetemp()
+    return root.parent if os.environ.get("PYTEST_XDIST_WORKER") else root
+
+
 @pytest.fixture(scope="module", autouse=True)
-def _one_rig_at_a_time(request: pytest.FixtureRequest, tmp_path_factory) -> Iterator:
-    """Modules with process tests take turns across pytest-xdist's workers (a file lock in
-    the run's shared base directory), their module fixtures included: those start rigs too
-    (send-force's, the bus logs' runs). One rig at a time, as the product is configured: each
-    rig's daemon runs SCHED_FIFO on the loop's CPU and its simulator and bridge on the
-    other, and two rigs' real-time processes took those CPUs from each other for tens of ms.
-    Other modules run beside them."""
-    worker = os.environ.get("PYTEST_XDIST_WORKER")
+def _process_modules_run_alone(
+    request: pytest.FixtureRequest, tmp_path_factory: pytest.TempPathFactory
+) -> Iterator[None]:
+    """A module with process tests holds the machine alone, its module fixtures included
+    (send-force's and the bus logs' runs start rigs too); any other module holds it shared."""
     module = request.module
     process = any(
         item.get_closest_marker("process") is not None
         for item in request.session.items
         if getattr(item, "module", None) is module
     )
-    if worker is None or not process:
-        yield
-        return
-    from filelock import FileLock
-
-    with FileLock(str(tmp_path_factory.getbasetemp().parent / "process-tests.lock")):
+    with _Machine.hold(_shared_base(tmp_path_factory), alone=process):
         yield
 
 
@@ -170,6 +203,19 @@ class OutputWatch:
 
     def join(self, timeout_s: float = 10.0) -> None:
         self._thread.join(timeout_s)
+
+
+def holds_wakeup_latency(pid: int) -> int:
+    """How many descriptors process `pid` holds on the kernel's PM QoS wake-up latency."""
+    from mrrig.loop.realtime import WAKEUP_LATENCY_DEVICE
+
+    held = 0
+    for fd in Path(f"/proc/{pid}/fd").iterdir():
+        try:
+            held += os.readlink(fd) == WAKEUP_LATENCY_DEVICE
+        except OSError:
+            continue
+    return held
 
 
 def stall(pid: int, seconds: float) -> None:

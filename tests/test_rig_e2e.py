@@ -7,6 +7,7 @@ fault that no measured stall explains fails the test, whatever its reason.
 from __future__ import annotations
 
 import json
+import os
 import signal
 import subprocess
 import time
@@ -14,8 +15,9 @@ from pathlib import Path
 
 import pytest
 
+from mrrig.loop.realtime import WAKEUP_LATENCY_DEVICE
 from mrrig.offline.review import read_recording
-from tests.conftest import OutputWatch, rig_config, stall
+from tests.conftest import OutputWatch, holds_wakeup_latency, rig_config, stall
 from tests.stall_proof import prove
 
 pytestmark = pytest.mark.process
@@ -34,6 +36,8 @@ def run_rig(tmp_path: Path, bridge: str, procs, model: Path, duration_s: float, 
     )  # fmt: skip
     daemon_out = OutputWatch(daemon, "loop running")
     assert daemon_out.seen.wait(60), daemon_out.text()  # waiting for sensor frames
+    if os.access(WAKEUP_LATENCY_DEVICE, os.W_OK):  # idle CPUs poll while its loop runs
+        assert holds_wakeup_latency(daemon.pid) == 1, daemon_out.text()
     sim_stats = tmp_path / "sim.json"
     sim = procs(
         ["-m", "firmware_sim", "--config", "configs/sim.toml", "--bus-channel", bridge,

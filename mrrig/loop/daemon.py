@@ -182,12 +182,14 @@ def build_reference(r: ReferenceSection, dt_s: float) -> ref.ForceReference:
 
 
 def loop_realtime(cfg: DaemonConfig) -> None:
-    """SCHED_FIFO, CPU affinity and locked memory where permitted; a warning where not."""
+    """SCHED_FIFO, CPU affinity, locked memory and idle CPUs that poll, where permitted; a
+    warning where not."""
     make_realtime(
         50 if cfg.loop.realtime else 0,
         cpu=cfg.loop.cpu,
         lock_memory=cfg.loop.realtime,
         who="daemon",
+        wakeup_latency_us=0 if cfg.loop.realtime and cfg.loop.poll_idle else None,
     )
 
 

@@ -1,8 +1,9 @@
 """Real-time settings for the 500 Hz processes (daemon, simulator, bridge), where permitted.
 
 SCHED_FIFO, CPU affinity, locked memory (no page fault stalls when the kernel drops file
-pages) and 1 ns timer slack (select/sleep wake on time). Each is tried on its own; where one
-is not permitted the process runs on with a warning.
+pages), 1 ns timer slack (select/sleep wake on time) and a CPU wake-up latency held through
+the kernel's PM QoS (idle CPUs poll rather than halt; see `hold_wakeup_latency`). Each is
+tried on its own; where one is not permitted the process runs on with a warning.
 """
 
 from __future__ import annotations
@@ -11,6 +12,7 @@ import ctypes
 import ctypes.util
 import logging
 import os
+import struct
 
 from mrrig.loop import memory
 
@@ -19,6 +21,10 @@ log = logging.getLogger(__name__)
 _PR_SET_TIMERSLACK = 29
 _MCL_CURRENT, _MCL_FUTURE, _MCL_ONFAULT = 1, 2, 4
 _EINVAL = 22
+# PM QoS: while a process holds this open with a value written, no CPU enters an idle state
+# whose exit latency exceeds that many microseconds; closing it (or exiting) releases it
+WAKEUP_LATENCY_DEVICE = "/dev/cpu_dma_latency"
+_wakeup_hold: int | None = None  # this process's open descriptor on the device
 
 
 def _libc() -> ctypes.CDLL | None:
@@ -27,9 +33,16 @@ def _libc() -> ctypes.CDLL | None:
 
 
 def make_realtime(
-    priority: int, cpu: int | None = None, lock_memory: bool = True, who: str = "process"
+    priority: int,
+    cpu: int | None = None,
+    lock_memory: bool = True,
+    who: str = "process",
+    wakeup_latency_us: int | None = None,
 ) -> None:
-    """Apply what is permitted; `priority` 0 keeps normal scheduling."""
+    """Apply what is permitted; `priority` 0 keeps normal scheduling, `wakeup_latency_us`
+    None leaves the CPUs' idle states alone."""
+    if wakeup_latency_us is not None:
+        hold_wakeup_latency(wakeup_latency_us, who)
     libc = _libc()
     if libc is not None:
         if libc.prctl(_PR_SET_TIMERSLACK, 1, 0, 0, 0) != 0:
@@ -80,9 +93,54 @@ def keep_off_cpu(pid: int, cpu: int | None, who: str) -> None:
         log.warning("%s: could not keep it off CPU %d: %s", who, cpu, exc)
 
 
+def hold_wakeup_latency(us: int, who: str = "process") -> bool:
+    """Hold every CPU's wake-up latency at `us` microseconds until `leave_realtime` or exit
+    (PM QoS, as cyclictest does). With 0 an idle CPU polls instead of halting. On a virtual
+    machine a halted vCPU waits for the host to run it again when its timer or a frame
+    wakes it: on a busy host that took 5-100 ms, the stalls that faulted the loop, and
+    a polling vCPU does not wait. It costs an idle CPU's power. True where held."""
+    global _wakeup_hold
+    if _wakeup_hold is not None:
+        os.close(_wakeup_hold)
+        _wakeup_hold = None
+    try:
+        fd = os.open(WAKEUP_LATENCY_DEVICE, os.O_WRONLY)
+    except OSError as exc:
+        log.warning(
+            "%s: CPU wake-up latency not held (%s: %s): idle CPUs may halt and wake late",
+            who,
+            WAKEUP_LATENCY_DEVICE,
+            exc.strerror,
+        )
+        return False
+    try:
+        os.write(fd, struct.pack("i", us))
+    except OSError as exc:
+        os.close(fd)
+        log.warning("%s: CPU wake-up latency %d us not held: %s", who, us, exc.strerror)
+        return False
+    _wakeup_hold = fd
+    log.info("%s: CPU wake-up latency held at %d us (idle CPUs poll)", who, us)
+    return True
+
+
+def wakeup_latency_us() -> int:
+    """The wake-up latency the kernel keeps now (the least any holder asked for), in us."""
+    fd = os.open(WAKEUP_LATENCY_DEVICE, os.O_RDONLY)
+    try:
+        return struct.unpack("i", os.read(fd, 4))[0]
+    finally:
+        os.close(fd)
+
+
 def leave_realtime(who: str = "process") -> None:
-    """Back to normal scheduling: the work of a process that has stopped its loop (summary,
-    exit, the interpreter's teardown) must not starve another rig's loop on the same CPU."""
+    """Back to normal scheduling and idle states: the work of a process that has stopped its
+    loop (summary, exit, the interpreter's teardown) must not starve another rig's loop on
+    the same CPU."""
+    global _wakeup_hold
+    if _wakeup_hold is not None:
+        os.close(_wakeup_hold)
+        _wakeup_hold = None
     try:
         if os.sched_getscheduler(0) != os.SCHED_OTHER:
             os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
