@@ -214,8 +214,9 @@ class ScriptedRig:
 
 class ThreadRig:
     """firmware_sim's firmware and loop in a thread, on a python-can `virtual` channel, beside
-    a daemon in a `RigSession` of the same process. `hold(s)` holds the simulator's loop up
-    once, as a scheduler would; its RunStats measure that stall like any other."""
+    a daemon in a `RigSession` of the same process (on the virtual bus, its loop is a thread).
+    `hold(s)` holds the simulator's loop up once, as a scheduler would; its RunStats measure
+    that stall like any other."""
 
     def __init__(self) -> None:
         self.channel = f"thread-rig-{next(_channels)}"
@@ -260,7 +261,8 @@ class ThreadRig:
     def explain_faults(self, session: RigSession) -> None:
         """Every fault of the session's daemon inside a stall this rig's loop measured."""
         st = self.stats.summary(self.firmware, 1.0, 0.0)
-        faults = [e for e in session.daemon.events if e["kind"] == "fault"]
+        session.check_alive()  # the events up to now
+        faults = [e for e in session.events if e["kind"] == "fault"]
         explain(st, faults, session.clock_t0_s)
 
     def daemon_config(self, tmp_path: Path, **sections):

@@ -228,11 +228,11 @@ def test_validate_switches_models_with_set_model_while_disarmed(tmp_path, sim_mo
         with RigSession(cfg) as session:
             first = clean_window(session)
             session.request(cmd="arm")
-            refused = session.daemon.request({"cmd": "set_model", "path": str(other)})
+            refused = session.ask({"cmd": "set_model", "path": str(other)})
             assert not refused["ok"] and "not armed" in refused["error"]
             session.request(cmd="disarm")
             session.request(cmd="set_model", path=str(other))
-            assert session.daemon.cfg.controller.model == other
+            assert session.loop.daemon.cfg.controller.model == other
             second = clean_window(session)
             rig.explain_faults(session)
     print(f"Et with the model: {first['et']:.4f}; after set_model: {second['et']:.4f}")

@@ -93,8 +93,10 @@ def test_a_stall_of_the_simulator_is_measured_and_explains_the_fault_it_causes(
     tmp_path, bridge, procs, sim_model
 ):
     """The simulator held up for 100 ms (SIGSTOP): the daemon faults (no sensor frame within
-    its 20 ms timeout), the simulator measured the window, and the run is proved."""
-    st, s, samples = run_rig(tmp_path, bridge, procs, sim_model, 5.0, stop=("simulator", 2.0, 0.1))
+    its 20 ms timeout), the simulator measured the window, and the run is proved. The stall
+    comes 2 s after arming: the daemon stays in FAULT after it, so Et is over those 2 s, not
+    over the first second after arming alone (the controller's start)."""
+    st, s, samples = run_rig(tmp_path, bridge, procs, sim_model, 6.0, stop=("simulator", 3.0, 0.1))
     proof = prove(st, s["faults"], s["clock_t0_s"], samples, et_bound=0.1)
     assert proof.explained, s["faults"]
     assert any(w.kind == "simulator" and w.end_s - w.start_s >= 0.09 for w in proof.windows)

@@ -9,7 +9,7 @@ run interrupted midway is redone from scratch. A run with a fault or missing sam
 again (`attempts`), then left for the next invocation (exit 1). Ctrl-C/SIGTERM: SAFE, actuator
 STOP, exit 130.
 
-The daemon's loop runs in a thread of this process (`mrrig.rigio.rig_session.RigSession`); the tool
+The daemon's loop runs in a process of its own (`mrrig.rigio.rig_session.RigSession`); the tool
 drives it with control requests between runs (never per frame).
 """
 
@@ -333,7 +333,7 @@ def characterize(
             store.dir,
         )
     progress = Progress(len(todo), len(runs), store.m)
-    rig = session.daemon.cfg.rig.name
+    rig = session.cfg.rig.name
     failed: list[Run] = []
     in_a_row = 0
     for run in todo:
