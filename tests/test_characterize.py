@@ -284,6 +284,52 @@ def _report_faults(r: dict) -> list[dict]:
     return [*r["faults"], *r["discarded_faults"]]
 
 
+_TOOL = """
+import sys, time
+from mrrig.config import load_config
+from mrrig.rigio.rig_session import RigSession, rig_overrides
+cfg = load_config(sys.argv[1], rig_overrides(None, True))
+with RigSession(cfg) as session:
+    session.request(cmd="arm")
+    print(session.loop.pid, flush=True)
+    time.sleep(60)
+"""
+
+
+@pytest.mark.process
+def test_the_loop_process_ends_safe_when_its_tool_is_killed(tmp_path, bridge, procs):
+    """A tool's daemon loop runs in a process of its own; SIGKILL of the tool (no close, no
+    disarm) still ends that loop, SAFE: the closed pipe stops it, and its last commands to
+    the firmware are SAFE ones, not ACTIVE."""
+    sim_stats = tmp_path / "sim.json"
+    sim = _sim(procs, bridge, sim_stats)
+    rig = rig_config(tmp_path, bridge, None, controller={"name": "constant", "current_a": 0.5})
+    tool = procs(["-c", _TOOL, str(rig)], stdout=subprocess.PIPE, text=True)
+    line = tool.stdout.readline()
+    assert line.strip().isdigit(), f"the tool printed no loop pid: {line!r}"
+    loop_pid = int(line)
+    time.sleep(0.5)
+    tool.kill()
+    tool.wait(timeout=10)
+    end = time.monotonic() + 10
+    while time.monotonic() < end and _alive(loop_pid):
+        time.sleep(0.05)
+    assert not _alive(loop_pid), "the loop process outlived its killed tool"
+    events = [e["event"] for e in _sim_stats(sim, sim_stats)["fault_events"]]
+    print(events)
+    assert any("after SAFE commands" in e for e in events), events
+    assert not any("after ACTIVE commands" in e for e in events), events
+
+
+def _alive(pid: int) -> bool:
+    """The process exists and is no zombie (its parent, killed, no longer reaps it)."""
+    try:
+        state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+    except OSError:
+        return False
+    return state != "Z"
+
+
 @pytest.mark.process
 def test_characterize_train_validate_from_the_command_line(tmp_path, bridge, procs):
     """The acceptance test of issue 5: three commands in separate processes on the simulator.

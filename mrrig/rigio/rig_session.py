@@ -219,6 +219,10 @@ class ProcessLoop:
             raise RigError(value)
         return value
 
+    @property
+    def pid(self) -> int | None:
+        return self._proc.pid
+
     def start(self) -> None:
         with _loop_environment():
             self._proc.start()
