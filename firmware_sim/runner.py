@@ -232,7 +232,9 @@ class RunStats:
 def _percentiles(values: array) -> dict[str, float | int | None]:
     if not values:
         return {"n": 0, "p50": None, "p99": None, "max": None}
-    a = np.array(values, dtype=float)  # a copy: the loop may append while a summary is read
+    # a copy taken without exporting the array's buffer: the loop may append to it meanwhile,
+    # and an append to an array whose buffer is exported raises BufferError
+    a = np.array(values.tolist(), dtype=float)
     p50, p99 = np.percentile(a, [50, 99])
     return {"n": int(a.size), "p50": float(p50), "p99": float(p99), "max": float(a.max())}
 

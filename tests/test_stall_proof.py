@@ -124,7 +124,7 @@ def test_a_controller_that_raises_once_is_a_fault_no_stall_explains(tmp_path):
     with ThreadRig() as rig, _armed_session(tmp_path, rig) as session:
         session.request(cmd="arm")
         time.sleep(0.3)
-        controller = session.daemon.controller
+        controller = session.loop.daemon.controller
         command_one = controller.command_one
 
         def raise_once(*args):

@@ -149,7 +149,7 @@ class BusLogCheck:
         else:
             lines.append(
                 f"  matches the recording: {self.rx_sensor_frames} sensor frames received,"
-                f" {self.tx_commands} commands sent, the recorded frame counters in order"
+                f" {self.tx_commands} commands sent, the recorded sensor frames in order"
             )
         return "\n".join(lines)
 
@@ -166,14 +166,16 @@ def read_bus_log(path: str | Path) -> list[can.Message]:
 
 def check_bus_log(path: str | Path, samples: np.ndarray, summary: dict[str, Any] | None):
     """Decode a bus log with the DBC and compare it with a recording: its frame counts with the
-    daemon's counters (frames received, commands sent), the sensor frames' E2E counters with the
-    recorded `counter` series (in order), every command's CRC."""
+    daemon's counters (frames received, commands sent), the sensor frames' E2E counters and
+    measurements with the recorded `counter`, `x` and `f_meas` series (in order, to the DBC's
+    resolution: two clean runs of one length have the same counts and counters), every
+    command's CRC."""
     from mrrig.rigio.canbus.codec import Codec
 
     db = Codec().db
     messages = read_bus_log(path)
     per: dict[str, int] = {}
-    sensor_counters: list[int] = []
+    sensor_keys: list[tuple[int, int, int]] = []
     rx_sensor = tx_cmd = 0
     bad_decode = 0
     for msg in messages:
@@ -190,7 +192,9 @@ def check_bus_log(path: str | Path, samples: np.ndarray, summary: dict[str, Any]
             continue
         if spec.name == "RigSensors" and msg.is_rx:
             rx_sensor += 1
-            sensor_counters.append(int(values["E2E_Counter"]))
+            sensor_keys.append(
+                _sensor_key(values["E2E_Counter"], values["Displacement"], values["Force"])
+            )
         elif spec.name == "DamperCommand" and not msg.is_rx:
             tx_cmd += 1
     mismatches = []
@@ -202,13 +206,22 @@ def check_bus_log(path: str | Path, samples: np.ndarray, summary: dict[str, Any]
         mismatches.append(f"sensor frames received: log {rx_sensor}, daemon {expected_sensors}")
     if summary is not None and tx_cmd != s.get("commands_sent"):
         mismatches.append(f"commands sent: log {tx_cmd}, daemon {s.get('commands_sent')}")
-    in_order = _subsequence(samples["counter"].astype(int).tolist(), sensor_counters)
+    recorded = [
+        _sensor_key(c, x, f)
+        for c, x, f in zip(samples["counter"], samples["x"], samples["f_meas"], strict=True)
+    ]
+    in_order = _subsequence(recorded, sensor_keys)
     if not in_order:
-        mismatches.append("the recorded frame counters are not the log's, in order")
+        mismatches.append("the recorded sensor frames (counter, x, force) are not the log's")
     return BusLogCheck(Path(path), len(messages), per, rx_sensor, tx_cmd, in_order, mismatches)
 
 
-def _subsequence(needle: list[int], hay: list[int]) -> bool:
+def _sensor_key(counter: float, x_m: float, f_n: float) -> tuple[int, int, int]:
+    """A sensor frame as raw DBC values: its counter, displacement (1 um) and force (0.01 N)."""
+    return int(counter), round(float(x_m) * 1e6), round(float(f_n) * 100)
+
+
+def _subsequence(needle: list, hay: list) -> bool:
     """Whether `needle` appears in `hay` in order (not necessarily adjacent)."""
     it = iter(hay)
     return all(any(x == y for y in it) for x in needle)
