@@ -76,28 +76,8 @@ class Snapshot:
     events: list[dict] = field(default_factory=list)
 
 
-def _snapshot(
-    daemon: Daemon, thread: threading.Thread, error: str, n_chunks: int, n_events: int
-) -> Snapshot:
-    running = thread.is_alive() or thread.ident is None
-    if not running and not error:
-        error = daemon.stop_reason or "unknown"
-    return Snapshot(
-        daemon.supervisor.state,
-        daemon.supervisor.reason,
-        daemon.counters["sensor_frames_valid"],
-        daemon.t0,
-        running,
-        error,
-        daemon.handed_over(n_chunks),
-        daemon.events[n_events:],
-    )
-
-
 class Loop(Protocol):
     """Where the daemon's loop runs: started, asked, polled, stopped."""
-
-    cfg: DaemonConfig
 
     def start(self) -> None: ...
 
@@ -112,7 +92,6 @@ class ThreadLoop:
     """The daemon's loop in a thread of this process."""
 
     def __init__(self, cfg: DaemonConfig) -> None:
-        self.cfg = cfg
         self.daemon = Daemon(cfg, keep_batches=True)
         self._thread = threading.Thread(target=self._run, name="mrrig-loop", daemon=True)
         self._error = ""
@@ -130,7 +109,18 @@ class ThreadLoop:
         return self.daemon.request(req)
 
     def poll(self, n_chunks: int, n_events: int) -> Snapshot:
-        return _snapshot(self.daemon, self._thread, self._error, n_chunks, n_events)
+        d, thread = self.daemon, self._thread
+        running = thread.is_alive() or thread.ident is None
+        return Snapshot(
+            d.supervisor.state,
+            d.supervisor.reason,
+            d.counters["sensor_frames_valid"],
+            d.t0,
+            running,
+            "" if running else self._error or d.stop_reason or "unknown",
+            d.handed_over(n_chunks),
+            d.events[n_events:],
+        )
 
     def stop(self, reason: str) -> None:
         if self._thread.is_alive():
@@ -195,7 +185,6 @@ class ProcessLoop:
     """The daemon's loop in a process of its own, asked over a pipe."""
 
     def __init__(self, cfg: DaemonConfig) -> None:
-        self.cfg = cfg
         ctx = multiprocessing.get_context("spawn")  # a fresh interpreter: no forked threads
         self._conn, child = ctx.Pipe()
         self._proc = ctx.Process(
@@ -326,8 +315,7 @@ class RigSession:
 
     def now(self) -> float:
         """The daemon's clock (the samples' `t`), s."""
-        t0 = self._last.t0 if self._last is not None else self._poll().t0
-        return time.perf_counter() - t0
+        return time.perf_counter() - self.clock_t0_s
 
     def request(self, **req: Any) -> dict[str, Any]:
         """A control request; RigError when refused."""
@@ -342,10 +330,6 @@ class RigSession:
 
     def state(self) -> RigState:
         return self._poll().state
-
-    def fault_reason(self) -> str:
-        snap = self._last if self._last is not None else self._poll()
-        return snap.reason
 
     def wait_until(self, t_s: float, stop: threading.Event, fail_on_fault: bool = True) -> None:
         """Sleep until daemon time `t_s`; Interrupted on `stop`, RunFailed on a daemon FAULT."""
@@ -362,8 +346,9 @@ class RigSession:
 
     @property
     def clock_t0_s(self) -> float:
-        """The daemon's time zero on CLOCK_MONOTONIC: its times beside another process's."""
-        return (self._last if self._last is not None else self._poll()).t0
+        """The daemon's time zero on CLOCK_MONOTONIC: its times beside another process's (set
+        when its loop starts, before the first sensor frame that `__enter__` waits for)."""
+        return (self._last or self._poll()).t0
 
     def take(self, t0_s: float, t1_s: float) -> tuple[np.ndarray, list[dict]]:
         """Samples with t in [t0_s, t1_s) and the events since the last call.
