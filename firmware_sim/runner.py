@@ -46,6 +46,7 @@ class RunStats:
     RESYNC_S = 0.1
     # a repeated answer is looked for among the last REPEATS answered frames
     REPEATS = 16
+    STALE_KEPT = 100  # stale ACTIVE answers listed in the stats, at most
     # Held up by more than this, a frame marks a stall window. The simulator's own: a sensor
     # frame sent this late after its deadline (its process did not run), from the frame sent
     # before to this one, and the periods skipped after a long stall. The transport's
@@ -55,8 +56,13 @@ class RunStats:
 
     def __init__(self, measure_echo: bool = False, stale_answer_age_s: float = math.inf) -> None:
         self.stale_answer_age_s = stale_answer_age_s
-        # ACTIVE answers to a frame sent more than stale_answer_age_s before they came
+        # ACTIVE answers that reached the bus more than stale_answer_age_s after the frame they
+        # answer did (its bus timestamp from the echo, with measure_echo; else its send)
         self.active_answers_stale = 0
+        # each of those: [frame_s, answer_s], when the bus took the frame in and the answer,
+        # on this process's clock (the first STALE_KEPT of them)
+        self.stale_answers: list[list[float]] = []
+        self._wall_minus_clock_s = math.nan  # time.time() - this process's clock
         self.sensor_frames_sent = 0
         self.sensor_frames_faulted = 0  # sent with a fault injected: no answer expected
         self.status_frames_sent = 0
@@ -116,6 +122,8 @@ class RunStats:
         """A RigSensors frame left at sent_s for the deadline ideal_s (same clock); at
         sent_wall_s on time.time(), the bus timestamps' clock."""
         self.sensor_frames_sent += 1
+        if sent_wall_s is not None:
+            self._wall_minus_clock_s = sent_wall_s - sent_s
         self.jitter_us.append((sent_s - ideal_s) * 1e6)
         on_time = sent_s - ideal_s <= self.LATE_S
         if not on_time:  # the process last ran when it sent the frame before
@@ -161,10 +169,14 @@ class RunStats:
             # delay is no part of the daemon's answer), else when it reached this process
             if bus_ts_s is not None and entry[5] is not None:
                 age_s = bus_ts_s - entry[5]
+                frame_s, answer_s = (t - self._wall_minus_clock_s for t in (entry[5], bus_ts_s))
             else:
                 age_s = received_s - entry[1]
+                frame_s, answer_s = entry[1], received_s
             if not safe and age_s > self.stale_answer_age_s:
                 self.active_answers_stale += 1
+                if len(self.stale_answers) < self.STALE_KEPT:
+                    self.stale_answers.append([frame_s, answer_s])
             self._answered.append(entry)
             if len(self._answered) > self.REPEATS:
                 self._close(self._answered.popleft())
@@ -175,8 +187,10 @@ class RunStats:
                 return
         self.unmatched_answers += 1
 
-    def on_echo(self, counter: int, received_s: float) -> None:
-        """This process's own RigSensors frame with `counter`, echoed back by the bus."""
+    def on_echo(self, counter: int, received_s: float, bus_ts_s: float | None = None) -> None:
+        """This process's own RigSensors frame with `counter`, echoed back by the bus, which
+        stamped it bus_ts_s (time.time()): the receive timestamp that the daemon measures the
+        frame's age from (spec/system.md), and so the stale-answer count too."""
         awaiting = self._echo_awaiting
         while awaiting:
             sent_counter, sent_s = awaiting.popleft()
@@ -184,6 +198,11 @@ class RunStats:
                 self.echo_us.append((received_s - sent_s) * 1e6)
                 if received_s - sent_s > self.LATE_S:
                     self.stall("transport", sent_s, received_s)
+                if bus_ts_s is not None:
+                    for entry in reversed(self._awaiting):
+                        if entry[0] == counter:
+                            entry[5] = bus_ts_s
+                            break
                 return
 
     def finish(self) -> None:
@@ -210,6 +229,9 @@ class RunStats:
                 "safe_repeats": self.safe_repeats,
                 "active_to_stale": self.active_answers_stale,
             },
+            "stale_answers": [
+                {"frame_s": round(a, 6), "answer_s": round(b, 6)} for a, b in self.stale_answers
+            ],
             "answers_on_time": dict(self.on_time),
             "clock_t0_s": self.clock_t0_s,
             "stall_windows": [
@@ -343,7 +365,7 @@ def _receive(
         return
     if msg.arbitration_id == firmware.sensors_id:  # our own, echoed back
         if stats.measure_echo:
-            stats.on_echo(firmware.sensor_counter(bytes(msg.data)), t_s)
+            stats.on_echo(firmware.sensor_counter(bytes(msg.data)), t_s, msg.timestamp or None)
         return
     parsed = firmware.on_frame(msg.arbitration_id, bytes(msg.data), t_s)
     if parsed is not None and parsed.ok and msg.arbitration_id == damper_id:

@@ -22,6 +22,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from hypothesis.stateful import RuleBasedStateMachine, invariant, rule
 
+from mrrig.offline.bench.fuzz import stale_answers_in_transport_stalls
 from mrrig.rigio.control import RequestError, parse_request
 from tests.rig_harness import ScriptedRig
 
@@ -187,3 +188,23 @@ RequestSequences.TestCase.settings = settings(
     max_examples=10, stateful_step_count=15, deadline=None
 )
 test_request_sequences = pytest.mark.process(RequestSequences.TestCase)
+
+
+def test_a_stale_answer_is_set_aside_only_when_a_measured_bridge_stall_covers_its_excess():
+    """The daemon answered in time and the bridge took the answer in late: set aside only when
+    a transport window the simulator measured covers the excess over the age limit (10 ms)."""
+    stats = {
+        "stale_answer_age_s": 0.01,
+        "stall_windows": [
+            {"kind": "transport", "start_s": 1.000, "end_s": 1.030},
+            {"kind": "simulator", "start_s": 2.000, "end_s": 2.040},
+        ],
+        "stale_answers": [
+            {"frame_s": 0.995, "answer_s": 1.031},  # 26 ms over, 30 ms of bridge stall: aside
+            {"frame_s": 1.025, "answer_s": 1.045},  # 10 ms over, 5 ms of it in the stall: no
+            {"frame_s": 2.000, "answer_s": 2.030},  # the simulator's own stall: no
+            {"frame_s": 3.000, "answer_s": 3.012},  # no stall at all: no
+        ],
+    }
+    assert stale_answers_in_transport_stalls(stats) == 1
+    assert stale_answers_in_transport_stalls({**stats, "stale_answers": []}) == 0

@@ -14,6 +14,7 @@ import time
 from collections.abc import Iterator
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from firmware_sim.firmware import Frame
@@ -99,6 +100,28 @@ def test_run_stats_count_each_sensor_frame_answered_once_unanswered_or_more_than
     assert stats.safe_repeats == 1
     assert list(stats.latency_us) == pytest.approx([500.0, 2400.0, 500.0, 700.0])
     assert list(stats.jitter_us) == pytest.approx([100.0, 100.0, 100.0, 100.0, 200.0, 100.0, 100.0])
+
+
+def test_run_stats_count_active_answers_stale_from_the_frames_bus_timestamp():
+    """A frame's age runs from its receive timestamp at the bus (spec/system.md), which the
+    echo of the frame gives: a bus that took the frame in 50 ms late and an answer 2 ms after
+    that is no stale answer; 20 ms after the bus took it in is one; without the echo the age
+    runs from the send."""
+    stats = RunStats(measure_echo=True, stale_answer_age_s=0.01)
+    frames = [Frame(SENSORS_ID, b"", c, True) for c in range(3)]
+    stats.on_sensor_sent(frames[0], 0.000, 0.000, sent_wall_s=100.000)
+    stats.on_echo(0, 0.051, bus_ts_s=100.050)  # the bus held it up 50 ms
+    stats.on_command(0, 0.053, bus_ts_s=100.052)  # 2 ms after the bus took it in
+    stats.on_sensor_sent(frames[1], 0.060, 0.060, sent_wall_s=100.060)
+    stats.on_echo(1, 0.061, bus_ts_s=100.061)
+    stats.on_command(1, 0.082, bus_ts_s=100.081)  # 20 ms after: stale
+    assert stats.active_answers_stale == 1
+    stats.on_sensor_sent(frames[2], 0.090, 0.090, sent_wall_s=100.090)  # no echo
+    stats.on_command(2, 0.103, bus_ts_s=100.102)  # 12 ms after its send: stale
+    stats.on_command(2, 0.104, safe=True, bus_ts_s=100.103)  # SAFE: never stale
+    assert stats.active_answers_stale == 2
+    # when the bus took each in, on this process's clock
+    assert np.allclose(stats.stale_answers, [[0.061, 0.081], [0.090, 0.102]])
 
 
 def test_run_stats_match_answers_in_turn_through_a_stall_longer_than_the_counter_wraps():
