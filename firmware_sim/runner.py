@@ -59,8 +59,8 @@ class RunStats:
         # ACTIVE answers that reached the bus more than stale_answer_age_s after the frame they
         # answer did (its bus timestamp from the echo, with measure_echo; else its send)
         self.active_answers_stale = 0
-        # each of those: [frame_s, answer_s], when the bus took the frame in and the answer,
-        # on this process's clock (the first STALE_KEPT of them)
+        # each of those: [counter, frame_s, answer_s], when the bus took the frame in and the
+        # answer, on this process's clock (the first STALE_KEPT of them)
         self.stale_answers: list[list[float]] = []
         self._wall_minus_clock_s = math.nan  # time.time() - this process's clock
         self.sensor_frames_sent = 0
@@ -176,7 +176,7 @@ class RunStats:
             if not safe and age_s > self.stale_answer_age_s:
                 self.active_answers_stale += 1
                 if len(self.stale_answers) < self.STALE_KEPT:
-                    self.stale_answers.append([frame_s, answer_s])
+                    self.stale_answers.append([echo, frame_s, answer_s])
             self._answered.append(entry)
             if len(self._answered) > self.REPEATS:
                 self._close(self._answered.popleft())
@@ -230,7 +230,8 @@ class RunStats:
                 "active_to_stale": self.active_answers_stale,
             },
             "stale_answers": [
-                {"frame_s": round(a, 6), "answer_s": round(b, 6)} for a, b in self.stale_answers
+                {"counter": c, "frame_s": round(a, 6), "answer_s": round(b, 6)}
+                for c, a, b in self.stale_answers
             ],
             "answers_on_time": dict(self.on_time),
             "clock_t0_s": self.clock_t0_s,

@@ -17,12 +17,14 @@ import time
 from pathlib import Path
 
 import can
+import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from hypothesis.stateful import RuleBasedStateMachine, invariant, rule
 
-from mrrig.offline.bench.fuzz import stale_answers_in_transport_stalls
+from mrrig.loop.samples import SAMPLE_DTYPE, RigState
+from mrrig.offline.bench.fuzz import stale_answers_sent_in_time
 from mrrig.rigio.control import RequestError, parse_request
 from tests.rig_harness import ScriptedRig
 
@@ -190,21 +192,23 @@ RequestSequences.TestCase.settings = settings(
 test_request_sequences = pytest.mark.process(RequestSequences.TestCase)
 
 
-def test_a_stale_answer_is_set_aside_only_when_a_measured_bridge_stall_covers_its_excess():
-    """The daemon answered in time and the bridge took the answer in late: set aside only when
-    a transport window the simulator measured covers the excess over the age limit (10 ms)."""
+def test_a_stale_answer_is_set_aside_only_when_the_daemon_recorded_sending_it_in_time():
+    """The simulator saw 4 ACTIVE answers reach the bus over 10 ms after their frames; the
+    daemon's recording shows which it sent within the limit (the bus took those in late)."""
+    samples = np.zeros(4, dtype=SAMPLE_DTYPE)
+    samples["t"] = [0.001, 1.001, 2.001, 3.001]  # the loop's reads, on the daemon's clock
+    samples["counter"] = [1, 2, 3, 4]
+    samples["state"] = [RigState.ARMED, RigState.ARMED, RigState.FAULT, RigState.ARMED]
+    samples["latency_us"] = [9_000, 10_500, 9_000, 9_000]
     stats = {
         "stale_answer_age_s": 0.01,
-        "stall_windows": [
-            {"kind": "transport", "start_s": 1.000, "end_s": 1.030},
-            {"kind": "simulator", "start_s": 2.000, "end_s": 2.040},
-        ],
+        "clock_t0_s": 100.0,  # the daemon's clock zero is 100.5 s on the same clock
         "stale_answers": [
-            {"frame_s": 0.995, "answer_s": 1.031},  # 26 ms over, 30 ms of bridge stall: aside
-            {"frame_s": 1.025, "answer_s": 1.045},  # 10 ms over, 5 ms of it in the stall: no
-            {"frame_s": 2.000, "answer_s": 2.030},  # the simulator's own stall: no
-            {"frame_s": 3.000, "answer_s": 3.012},  # no stall at all: no
+            {"counter": 1, "frame_s": 0.5, "answer_s": 0.512},  # sent at 9 ms: the bus's
+            {"counter": 2, "frame_s": 1.5, "answer_s": 1.512},  # sent at 10.5 ms: the daemon's
+            {"counter": 3, "frame_s": 2.5, "answer_s": 2.512},  # not ARMED in the recording
+            {"counter": 5, "frame_s": 3.5, "answer_s": 3.512},  # no sample of that frame
         ],
     }
-    assert stale_answers_in_transport_stalls(stats) == 1
-    assert stale_answers_in_transport_stalls({**stats, "stale_answers": []}) == 0
+    assert stale_answers_sent_in_time(stats, samples, 100.5) == 1
+    assert stale_answers_sent_in_time({**stats, "stale_answers": []}, samples, 100.5) == 0

@@ -121,7 +121,7 @@ def test_run_stats_count_active_answers_stale_from_the_frames_bus_timestamp():
     stats.on_command(2, 0.104, safe=True, bus_ts_s=100.103)  # SAFE: never stale
     assert stats.active_answers_stale == 2
     # when the bus took each in, on this process's clock
-    assert np.allclose(stats.stale_answers, [[0.061, 0.081], [0.090, 0.102]])
+    assert np.allclose(stats.stale_answers, [[1, 0.061, 0.081], [2, 0.090, 0.102]])
 
 
 def test_run_stats_match_answers_in_turn_through_a_stall_longer_than_the_counter_wraps():
