@@ -205,7 +205,9 @@ def test_a_run_that_succeeds_on_its_second_attempt_is_no_failed_run(tmp_path):
             rig.explain_faults(session)
     assert failed == []
     last = store.done[runs[-1].run_id]
-    assert last["attempts"] == 2 and len(last["failed_attempts"]) == 1, last
+    # the injected stall failed one attempt; a stall of the machine may fail another, and
+    # explain_faults above has put each such fault inside a stall the simulator measured
+    assert last["attempts"] == len(last["failed_attempts"]) + 1 >= 2, last
 
 
 def clean_window(session: RigSession) -> dict:
