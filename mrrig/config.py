@@ -18,6 +18,10 @@ __all__ = ["ConfigError", "DaemonConfig", "load_config", "reference_from_table"]
 # sane bounds of a damper test rig, well inside the DBC's ranges (+-8.3 m, +-83 kN)
 X_RANGE_LIMIT_M = 0.5
 F_RANGE_LIMIT_N = 80000.0
+# every setting that scales a wait is bounded at load: a sensor timeout of 1e8 periods made the
+# daemon deaf to a stop once the frames stopped
+MAX_SENSOR_TIMEOUT_S = 1.0
+MAX_ARM_SETTLE_S = 60.0
 
 
 @dataclass(frozen=True)
@@ -85,6 +89,12 @@ class LoopSection:
             raise ValueError("i_max_a: must be in (0, 5] A")
         if self.timeout_periods < 1:
             raise ValueError("timeout_periods: must be at least 1")
+        if self.timeout_periods * self.period_s > MAX_SENSOR_TIMEOUT_S:
+            raise ValueError(
+                f"timeout_periods: {self.timeout_periods} periods of {self.period_s:g} s is a "
+                f"sensor timeout of {self.timeout_periods * self.period_s:g} s (at most "
+                f"{MAX_SENSOR_TIMEOUT_S:g} s: a rig without frames for longer is not supervised)"
+            )
         if self.bad_frame_budget < 0 or self.lost_frame_budget < 0:
             raise ValueError("bad_frame_budget, lost_frame_budget: must be >= 0")
         if not 0 < self.budget_window_s <= 60:
@@ -101,8 +111,8 @@ class LoopSection:
             raise ValueError(
                 f"f_range_n: must lie in [-{F_RANGE_LIMIT_N:g}, {F_RANGE_LIMIT_N:g}] N"
             )
-        if not self.arm_settle_s >= 0:
-            raise ValueError("arm_settle_s: must be >= 0")
+        if not 0 <= self.arm_settle_s <= MAX_ARM_SETTLE_S:
+            raise ValueError(f"arm_settle_s: must be in [0, {MAX_ARM_SETTLE_S:g}] s")
         if self.max_frame_age_s is not None and not 0 < self.max_frame_age_s <= 1.0:
             raise ValueError("max_frame_age_s: must be in (0, 1] s")
         if self.duration_s is not None and not self.duration_s > 0:
@@ -147,8 +157,8 @@ class ControllerSection:
             )
         if CONTROLLERS[self.name].needs_model and self.model is None:
             raise ValueError(f"model: controller {self.name} needs a model file")
-        if not self.feedback_tau_s >= 0:
-            raise ValueError("feedback_tau_s: must be >= 0")
+        if not 0 <= self.feedback_tau_s <= 10:
+            raise ValueError("feedback_tau_s: must be in [0, 10] s")
         if self.continuity is not None and not self.continuity >= 0:
             raise ValueError("continuity: must be >= 0")
 

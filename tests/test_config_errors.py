@@ -57,7 +57,25 @@ def run_daemon(tmp_path, text: str) -> subprocess.CompletedProcess:
         ),
         (
             BASE + '[controller]\nmodel = "{forward}"\nfeedback_tau_s = -0.001\n',
-            "controller.feedback_tau_s: must be >= 0",
+            "controller.feedback_tau_s: must be in [0, 10] s",
+        ),
+        # issue 32, finding 6: every setting that scales a wait has an upper bound at load
+        (
+            BASE + "[loop]\ntimeout_periods = 100000000\n",
+            "loop.timeout_periods: 100000000 periods of 0.002 s is a sensor timeout of 200000 s",
+        ),
+        (BASE + "[loop]\ntimeout_periods = 501\n", "(at most 1 s"),
+        (BASE + "[loop]\narm_settle_s = 1e6\n", "loop.arm_settle_s: must be in [0, 60] s"),
+        # finding 9: a profile's forces inside loop.f_range_n (here its default +-6000 N)
+        (
+            BASE
+            + '[controller]\nname = "constant"\n[reference]\nkind = "csv"\npath = "{profile}"\n',
+            "force_n 1e+300 N at t_s 1 s (sample 2; 1 samples in all) is outside loop.f_range_n",
+        ),
+        (
+            BASE
+            + '[controller]\nname = "constant"\n[reference]\nkind = "sine"\namplitude_n = 7e3\n',
+            "reference: sine from -7000 to 7000 N is outside loop.f_range_n [-6000, 6000] N",
         ),
         (BASE + "[loop\n", "not valid TOML"),
         (BASE + "[reference]\ncurrent_a = nan\n", "reference.current_a: expected a finite number"),
@@ -69,7 +87,9 @@ def run_daemon(tmp_path, text: str) -> subprocess.CompletedProcess:
     ],
 )
 def test_bad_config_or_model_stops_startup_with_one_line(tmp_path, sim_model, text, expected):
-    text = text.replace("{forward}", str(sim_model))
+    profile = tmp_path / "huge.csv"
+    profile.write_text("t_s,force_n\n0,0\n1,1e300\n2,0\n")
+    text = text.replace("{forward}", str(sim_model)).replace("{profile}", str(profile))
     r = run_daemon(tmp_path, text)
     assert r.returncode == 2
     lines = r.stderr.strip().splitlines()

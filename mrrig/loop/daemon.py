@@ -71,7 +71,6 @@ from mrrig.typed_config import ConfigError
 
 log = logging.getLogger(__name__)
 
-DESIRED_FORCE_LIMIT_N = 80000.0  # inside DamperCommand.DesiredForce's 24-bit range
 ACTUATOR_PERIOD_S = 0.1
 STATUS_PERIOD_S = 0.1  # to the sidecar, which answers `status` requests and publishes at 1 Hz
 # the longest a control-thread computation holds the GIL against the loop (Python's default
@@ -85,6 +84,23 @@ WAVEFORMS = {"stop": "STOP", "sine": "SINE", "random": "RANDOM", "hold": "HOLD"}
 # importing rerun and zenoh and opening both, on a loaded 2-core machine; a live_url that
 # nothing listens on alone blocks the recorder about 6 s
 SIDECAR_START_TIMEOUT_S = 30.0
+
+
+# each ends a run as SIGTERM does (SAFE, the actuator stopped, the summary, the recording
+# closed): SIGHUP is an ssh session that dropped, SIGQUIT a Ctrl-\\, SIGUSR1/2 a stray kill;
+# their default actions killed the daemon with its last command ACTIVE. SIGPIPE stays ignored
+# (Python's choice): a reader that went away is an error on that write, not a stop
+STOP_SIGNALS = (
+    signal.SIGINT,
+    signal.SIGTERM,
+    signal.SIGHUP,
+    signal.SIGQUIT,
+    signal.SIGUSR1,
+    signal.SIGUSR2,
+)
+# a stop is honoured within the spec's sensor timeout (3 periods) whatever the config's: the
+# loop never waits longer than this for a frame
+SPEC_TIMEOUT_PERIODS = 3
 
 
 class SidecarStartError(MrrigError, OSError):
@@ -209,6 +225,10 @@ class Daemon:
         self.parser = self.codec.parser()
         self.controller = build_controller(cfg)
         self.reference = build_reference(cfg.reference, self.period_s)
+        try:
+            ref.check_in_range(self.reference, cfg.loop.f_range_n)
+        except ref.ForceReferenceError as exc:
+            raise ref.ForceReferenceError(f"{cfg.source}: {exc}") from None
         self.kf = RealtimeKalman(self.period_s, q=cfg.estimator.q, r0=cfg.estimator.r0_m2)
         self.supervisor = Supervisor(
             Limits(
@@ -220,6 +240,8 @@ class Daemon:
             )
         )
         self.actuator = cfg.actuator
+        # the motion the rig was armed with: armed changes are bounded from it, not per request
+        self.actuator_at_arm = cfg.actuator
         self.record_path = record_path
         self.exit_code = Exit.OK
         self.record_paths = [record_path] if record_path is not None else []
@@ -262,6 +284,7 @@ class Daemon:
             "sensor_frames_early": 0,  # counter ahead of the time since the last frame
             "telemetry_dropped": 0,
             "force_refs_received": 0,  # on force_ref, with the zenoh reference
+            "force_refs_clamped": 0,  # of those, outside loop.f_range_n (clamped into it)
             "can_log_dropped": 0,  # frames the pipe to the bus log's writer could not take
         }
         self.events: list[dict] = []
@@ -419,9 +442,9 @@ class Daemon:
                 # a reference damper driven off its range keeps a NaN state: it starts again
                 # here, or it would fault the rig again as soon as it left FAULT
                 self.reset_reference(t, x_meas)
-            f_des = min(max(f_des, -DESIRED_FORCE_LIMIT_N), DESIRED_FORCE_LIMIT_N)
+            f_des = self._clamp_force(f_des)
             if f_next is not None:
-                f_next = min(max(f_next, -DESIRED_FORCE_LIMIT_N), DESIRED_FORCE_LIMIT_N)
+                f_next = self._clamp_force(f_next)
             if sup.active:
                 i = self.controller.command_one(x, xd, xdd, f_meas, f_des, f_next)
                 events += sup.finite(t, f"the {self.controller.name} controller's command", i)
@@ -521,6 +544,12 @@ class Daemon:
         self._targets = [f_next]
         return f_des, f_next
 
+    def _clamp_force(self, f_n: float) -> float:
+        """A desired force inside `loop.f_range_n`, whatever its source (NaN passes, for the
+        finiteness check to name)."""
+        lo, hi = self.cfg.loop.f_range_n
+        return min(max(f_n, lo), hi)
+
     def _prepare_next(self, t_next: float, active: bool) -> None:
         """What the next frame's cycle can know before the frame: the Kalman filter's
         prediction, gain and covariance, the reference for the predicted state (one instant
@@ -536,10 +565,7 @@ class Daemon:
             xn, xdn = xp + xdp * T + 0.5 * xddp * T * T, xdp + xddp * T
             self._targets.append(float(self.reference.force(t_next + T, xn, xdn)))
             if active:
-                f_now, f_after = (
-                    min(max(f, -DESIRED_FORCE_LIMIT_N), DESIRED_FORCE_LIMIT_N)
-                    for f in self._targets
-                )
+                f_now, f_after = (self._clamp_force(f) for f in self._targets)
                 self.controller.prepare_one(xp, xdp, xddp, f_now, f_after)
             return
         self.reference.prepare(t_next, xp, xdp)
@@ -549,7 +575,7 @@ class Daemon:
             f_next = float(self.reference.force(t_next, xp, xdp))
         except ref.StaleReference:
             return  # the frame itself will say so
-        f_next = min(max(f_next, -DESIRED_FORCE_LIMIT_N), DESIRED_FORCE_LIMIT_N)
+        f_next = self._clamp_force(f_next)
         wants = self.controller.wants_next_target
         self.controller.prepare_one(xp, xdp, xddp, f_next, f_next if wants else None)
 
@@ -687,6 +713,7 @@ class Daemon:
         ok, msg, events = self.supervisor.arm(t_rx - self.t0)
         if not ok:
             log.warning("arm at start refused: %s", msg)
+        self.actuator_at_arm = self.actuator
         self.controller.reset(1)
         self._emit(events)
 
@@ -747,6 +774,7 @@ class Daemon:
             if not ok:
                 raise RequestError(msg)
             if events:
+                self.actuator_at_arm = self.actuator
                 self.controller.reset(1)
                 self.reset_reference(self.now(), self.last_x)
             self._emit(events)
@@ -780,7 +808,7 @@ class Daemon:
             self._send_status(force=True)
             return {"reference": self.reference.kind}
         a = c.actuator
-        check_actuator_step(sup.state, self.actuator, a, self.cfg)
+        check_actuator_step(sup.state, self.actuator, a, self.cfg, self.actuator_at_arm)
         self.actuator = a
         self._send_actuator()
         return {
@@ -810,6 +838,21 @@ class Daemon:
     def on_force_ref(self, force_n: float, t_rx_mono: float) -> None:
         if isinstance(self.reference, ref.External):
             self.counters["force_refs_received"] += 1
+            lo, hi = self.cfg.loop.f_range_n
+            if not lo <= force_n <= hi:
+                self.counters["force_refs_clamped"] += 1
+                if self.counters["force_refs_clamped"] == 1:
+                    self._emit(
+                        [
+                            self.supervisor.event(
+                                self.now(),
+                                "force_ref_clamped",
+                                f"force_ref {force_n:g} N outside loop.f_range_n [{lo:g}, "
+                                f"{hi:g}] N: clamped (counted in force_refs_clamped)",
+                            )
+                        ]
+                    )
+                force_n = min(max(force_n, lo), hi)
             # the sidecar stamps with time.monotonic(); both clocks tick at the same rate
             delay = time.monotonic() - t_rx_mono
             self.reference.receive(force_n, self.now() - delay)
@@ -908,11 +951,18 @@ class Daemon:
 
     def run(self) -> dict[str, Any]:
         cfg = self.cfg
-        self.bus = open_bus(cfg.bus.interface, cfg.bus.channel, **cfg.bus.options)
+        # the sidecar first: a start-up that fails (its Zenoh port taken, a second daemon of
+        # this rig's name alive) must not have touched the bus, where another daemon may own
+        # the rig (its ActuatorCommand STOP on the way out faulted the running daemon)
+        if cfg.telemetry.enabled or self.record_path is not None or self.tap is not None:
+            self.sidecar, self.link, self._replies = self._spawn_sidecar()
+            self._sidecar_deadline = time.perf_counter() + SIDECAR_START_S
         try:
-            if cfg.telemetry.enabled or self.record_path is not None or self.tap is not None:
-                self.sidecar, self.link, self._replies = self._spawn_sidecar()
-                self._sidecar_deadline = time.perf_counter() + SIDECAR_START_S
+            self.bus = open_bus(cfg.bus.interface, cfg.bus.channel, **cfg.bus.options)
+        except BaseException:
+            self._shutdown()
+            raise
+        try:
             # started before the loop takes real-time priority: it runs at normal priority
             sys.setswitchinterval(SWITCH_INTERVAL_S)
             self.control.start()
@@ -935,7 +985,10 @@ class Daemon:
     def _loop(self) -> None:
         cfg = self.cfg
         recv = self.bus.recv
-        timeout_s = cfg.loop.timeout_periods * self.period_s
+        # the wait for a frame, and for one to answer SAFE after a stop: the spec's sensor
+        # timeout at most, so that a long configured timeout cannot make the loop deaf to a
+        # stop or to control requests (check_timeout still uses the configured one)
+        timeout_s = min(cfg.loop.timeout_periods, SPEC_TIMEOUT_PERIODS) * self.period_s
         end = None if cfg.loop.duration_s is None else self.t0 + cfg.loop.duration_s
         self._send_actuator()
         self.started.set()
@@ -1043,7 +1096,7 @@ class Daemon:
         while (taken := self.control.take()) is not None:
             if taken[0].cmd == "sidecar" and taken[0].sidecar is not None:
                 self._sidecar_back(*taken[0].sidecar)  # a restart that finished as it ended
-        if self.bus is not None:
+        if self.bus is not None and self.started.is_set():
             if self._last_sensor_t is not None and not self._safe_sent_at_stop:
                 self._send_command(False, 0.0, 0.0, self._last_counter)
             self.actuator = replace(self.actuator, waveform="stop")
@@ -1051,6 +1104,8 @@ class Daemon:
                 self._send_actuator()
             finally:
                 self.bus.shutdown()
+        elif self.bus is not None:  # never listened: this daemon did not own the rig
+            self.bus.shutdown()
         # the loop is over: what follows (and the exit) must not starve another rig's loop;
         # a full collection of the unfrozen heap is one such thing
         leave_realtime("daemon")
@@ -1164,7 +1219,7 @@ def main(argv: list[str] | None = None) -> int:
 
         record = recording_path(cfg.recording.directory, cfg.rig.name)
     daemon = Daemon(cfg, record_path=record)
-    for sig in (signal.SIGINT, signal.SIGTERM):
+    for sig in STOP_SIGNALS:
         signal.signal(sig, lambda s, _f: daemon.request_stop(signal.Signals(s).name))
     log.info(
         "rig %s: %s on %s/%s",

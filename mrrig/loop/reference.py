@@ -137,6 +137,7 @@ class CsvSeries(ForceReference):
             )
         if np.any(np.diff(t) <= 0):
             raise ForceReferenceError(f"{path}: {time_column} must increase strictly")
+        self.path = Path(path)
         self.t, self.f = t, f
         self._t0 = 0.0
 
@@ -221,3 +222,30 @@ class External(ForceReference):
                 f"force_ref is {age * 1e3:.0f} ms old (timeout {self.timeout_s * 1e3:.0f} ms)"
             )
         return self._value
+
+
+def check_in_range(reference: ForceReference, f_range_n: tuple[float, float]) -> None:
+    """Refuse a force reference whose forces leave `loop.f_range_n` (ForceReferenceError naming
+    the first sample outside, or the setting); the daemon clamps every desired force too, for
+    the sources known only as they come (force_ref, the reference damper)."""
+    lo, hi = f_range_n
+    where = f"outside loop.f_range_n [{lo:g}, {hi:g}] N"
+    if isinstance(reference, CsvSeries):
+        outside = np.flatnonzero((reference.f < lo) | (reference.f > hi))
+        if outside.size:
+            k = int(outside[0])
+            raise ForceReferenceError(
+                f"{reference.path}: force_n {reference.f[k]:g} N at t_s {reference.t[k]:g} s "
+                f"(sample {k + 1}; {outside.size} samples in all) is {where}"
+            )
+    elif isinstance(reference, Constant | Sine):
+        amp = reference.amplitude_n if isinstance(reference, Sine) else 0.0
+        low, high = reference.offset_n - amp, reference.offset_n + amp
+        if low < lo or high > hi:
+            raise ForceReferenceError(
+                f"reference: {reference.kind} from {low:g} to {high:g} N is {where}"
+            )
+    elif isinstance(reference, Noise):
+        low, high = min(reference._f), max(reference._f)
+        if low < lo or high > hi:
+            raise ForceReferenceError(f"reference: noise from {low:.6g} to {high:.6g} N is {where}")

@@ -14,10 +14,10 @@ back to the worker, which writes it.
 
 What needs DISARMED (not ARMED: IDLE or FAULT): `set_controller`, `set_model`, `set_profile`
 (a new force target or controller under an armed damper would step its current), and an
-`actuator` change of waveform or frequency, or of amplitude by more than
-`control.armed_amplitude_step_m`, while ARMED; `actuator` STOP is always taken (the firmware
-ramps to rest). The loop checks the state again when it applies a change: an `arm` that came
-first wins.
+`actuator` change of waveform or frequency, or to an amplitude more than
+`control.armed_amplitude_step_m` from the amplitude at arming, while ARMED; `actuator` STOP
+is always taken (the firmware ramps to rest). The loop checks the state again when it
+applies a change: an `arm` that came first wins.
 """
 
 from __future__ import annotations
@@ -284,7 +284,7 @@ class Preparer:
         return self._set_controller({"name": name, "model": path})
 
     def _set_profile(self, req: dict) -> Change:
-        from mrrig.loop.reference import CsvSeries
+        from mrrig.loop.reference import CsvSeries, check_in_range
 
         _require_not_armed(self._d.supervisor.state, "set_profile")
         table = {k: v for k, v in req.items() if k not in ("cmd", "id")}
@@ -303,6 +303,7 @@ class Preparer:
             if section.kind == "csv":
                 text = self._read(section.path, self.profile_dirs(), "force profile")
                 new = CsvSeries(section.path, text=text)
+                check_in_range(new, self.cfg.loop.f_range_n)
             else:
                 new = self._build_reference(section, self.cfg.loop.period_s)
         except (ValueError, OSError) as exc:
@@ -312,14 +313,22 @@ class Preparer:
     def _actuator(self, req: dict) -> Change:
         table = {k: v for k, v in req.items() if k not in ("cmd", "id")}
         section = _section(ActuatorSection, table, "actuator")
-        check_actuator_step(self._d.supervisor.state, self._d.actuator, section, self.cfg)
+        d = self._d
+        check_actuator_step(d.supervisor.state, d.actuator, section, self.cfg, d.actuator_at_arm)
         return Change("actuator", actuator=section)
 
 
 def check_actuator_step(
-    state: RigState, now: ActuatorSection, new: ActuatorSection, cfg: DaemonConfig
+    state: RigState,
+    now: ActuatorSection,
+    new: ActuatorSection,
+    cfg: DaemonConfig,
+    at_arming: ActuatorSection,
 ) -> None:
-    """While ARMED the motion may stop, or change amplitude by a bounded step; nothing else."""
+    """While ARMED the motion may stop, or change amplitude within
+    `control.armed_amplitude_step_m` of the amplitude it had when the rig was armed
+    (`at_arming`); nothing else. The bound holds over a sequence of requests: a chain of
+    small steps cannot walk the amplitude away from what was armed."""
     if state is not RigState.ARMED or new.waveform == "stop" or new == now:
         return
     if new.waveform != now.waveform:
@@ -329,10 +338,13 @@ def check_actuator_step(
     if new.frequency_hz != now.frequency_hz:
         raise RequestError("frequency_hz: changes only when not armed (disarm first)")
     step = cfg.control.armed_amplitude_step_m
-    if abs(new.amplitude_m - now.amplitude_m) > step:
+    moved = abs(new.amplitude_m - at_arming.amplitude_m)
+    # to the DBC's resolution of the amplitude (10 um): 0.020 - 0.015 is 0.005000000000000001
+    if round(moved - step, 9) > 0:
         raise RequestError(
-            f"amplitude_m: a step of {abs(new.amplitude_m - now.amplitude_m):g} m while armed "
-            f"(limit control.armed_amplitude_step_m = {step:g} m; disarm first)"
+            f"amplitude_m: {new.amplitude_m:g} m is {moved * 1e3:.3g} mm from the "
+            f"{at_arming.amplitude_m:g} m armed (limit control.armed_amplitude_step_m = "
+            f"{step * 1e3:g} mm from the amplitude at arming; disarm first)"
         )
 
 

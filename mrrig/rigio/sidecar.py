@@ -586,6 +586,21 @@ def run_sidecar(
     session: zenoh.Session | None = None
     bus_log = None
     try:
+        # Zenoh first: a start that fails there (its port taken, another daemon of this
+        # rig's name) leaves no stray recording or bus log behind
+        try:
+            session = zenoh.open(conf) if conf is not None else None
+        except zenoh.ZError as exc:  # e.g. the listen port is taken
+            text = zenoh_error_text(exc)
+            hint = ""
+            if "address already in use" in text.lower():
+                hint = (
+                    " (another daemon or zenohd listens there: stop it, or give this rig"
+                    " another port in its Zenoh config)"
+                )
+            log.debug("%s: cannot open the Zenoh session: %s", zenoh_config, text)
+            end.send_ready(f"{zenoh_config}: cannot open the Zenoh session: {text}{hint}")
+            return 3
         if can_log is not None:
             from mrrig.rigio.canlog import BusLogError, BusLogWriter
 
@@ -603,19 +618,6 @@ def run_sidecar(
                 text = exc.strerror if isinstance(exc, OSError) and exc.strerror else exc
                 end.send_ready(f"cannot write the recording {record}: {text}")
                 return 3
-        try:
-            session = zenoh.open(conf) if conf is not None else None
-        except zenoh.ZError as exc:  # e.g. the listen port is taken
-            text = zenoh_error_text(exc)
-            hint = ""
-            if "address already in use" in text.lower():
-                hint = (
-                    " (another daemon or zenohd listens there: stop it, or give this rig"
-                    " another port in its Zenoh config)"
-                )
-            log.debug("%s: cannot open the Zenoh session: %s", zenoh_config, text)
-            end.send_ready(f"{zenoh_config}: cannot open the Zenoh session: {text}{hint}")
-            return 3
         sidecar = Sidecar(rig, session, end, recorder, telemetry_hz, warnings, bus_log)
         for signum in (signal.SIGTERM, signal.SIGINT):
             signal.signal(signum, sidecar.request_stop)
