@@ -111,9 +111,16 @@ def _convert(tp: Any, value: Any, source: str, key: str) -> Any:
     if tp is float:
         if isinstance(value, bool) or not isinstance(value, int | float):
             raise ConfigError(f"{source}: {key}: expected a number, got {value!r}")
-        if not math.isfinite(value):  # TOML has nan and inf; no field means them
+        try:
+            number = float(value)
+        except OverflowError:  # an integer of hundreds of digits
+            raise ConfigError(
+                f"{source}: {key}: expected a number, got an integer of {len(str(abs(value)))} "
+                "digits (beyond a float's range)"
+            ) from None
+        if not math.isfinite(number):  # TOML has nan and inf; no field means them
             raise ConfigError(f"{source}: {key}: expected a finite number, got {value!r}")
-        return float(value)
+        return number
     if tp is int:
         if isinstance(value, bool) or not isinstance(value, int):
             raise ConfigError(f"{source}: {key}: expected an integer, got {value!r}")
@@ -125,9 +132,27 @@ def _convert(tp: Any, value: Any, source: str, key: str) -> Any:
     if tp is str:
         if not isinstance(value, str):
             raise ConfigError(f"{source}: {key}: expected a string, got {value!r}")
-        return value
+        return _text(value, source, key)
     if tp is Path:
         if not isinstance(value, str):
             raise ConfigError(f"{source}: {key}: expected a path string, got {value!r}")
-        return Path(value)
+        return Path(_text(value, source, key))
     raise TypeError(f"unsupported config type {tp!r} for {key}")
+
+
+def _text(value: str, source: str, key: str) -> str:
+    """A string that a file name, a log line and a Zenoh payload can carry: no NUL character
+    and no lone surrogate (JSON's "\\ud800"), which failed later as 'embedded null byte' or
+    'surrogates not allowed' without naming the field."""
+    if "\0" in value:
+        raise ConfigError(f"{source}: {key}: contains a NUL character (\\u0000)")
+    try:
+        value.encode("utf-8")
+    except UnicodeEncodeError as exc:
+        bad = value[exc.start]
+        raise ConfigError(
+            f"{source}: {key}: not valid text: a lone surrogate \\u{ord(bad):04x} at "
+            f"character {exc.start + 1}"
+        ) from None
+    return value
+

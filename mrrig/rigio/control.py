@@ -55,6 +55,7 @@ MAX_REQUEST_DEPTH = 4
 # a model file is an object of lists of lists (W1): depth 3; 32 stops a stack-exhausting file
 MAX_FILE_DEPTH = 32
 MAILBOX_SIZE = 4  # ready changes waiting for the loop
+MAX_REQUEST_INT = int(1.7e308)  # larger integers have no float (OverflowError)
 JOB_PUT_TIMEOUT_S = 5.0
 
 
@@ -90,10 +91,22 @@ def json_depth_exceeds(raw: bytes | str, limit: int) -> bool:
     return False
 
 
-def _non_finite_path(value: Any, path: str) -> str | None:
-    """The dotted key of the first NaN/Infinity in a decoded request, if any."""
+def _bad_value(value: Any, path: str) -> str | None:
+    """What is wrong with the first value of a decoded request that no field can take, named
+    by its dotted key: NaN/Infinity, an integer beyond a float's range, a string with a NUL
+    character or a lone surrogate (each failed later with a message that named no field)."""
     if isinstance(value, float) and not math.isfinite(value):
-        return path
+        return f"{path}: not a finite number (NaN and Infinity are refused)"
+    if isinstance(value, int) and not isinstance(value, bool) and abs(value) > MAX_REQUEST_INT:
+        return f"{path}: an integer of {len(str(abs(value)))} digits is beyond a float's range"
+    if isinstance(value, str):
+        if "\0" in value:
+            return f"{path}: contains a NUL character (\\u0000)"
+        try:
+            value.encode("utf-8")
+        except UnicodeEncodeError as exc:
+            return f"{path}: a lone surrogate \\u{ord(value[exc.start]):04x} is not text"
+        return None
     if isinstance(value, dict):
         items = value.items()
     elif isinstance(value, list):
@@ -102,7 +115,8 @@ def _non_finite_path(value: Any, path: str) -> str | None:
         return None
     for k, v in items:
         sub = f"{path}{k}" if str(k).startswith("[") else f"{path}.{k}" if path else str(k)
-        found = _non_finite_path(v, sub)
+        found = _bad_value(k, f"{sub} (the key)") if isinstance(k, str) else None
+        found = found or _bad_value(v, sub)
         if found is not None:
             return found
     return None
@@ -129,9 +143,9 @@ def check_request(req: Any) -> dict[str, Any]:
     """A decoded request that is an object, of a known command, without NaN or Infinity."""
     if not isinstance(req, dict):
         raise RequestError("invalid request: a control request must be a JSON object")
-    bad = _non_finite_path(req, "")
+    bad = _bad_value(req, "")
     if bad is not None:
-        raise RequestError(f"{bad}: not a finite number (NaN and Infinity are refused)")
+        raise RequestError(bad)
     cmd = req.get("cmd")
     if not isinstance(cmd, str) or cmd not in COMMANDS:
         raise RequestError(f"unknown command {cmd!r} (known: {', '.join(COMMANDS)})")
