@@ -26,6 +26,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "status": ("mrrig.cli.client", "print the daemon's status (Zenoh)"),
     "arm": ("mrrig.cli.client", "arm the daemon: commands become ACTIVE"),
     "disarm": ("mrrig.cli.client", "disarm the daemon: commands become SAFE 0 A"),
+    "reset": ("mrrig.cli.client", "acknowledge the daemon's FAULT (to IDLE), before arm"),
     "watch": ("mrrig.cli.client", "live numbers from the daemon's telemetry"),
     "send-force": ("mrrig.cli.client", "stream a desired-force profile to the daemon"),
     "control": ("mrrig.cli.client", "send one JSON control request and print the reply"),
@@ -41,6 +42,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "certs": ("mrrig.rigio.certs", "a lab CA and certificates for Zenoh mutual TLS (init, issue)"),
     "router": ("mrrig.rigio.router", "a Zenoh router where a fleet of rigs and their clients meet"),
     "rigs": ("mrrig.rigio.fleet", "list the live rigs: state, controller, fault (Zenoh)"),
+    "runs": ("mrrig.cli.runs", "the run catalog: find, show, compare and sync runs"),
 }
 
 

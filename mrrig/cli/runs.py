@@ -1,0 +1,260 @@
+"""`mrrig runs`: the run catalog (mrrig.catalog) on the command line.
+
+    mrrig runs [--rig R] [--specimen S] [--since 7d] [--plan P] [--controller C]
+               [--where "et < 0.01"] [--limit N] [--json]
+    mrrig runs show ID [--json]       everything about a run; is its recording still unchanged?
+    mrrig runs compare A B            two runs' numbers side by side
+    mrrig runs sync --from URL --to URL
+
+The catalog: --catalog URL, else $MRRIG_CATALOG, else recordings/catalog.sqlite (a path is an
+SQLite file; postgresql://user@host/db a lab's server). An ID may be the first 4+ digits.
+`show` exits 1 where the run's recording is missing or no longer what was registered.
+"""
+
+from __future__ import annotations
+
+import argparse
+import hashlib
+import json
+import os
+import sys
+from pathlib import Path
+
+from mrrig import json_text
+from mrrig.catalog import (
+    DEFAULT_PATH,
+    NUMERIC_COLUMNS,
+    RunRecord,
+    find_runs,
+    get_run,
+    parse_since,
+    sync,
+)
+from mrrig.catalog.store import catalog_url, recording_names
+from mrrig.cli_args import HelpFormatter, int_at_least
+
+ENV_CATALOG = "MRRIG_CATALOG"
+ACTIONS = ("show", "compare", "sync")
+_HASH_CHUNK = 1 << 20
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else list(argv)
+    if argv and argv[0] in ACTIONS:
+        return {"show": _show, "compare": _compare, "sync": _sync}[argv[0]](argv[1:])
+    return _list(argv)
+
+
+def _parser(prog: str, description: str | None) -> argparse.ArgumentParser:
+    ap = argparse.ArgumentParser(formatter_class=HelpFormatter, prog=prog, description=description)
+    ap.add_argument(
+        "--catalog",
+        default=os.environ.get(ENV_CATALOG) or str(DEFAULT_PATH),
+        help=f"the catalog: an SQLite file or a postgresql:// URL (default: ${ENV_CATALOG},"
+        f" else {DEFAULT_PATH})",
+    )
+    return ap
+
+
+def _list(argv: list[str]) -> int:
+    ap = _parser("mrrig runs", __doc__)
+    ap.add_argument("--rig", help="only this rig's runs")
+    ap.add_argument("--specimen", help="only runs of this specimen (the damper's serial number)")
+    ap.add_argument("--plan", help="only the steps of this plan")
+    ap.add_argument("--controller", help="only runs with this controller")
+    ap.add_argument("--since", help="runs started since: a span (90s, 30m, 12h, 7d, 2w) or a date")
+    ap.add_argument(
+        "--where",
+        help="a condition on the numbers: COLUMN < <= > >= == != NUMBER, and, or, not, ( );"
+        " columns: " + ", ".join(NUMERIC_COLUMNS),
+    )
+    ap.add_argument("--limit", type=int_at_least(1), help="only the newest N of them")
+    ap.add_argument("--json", action="store_true", help="print the runs as one JSON list")
+    ap.add_argument(
+        "--recordings",
+        type=Path,
+        help="name the .rrd files in this folder that have no run in the catalog (default: an"
+        " SQLite catalog's own folder)",
+    )
+    args = ap.parse_args(argv)
+    found = find_runs(
+        args.catalog,
+        rig=args.rig,
+        specimen=args.specimen,
+        plan=args.plan,
+        controller=args.controller,
+        since=parse_since(args.since) if args.since else None,
+        where=args.where,
+        limit=args.limit,
+    )
+    if args.json:
+        sys.stdout.write(json_text.dumps([r.to_json() for r in found], indent=1) + "\n")
+    else:
+        sys.stdout.write(_table(found))
+    _note_unlisted(args.catalog, args.recordings)
+    return 0
+
+
+_COLUMNS = ("run", "started (UTC)", "rig", "specimen", "plan/step", "controller", "Et", "faults")
+
+
+def _table(found: list[RunRecord]) -> str:
+    rows = [
+        (
+            str(r.run_id)[:8],
+            f"{r.started_utc:%Y-%m-%d %H:%M:%S}",
+            r.rig,
+            r.specimen or "-",
+            "/".join(x for x in (r.plan, r.step) if x) or "-",
+            r.controller or "-",
+            "-" if r.et is None else f"{r.et:.4f}",
+            str(r.faults_count),
+            r.verdict or "-",
+        )
+        for r in found
+    ]
+    head = (*_COLUMNS, "verdict")
+    widths = [max(len(head[k]), *(len(row[k]) for row in rows)) for k in range(len(head))]
+    lines = [
+        "  ".join(c.ljust(w) for c, w in zip(row, widths, strict=True)).rstrip()
+        for row in [head, *rows]
+    ]
+    lines.append(f"{len(rows)} run{'s' if len(rows) != 1 else ''}")
+    return "\n".join(lines) + "\n"
+
+
+def _note_unlisted(catalog: str, folder: Path | None) -> None:
+    url = catalog_url(catalog)
+    if folder is None:
+        if url.get_backend_name() != "sqlite":
+            return
+        folder = Path(url.database or "").parent
+    on_disk = {p.name for p in folder.glob("*.rrd")}
+    unlisted = sorted(on_disk - recording_names(catalog))
+    if unlisted:
+        shown = ", ".join(unlisted[:10]) + (", ..." if len(unlisted) > 10 else "")
+        print(
+            f"note: {len(unlisted)} recording{'s' if len(unlisted) != 1 else ''} in {folder}"
+            f" ha{'ve' if len(unlisted) != 1 else 's'} no run in the catalog: {shown}",
+            file=sys.stderr,
+        )
+
+
+def _show(argv: list[str]) -> int:
+    ap = _parser(
+        "mrrig runs show",
+        "Everything the catalog knows about one run, and whether its"
+        " recording is still there and unchanged (exit 1 if not).",
+    )
+    ap.add_argument("run_id", metavar="ID", help="the run id, or its first 4+ digits")
+    ap.add_argument("--json", action="store_true", help="print it as one JSON object")
+    args = ap.parse_args(argv)
+    run = get_run(args.catalog, args.run_id)
+    check = _check_recording(run)
+    if args.json:
+        print(json_text.dumps(run.to_json() | {"recording_check": check}, indent=1))
+    else:
+        fields = run.to_json()
+        width = max(len(k) for k in fields)
+        for key, value in fields.items():
+            text = value if isinstance(value, str) else json.dumps(value)
+            print(f"{key.ljust(width)}  {text}")
+        print(f"{'recording'.ljust(width)}  {check}")
+    return 0 if check in ("unchanged", "no recording registered") else 1
+
+
+def _check_recording(run: RunRecord) -> str:
+    """`unchanged`, `missing`, `changed: ...`, or `no recording registered`."""
+    if not run.recording_path:
+        return "no recording registered"
+    path = Path(run.recording_path)
+    if not path.is_file():
+        return f"missing: {path} is not there"
+    size = path.stat().st_size
+    if run.recording_size_bytes is not None and size != run.recording_size_bytes:
+        return f"changed: {size} bytes, {run.recording_size_bytes} registered"
+    if run.recording_sha256 is None:
+        return "unchecked: no sha256 registered"
+    digest = hashlib.sha256()
+    with path.open("rb") as f:
+        while chunk := f.read(_HASH_CHUNK):
+            digest.update(chunk)
+    if digest.hexdigest() != run.recording_sha256:
+        return f"changed: sha256 {digest.hexdigest()}, {run.recording_sha256} registered"
+    return "unchanged"
+
+
+_COMPARED = (
+    "run_id",
+    "rig",
+    "host",
+    "specimen",
+    "operator",
+    "plan",
+    "step",
+    "started_utc",
+    "controller",
+    "controller_params",
+    "model_path",
+    "model_sha256",
+    "config_sha256",
+    "dbc_sha256",
+    "mrrig_version",
+    "verdict",
+)
+
+
+def _compare(argv: list[str]) -> int:
+    ap = _parser(
+        "mrrig runs compare",
+        "Two runs' identities and numbers side by side (B - A"
+        " for the numbers; * where they differ).",
+    )
+    ap.add_argument("a", metavar="A", help="a run id, or its first 4+ digits")
+    ap.add_argument("b", metavar="B", help="another")
+    args = ap.parse_args(argv)
+    a, b = (get_run(args.catalog, x).to_json() for x in (args.a, args.b))
+    rows = [("", "A", "B", "B - A")]
+    for key in (*_COMPARED, *NUMERIC_COLUMNS):
+        va, vb = a.get(key), b.get(key)
+        diff = ""
+        if key in NUMERIC_COLUMNS and va is not None and vb is not None:
+            diff = f"{vb - va:+.6g}"
+        mark = "*" if va != vb else " "
+        rows.append((f"{mark} {key}", _cell(va), _cell(vb), diff))
+    widths = [max(len(row[k]) for row in rows) for k in range(4)]
+    for row in rows:
+        print("  ".join(c.ljust(w) for c, w in zip(row, widths, strict=True)).rstrip())
+    return 0
+
+
+def _cell(value: object) -> str:
+    if value is None:
+        return "-"
+    if isinstance(value, float):
+        return f"{value:.6g}"
+    if isinstance(value, str):
+        return value
+    return json.dumps(value)
+
+
+def _sync(argv: list[str]) -> int:
+    ap = argparse.ArgumentParser(
+        formatter_class=HelpFormatter,
+        prog="mrrig runs sync",
+        description="Copy a rig's local runs to the lab's catalog: each run once, by run id;"
+        " an interrupted sync is completed by the next one.",
+    )
+    ap.add_argument("--from", dest="src", required=True, help="the catalog to copy from")
+    ap.add_argument("--to", dest="dst", required=True, help="the catalog to copy to")
+    ap.add_argument(
+        "--batch", type=int_at_least(1), default=500, help="runs to a transaction at the target"
+    )
+    args = ap.parse_args(argv)
+    report = sync(args.src, args.dst, batch_rows=args.batch)
+    src, dst = (catalog_url(x).render_as_string(hide_password=True) for x in (args.src, args.dst))
+    print(
+        f"sync: {report.copied} copied, {report.updated} updated, {report.unchanged} already"
+        f" there ({src} -> {dst})"
+    )
+    return 0
