@@ -520,3 +520,17 @@ def test_runs_errors_are_one_line_and_exit_2(tmp_path, args, message):
     assert proc.returncode == 2
     assert proc.stderr.count("\n") == 1 and proc.stderr.startswith(message), proc.stderr
     assert "secret" not in proc.stderr
+
+
+def test_bench_catalog_prints_its_medians():
+    proc = subprocess.run(
+        [*MRRIG, "bench", "catalog", "--runs", "300", "--repeat", "2"],
+        capture_output=True,
+        text=True,
+    )
+    lines = proc.stdout.splitlines()
+    assert lines[0].startswith("filled ") and ": 300 runs in " in lines[0]
+    assert lines[1].startswith("runs --since 7d: ") and lines[1].endswith(" of 300 runs")
+    assert lines[2].startswith("API find_runs: median ")
+    assert lines[3].startswith("CLI `mrrig runs --since 7d` (own process, table printed: ")
+    assert lines[4] == "target: CLI under 1 s: met" and proc.returncode == 0

@@ -10,6 +10,7 @@ from __future__ import annotations
 import dataclasses
 import getpass
 import math
+import re
 import socket
 import uuid
 from collections.abc import Mapping
@@ -24,6 +25,8 @@ from mrrig.errors import MrrigError
 class RecordError(MrrigError, ValueError):
     """A run record that the catalog cannot keep (a naive time, a bad sha256, ...)."""
 
+
+_SHA256 = re.compile(r"[0-9a-fA-F]{64}")
 
 # the summary numbers a query may compare (`mrrig runs --where "et < 0.01"`): column -> unit
 NUMERIC_COLUMNS: dict[str, str] = {
@@ -138,16 +141,20 @@ class RunRecord:
 
     @classmethod
     def from_row(cls, row: Mapping[str, Any]) -> RunRecord:
-        """The record of a catalog row (`to_row`'s inverse; extra columns are left out)."""
-        names = {f.name for f in dataclasses.fields(cls)}
-        values = {k: v for k, v in row.items() if k in names}
+        """The record of a catalog row (`to_row`'s inverse; extra columns are left out). The
+        row was checked when it was written and is not checked again: `mrrig runs` reads
+        thousands of them."""
+        values = {name: row[name] for name in _FIELDS}
+        values["run_id"] = uuid.UUID(values["run_id"])
         for name in ("started_utc", "ended_utc"):
-            if values.get(name) is not None:
+            if values[name] is not None:
                 values[name] = values[name].replace(tzinfo=UTC)
-        for name in ("controller_params", "faults", "tags"):
-            if values.get(name) is None:
-                values.pop(name, None)
-        return cls(**values)
+        for name, empty in (("controller_params", dict), ("faults", list), ("tags", list)):
+            if values[name] is None:
+                values[name] = empty()
+        record = object.__new__(cls)
+        record.__dict__.update(values)  # a frozen dataclass: no __setattr__ after __init__
+        return record
 
     def to_json(self) -> dict[str, Any]:
         """JSON values: times as ISO 8601 with +00:00, the run id as text."""
@@ -157,6 +164,9 @@ class RunRecord:
         out["ended_utc"] = self.ended_utc.isoformat() if self.ended_utc else None
         out["duration_s"] = self.duration_s
         return out
+
+
+_FIELDS = frozenset(f.name for f in dataclasses.fields(RunRecord))
 
 
 def summary_numbers(summary: Mapping[str, Any]) -> dict[str, Any]:
@@ -193,8 +203,4 @@ def _utc(value: datetime, name: str, run_id: uuid.UUID) -> datetime:
 
 
 def _is_sha256(value: Any) -> bool:
-    return (
-        isinstance(value, str)
-        and len(value) == 64
-        and all(c in "0123456789abcdef" for c in value.lower())
-    )
+    return isinstance(value, str) and _SHA256.fullmatch(value) is not None

@@ -20,7 +20,6 @@ import os
 import sys
 from pathlib import Path
 
-from mrrig import json_text
 from mrrig.catalog import (
     DEFAULT_PATH,
     NUMERIC_COLUMNS,
@@ -88,6 +87,8 @@ def _list(argv: list[str]) -> int:
         limit=args.limit,
     )
     if args.json:
+        from mrrig import json_text  # numpy: not for the table
+
         sys.stdout.write(json_text.dumps([r.to_json() for r in found], indent=1) + "\n")
     else:
         sys.stdout.write(_table(found))
@@ -102,7 +103,7 @@ def _table(found: list[RunRecord]) -> str:
     rows = [
         (
             str(r.run_id)[:8],
-            f"{r.started_utc:%Y-%m-%d %H:%M:%S}",
+            r.started_utc.isoformat(" ", "seconds")[:19],
             r.rig,
             r.specimen or "-",
             "/".join(x for x in (r.plan, r.step) if x) or "-",
@@ -130,6 +131,8 @@ def _note_unlisted(catalog: str, folder: Path | None) -> None:
             return
         folder = Path(url.database or "").parent
     on_disk = {p.name for p in folder.glob("*.rrd")}
+    if not on_disk:
+        return
     unlisted = sorted(on_disk - recording_names(catalog))
     if unlisted:
         shown = ", ".join(unlisted[:10]) + (", ..." if len(unlisted) > 10 else "")
@@ -152,6 +155,8 @@ def _show(argv: list[str]) -> int:
     run = get_run(args.catalog, args.run_id)
     check = _check_recording(run)
     if args.json:
+        from mrrig import json_text
+
         print(json_text.dumps(run.to_json() | {"recording_check": check}, indent=1))
     else:
         fields = run.to_json()

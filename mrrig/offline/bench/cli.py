@@ -17,6 +17,7 @@ BENCHES = {
     "drift": "mrrig.offline.bench.drift",
     "train": "mrrig.offline.bench.train",
     "fuzz": "mrrig.offline.bench.fuzz",
+    "catalog": "mrrig.offline.bench.catalog",
 }
 
 
