@@ -21,6 +21,18 @@ Choices the contract leaves open, made here:
   During an e-stop or stroke-limit injection the actuator ramps to rest (ActuatorEnabled 0)
   and ActuatorCommands are ignored; the next one after the injection ends moves it again.
 - Fault windows hold round(duration / period) ticks (at least one): tick times are ideal.
+- Late commands (the contract: an ACTIVE command that does not echo the latest RigSensors
+  frame sent is not applied): the runner says when a frame left (`sent`). A command that
+  comes more than one period after the latest frame left is late too: the next frame is
+  overdue because this process was held up, and a firmware on time would have sent it.
+  A late command feeds the watchdog and neither adds to nor breaks a recovery count.
+
+A test instrument, not firmware: `armed_motion` lists the stretches of ACTIVE commands (from
+the first valid ACTIVE command after a SAFE one to the next SAFE one: the daemon's ARMED,
+through watchdog trips), each with the actuator's amplitude and frequency in force when it
+began (the larger of the motion's and the commanded one) and the largest the motion reached
+during it (at each tick: a command's ramp needs ticks to show), for `mrrig bench fuzz` to hold
+against the limits the daemon was armed with.
 """
 
 from __future__ import annotations
@@ -60,6 +72,17 @@ class Frame(NamedTuple):
 
 def _counter(layout: MessageLayout, data: bytes) -> int:
     return (int.from_bytes(data, "little") >> layout.counter_shift) & layout.counter_mask
+
+
+class MotionStretch(NamedTuple):
+    """One stretch of ACTIVE commands (`Firmware.armed_motion`); times in s since boot."""
+
+    start_s: float
+    end_s: float  # inf while it goes on
+    amplitude_at_start_m: float
+    frequency_at_start_hz: float
+    amplitude_max_m: float
+    frequency_max_hz: float
 
 
 class _Ramp:
@@ -128,6 +151,25 @@ class Actuator:
     @property
     def moving(self) -> bool:
         return self.waveform in ("SINE", "RANDOM") and not self.at_rest
+
+    def motion(self) -> tuple[float, float]:
+        """The motion's amplitude and highest frequency now (|x| stays within the amplitude:
+        a RANDOM record peaks at 1, a cross-fade sums to at most the larger)."""
+        sine, rand = self._amp_sine, self._amp_rand
+        return sine.value + rand.value, max(
+            self._freq.value if sine.value else 0.0, self._band_hz if rand.value else 0.0
+        )
+
+    def motion_in_force(self) -> tuple[float, float]:
+        """`motion()` or where the ramps head, the larger of each."""
+        sine, rand = self._amp_sine, self._amp_rand
+        peak, band = self._pending or (rand.target, self._band_hz)
+        amplitude_m, frequency_hz = self.motion()
+        return max(amplitude_m, sine.target + peak), max(
+            frequency_hz,
+            self._freq.target if sine.target else 0.0,
+            band if peak else 0.0,
+        )
 
     def command(self, waveform: str, amplitude_m: float, frequency_hz: float) -> None:
         """Apply an ActuatorCommand (amplitude clamped to the stroke)."""
@@ -271,6 +313,12 @@ class Firmware:
         self.coil_current_a = 0.0
         self.force_n = 0.0
         self._last_sensor_counter = 0
+        # the latest RigSensors frame that left (`sent`): its counter and when
+        self._sent_counter: int | None = None
+        self._sent_s = -math.inf
+        self.late_commands = 0
+        self.armed_motion: list[MotionStretch] = []
+        self._stretch_open = False
 
     # ---- received frames ------------------------------------------------------------------
 
@@ -290,19 +338,42 @@ class Firmware:
         v = parsed.values
         assert v is not None
         if frame_id == self.damper_command_id:
-            self.on_damper_command(self._mode_labels[int(v["Mode"])], v["CurrentSetpoint"], t_s)
+            self.on_damper_command(
+                self._mode_labels[int(v["Mode"])],
+                v["CurrentSetpoint"],
+                int(v["SensorCounterEcho"]),
+                t_s,
+            )
         else:
             self.on_actuator_command(
                 self._waveform_labels[int(v["Waveform"])], v["Amplitude"], v["Frequency"], t_s
             )
         return parsed
 
-    def on_damper_command(self, mode: str, setpoint_a: float, t_s: float) -> None:
-        """A valid DamperCommand: feeds the watchdog; ACTIVE sets the (clamped) setpoint."""
+    def sent(self, frame: Frame, t_s: float) -> None:
+        """`frame` (from `tick`) left at t_s: a RigSensors frame is the one commands answer."""
+        if frame.frame_id == self.sensors_id:
+            self._sent_counter = frame.counter
+            self._sent_s = t_s
+
+    def is_late(self, echo: int, t_s: float) -> bool:
+        """A command echoing `echo` at t_s answers an older frame than the latest sent, or
+        comes after the next frame was due (see the module's notes)."""
+        return echo != self._sent_counter or t_s - self._sent_s > self.period_s
+
+    def on_damper_command(self, mode: str, setpoint_a: float, echo: int, t_s: float) -> None:
+        """A valid DamperCommand answering the frame with counter `echo`: feeds the watchdog;
+        ACTIVE sets the (clamped) setpoint unless it is late."""
         self._armed = True
         self._last_cmd_s = t_s
+        self._track_stretch(mode == "ACTIVE", t_s)
         if mode == "ACTIVE":
             self.max_commanded_current_a = max(self.max_commanded_current_a, setpoint_a)
+            if self.is_late(echo, t_s):
+                # the coil keeps its setpoint for this period (spec/can-protocol.md)
+                self.late_commands += 1
+                logger.debug("late ACTIVE command echoing %d at t=%.4f s: not applied", echo, t_s)
+                return
             over = setpoint_a > self._limit_a
             if over and not self._over_limit:
                 self._event(
@@ -323,6 +394,15 @@ class Firmware:
         if self._tripped and max(self._n_active, self._n_safe) >= RECOVERY_COMMANDS:
             self._tripped = False
             self._event(t_s, f"watchdog cleared after {RECOVERY_COMMANDS} valid {mode} commands")
+
+    def _track_stretch(self, active: bool, t_s: float) -> None:
+        if active and not self._stretch_open:
+            a, f = self.actuator.motion_in_force()
+            self.armed_motion.append(MotionStretch(t_s, math.inf, a, f, a, f))
+            self._stretch_open = True
+        elif not active and self._stretch_open:
+            self.armed_motion[-1] = self.armed_motion[-1]._replace(end_s=t_s)
+            self._stretch_open = False
 
     def on_actuator_command(
         self, waveform: str, amplitude_m: float, frequency_hz: float, t_s: float
@@ -349,6 +429,16 @@ class Firmware:
                 frequency_hz,
             )
         self.actuator.command(waveform, amplitude_m, frequency_hz)
+
+    def _watch_motion(self) -> None:
+        if self._stretch_open:
+            s = self.armed_motion[-1]
+            a, f = self.actuator.motion()
+            if a > s.amplitude_max_m or f > s.frequency_max_hz:
+                self.armed_motion[-1] = s._replace(
+                    amplitude_max_m=max(a, s.amplitude_max_m),
+                    frequency_max_hz=max(f, s.frequency_max_hz),
+                )
 
     # ---- derived state ----------------------------------------------------------------------
 
@@ -470,6 +560,7 @@ class Firmware:
         x, xd = (
             self.actuator.advance(dt_s) if dt_s > 0.0 else (self.actuator.x_m, self.actuator.xd_m_s)
         )
+        self._watch_motion()
         on = self.active_faults
         halted = self._tripped or self._halted_by_injection()
         self.coil_command_a = self._setpoint_a if self._active and not halted else 0.0

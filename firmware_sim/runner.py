@@ -62,6 +62,12 @@ class RunStats:
         # each of those: [counter, frame_s, answer_s], when the bus took the frame in and the
         # answer, on this process's clock (the first STALE_KEPT of them)
         self.stale_answers: list[list[float]] = []
+        # ACTIVE commands the firmware applied (not late): the age of the frame each answers
+        # when it came, on this process's clock from the frame's send; over
+        # stale_answer_age_s, or answering no frame that awaits an answer, each is counted
+        self.applied_active_age_us = array("d")
+        self.active_applied_stale = 0
+        self.active_applied_invalid = 0
         self._wall_minus_clock_s = math.nan  # time.time() - this process's clock
         self.sensor_frames_sent = 0
         self.sensor_frames_faulted = 0  # sent with a fault injected: no answer expected
@@ -142,12 +148,28 @@ class RunStats:
         else:
             self.sensor_frames_faulted += 1
 
+    def _applied(self, entry: list | None, received_s: float) -> None:
+        """An ACTIVE command the firmware applied, answering `entry` (None: no frame sent
+        lately that awaits an answer)."""
+        if entry is None:
+            self.active_applied_invalid += 1
+            return
+        age_s = received_s - entry[1]
+        self.applied_active_age_us.append(age_s * 1e6)
+        self.active_applied_stale += age_s > self.stale_answer_age_s
+
     def on_command(
-        self, echo: int, received_s: float, safe: bool = False, bus_ts_s: float | None = None
+        self,
+        echo: int,
+        received_s: float,
+        safe: bool = False,
+        bus_ts_s: float | None = None,
+        applied: bool = False,
     ) -> None:
         """A valid DamperCommand echoing sensor counter `echo` arrived at received_s; the bus
         stamped it bus_ts_s (time.time(): the kernel's on SocketCAN, the bridge's on the
-        Python bridge), which is when it was sent as far as the bus can tell."""
+        Python bridge), which is when it was sent as far as the bus can tell. `applied`: an
+        ACTIVE command the firmware applied (not late)."""
         if safe and echo == self._last_echo:
             self.safe_repeats += 1
             return
@@ -180,12 +202,18 @@ class RunStats:
             self._answered.append(entry)
             if len(self._answered) > self.REPEATS:
                 self._close(self._answered.popleft())
+            if applied:
+                self._applied(entry, received_s)
             return
         for entry in reversed(self._answered):
             if entry[0] == echo:
                 entry[2] += 1
+                if applied:
+                    self._applied(entry, received_s)
                 return
         self.unmatched_answers += 1
+        if applied:
+            self._applied(None, received_s)
 
     def on_echo(self, counter: int, received_s: float, bus_ts_s: float | None = None) -> None:
         """This process's own RigSensors frame with `counter`, echoed back by the bus, which
@@ -228,7 +256,16 @@ class RunStats:
                 "unmatched": self.unmatched_answers,
                 "safe_repeats": self.safe_repeats,
                 "active_to_stale": self.active_answers_stale,
+                "active_applied_to_stale": self.active_applied_stale,
+                "active_applied_to_invalid": self.active_applied_invalid,
             },
+            # ACTIVE commands not applied: they answered an older frame than the latest sent
+            "late_commands": firmware.late_commands,
+            "applied_active_age_us": _percentiles(self.applied_active_age_us),
+            "armed_motion": [
+                {k: round(v, 6) if math.isfinite(v) else None for k, v in m._asdict().items()}
+                for m in firmware.armed_motion
+            ],
             "stale_answers": [
                 {"counter": c, "frame_s": round(a, 6), "answer_s": round(b, 6)}
                 for c, a, b in self.stale_answers
@@ -340,6 +377,7 @@ def run(
                     ),
                     timeout=send_timeout_s,
                 )
+                firmware.sent(frame, sent_s)
                 if frame.frame_id == sensors_id:
                     stats.on_sensor_sent(frame, ideal_s, sent_s, sent_wall_s)
                 else:
@@ -368,8 +406,10 @@ def _receive(
         if stats.measure_echo:
             stats.on_echo(firmware.sensor_counter(bytes(msg.data)), t_s, msg.timestamp or None)
         return
+    late_before = firmware.late_commands
     parsed = firmware.on_frame(msg.arbitration_id, bytes(msg.data), t_s)
     if parsed is not None and parsed.ok and msg.arbitration_id == damper_id:
         assert parsed.values is not None
         echo, safe = int(parsed.values["SensorCounterEcho"]), int(parsed.values["Mode"]) == 0
-        stats.on_command(echo, t_s, safe, msg.timestamp or None)
+        applied = not safe and firmware.late_commands == late_before
+        stats.on_command(echo, t_s, safe, msg.timestamp or None, applied)

@@ -69,6 +69,7 @@ class Rig:
         self.k += 1
         self.frames.extend(frames)
         for f in frames:
+            self.fw.sent(f, self.t_s)
             parsed = self.parser.parse(f.frame_id, f.data, self.t_s)
             (self.sensors if f.frame_id == SENSORS_ID else self.status).append(parsed)
         return frames
@@ -77,10 +78,15 @@ class Rig:
         self,
         mode: str = "ACTIVE",
         current_a: float = 1.0,
-        echo: int = 0,
+        echo: int | None = None,
         counter: int | None = None,
         corrupt: bool = False,
+        delay_s: float = ANSWER_DELAY_S,
     ) -> Parsed | None:
+        """A DamperCommand `delay_s` after the last tick, echoing `echo` (None: the latest
+        sensor frame's counter)."""
+        if echo is None:
+            echo = next((f.counter for f in reversed(self.frames) if f.frame_id == SENSORS_ID), 0)
         data = self.daemon.encode(
             "DamperCommand",
             {
@@ -94,7 +100,7 @@ class Rig:
         )
         if corrupt:
             data = bytes((data[0] ^ 0x5A,)) + data[1:]
-        return self.fw.on_frame(DAMPER_ID, data, self.t_s + ANSWER_DELAY_S)
+        return self.fw.on_frame(DAMPER_ID, data, self.t_s + delay_s)
 
     def actuator(self, waveform: str, amplitude_m: float = 0.0, frequency_hz: float = 0.0):
         self.last_actuator = (waveform, amplitude_m, frequency_hz)
@@ -110,7 +116,7 @@ class Rig:
             frames = self.tick()
             if answer is not None:
                 sensor = [f for f in frames if f.frame_id == SENSORS_ID]
-                self.damper(answer, current_a, sensor[0].counter if sensor else 0)
+                self.damper(answer, current_a, sensor[0].counter if sensor else None)
 
     def run_until_status(
         self, answer: str | None = None, current_a: float = 1.0
@@ -227,6 +233,113 @@ def test_setpoint_above_the_current_limit_is_clamped_and_reported_fault_code_2()
     assert rig.fw.max_commanded_current_a == pytest.approx(limit_a + 0.5)
     rig.run(5, answer="ACTIVE", current_a=limit_a)
     assert rig.fw.fault_code == "NONE" and rig.fw.coil_command_a == limit_a
+
+
+def test_late_active_command_answering_an_older_frame_is_not_applied_and_is_counted():
+    """Its echo is not the latest RigSensors frame's counter: the command came after the next
+    frame left; the coil keeps the previous setpoint for that period."""
+    rig = Rig()
+    rig.run(10, answer="ACTIVE", current_a=1.0)
+    previous = rig.sensors[-1].counter
+    rig.tick()
+    rig.damper("ACTIVE", 1.5, echo=previous)
+    rig.tick()
+    assert rig.fw.coil_command_a == 1.0 and rig.fw.late_commands == 1
+    assert rig.fw.state == "RUNNING"
+    rig.run(1, answer="ACTIVE", current_a=1.5)  # the latest frame's answer is applied
+    rig.tick()
+    assert rig.fw.coil_command_a == 1.5 and rig.fw.late_commands == 1
+
+
+def test_late_commands_count_as_valid_for_the_watchdog():
+    rig = Rig()
+    rig.run(10, answer="ACTIVE", current_a=1.0)
+    for _ in range(round(2 * WATCHDOG_TIMEOUT_S / T)):  # 40 ms of answers one frame behind
+        previous = rig.sensors[-1].counter
+        rig.tick()
+        rig.damper("ACTIVE", 1.5, echo=previous)
+    rig.tick()
+    assert rig.fw.watchdog_trips == 0 and rig.fw.state == "RUNNING"
+    assert rig.fw.coil_command_a == 1.0
+    assert rig.fw.late_commands == round(2 * WATCHDOG_TIMEOUT_S / T)
+
+
+def test_late_commands_neither_add_to_nor_break_a_watchdog_recovery():
+    rig = Rig()
+    rig.run(10, answer="ACTIVE")
+    rig.run(20)
+    assert rig.fw.state == "FAULT"
+    rig.run(RECOVERY_COMMANDS - 1, answer="ACTIVE")
+    previous = rig.sensors[-1].counter
+    rig.tick()
+    rig.damper("ACTIVE", 1.0, echo=previous)  # late: not the 5th
+    rig.tick()
+    assert rig.fw.state == "FAULT" and rig.fw.coil_command_a == 0.0
+    rig.damper("ACTIVE", 1.0)  # the 5th valid ACTIVE command in time
+    rig.tick()
+    assert rig.fw.state == "RUNNING" and rig.fw.coil_command_a == 1.0
+
+
+def test_a_command_after_the_next_frame_was_due_is_late_though_that_frame_did_not_leave():
+    """The simulator's own choice: its process held up past the next deadline, a command
+    echoing the latest frame sent comes more than a period after it left: a firmware on time
+    had sent the next frame, so it is late."""
+    rig = Rig()
+    rig.run(10, answer="ACTIVE", current_a=1.0)
+    rig.tick()
+    rig.damper("ACTIVE", 1.5, delay_s=T + 0.0001)
+    rig.tick()
+    assert rig.fw.coil_command_a == 1.0 and rig.fw.late_commands == 1
+    rig.damper("ACTIVE", 1.5, delay_s=T - 0.0001)  # within the period: applied
+    rig.tick()
+    assert rig.fw.coil_command_a == 1.5 and rig.fw.late_commands == 1
+
+
+def test_a_late_safe_command_is_applied():
+    """Only ACTIVE commands can be late: SAFE (0 A) is always safe to apply."""
+    rig = Rig()
+    rig.run(10, answer="ACTIVE", current_a=1.0)
+    previous = rig.sensors[-1].counter
+    rig.tick()
+    rig.damper("SAFE", 0.0, echo=previous)
+    rig.tick()
+    assert rig.fw.coil_command_a == 0.0 and rig.fw.state == "IDLE"
+    assert rig.fw.late_commands == 0
+
+
+def test_armed_motion_lists_each_active_stretch_with_the_motion_at_its_start_and_its_peak():
+    rig = Rig()
+    rig.actuator("SINE", 0.015, 2.0)
+    rig.run(50, answer="SAFE")
+    rig.run(10, answer="ACTIVE")
+    for k in range(1, 7):  # six steps of 4 mm while ACTIVE: 15 mm to 39 mm
+        rig.actuator("SINE", 0.015 + 0.004 * k, 2.0)
+        rig.run(2, answer="ACTIVE")
+    ramp_ticks = round(QUIET.actuator.ramp_s / T) + 1
+    rig.run(ramp_ticks, answer="ACTIVE")
+    rig.actuator("SINE", 0.039, 3.0)
+    rig.run(ramp_ticks, answer="ACTIVE")
+    rig.run(1, answer="SAFE")
+    rig.actuator("SINE", 0.040, 5.0)  # between stretches
+    rig.run(5, answer="SAFE")
+    rig.run(5, answer="ACTIVE")
+    first, second = rig.fw.armed_motion
+    assert first.amplitude_at_start_m == pytest.approx(0.015)
+    assert first.amplitude_max_m == pytest.approx(0.039)
+    assert (first.frequency_at_start_hz, first.frequency_max_hz) == pytest.approx((2.0, 3.0))
+    assert first.end_s < second.start_s and math.isinf(second.end_s)
+    assert second.amplitude_at_start_m == pytest.approx(0.040)  # the one heading for
+    assert second.frequency_at_start_hz == pytest.approx(5.0)
+    assert rig.fw.actuator.motion()[0] < 0.040  # still on its way there
+
+
+def test_armed_motion_goes_on_through_a_watchdog_trip():
+    """A stretch is the daemon's ARMED: a watchdog trip sends no SAFE command."""
+    rig = Rig()
+    rig.run(10, answer="ACTIVE")
+    rig.run(20)
+    rig.run(RECOVERY_COMMANDS + 1, answer="ACTIVE")
+    assert rig.fw.watchdog_trips == 1 and len(rig.fw.armed_motion) == 1
 
 
 def test_bad_crc_and_repeated_counter_command_frames_are_dropped_and_counted():

@@ -124,6 +124,24 @@ def test_run_stats_count_active_answers_stale_from_the_frames_bus_timestamp():
     assert np.allclose(stats.stale_answers, [[1, 0.061, 0.081], [2, 0.090, 0.102]])
 
 
+def test_run_stats_count_active_commands_applied_to_a_stale_or_invalid_frame():
+    """What the firmware applied (not late), timed on its own clock from the frame's send: an
+    ACTIVE command applied 12 ms after its frame left, or answering a frame that awaits no
+    answer (a faulted one), is counted; a late one (not applied) and a SAFE one are not."""
+    stats = RunStats(stale_answer_age_s=0.01)
+    stats.on_sensor_sent(Frame(SENSORS_ID, b"", 0, True), 0.000, 0.000)
+    stats.on_command(0, 0.001, applied=True)  # 1 ms: fine
+    stats.on_sensor_sent(Frame(SENSORS_ID, b"", 1, True), 0.002, 0.002)
+    stats.on_command(1, 0.014, applied=True)  # applied 12 ms after its frame left
+    stats.on_sensor_sent(Frame(SENSORS_ID, b"", 2, True), 0.016, 0.016)
+    stats.on_command(2, 0.040)  # as late: not applied
+    stats.on_sensor_sent(Frame(SENSORS_ID, b"", 3, False), 0.042, 0.042)  # faulted frame
+    stats.on_command(3, 0.043, applied=True)
+    stats.on_command(3, 0.0435, safe=True)
+    assert (stats.active_applied_stale, stats.active_applied_invalid) == (1, 1)
+    assert list(stats.applied_active_age_us) == pytest.approx([1000.0, 12000.0])
+
+
 def test_run_stats_match_answers_in_turn_through_a_stall_longer_than_the_counter_wraps():
     # two frames answered at once, then a 36 ms stall: frames 2..19 leave (counters 2 and 3
     # twice) before their answers come, in order; a newest-first match would take the answer
