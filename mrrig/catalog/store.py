@@ -310,12 +310,12 @@ def _revision(conn: sa.Connection) -> str | None:
 
 
 def _upgrade(conn: sa.Connection, name: str) -> None:
+    # its own INFO lines (from its import on) would say what the one line at the end says
+    logging.getLogger("alembic").setLevel(logging.WARNING)
     from alembic import command
     from alembic.config import Config
     from alembic.util.exc import CommandError
 
-    # its own INFO lines would say what the one line at the end says
-    logging.getLogger("alembic").setLevel(logging.WARNING)
     cfg = Config()
     cfg.set_main_option("script_location", str(Path(__file__).with_name("migrations")))
     cfg.attributes["connection"] = conn
