@@ -13,6 +13,7 @@ between frames.
 from __future__ import annotations
 
 import argparse
+import functools
 import gc
 import logging
 import math
@@ -43,6 +44,7 @@ from mrrig.loop.controllers import (
 from mrrig.loop.estimation import RealtimeKalman
 from mrrig.loop.inversion import DEFAULT_CONTINUITY
 from mrrig.loop.mlp import MLP, ModelError
+from mrrig.loop.model_fit import RigUnits, check_cost, check_units
 from mrrig.loop.realtime import keep_off_cpu, leave_realtime, make_realtime
 from mrrig.loop.safety import Fault, Limits, Supervisor
 from mrrig.loop.samples import SAMPLE_DTYPE, RigState
@@ -64,6 +66,7 @@ from mrrig.rigio.control import (
     Preparer,
     RequestError,
     check_actuator_step,
+    settings_in_force,
 )
 from mrrig.rigio.ipc import LoopEnd, Msg, ReplyWriter, make_channel
 from mrrig.rigio.zenoh_config import check_secure, load_zenoh_config
@@ -117,16 +120,44 @@ class Exit:
     TELEMETRY_LOST = 4  # the telemetry process died again after its one restart
 
 
+@functools.cache
+def rig_units() -> RigUnits:
+    """The units a model's signals must have: the DBC's (`model_fit.check_units`), which the
+    config's limits share (loop.x_range_m, loop.i_max_a, loop.f_range_n)."""
+    codec = Codec()
+    dbc = codec.dbc_path.name
+
+    def where(message: str, signal: str, config: str) -> tuple[str, str]:
+        return codec.unit(message, signal), f"{message}.{signal} in {dbc}, {config}"
+
+    x, x_where = where("RigSensors", "Displacement", "loop.x_range_m")
+    command = where("DamperCommand", "CurrentSetpoint", "loop.i_max_a")
+    return {
+        "x": (x, x_where),
+        "xd": (f"{x}/s", f"the rate of {x_where}"),
+        "xdd": (f"{x}/s^2", f"the rate of rate of {x_where}"),
+        "current": command,
+        "v": command,  # the RNN's previous commands
+        "command": command,
+        "f_des": where("DamperCommand", "DesiredForce", "loop.f_range_n"),
+        "force": where("RigSensors", "Force", "loop.f_range_n"),
+    }
+
+
 def build_controller(cfg: DaemonConfig, section=None, model: MLP | None = None) -> Controller:
     """The configured controller, from the registry (`controllers.make_controller`); a model
-    that does not fit stops here with one line. `model`: the section's model, already read
-    (the control plane reads it under limits)."""
+    that does not fit stops here with one line: units other than the rig's, or a controller
+    whose work per frame is over the loop's budget (measured here, off the loop:
+    `model_fit`). `model`: the section's model, already read (the control plane reads it
+    under limits)."""
     c = section or cfg.controller
     i_max, dt = cfg.loop.i_max_a, cfg.loop.period_s
     if c.name == "constant" and not 0 <= c.current_a <= i_max:
         raise ConfigError(f"{cfg.source}: controller.current_a: outside [0, {i_max}] A")
     if model is None and CONTROLLERS[c.name].needs_model:
         model = load_model(c.model, cfg.source)
+    if model is not None:
+        check_units(model, c.model, rig_units())
     settings = ControllerSettings(i_max, dt_s=dt, model=model, current_a=c.current_a)
     if c.name == "network_inversion":
         continuity = c.continuity
@@ -158,9 +189,11 @@ def build_controller(cfg: DaemonConfig, section=None, model: MLP | None = None) 
             adaptation=cfg.adaptation.settings(),
         )
     try:
-        return make_controller(c.name, settings)
+        controller, spare = (make_controller(c.name, settings) for _ in range(2))
     except ValueError as exc:
         raise ModelError(f"{c.model}: input_names: {exc}") from None
+    check_cost(spare, c.model if model is not None else f"controller {c.name}", dt)
+    return controller
 
 
 def model_continuity(model: MLP, path: Path | None) -> float:
@@ -801,7 +834,8 @@ class Daemon:
             self.reset_reference(self.now(), self.last_x)  # its desired forces ahead, if any
             self.cfg = replace(self.cfg, controller=c.controller_section)
             self._send_status(force=True)
-            return {"controller": self.controller.name}
+            settings = settings_in_force(c.controller_section, c.controller)
+            return {"controller": self.controller.name, "settings": settings}
         if c.cmd == "set_profile":
             self.reset_reference(self.now(), self.last_x, c.reference)
             self.cfg = replace(self.cfg, reference=c.reference_section)

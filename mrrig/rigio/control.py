@@ -57,6 +57,8 @@ MAX_FILE_DEPTH = 32
 MAILBOX_SIZE = 4  # ready changes waiting for the loop
 MAX_REQUEST_INT = int(1.7e308)  # larger integers have no float (OverflowError)
 JOB_PUT_TIMEOUT_S = 5.0
+# a controller's settings in a request, besides its name and model
+CONTROLLER_SETTINGS = ("method", "ahead", "feedback", "feedback_tau_s", "continuity", "current_a")
 
 
 class RequestError(MrrigError, ValueError):
@@ -169,18 +171,25 @@ class Change:
 
 def read_limited(path: Path, dirs: tuple[Path, ...], max_bytes: int, timeout_s: float) -> str:
     """A file's text, read under the control plane's limits: inside one of `dirs` (after
-    symlinks), a regular file (a FIFO or device is refused without blocking), at most
-    `max_bytes`, read within `timeout_s`."""
+    symlinks, before it is opened and again on the file opened), a regular file (a FIFO or
+    device is refused without blocking), at most `max_bytes`, read within `timeout_s`."""
     real = Path(os.path.realpath(path))
     roots = [Path(os.path.realpath(d)) for d in dirs]
-    if not any(real.is_relative_to(r) for r in roots):
-        allowed = ", ".join(str(d) for d in dirs) or "none configured"
-        raise RequestError(f"{path}: outside the allowed directories ({allowed})")
+
+    def confine(where: Path) -> None:
+        if not any(where.is_relative_to(r) for r in roots):
+            allowed = ", ".join(str(d) for d in dirs) or "none configured"
+            raise RequestError(f"{path}: outside the allowed directories ({allowed})")
+
+    confine(real)
     try:
         fd = os.open(real, os.O_RDONLY | os.O_NONBLOCK)
     except OSError as exc:
         raise RequestError(f"{path}: cannot open: {exc.strerror}") from None
     try:
+        # again on the file opened: a directory swapped for a symlink since is not followed out
+        opened = Path(f"/proc/self/fd/{fd}")
+        confine(Path(os.readlink(opened)) if opened.is_symlink() else real)
         st = os.fstat(fd)
         if not stat.S_ISREG(st.st_mode):
             raise RequestError(f"{path}: not a regular file")
@@ -202,6 +211,26 @@ def read_limited(path: Path, dirs: tuple[Path, ...], max_bytes: int, timeout_s: 
         return b"".join(chunks).decode("utf-8")
     except UnicodeDecodeError as exc:
         raise RequestError(f"{path}: not UTF-8 text: {exc}") from None
+
+
+def settings_in_force(section: ControllerSection, controller: Any) -> dict[str, Any]:
+    """What a `set_controller` or `set_model` put in force, for its reply: the model and the
+    settings its controller uses, as it resolved them (the model's own continuity, ahead off
+    for a model with history inputs)."""
+    out: dict[str, Any] = {}
+    if CONTROLLERS[section.name].needs_model:
+        out["model"] = str(section.model)
+    if section.name == "network_inversion":
+        out |= {
+            "method": controller.method,
+            "ahead": controller.ahead,
+            "feedback": section.feedback,
+            "feedback_tau_s": section.feedback_tau_s,
+            "continuity": controller.continuity,
+        }
+    if section.name == "constant":
+        out["current_a"] = controller.current
+    return out
 
 
 def _section(cls, table: dict, prefix: str):
@@ -227,6 +256,13 @@ class Preparer:
         self._d = daemon
         self._build_controller = build_controller
         self._build_reference = build_reference
+        # the allowed directories, fixed at start-up: the configured ones and those of the
+        # config's own model and profile. A path a request gave never widens them.
+        cfg = daemon.cfg
+        model, profile = cfg.controller.model, cfg.reference.path
+        self.model_dirs = (*cfg.control.model_dirs, *((model.parent,) if model else ()))
+        csv = profile if cfg.reference.kind == "csv" else None
+        self.profile_dirs = (*cfg.control.profile_dirs, *((csv.parent,) if csv else ()))
 
     @property
     def cfg(self) -> DaemonConfig:
@@ -238,15 +274,6 @@ class Preparer:
         if json_depth_exceeds(text, MAX_FILE_DEPTH) and path.suffix == ".json":
             raise RequestError(f"{path}: {what} nested deeper than {MAX_FILE_DEPTH} levels")
         return text
-
-    def model_dirs(self) -> tuple[Path, ...]:
-        """The configured model directories and the configured model's own."""
-        own = self.cfg.controller.model
-        return (*self.cfg.control.model_dirs, *((own.parent,) if own is not None else ()))
-
-    def profile_dirs(self) -> tuple[Path, ...]:
-        own = self.cfg.reference.path if self.cfg.reference.kind == "csv" else None
-        return (*self.cfg.control.profile_dirs, *((own.parent,) if own is not None else ()))
 
     def prepare(self, req: dict[str, Any]) -> Change:
         cmd = req["cmd"]
@@ -269,15 +296,25 @@ class Preparer:
             raise RequestError(
                 f"name: unknown controller {name!r} (known: {', '.join(CONTROLLER_NAMES)})"
             )
-        keys = ("model", "method", "ahead", "feedback", "feedback_tau_s", "continuity", "current_a")
-        table = {k: v for k, v in req.items() if k in keys}
+        table = {k: v for k, v in req.items() if k in ("model", *CONTROLLER_SETTINGS)}
         table["name"] = name
-        if "model" not in table and self.cfg.controller.model is not None:
-            table["model"] = str(self.cfg.controller.model)
+        kept = self.cfg.controller.model
+        if not CONTROLLERS[name].needs_model and "model" in table:
+            raise RequestError(
+                f"model: controller {name} uses no model file (leave the field out; the "
+                f"daemon keeps {kept})"
+            )
+        if "model" in table and table["model"] is None:
+            raise RequestError(
+                f"model: null: controller {name} needs a model file (leave the field out "
+                f"to keep {kept})"
+            )
+        if "model" not in table and kept is not None:
+            table["model"] = str(kept)  # kept for a controller that uses none
         section = _section(ControllerSection, table, "controller")
         model = None
         if CONTROLLERS[section.name].needs_model:
-            text = self._read(section.model, self.model_dirs(), "model file")
+            text = self._read(section.model, self.model_dirs, "model file")
             try:
                 model = MLP.from_text(text, section.model)
             except ValueError as exc:
@@ -292,10 +329,13 @@ class Preparer:
         path = req.get("path")
         if not isinstance(path, str) or not path:
             raise RequestError("path: a model file path is required")
-        name = self.cfg.controller.name
-        if not CONTROLLERS[name].needs_model:
-            raise RequestError(f"controller {name} uses no model")
-        return self._set_controller({"name": name, "model": path})
+        now = self.cfg.controller
+        if not CONTROLLERS[now.name].needs_model:
+            raise RequestError(f"controller {now.name} uses no model")
+        # the controller's settings stay as they are unless the request changes them
+        kept = {k: getattr(now, k) for k in CONTROLLER_SETTINGS if getattr(now, k) is not None}
+        given = {k: v for k, v in req.items() if k in CONTROLLER_SETTINGS}
+        return self._set_controller({**kept, **given, "name": now.name, "model": path})
 
     def _set_profile(self, req: dict) -> Change:
         from mrrig.loop.reference import CsvSeries, check_in_range
@@ -306,6 +346,8 @@ class Preparer:
             section = reference_from_table(table, "request")
         except ConfigError as exc:
             raise RequestError(str(exc).removeprefix("request: ")) from None
+        if section.kind != "csv" and section.path is not None:
+            raise RequestError(f"path: a {section.kind} reference reads no file (leave it out)")
         lo, hi = self.cfg.loop.f_range_n
         peak = abs(section.offset_n) + section.amplitude_n
         if section.kind in ("constant", "sine", "noise") and peak > max(-lo, hi):
@@ -315,7 +357,7 @@ class Preparer:
             )
         try:
             if section.kind == "csv":
-                text = self._read(section.path, self.profile_dirs(), "force profile")
+                text = self._read(section.path, self.profile_dirs, "force profile")
                 new = CsvSeries(section.path, text=text)
                 check_in_range(new, self.cfg.loop.f_range_n)
             else:

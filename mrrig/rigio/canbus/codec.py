@@ -210,6 +210,10 @@ class Codec:
         sig = self.db.get_message_by_name(message).get_signal_by_name(signal)
         return {raw: str(label) for raw, label in (sig.choices or {}).items()}
 
+    def unit(self, message: str, signal: str) -> str:
+        """A signal's physical unit as the DBC gives it ("" where it gives none)."""
+        return self.db.get_message_by_name(message).get_signal_by_name(signal).unit or ""
+
     def packer(self, sender: str) -> Packer:
         return Packer(self, sender)
 
