@@ -12,21 +12,29 @@ from __future__ import annotations
 
 import json
 import math
+import random
 import tempfile
 import time
 from pathlib import Path
 
 import can
-import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from hypothesis.stateful import RuleBasedStateMachine, invariant, rule
 
-from mrrig.loop.samples import SAMPLE_DTYPE, RigState
-from mrrig.offline.bench.fuzz import stale_answers_sent_in_time
+from firmware_sim.runner import RunStats
+from mrrig.offline.bench.fuzz import (
+    Listener,
+    chain,
+    failures,
+    motion_beyond_limits,
+    signal_outcome,
+)
+from mrrig.rigio.canbus import Codec, open_bus
 from mrrig.rigio.control import RequestError, parse_request
 from tests.rig_harness import ScriptedRig
+from tests.test_firmware import QUIET, Rig
 
 I_MAX_A = 2.0
 FUZZ = settings(
@@ -192,23 +200,131 @@ RequestSequences.TestCase.settings = settings(
 test_request_sequences = pytest.mark.process(RequestSequences.TestCase)
 
 
-def test_a_stale_answer_is_set_aside_only_when_the_daemon_recorded_sending_it_in_time():
-    """The simulator saw 4 ACTIVE answers reach the bus over 10 ms after their frames; the
-    daemon's recording shows which it sent within the limit (the bus took those in late)."""
-    samples = np.zeros(4, dtype=SAMPLE_DTYPE)
-    samples["t"] = [0.001, 1.001, 2.001, 3.001]  # the loop's reads, on the daemon's clock
-    samples["counter"] = [1, 2, 3, 4]
-    samples["state"] = [RigState.ARMED, RigState.ARMED, RigState.FAULT, RigState.ARMED]
-    samples["latency_us"] = [9_000, 10_500, 9_000, 9_000]
-    stats = {
-        "stale_answer_age_s": 0.01,
-        "clock_t0_s": 100.0,  # the daemon's clock zero is 100.5 s on the same clock
-        "stale_answers": [
-            {"counter": 1, "frame_s": 0.5, "answer_s": 0.512},  # sent at 9 ms: the bus's
-            {"counter": 2, "frame_s": 1.5, "answer_s": 1.512},  # sent at 10.5 ms: the daemon's
-            {"counter": 3, "frame_s": 2.5, "answer_s": 2.512},  # not ARMED in the recording
-            {"counter": 5, "frame_s": 3.5, "answer_s": 3.512},  # no sample of that frame
-        ],
-    }
-    assert stale_answers_sent_in_time(stats, samples, 100.5) == 1
-    assert stale_answers_sent_in_time({**stats, "stale_answers": []}, samples, 100.5) == 0
+def _armed_motion(rig: Rig) -> list[dict]:
+    """The firmware's armed_motion as `mrrig bench fuzz` reads it from the stats file."""
+    summary = RunStats().summary(rig.fw, 1.0, 0.0)
+    return json.loads(json.dumps(summary["armed_motion"]))
+
+
+def test_bench_fuzz_finds_motion_beyond_the_amplitude_armed_plus_the_step():
+    """Issue 32's excursion, on the firmware: six actuator requests of 4 mm, 5 ms apart, while
+    ACTIVE took the motion from 15 mm to 39 mm; the daemon's step is 5 mm."""
+    rig = Rig()
+    rig.actuator("SINE", 0.015, 2.0)
+    rig.run(300, answer="SAFE")
+    rig.run(10, answer="ACTIVE")
+    for request in chain("amplitude", random.Random(1)):
+        assert request["amplitude_m"] > 0.015  # this seed steps up
+        rig.actuator("SINE", request["amplitude_m"], 2.0)
+        rig.run(2, answer="ACTIVE")  # 4 ms; a request every 5 ms
+    rig.run(300, answer="ACTIVE")
+    (beyond,) = motion_beyond_limits(_armed_motion(rig), 0.005)
+    assert beyond["amplitude_at_start_m"] == pytest.approx(0.015)
+    assert beyond["amplitude_max_m"] == pytest.approx(0.039)
+
+
+def test_bench_fuzz_takes_motion_within_the_step_and_a_disarmed_change():
+    rig = Rig()
+    rig.actuator("SINE", 0.015, 2.0)
+    rig.run(300, answer="SAFE")
+    rig.run(10, answer="ACTIVE")
+    rig.actuator("SINE", 0.020, 2.0)  # one step of 5 mm: within the limit
+    rig.run(300, answer="ACTIVE")
+    rig.run(1, answer="SAFE")
+    rig.actuator("SINE", 0.040, 2.0)  # disarmed: the next arming takes 40 mm
+    rig.run(1, answer="SAFE")
+    rig.run(300, answer="ACTIVE")
+    motion = _armed_motion(rig)
+    assert len(motion) == 2 and motion_beyond_limits(motion, 0.005) == []
+    assert motion_beyond_limits(motion, 0.004), "the 5 mm step is beyond a 4 mm limit"
+
+
+def test_bench_fuzz_finds_a_frequency_raised_while_armed():
+    rig = Rig()
+    rig.actuator("SINE", 0.015, 2.0)
+    rig.run(10, answer="SAFE")
+    rig.run(10, answer="ACTIVE")
+    for request in chain("frequency", random.Random(1)):
+        rig.actuator("SINE", 0.015, request["frequency_hz"])
+        rig.run(2, answer="ACTIVE")
+    rig.run(round(QUIET.actuator.ramp_s / 0.002), answer="ACTIVE")
+    (beyond,) = motion_beyond_limits(_armed_motion(rig), 0.005)
+    assert beyond["frequency_max_hz"] == pytest.approx(5.0)
+
+
+def test_bench_fuzz_chains_of_force_values_rise_past_the_range_to_1e300():
+    forces = chain("force_ref", random.Random(0))
+    assert len(forces) == 7 and abs(forces[-1]) == 1e300
+    assert max(abs(f) for f in forces[:-1]) > 6000.0
+    profiles = chain("set_profile", random.Random(1))
+    assert all(r["cmd"] == "set_profile" for r in profiles)
+
+
+def test_bench_fuzz_a_signal_that_killed_the_daemon_active_is_a_failure(tmp_path):
+    """SIGHUP killed the daemon at once (rc -1), its last command ACTIVE, no summary."""
+    outcome, ok = signal_outcome(-1, True, False, tmp_path / "none.json")
+    assert not ok
+    assert outcome == ("ended, exit code -1, last command ACTIVE, actuator not stopped, no summary")
+    summary = tmp_path / "summary.json"
+    summary.write_text("{}")
+    assert signal_outcome(0, False, True, summary) == (
+        "ended SAFE (exit code 0, summary written)",
+        True,
+    )
+    assert signal_outcome(None, True, False, summary) == ("ignored", True)
+
+
+def test_bench_fuzz_fails_on_each_count_that_is_not_0():
+    clean = {
+        "crashes": [], "commands_above_limit": 0, "desired_force_out_of_range": 0,
+        "motion_beyond_limits": 0, "active_applied_to_stale": 0,
+        "active_applied_to_invalid": 0, "active_answers_invalid": 0, "requests_unanswered": 0,
+        "max_commanded_current_a": 2.0,
+    }  # fmt: skip
+    assert failures(clean, 2.0) == []
+    for name in clean:
+        bad = {**clean, name: ["x"] if name == "crashes" else 3}
+        assert failures(bad, 2.0) == [name]
+
+
+@pytest.mark.process
+def test_bench_fuzz_listener_counts_commands_above_the_limits_and_to_no_genuine_frame(bridge):
+    """Through the bridge, as in a campaign: an ACTIVE command of 2.5 A (limit 2 A) with a
+    desired force of 7000 N (range 6000 N) answering a genuine frame, and one answering a
+    counter no genuine frame had."""
+    codec = Codec()
+    listener = Listener(bridge, 2.0, (-6000.0, 6000.0))
+    listener.start()
+    bus = open_bus("remote", bridge)
+    try:
+        rig, daemon = codec.packer("RIG"), codec.packer("DAEMON")
+        sensors = rig.message(
+            "RigSensors",
+            {"ActuatorEnabled": 1, "LimitTripped": 0, "EStop": 0, "SensorFault": 0,
+             "Displacement": 0.001, "Force": 10.0},
+        )  # fmt: skip
+        bus.send(sensors)
+        counter = codec.parser().parse_message(sensors).counter
+        for echo, current_a, force_n in ((counter, 2.5, 7000.0), ((counter + 5) % 16, 1.0, 0.0)):
+            time.sleep(0.05)
+            bus.send(
+                daemon.message(
+                    "DamperCommand",
+                    {
+                        "Mode": "ACTIVE",
+                        "CurrentSetpoint": current_a,
+                        "SensorCounterEcho": echo,
+                        "ControllerId": 1,
+                        "DesiredForce": force_n,
+                    },
+                )  # fmt: skip
+            )
+        deadline = time.monotonic() + 5.0
+        while listener.commands < 2 and time.monotonic() < deadline:
+            time.sleep(0.05)
+    finally:
+        bus.shutdown()
+        listener.stop()
+    assert listener.commands == 2
+    assert (listener.above_limit, listener.force_out_of_range) == (1, 1)
+    assert listener.active_unmatched == 1 and listener.last_mode == 1

@@ -1,4 +1,4 @@
-"""`mrrig bench fuzz --minutes N`: hostile frames and requests against a live rig.
+"""`mrrig bench fuzz --minutes N`: hostile frames, requests and signals against a live rig.
 
 The bridge, firmware_sim and the daemon (telemetry and recording on, armed) run as processes.
 A quiet phase and a request burst (1000 status requests, 50 malformed ones and one of 1 MB a
@@ -6,14 +6,26 @@ second, as in issue 23) come first, each min(20 s, a third of the run), and comp
 answer latency as the firmware sees it; then, for the rest of the run, the fuzzer sends random
 and mutated CAN frames (29-bit, remote, unknown IDs, wrong lengths, broken CRCs, frames that
 waited; its invalid RigSensors frames stay inside the bad-frame budget so that the rig stays
-armed) and random JSON requests (any depth, size, type, unicode, NaN), and re-arms the daemon
-after every fault. A listener on the bus checks every command against the genuine sensor
-frames. Printed counts, and the exit code 1 when one is not 0: crashes (a process that died,
-the daemon's exit code not 0 or 1, a telemetry restart), commands above the current limit,
-ACTIVE answers to a stale frame (the simulator's count: older than the daemon's
-loop.max_frame_age_s from the bus's receive timestamp, as the spec measures a frame's age;
-less those the daemon's recording shows it sent within the limit: the bridge took them in
-late) or to no genuine frame (the listener's), control requests without an answer.
+armed), random JSON requests (any depth, size, type, unicode, NaN) and, while armed, request
+sequences: chains of individually valid changes 5 ms apart (six actuator amplitude steps of
+4 mm, six frequency steps, set_profile forces rising past `loop.f_range_n` then arming,
+force_ref values rising to 1e300), and re-arms the daemon after every fault. It sends the
+daemon SIGHUP, SIGUSR1, SIGUSR2, SIGQUIT and SIGPIPE in turn: each must end the run SAFE (the
+last DamperCommand SAFE, the actuator stopped, a summary written, exit code 0 or 1) or be
+ignored (the daemon answers on); a daemon that ended is started again. A listener on the bus
+checks every command against the genuine sensor frames.
+
+Printed counts, and the exit code 1 when one is not 0: crashes (a process that died, a signal
+that killed the daemon or ended it any other way than SAFE, the daemon's exit code not 0 or 1,
+a telemetry restart), commands above the current limit or with a desired force outside
+`loop.f_range_n`, motion beyond the limits in force at arming (the simulator's armed_motion:
+per stretch of ACTIVE commands, the actuator's amplitude beyond the one in force at arming
+plus `control.armed_amplitude_step_m`, or its frequency above the one in force at arming),
+ACTIVE commands the firmware applied to a stale frame (older than its stale_answer_age_s on
+its own clock) or to no valid frame, ACTIVE answers to no genuine frame (the listener's),
+control requests without an answer (but those sent while a signal ended the daemon). The
+late commands the firmware dropped (spec/can-protocol.md) and the ACTIVE answers that
+reached the bus over the age limit are reported.
 
 Answer latency "as the firmware sees it": from the bridge's receive timestamp of a sensor
 frame to the bridge's receive timestamp of its command (both carried in the frames a bus
@@ -24,6 +36,7 @@ from __future__ import annotations
 
 import argparse
 import collections
+import functools
 import json
 import logging
 import random
@@ -43,8 +56,6 @@ import zenoh
 from mrrig import json_text
 from mrrig.cli_args import HelpFormatter, output_file, positive
 from mrrig.config import load_config
-from mrrig.loop.samples import RigState
-from mrrig.offline.review import read_recording
 from mrrig.rigio.canbus.bus import find_free_port, open_bus, start_bridge, stop_bridge
 from mrrig.rigio.canbus.codec import Codec
 from mrrig.rigio.sidecar import JSON, keys
@@ -62,6 +73,26 @@ BURST_BAD_HZ = 50
 PHASE_S = 20.0
 ANSWER_WINDOW = 16  # genuine frames an ACTIVE command may answer (32 ms)
 REQUEST_TIMEOUT_S = 3.0
+# request sequences: a chain every SEQUENCE_EVERY_S while armed, of CHAIN_LENGTH requests
+# CHAIN_GAP_S apart (issue 32: six 4 mm steps took an armed rig from 15 mm to 39 mm)
+SEQUENCE_EVERY_S = 1.5
+CHAIN_LENGTH = 6
+CHAIN_GAP_S = 0.005
+AMPLITUDE_STEP_M = 0.004
+FREQUENCY_STEP_HZ = 0.5
+FORCE_STEP_N = 1500.0
+# signals: each ends the run SAFE or is ignored; a daemon still running this long after one
+# ignored it. One every SIGNAL_EVERY_MAX_S at most, each at least once in any run.
+SIGNALS = (signal.SIGHUP, signal.SIGUSR1, signal.SIGUSR2, signal.SIGQUIT, signal.SIGPIPE)
+SIGNAL_EXIT_S = 8.0
+SIGNAL_EVERY_MAX_S = 20.0
+# The armed motion's tolerances: the firmware's ramp (0.5 s) moves at most 0.16 mm and
+# 0.08 Hz a period; a change the daemon sends just before the SAFE command that ends a
+# stretch (a disarm and an actuator request taken between the same two frames) shows for up
+# to 3 periods
+MOTION_TOL_M = 0.0005
+FREQUENCY_TOL_HZ = 0.25
+DESIRED_FORCE_TOL_N = 0.01  # the DBC's resolution
 
 
 class Listener:
@@ -69,17 +100,24 @@ class Listener:
     the daemon's commands and the fuzzer's frames, which it tells apart from the genuine
     ones as the daemon must (flags, DBC, CRC, counter)."""
 
-    def __init__(self, channel: str, i_max_a: float) -> None:
+    def __init__(self, channel: str, i_max_a: float, f_range_n: tuple[float, float]) -> None:
         self.bus = open_bus("remote", channel)
         codec = Codec()
         self.parser = codec.parser()
         self.sensor_id = codec.layout("RigSensors").frame_id
         self.command_id = codec.layout("DamperCommand").frame_id
+        self.actuator_id = codec.layout("ActuatorCommand").frame_id
+        self.waveforms = codec.choices("ActuatorCommand", "Waveform")
         self.i_max_a = i_max_a
+        self.f_range_n = f_range_n
         self.recent: collections.deque[list] = collections.deque(maxlen=ANSWER_WINDOW)
         self.commands = 0
         self.above_limit = 0
+        self.force_out_of_range = 0
         self.active_unmatched = 0
+        self.last_mode = 0  # of the latest DamperCommand: 1 ACTIVE
+        # the latest ActuatorCommand: (waveform label, amplitude m, frequency Hz)
+        self.actuator: tuple[str, float, float] | None = None
         self.latency_s: list[tuple[float, float]] = []  # (bridge time of the frame, latency)
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, daemon=True)
@@ -104,14 +142,24 @@ class Listener:
                 p = self.parser.parse_message(msg)
                 if p.ok:
                     self.recent.append([p.counter, msg.timestamp, False])
+            elif msg.arbitration_id == self.actuator_id:
+                p = self.parser.parse_message(msg)
+                if p.ok:
+                    v = p.values
+                    wave = self.waveforms[int(v["Waveform"])]
+                    self.actuator = (wave, v["Amplitude"], v["Frequency"])
             elif msg.arbitration_id == self.command_id:
                 p = self.parser.parse_message(msg)
                 if not p.ok:
                     continue
                 self.commands += 1
                 v = p.values
+                self.last_mode = int(v["Mode"])
                 if v["CurrentSetpoint"] > self.i_max_a + 1e-4:
                     self.above_limit += 1
+                lo, hi = self.f_range_n
+                if not lo - DESIRED_FORCE_TOL_N <= v["DesiredForce"] <= hi + DESIRED_FORCE_TOL_N:
+                    self.force_out_of_range += 1
                 echo = int(v["SensorCounterEcho"])
                 frame = next((f for f in self.recent if f[0] == echo and not f[2]), None)
                 if frame is not None:
@@ -128,35 +176,44 @@ class Listener:
 
 
 class Requests:
-    """Control requests over Zenoh; their replies counted as they come (Zenoh's thread)."""
+    """Control requests over Zenoh; their replies counted as they come (Zenoh's thread).
+    `session` is swapped for a new daemon's."""
 
     def __init__(self, session: zenoh.Session, rig: str) -> None:
         self.session = session
         self.key = keys(rig)["control"]
-        self.sent = 0
-        self.answered = 0
-        self._lock = threading.Lock()
+        self.sent_s: list[float] = []  # when each request left (time.monotonic())
+        self.answered: list[bool] = []
 
-    def _on_reply(self, reply: zenoh.Reply) -> None:
+    @property
+    def sent(self) -> int:
+        return len(self.sent_s)
+
+    def _on_reply(self, i: int, reply: zenoh.Reply) -> None:
         if reply.ok is not None:
-            with self._lock:
-                self.answered += 1
+            self.answered[i] = True
 
     def send(self, payload: str | bytes) -> None:
+        self.answered.append(False)
+        self.sent_s.append(time.monotonic())
         self.session.get(
             self.key,
-            self._on_reply,
+            functools.partial(self._on_reply, len(self.sent_s) - 1),
             payload=payload,
             encoding=JSON,
             timeout=REQUEST_TIMEOUT_S,
         )
-        self.sent += 1
 
-    def unanswered(self, wait_s: float = REQUEST_TIMEOUT_S + 1.0) -> int:
-        """Requests without a reply, once the last could still have got one."""
+    def unanswered(
+        self, excused: list[tuple[float, float]], wait_s: float = REQUEST_TIMEOUT_S + 1.0
+    ) -> int:
+        """Requests without a reply, once the last could still have got one, but those sent
+        in an `excused` window (a daemon ending on a signal, or starting again)."""
         time.sleep(wait_s)
-        with self._lock:
-            return self.sent - self.answered
+        return sum(
+            not ok and not any(a <= t <= b for a, b in excused)
+            for t, ok in zip(self.sent_s, self.answered, strict=True)
+        )
 
     def ask(self, request: dict) -> dict | None:
         for reply in self.session.get(
@@ -191,7 +248,9 @@ def random_json(rng: random.Random, depth: int = 0) -> Any:
     return [random_json(rng, depth + 1) for _ in range(rng.randrange(4))]
 
 
-COMMANDS = ["arm", "disarm", "status", "set_profile", "set_controller", "actuator", "set_model"]
+COMMANDS = [
+    "arm", "disarm", "reset", "status", "set_profile", "set_controller", "actuator", "set_model"
+]  # fmt: skip
 
 
 def random_request(rng: random.Random) -> str | bytes:
@@ -243,61 +302,143 @@ def junk_frame(rng: random.Random, valid_sensors: bytes, bad_sensor: bool) -> ca
     return can.Message(arbitration_id=arb, is_extended_id=False, data=data)
 
 
-def _daemon_config(config: Path, cfg: Any, work: Path) -> tuple[Path, zenoh.Config]:
-    """The daemon's config with a Zenoh config of its own on a free port of 127.0.0.1, and
-    the client's config for it."""
-    endpoints = [f"tcp/127.0.0.1:{find_free_port()}"]
-    zenoh_file = work / "zenoh-daemon.json5"
-    zenoh_file.write_text(
-        json.dumps(
-            {
-                "mode": "peer",
-                "listen": {"endpoints": endpoints},
-                "scouting": {"multicast": {"enabled": False}},
-            }
-        )
-    )
-    text = config.read_text()
-    old = f'"{cfg.telemetry.zenoh_config}"'
-    if old not in text or not cfg.telemetry.enabled:
-        raise ValueError(f"{config}: telemetry.zenoh_config: set and enabled, for the fuzzer")
-    path = work / "daemon.toml"
-    path.write_text(text.replace(old, f'"{zenoh_file}"'))
-    return path, local_config("client", connect=endpoints)
+def motion_beyond_limits(armed_motion: list[dict], step_m: float) -> list[dict]:
+    """The stretches of ACTIVE commands (the simulator's `armed_motion`) whose motion went
+    beyond the limits in force when the rig was armed: an amplitude more than `step_m`
+    (`control.armed_amplitude_step_m`) above the one in force at arming, or a frequency above
+    that one (the daemon takes no frequency change while armed)."""
+    return [
+        m
+        for m in armed_motion
+        if m["amplitude_max_m"] > m["amplitude_at_start_m"] + step_m + MOTION_TOL_M
+        or m["frequency_max_hz"] > m["frequency_at_start_hz"] + FREQUENCY_TOL_HZ
+    ]
+
+
+CHAINS = ("amplitude", "frequency", "set_profile", "force_ref")
+# what an actuator chain starts from, armed (issue 32's rig: 15 mm at 2 Hz)
+BASE_MOTION = {"cmd": "actuator", "waveform": "sine", "amplitude_m": 0.015, "frequency_hz": 2.0}
+SHOW_S = 0.6  # a chain's end held armed: the firmware's ramp (0.5 s) shows the motion
+
+
+def chain(kind: str, rng: random.Random) -> list:
+    """A chain of CHAIN_LENGTH changes, each a small step on from the one before: actuator
+    requests (amplitude or frequency) from BASE_MOTION, set_profile requests, or force_ref
+    values (rising past any range, to 1e300)."""
+    sign = 1 if rng.random() < 0.75 else -1  # mostly up: the unsafe way
+    steps = range(1, CHAIN_LENGTH + 1)
+    if kind == "amplitude":
+        a0 = BASE_MOTION["amplitude_m"]
+        return [
+            {**BASE_MOTION, "amplitude_m": round(max(a0 + sign * k * AMPLITUDE_STEP_M, 0.0), 5)}
+            for k in steps
+        ]
+    if kind == "frequency":
+        f0 = BASE_MOTION["frequency_hz"]
+        return [
+            {**BASE_MOTION, "frequency_hz": round(max(f0 + sign * k * FREQUENCY_STEP_HZ, 0.1), 3)}
+            for k in steps
+        ]
+    forces = [k * FORCE_STEP_N for k in steps]
+    if kind == "set_profile":
+        shape = rng.choice(["constant", "sine", "noise"])
+        field = "offset_n" if shape == "constant" else "amplitude_n"
+        return [
+            {"cmd": "set_profile", "kind": shape, field: sign * f if shape == "constant" else f}
+            for f in forces
+        ]
+    return [sign * 2.0 * f for f in forces] + [sign * 1e300]
+
+
+class Daemon:
+    """The daemon's process, started again after a signal ended it, and a Zenoh session to
+    its telemetry process; each start has its own recording and summary."""
+
+    def __init__(self, config: Path, channel: str, endpoints: list[str], work: Path) -> None:
+        self.config, self.channel, self.endpoints, self.work = config, channel, endpoints, work
+        self.summaries: list[Path] = []
+        self.proc: subprocess.Popen | None = None
+        self.session: zenoh.Session | None = None
+
+    def start(self, timeout_s: float = 60.0) -> zenoh.Session:
+        n = len(self.summaries)
+        self.summaries.append(self.work / f"daemon-{n}.json")
+        cmd = [sys.executable, "-m", "mrrig", "-q", "run", "--config", str(self.config)]
+        cmd += [
+            "--bus-channel",
+            self.channel,
+            "--arm",
+            "--record",
+            str(self.work / f"fuzz-{n}.rrd"),
+        ]
+        cmd += ["--summary-json", str(self.summaries[-1])]
+        self.proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL)
+        end = time.monotonic() + timeout_s
+        while self.session is None:  # the daemon's telemetry process listens once it is ready
+            try:
+                self.session = zenoh.open(local_config("client", connect=self.endpoints))
+            except zenoh.ZError:
+                if self.proc.poll() is not None or time.monotonic() > end:
+                    raise RuntimeError("the daemon did not come up") from None
+                time.sleep(0.5)
+        return self.session
+
+    def wait_ready(self, requests: Requests, timeout_s: float = 60.0) -> None:
+        end = time.monotonic() + timeout_s
+        while requests.ask({"cmd": "status"}) is None:
+            if self.proc is None or self.proc.poll() is not None or time.monotonic() > end:
+                raise RuntimeError("the daemon did not answer")
+
+    def close_session(self) -> None:
+        if self.session is not None:
+            self.session.close()
+            self.session = None
+
+
+def signal_outcome(
+    rc: int | None, last_active: bool, actuator_stopped: bool, summary: Path
+) -> tuple[str, bool]:
+    """What a signal did to the daemon (rc None: still running, it ignored it) and whether
+    that is allowed: ended SAFE (exit code 0 or 1, its last DamperCommand SAFE, its last
+    ActuatorCommand STOP, a summary written) or ignored."""
+    if rc is None:
+        return "ignored", True
+    problems = []
+    if rc not in (0, 1):
+        problems.append(f"exit code {rc}")
+    if last_active:
+        problems.append("last command ACTIVE")
+    if not actuator_stopped:
+        problems.append("actuator not stopped")
+    if not summary.exists():
+        problems.append("no summary")
+    if problems:
+        return "ended, " + ", ".join(problems), False
+    return f"ended SAFE (exit code {rc}, summary written)", True
 
 
 def run(minutes: float, config: Path, sim_config: Path, seed: int, out: Path | None) -> int:
     rng = random.Random(seed)
     cfg = load_config(config)
     total_s = minutes * 60.0
-    phase_s = min(PHASE_S, total_s / 3)
+    phase_s = min(PHASE_S, total_s / 4)
+    fuzz_s = total_s - 2 * phase_s
     work = Path(tempfile.mkdtemp(prefix="mrrig-bench-fuzz-"))
-    daemon_config, zenoh_client = _daemon_config(config, cfg, work)
+    daemon_config, endpoints = _daemon_config(config, cfg, work)
     port = find_free_port()
     channel = f"ws://127.0.0.1:{port}/"
     bridge = start_bridge(port)
-    procs: dict[str, subprocess.Popen] = {}
+    daemon = Daemon(daemon_config, channel, endpoints, work)
+    sim: subprocess.Popen | None = None
     crashes: list[str] = []
-    session = listener = fuzz_bus = None
+    signals: list[dict[str, str]] = []
+    excused: list[tuple[float, float]] = []  # requests sent here may go unanswered
+    listener = fuzz_bus = None
     try:
-        cmd = [sys.executable, "-m", "mrrig", "-q", "run", "--config", str(daemon_config)]
-        cmd += ["--bus-channel", channel, "--arm", "--record", str(work / "fuzz.rrd")]
-        cmd += ["--summary-json", str(work / "daemon.json")]
-        procs["daemon"] = subprocess.Popen(cmd, stdout=subprocess.DEVNULL)
-        end = time.monotonic() + 60
-        while session is None:  # the daemon's telemetry process listens once it is ready
-            try:
-                session = zenoh.open(zenoh_client)
-            except zenoh.ZError:
-                if procs["daemon"].poll() is not None or time.monotonic() > end:
-                    raise RuntimeError("the daemon did not come up") from None
-                time.sleep(0.5)
-        requests = Requests(session, cfg.rig.name)
-        while requests.ask({"cmd": "status"}) is None:
-            if procs["daemon"].poll() is not None or time.monotonic() > end:
-                raise RuntimeError("the daemon did not answer")
+        requests = Requests(daemon.start(), cfg.rig.name)
+        daemon.wait_ready(requests)
         sim_stats = work / "sim.json"
-        procs["firmware_sim"] = subprocess.Popen(
+        sim = subprocess.Popen(
             [sys.executable, "-m", "firmware_sim", "--config", str(sim_config),
              "--bus-channel", channel, "--stats", str(sim_stats),
              # its own frames' bus timestamps: a frame's age counts from there (spec/system.md)
@@ -306,7 +447,7 @@ def run(minutes: float, config: Path, sim_config: Path, seed: int, out: Path | N
              "--duration", str(3 * total_s + 120)],
             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
         )  # fmt: skip
-        listener = Listener(channel, cfg.loop.i_max_a)
+        listener = Listener(channel, cfg.loop.i_max_a, cfg.loop.f_range_n)
         listener.start()
         fuzz_bus = open_bus("remote", channel)
         packer = Codec().packer("RIG")
@@ -318,14 +459,72 @@ def run(minutes: float, config: Path, sim_config: Path, seed: int, out: Path | N
         time.sleep(3.0)  # the simulator streams, the daemon arms
         frames = 0
         rearms = 0
+        sequences: collections.Counter[str] = collections.Counter()
+        force_ref_key = keys(cfg.rig.name)["force_ref"]
 
         def alive() -> None:
-            for name, p in (("daemon", procs["daemon"]), ("firmware_sim", procs["firmware_sim"])):
-                if p.poll() is not None and name not in crashed_names:
-                    crashed_names.add(name)
-                    crashes.append(f"{name} exited with code {p.returncode}")
+            if sim.poll() is not None and not any("firmware_sim" in c for c in crashes):
+                crashes.append(f"firmware_sim exited with code {sim.returncode}")
 
-        crashed_names: set[str] = set()
+        def restart() -> bool:
+            daemon.close_session()
+            try:
+                requests.session = daemon.start()
+                daemon.wait_ready(requests)
+            except RuntimeError as exc:
+                crashes.append(f"daemon: {exc} after a restart")
+                return False
+            return True
+
+        def judge(sig: signal.Signals, rc: int | None) -> None:
+            if rc is not None:
+                time.sleep(0.5)  # its last frames through the bridge to the listener
+            outcome, ok = signal_outcome(
+                rc,
+                listener.last_mode != 0,
+                listener.actuator is not None and listener.actuator[0] == "STOP",
+                daemon.summaries[-1],
+            )
+            signals.append({"signal": sig.name, "outcome": outcome})
+            if not ok:
+                crashes.append(f"daemon on {sig.name}: {outcome}")
+
+        def rearm() -> bool:
+            requests.ask({"cmd": "set_controller", "name": "network_inversion"})
+            requests.ask({"cmd": "set_profile", "kind": "bouc_wen", "current_a": 0.8,
+                          "current_amp_a": 0.5})  # fmt: skip
+            requests.ask({"cmd": "reset"})  # re-arming after a fault: acknowledged
+            return bool((requests.ask({"cmd": "arm"}) or {}).get("ok"))
+
+        def sequence(kind: str) -> None:
+            """One chain of small changes 5 ms apart: disarmed, the motion or the reference
+            it starts from; armed (set_profile's: after the chain, with what it left); the
+            chain; held armed for SHOW_S."""
+            sequences[kind] += 1
+            requests.ask({"cmd": "disarm"})
+            if kind in ("amplitude", "frequency"):
+                requests.ask(BASE_MOTION)
+            elif kind == "force_ref":
+                requests.ask({"cmd": "set_profile", "kind": "zenoh", "timeout_s": 0.5})
+                daemon.session.put(force_ref_key, "0")  # not stale when armed
+            steps = chain(kind, rng)
+            if kind != "set_profile":
+                requests.ask({"cmd": "reset"})
+                requests.ask({"cmd": "arm"})
+            for step in steps:
+                if kind == "force_ref":
+                    daemon.session.put(force_ref_key, json.dumps(step))
+                else:
+                    requests.send(json.dumps(step))
+                time.sleep(CHAIN_GAP_S)
+            if kind == "set_profile":
+                requests.ask({"cmd": "reset"})
+                requests.ask({"cmd": "arm"})
+            time.sleep(SHOW_S)
+            if kind == "force_ref":  # back to the reference the campaign runs on
+                requests.ask({"cmd": "disarm"})
+                rearm()
+
         # ---- quiet, then the burst: the answer latency as the firmware sees it
         t_quiet = time.time()
         time.sleep(phase_s)
@@ -344,11 +543,18 @@ def run(minutes: float, config: Path, sim_config: Path, seed: int, out: Path | N
             time.sleep(max(0.0, second + 1.0 - time.monotonic()))
         t_fuzz = time.time()
         burst_sent = requests.sent
-        # ---- fuzz
-        end = time.monotonic() + total_s - 2 * phase_s
-        next_req = next_arm = next_bad = time.monotonic()
+        # ---- fuzz: frames, requests, sequences and signals, until every signal had its turn
+        end = time.monotonic() + fuzz_s
+        signal_every_s = min(SIGNAL_EVERY_MAX_S, fuzz_s / len(SIGNALS))
+        to_send: list[signal.Signals] = []
+        unsent = set(SIGNALS)  # the last of them ends the campaign, in the daemon's stead
+        to_chain: list[str] = []
+        pending: tuple[signal.Signals, float] | None = None  # (signal, sent at)
+        next_req = next_arm = next_bad = next_seq = time.monotonic()
+        next_signal = time.monotonic() + signal_every_s / 2
         t_next = time.monotonic()
-        while (now := time.monotonic()) < end:
+        armed = False
+        while (now := time.monotonic()) < end or len(unsent) > 1 or pending is not None:
             if now >= t_next:
                 bad = now >= next_bad
                 if bad:
@@ -359,32 +565,70 @@ def run(minutes: float, config: Path, sim_config: Path, seed: int, out: Path | N
             if now >= next_req:
                 requests.send(random_request(rng))
                 next_req += 1.0 / REQUESTS_HZ
-            if now >= next_arm:
+            if pending is not None:
+                sig, sent_s = pending
+                rc = daemon.proc.poll()
+                if rc is not None or now - sent_s > SIGNAL_EXIT_S:
+                    judge(sig, rc)
+                    pending = None
+                    if rc is not None and not restart():
+                        break
+                    excused[-1] = (excused[-1][0], time.monotonic())
+                    next_signal = time.monotonic() + signal_every_s
+                    next_arm = next_seq = time.monotonic()
+            elif daemon.proc.poll() is not None:  # no signal: a crash
+                crashes.append(f"daemon exited with code {daemon.proc.returncode}")
+                excused.append((now - REQUEST_TIMEOUT_S, now))
+                if not restart():
+                    break
+                excused[-1] = (excused[-1][0], time.monotonic())
+            elif now >= next_signal and (now < end or len(unsent) > 1):
+                if not to_send:
+                    to_send = rng.sample(SIGNALS, len(SIGNALS))
+                if now >= end:  # one that had no turn yet
+                    to_send.sort(key=lambda s: s in unsent)
+                sig = to_send.pop()
+                unsent.discard(sig)
+                excused.append((now - REQUEST_TIMEOUT_S, float("inf")))
+                daemon.proc.send_signal(sig)
+                pending = (sig, now)
+            elif now >= next_arm:
                 next_arm += 1.0
                 alive()
                 st = requests.ask({"cmd": "status"})
-                if st is not None and st.get("status", {}).get("state") != "ARMED":
-                    requests.ask({"cmd": "set_controller", "name": "network_inversion"})
-                    requests.ask({"cmd": "set_profile", "kind": "bouc_wen", "current_a": 0.8,
-                                  "current_amp_a": 0.5})  # fmt: skip
-                    if (requests.ask({"cmd": "arm"}) or {}).get("ok"):
-                        rearms += 1
+                armed = st is not None and st.get("status", {}).get("state") == "ARMED"
+                if st is not None and not armed and rearm():
+                    rearms += 1
+            elif armed and now >= next_seq:
+                next_seq = now + SEQUENCE_EVERY_S
+                if not to_chain:
+                    to_chain = rng.sample(CHAINS, len(CHAINS))
+                sequence(to_chain.pop())
             time.sleep(max(0.0, min(t_next, next_req) - time.monotonic()))
-        unanswered = requests.unanswered()
+        unanswered = requests.unanswered(excused)
         alive()
         status = (requests.ask({"cmd": "status"}) or {}).get("status", {})
         if status.get("telemetry_restarts"):
             crashes.append(f"telemetry restarted {status['telemetry_restarts']} times")
-        procs["daemon"].send_signal(signal.SIGTERM)
-        code = procs["daemon"].wait(timeout=60)
-        if code not in (0, 1) and "daemon" not in crashed_names:
-            crashes.append(f"daemon exited with code {code}")
-        procs["firmware_sim"].send_signal(signal.SIGTERM)  # it was to stream on
-        if procs["firmware_sim"].wait(timeout=60) != 0 and "firmware_sim" not in crashed_names:
-            crashes.append(f"firmware_sim exited with code {procs['firmware_sim'].returncode}")
+        for sig in (*unsent, signal.SIGTERM):  # the last signal, then SIGTERM if ignored
+            if daemon.proc.poll() is not None:
+                break
+            daemon.proc.send_signal(sig)
+            try:
+                rc = daemon.proc.wait(timeout=SIGNAL_EXIT_S if sig in unsent else 60)
+            except subprocess.TimeoutExpired:
+                rc = None
+            if sig in unsent:
+                judge(sig, rc)
+            elif rc not in (0, 1):
+                crashes.append(f"daemon exited with code {rc}")
+        sim.send_signal(signal.SIGTERM)  # it was to stream on
+        if sim.wait(timeout=60) != 0 and not any("firmware_sim" in c for c in crashes):
+            crashes.append(f"firmware_sim exited with code {sim.returncode}")
         listener.stop()
         st = json.loads(sim_stats.read_text())
-        d = json.loads((work / "daemon.json").read_text())
+        runs = [json.loads(p.read_text()) for p in daemon.summaries if p.exists()]
+        beyond = motion_beyond_limits(st["armed_motion"], cfg.control.armed_amplitude_step_m)
         q99, nq = listener.latency_p99_us(t_quiet, t_burst)
         b99, nb = listener.latency_p99_us(t_burst, t_fuzz)
         result = {
@@ -393,91 +637,110 @@ def run(minutes: float, config: Path, sim_config: Path, seed: int, out: Path | N
             "requests": requests.sent,
             "requests_unanswered": unanswered,
             "burst": {"requests": burst_sent},
+            "sequences": dict(sequences),
+            "signals": signals,
+            "daemon_starts": len(daemon.summaries),
             "crashes": crashes,
             "commands": listener.commands,
             "commands_above_limit": listener.above_limit,
             "max_commanded_current_a": st["max_commanded_current_a"],
-            "active_answers_stale": st["answers"]["active_to_stale"],
-            "active_answers_stale_sent_in_time": stale_answers_sent_in_time(
-                st, read_recording(work / "fuzz.rrd").samples, d["clock_t0_s"]
-            ),
+            "desired_force_out_of_range": listener.force_out_of_range,
+            "armed_stretches": len(st["armed_motion"]),
+            "motion_beyond_limits": len(beyond),
+            "motion_beyond": beyond[:10],
+            "active_applied_to_stale": st["answers"]["active_applied_to_stale"],
+            "active_applied_to_invalid": st["answers"]["active_applied_to_invalid"],
+            "applied_active_age_us_max": st["applied_active_age_us"]["max"],
+            "late_commands_dropped": st["late_commands"],
+            "active_answers_stale_at_bus": st["answers"]["active_to_stale"],
             "active_answers_invalid": listener.active_unmatched,
             "rearms": rearms,
             "answer_latency_p99_us": {"quiet": q99, "burst": b99, "ratio": b99 / q99},
             "answer_latency_frames": {"quiet": nq, "burst": nb},
             "daemon": {
-                k: d.get(k)
-                for k in ("frames_ignored", "sensor_frames_invalid", "stale_frames", "latency_us")
+                k: sum(d.get(k) or 0 for d in runs)
+                for k in ("frames_ignored", "sensor_frames_invalid", "stale_frames")
             },
-            "faults": collections.Counter(f["reason"].split(":")[0][:40] for f in d["faults"]),
+            "faults": collections.Counter(
+                f["reason"].split(":")[0][:40] for d in runs for f in d["faults"]
+            ),
         }
     finally:
         if fuzz_bus is not None:
             fuzz_bus.shutdown()
-        if session is not None:
-            session.close()
-        for p in procs.values():
-            if p.poll() is None:
+        daemon.close_session()
+        for p in (daemon.proc, sim):
+            if p is not None and p.poll() is None:
                 p.kill()
                 p.wait()
         stop_bridge(bridge)
     print(_report(result))
     if out is not None:
         out.write_text(json_text.dumps(result, indent=2))
-    failed = (
-        result["crashes"]
-        or result["commands_above_limit"]
-        or result["max_commanded_current_a"] > cfg.loop.i_max_a + 1e-4
-        or result["active_answers_stale"] > result["active_answers_stale_sent_in_time"]
-        or result["active_answers_invalid"]
-        or result["requests_unanswered"]
-    )
-    return 1 if failed else 0
+    return 1 if failures(result, cfg.loop.i_max_a) else 0
 
 
-def stale_answers_sent_in_time(
-    sim_stats: dict[str, Any], samples: np.ndarray, daemon_clock_t0_s: float
-) -> int:
-    """The simulator's stale ACTIVE answers that the daemon sent within the age limit.
+def failures(result: dict[str, Any], i_max_a: float) -> list[str]:
+    """The counts of `result` that are not 0, by name."""
+    names = [
+        "crashes", "commands_above_limit", "desired_force_out_of_range", "motion_beyond_limits",
+        "active_applied_to_stale", "active_applied_to_invalid", "active_answers_invalid",
+        "requests_unanswered",
+    ]  # fmt: skip
+    out = [n for n in names if result[n]]
+    if result["max_commanded_current_a"] > i_max_a + 1e-4:
+        out.append("max_commanded_current_a")
+    return out
 
-    The simulator times an answer by the bus's timestamp of the command; the daemon checks a
-    frame's age before it sends, and records that age at the end of its send() (`latency_us`,
-    from the frame's bus timestamp). An answer whose frame the recording shows ARMED with a
-    `latency_us` within the limit left the daemon in time, and its excess lies in the bus
-    after the send (the bridge took the command in late); any other stale answer (no such
-    sample, or one over the limit) is the daemon's.
-    """
-    limit = sim_stats["stale_answer_age_s"]
-    sim_t0 = sim_stats["clock_t0_s"]
-    t_abs = daemon_clock_t0_s + samples["t"]
-    n = 0
-    for a in sim_stats["stale_answers"]:
-        frame_abs = sim_t0 + a["frame_s"]
-        # its sample: the frame's counter, read by the loop around the time the bus took it in
-        near = (samples["counter"] == a["counter"]) & (
-            np.abs(t_abs - frame_abs - limit / 2) <= limit
+
+def _daemon_config(config: Path, cfg: Any, work: Path) -> tuple[Path, list[str]]:
+    """The daemon's config with a Zenoh config of its own on a free port of 127.0.0.1, and
+    the endpoints a client connects to."""
+    endpoints = [f"tcp/127.0.0.1:{find_free_port()}"]
+    zenoh_file = work / "zenoh-daemon.json5"
+    zenoh_file.write_text(
+        json.dumps(
+            {
+                "mode": "peer",
+                "listen": {"endpoints": endpoints},
+                "scouting": {"multicast": {"enabled": False}},
+            }
         )
-        armed = samples["state"][near] == RigState.ARMED
-        in_time = samples["latency_us"][near] <= limit * 1e6
-        n += bool(near.any()) and bool((armed & in_time).all())
-    return n
+    )
+    text = config.read_text()
+    old = f'"{cfg.telemetry.zenoh_config}"'
+    if old not in text or not cfg.telemetry.enabled:
+        raise ValueError(f"{config}: telemetry.zenoh_config: set and enabled, for the fuzzer")
+    path = work / "daemon.toml"
+    path.write_text(text.replace(old, f'"{zenoh_file}"'))
+    return path, endpoints
 
 
 def _report(r: dict) -> str:
     lat = r["answer_latency_p99_us"]
+    signals = ", ".join(f"{s['signal']} {s['outcome']}" for s in r["signals"])
+    age = r["applied_active_age_us_max"]
     return "\n".join(
         [
             f"bench fuzz: {r['minutes']:g} min against a live rig (bridge, firmware_sim, daemon)",
             f"  frames fuzzed {r['frames_fuzzed']}, requests {r['requests']} "
             f"(burst {r['burst']['requests']}), commands seen {r['commands']}, "
-            f"re-arms {r['rearms']}",
+            f"re-arms {r['rearms']}, daemon starts {r['daemon_starts']}",
+            f"  request sequences {r['sequences']}",
+            f"  signals: {signals}",
             f"  crashes {len(r['crashes'])} {r['crashes']}",
             f"  commands above the limit {r['commands_above_limit']} "
-            f"(max commanded {r['max_commanded_current_a']:.4f} A)",
-            f"  ACTIVE answers to stale frames {r['active_answers_stale']} "
-            f"({r['active_answers_stale_sent_in_time']} of them sent by the daemon within the "
-            f"age limit by its recording: the bus took them in late), "
-            f"to invalid frames {r['active_answers_invalid']}",
+            f"(max commanded {r['max_commanded_current_a']:.4f} A), "
+            f"desired force outside loop.f_range_n {r['desired_force_out_of_range']}",
+            f"  motion beyond the limits in force at arming {r['motion_beyond_limits']} "
+            f"(of {r['armed_stretches']} armed stretches) {r['motion_beyond']}",
+            f"  ACTIVE commands the firmware applied to stale frames "
+            f"{r['active_applied_to_stale']}, to invalid frames "
+            f"{r['active_applied_to_invalid']} (frame age when applied: max "
+            f"{'n/a' if age is None else f'{age:.0f} us'}); late commands it dropped "
+            f"{r['late_commands_dropped']}; ACTIVE answers that reached the bus over the age "
+            f"limit {r['active_answers_stale_at_bus']}, to no genuine frame "
+            f"{r['active_answers_invalid']}",
             f"  control requests unanswered {r['requests_unanswered']}",
             f"  answer latency p99 as the firmware sees it: quiet {lat['quiet']:.0f} us, "
             f"burst {lat['burst']:.0f} us, ratio {lat['ratio']:.2f} (target <= 1.5)",
