@@ -11,6 +11,7 @@ from typing import Any, Literal
 
 from mrrig.loop.adaptation import AdaptationSettings
 from mrrig.loop.controllers import CONTROLLERS
+from mrrig.loop.detectors import DetectorSettings
 from mrrig.typed_config import ConfigError, load_toml, parse
 
 __all__ = ["ConfigError", "DaemonConfig", "load_config", "reference_from_table"]
@@ -295,6 +296,8 @@ class DaemonConfig:
     telemetry: TelemetrySection = field(default_factory=TelemetrySection)
     recording: RecordingSection = field(default_factory=RecordingSection)
     control: ControlSection = field(default_factory=ControlSection)
+    # error detectors while armed (mrrig/loop/detectors.py): [detectors.velocity] etc.
+    detectors: DetectorSettings = field(default_factory=DetectorSettings)
     source: str = "<defaults>"  # the file it came from, for error messages
 
 

@@ -24,7 +24,9 @@ def test_status_for_a_person_names_state_reference_fault_and_what_to_do():
     assert lines[0] == "rig rig1: FAULT (SAFE 0 A), up 12.5 s"
     assert lines[1] == "  controller network_inversion, force reference zenoh"
     assert lines[2].startswith("  fault stale_reference: stale force reference: force_ref is")
-    assert lines[3] == "  re-arm after checking the rig: mrrig arm --rig rig1"
+    assert (
+        lines[3] == "  after checking the rig: mrrig reset --rig rig1 (acknowledge), then mrrig arm"
+    )
     assert "  frames_received  6250" in lines
 
 

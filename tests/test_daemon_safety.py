@@ -217,7 +217,7 @@ def test_a_diverged_force_reference_faults_once_and_starts_again(tmp_path):
         rig.daemon.reference = _DivergedReference()
         assert_safe(rig.exchange())
         assert_fault(rig, Fault.NON_FINITE)
-        assert rig.request({"cmd": "disarm"})["ok"]
+        assert rig.request({"cmd": "reset"})["ok"]
         for _ in range(5):
             assert_safe(rig.exchange())
         faults = [e for e in rig.daemon.events if e["kind"] == "fault"]
@@ -309,6 +309,9 @@ def test_rearm_after_fault_is_explicit(tmp_path):
         rig.exchange(EStop=1)
         assert_safe(rig.exchange())
         assert_safe(rig.exchange())
+        reply = rig.request({"cmd": "arm"})  # a FAULT is acknowledged before it is armed
+        assert not reply["ok"] and "acknowledge it with reset first" in reply["error"]
+        assert rig.request({"cmd": "reset"})["ok"]
         assert rig.request({"cmd": "arm"})["ok"]
         assert rig.exchange()["Mode"] == ACTIVE
 
@@ -342,6 +345,8 @@ def test_another_senders_command_on_the_bus_faults_and_blocks_arming(tmp_path):
 
         time.sleep(FOREIGN_HOLD_S)  # quiet since: arming is allowed again
         rig.drain()
+        # once the fault (and the sensor timeout of the wait) is acknowledged
+        assert rig.request({"cmd": "reset"})["ok"]
         assert rig.request({"cmd": "arm"})["ok"]
         assert rig.exchange()["Mode"] == ACTIVE
 
@@ -352,6 +357,7 @@ def test_a_foreign_command_is_one_event_per_episode_even_over_another_fault():
     assert sup.foreign_command(0.100, "DamperCommand")  # recorded over the fault already there
     assert sup.fault is Fault.FOREIGN_COMMAND
     assert sup.foreign_command(0.102, "DamperCommand") == []  # the same sender, same episode
+    sup.reset(0.103)
     assert not sup.arm(0.102 + FOREIGN_HOLD_S - 0.01)[0]
     assert sup.arm(0.102 + FOREIGN_HOLD_S)[0]
 

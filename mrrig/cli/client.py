@@ -1,4 +1,4 @@
-"""`mrrig status | arm | disarm | control | watch | send-force`: a person at a terminal.
+"""`mrrig status | arm | disarm | reset | control | watch | send-force`: a person at a terminal.
 
 Each opens a Zenoh session (client mode, 127.0.0.1, multicast off: configs/zenoh-client.json5
 by default), talks to the daemon's keys `mrrig/<rig>/...` and closes the session.
@@ -49,7 +49,10 @@ def format_status(status: dict[str, Any]) -> str:
     ]
     if status.get("fault"):
         lines.append(f"  fault {status['fault']}: {status.get('fault_reason')}")
-        lines.append(f"  re-arm after checking the rig: mrrig arm --rig {status.get('rig')}")
+        rig = status.get("rig")
+        lines.append(
+            f"  after checking the rig: mrrig reset --rig {rig} (acknowledge), then mrrig arm"
+        )
     counters = {k: v for k, v in status.items() if k not in _STATUS_HEAD}
     width = max((len(k) for k in counters), default=0)
     lines += [f"  {k:<{width}}  {_value(v)}" for k, v in counters.items()]
@@ -109,6 +112,8 @@ def main(argv: list[str]) -> int:
         return _print_reply(client.arm(args.rig, zc, args.timeout))
     if command == "disarm":
         return _print_reply(client.disarm(args.rig, zc, args.timeout))
+    if command == "reset":
+        return _print_reply(client.reset(args.rig, zc, args.timeout))
     if command == "control":
         try:
             payload = json.loads(args.request)

@@ -171,7 +171,10 @@ def watch_and_rearm(
                         limit.window_s,
                     )
                     continue
-                reply = client.query(session, rig, {"cmd": "arm"}, 1.0)
+                # the operator's choice, made explicit: acknowledge the fault, then arm
+                reply = client.query(session, rig, {"cmd": "reset"}, 1.0)
+                if reply.get("ok"):
+                    reply = client.query(session, rig, {"cmd": "arm"}, 1.0)
             except client.ClientError as exc:
                 log.debug("demo: the daemon does not answer (yet): %s", exc)
                 continue

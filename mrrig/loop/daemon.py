@@ -41,6 +41,7 @@ from mrrig.loop.controllers import (
     ControllerSettings,
     make_controller,
 )
+from mrrig.loop.detectors import Detectors
 from mrrig.loop.estimation import RealtimeKalman
 from mrrig.loop.inversion import DEFAULT_CONTINUITY
 from mrrig.loop.mlp import MLP, ModelError
@@ -104,6 +105,14 @@ STOP_SIGNALS = (
 # a stop is honoured within the spec's sensor timeout (3 periods) whatever the config's: the
 # loop never waits longer than this for a frame
 SPEC_TIMEOUT_PERIODS = 3
+# the faults of the error detectors' disarm and stop actions
+DETECTOR_FAULTS = {
+    "tracking_error": Fault.TRACKING_ERROR,
+    "velocity": Fault.OVER_VELOCITY,
+    "temperature": Fault.OVER_TEMPERATURE,
+}
+MAX_IDS_NAMED = 8  # CAN IDs a no_sensor_frames fault names (the most frequent)
+MAX_IDS_COUNTED = 64  # distinct IDs counted before the first valid sensor frame
 
 
 class SidecarStartError(MrrigError, OSError):
@@ -272,6 +281,7 @@ class Daemon:
                 cfg.loop.budget_window_s,
             )
         )
+        self.detectors = Detectors(cfg.detectors)
         self.actuator = cfg.actuator
         # the motion the rig was armed with: armed changes are bounded from it, not per request
         self.actuator_at_arm = cfg.actuator
@@ -338,6 +348,11 @@ class Daemon:
         self._early_event_t = -math.inf
         self._frame_age_limit_s = cfg.loop.frame_age_limit_s
         self._first_sensor_t = 0.0
+        # until the first valid sensor frame: since when one is due (the first frame of any
+        # kind, an arm), and the frames the bus carried instead, per CAN ID
+        self._listen_since: float | None = None
+        self._bus_heard = False
+        self._ids_seen: dict[str, int] = {}
         self._arm_pending = False
         self._last_counter = 0
         self._i_meas = 0.0
@@ -479,6 +494,8 @@ class Daemon:
             if f_next is not None:
                 f_next = self._clamp_force(f_next)
             if sup.active:
+                events += self._detect(t, f_meas, f_des, xd)
+            if sup.active:
                 i = self.controller.command_one(x, xd, xdd, f_meas, f_des, f_next)
                 events += sup.finite(t, f"the {self.controller.name} controller's command", i)
                 if sup.active:
@@ -546,6 +563,22 @@ class Daemon:
             self._flush_samples()
         if events:
             self._emit(events)
+
+    def _detect(self, t: float, f_meas: float, f_des: float, xd: float) -> list[dict]:
+        """The error detectors on an armed frame, and their actions: `warn` an event,
+        `disarm` a fault (this frame is answered SAFE), `stop` that and the actuator stopped
+        (its command sent at the end of this pass of the loop, off the latency path)."""
+        events: list[dict] = []
+        for d in self.detectors.check(t, f_meas, f_des, xd, self._temp_degc):
+            if d.action == "warn":
+                events += self.supervisor.notice(t, "detector", d.text)
+                continue
+            if self.supervisor.active:
+                events += self.supervisor.trip(t, DETECTOR_FAULTS[d.name], d.text)
+            if d.action == "stop":
+                self.actuator = replace(self.actuator, waveform="stop")
+                self._last_actuator_sent = -math.inf
+        return events
 
     def _pipelined(self) -> bool:
         """Whether the desired forces are computed a frame ahead (`_targets`): for a controller
@@ -646,6 +679,8 @@ class Daemon:
         self.counters["frames_received"] += 1
         if self.tap is not None:
             self.tap.rx(msg)
+        if self._last_sensor_t is None:
+            self._note_id(msg, t_rx)
         # 29-bit, remote and error frames are none of the DBC's 11-bit messages
         p = self.parser.parse_message(msg, t_rx)
         if p.name == "RigSensors":
@@ -695,6 +730,56 @@ class Daemon:
         elif not p.ok and p.name is None:
             self.counters["frames_ignored"] += 1
             log.debug("ignored frame: %s", p.reason)
+
+    def _note_id(self, msg, t_rx: float) -> None:
+        """Count a frame by its CAN ID until the first valid sensor frame: a no_sensor_frames
+        fault names what the bus carried (a rig on another DBC, a wrong channel). The first
+        frame of the run opens the window a sensor frame is due in: a silent bus is a rig not
+        yet streaming (a daemon started first), a bus of other frames one that is not ours."""
+        if not self._bus_heard:
+            self._bus_heard = True
+            self._listen_since = t_rx
+        if msg.is_error_frame:
+            key = "error frames"
+        else:
+            key = (
+                f"0x{msg.arbitration_id:08X}"
+                if msg.is_extended_id
+                else f"0x{msg.arbitration_id:03X}"
+            )
+            key += " (remote)" if msg.is_remote_frame else ""
+        if key in self._ids_seen or len(self._ids_seen) < MAX_IDS_COUNTED:
+            self._ids_seen[key] = self._ids_seen.get(key, 0) + 1
+        else:
+            self._ids_seen["other"] = self._ids_seen.get("other", 0) + 1
+
+    def _check_first_frame(self, now_abs: float, limit_s: float) -> None:
+        """No valid sensor frame yet: one within the sensor timeout of the bus's first frame
+        or of an arm, or fault no_sensor_frames (once for each), naming the IDs seen."""
+        if self._listen_since is None or now_abs - self._listen_since <= limit_s:
+            return
+        self._listen_since = None
+        since = "arming" if self.supervisor.active else "the bus's first frame"
+        self._no_sensor_frames(now_abs, f"within {limit_s * 1e3:g} ms of {since}")
+
+    def _no_sensor_frames(self, now_abs: float, when: str) -> None:
+        seen = sorted(self._ids_seen.items(), key=lambda kv: -kv[1])
+        n = sum(self._ids_seen.values())
+        if n:
+            ids = ", ".join(f"{k} x{c}" for k, c in seen[:MAX_IDS_NAMED])
+            more = f" and {len(seen) - MAX_IDS_NAMED} more" if len(seen) > MAX_IDS_NAMED else ""
+            heard = f"the bus carried {n} other frames: {ids}{more}"
+        else:
+            heard = "the bus carried no frames at all"
+        sensors = self.codec.db.get_message_by_name("RigSensors").frame_id
+        self._emit(
+            self.supervisor.trip(
+                now_abs - self.t0,
+                Fault.NO_SENSOR_FRAMES,
+                f"no valid RigSensors frame (0x{sensors:03X}) {when}; {heard} "
+                "(another DBC, channel or rig?)",
+            )
+        )
 
     def _sensor_gap_s(self, bus_ts: float) -> float:
         """Time since the previous sensor frame by the bus's receive timestamps (0 for the
@@ -748,12 +833,16 @@ class Daemon:
             log.warning("arm at start refused: %s", msg)
         self.actuator_at_arm = self.actuator
         self.controller.reset(1)
+        self.detectors.reset()
         self._emit(events)
 
     def check_timeout(self, now_abs: float) -> None:
         """No sensor frame for timeout_periods: FAULT, and a SAFE command on its own."""
         limit = self.cfg.loop.timeout_periods * self.period_s
-        if self._last_sensor_t is None or now_abs - self._last_sensor_t <= limit:
+        if self._last_sensor_t is None:
+            self._check_first_frame(now_abs, limit)
+            return
+        if now_abs - self._last_sensor_t <= limit:
             return
         if self.supervisor.state is not RigState.FAULT:
             self._emit(
@@ -809,7 +898,13 @@ class Daemon:
             if events:
                 self.actuator_at_arm = self.actuator
                 self.controller.reset(1)
+                self.detectors.reset()
                 self.reset_reference(self.now(), self.last_x)
+                self._listen_since = time.perf_counter()  # frames must come while armed
+            self._emit(events)
+            return {"state": sup.state.name, "message": msg}
+        if c.cmd == "reset":
+            msg, events = sup.reset(self.now())
             self._emit(events)
             return {"state": sup.state.name, "message": msg}
         if c.cmd == "disarm":
@@ -1151,6 +1246,10 @@ class Daemon:
         self.counters["commands_solved_ahead"] = ahead
         self.counters["commands_ahead_missed"] = missed
         self.counters["loop_wall_s"] = self.now()
+        never = self.started.is_set() and self.counters["sensor_frames_valid"] == 0
+        if never and self.cfg.loop.arm_on_start and self.supervisor.state is not RigState.FAULT:
+            # asked to run armed (--arm) on a bus that never carried a frame of any kind
+            self._no_sensor_frames(time.perf_counter(), f"in the whole run ({self.now():.1f} s)")
         if self._n:
             self._flush_samples()
         self._flush_frames(force=True)

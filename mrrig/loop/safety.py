@@ -2,8 +2,10 @@
 
 Pure: it is told what happened (a bad frame, a sensor frame's values, a firmware status, a
 non-finite number, a stale reference) and answers with the events it causes. Any fault puts it
-in FAULT at once; the loop then sends SAFE 0 A for this and every following frame until an
-explicit re-arm. Errors are returned as events, never raised: the loop keeps running.
+in FAULT at once; the loop then sends SAFE 0 A for this and every following frame until the
+fault is acknowledged (`reset`, to IDLE) and the rig armed again: two explicit acts, as a rig
+controller separates the interlock reset from the run. Errors are returned as events, never
+raised: the loop keeps running.
 """
 
 from __future__ import annotations
@@ -39,11 +41,17 @@ class Fault(enum.Enum):
     STALE_FRAME = "stale_frame"  # a sensor frame older than loop.max_frame_age_s when answered
     TELEMETRY_LOST = "telemetry_lost"  # the telemetry process died or stopped its heartbeat
     RECORDING_FAILED = "recording_failed"  # the recording could not be written
+    DUPLICATE_RIG = "duplicate_rig"  # a second daemon of this rig's name on the Zenoh network
+    NO_SENSOR_FRAMES = "no_sensor_frames"  # none valid within the sensor timeout of start/arm
+    # the error detectors' disarm and stop actions (mrrig/loop/detectors.py)
+    TRACKING_ERROR = "tracking_error"
+    OVER_VELOCITY = "over_velocity"
+    OVER_TEMPERATURE = "over_temperature"
 
 
 # The faults a transport stall causes (a bus or a process held up past the sensor timeout or
 # the firmware's 20 ms watchdog): `mrrig validate` tries such a window again, `mrrig demo`
-# re-arms after them. The daemon itself never re-arms.
+# re-arms after them, each with an explicit `reset` first. The daemon itself never re-arms.
 TRANSPORT_FAULTS = frozenset(
     {
         Fault.SENSOR_TIMEOUT.value,
@@ -64,7 +72,10 @@ class Limits:
 
 
 class Supervisor:
-    """IDLE -> (arm) -> ARMED; any fault -> FAULT; FAULT -> (arm) -> ARMED, (disarm) -> IDLE."""
+    """IDLE -> (arm) -> ARMED -> (disarm) -> IDLE; any fault -> FAULT; FAULT -> (reset) -> IDLE.
+
+    `arm` in FAULT is refused and `disarm` leaves FAULT as it is (commands are SAFE there
+    already): only `reset` acknowledges a fault."""
 
     def __init__(self, limits: Limits) -> None:
         self.limits = limits
@@ -120,22 +131,36 @@ class Supervisor:
                 f"{t_s - self._foreign_t:.3f} s ago (a second daemon on this rig?)",
                 [],
             )
+        if self.state is RigState.FAULT:
+            return (
+                False,
+                f"cannot arm: in FAULT ({self.fault.value}: {self.reason}); acknowledge it "
+                "with reset first (mrrig reset --rig NAME)",
+                [],
+            )
         if self.state is RigState.ARMED:
             return True, "already armed", []
-        was = self.state
-        self.state, self.fault, self.reason = RigState.ARMED, None, ""
+        self.state = RigState.ARMED
         self._bad.clear()
         self._lost.clear()
         self._lost_sum = 0
-        return True, "armed", [self._event(t_s, "state", f"armed (was {was.name})")]
+        return True, "armed", [self._event(t_s, "state", "armed (was IDLE)")]
+
+    def reset(self, t_s: float) -> tuple[str, list[dict]]:
+        """The operator's acknowledgement of a fault: FAULT -> IDLE (commands stay SAFE; a
+        firmware that still blocks arming still does). Elsewhere nothing to reset."""
+        if self.state is not RigState.FAULT:
+            return f"nothing to reset: {self.state.name}", []
+        fault, reason = self.fault, self.reason
+        self.state, self.fault, self.reason = RigState.IDLE, None, ""
+        text = f"fault acknowledged by reset: {fault.value}: {reason}"
+        return "reset", [self._event(t_s, "state", text)]
 
     def disarm(self, t_s: float, reason: str = "disarmed") -> list[dict]:
-        if self.state is RigState.IDLE:
-            return []
-        was = self.state
-        self.state, self.fault = RigState.IDLE, None
-        self.reason = ""
-        return [self._event(t_s, "state", f"{reason} (was {was.name})")]
+        if self.state is not RigState.ARMED:
+            return []  # IDLE already, or FAULT: SAFE, and only reset acknowledges it
+        self.state = RigState.IDLE
+        return [self._event(t_s, "state", f"{reason} (was ARMED)")]
 
     def bad_frame(self, t_s: float, reason: str) -> list[dict]:
         """A RigSensors frame failed its E2E check; beyond the budget in the window -> FAULT."""

@@ -131,6 +131,9 @@ def record_run(
         cmd="actuator", waveform="sine", amplitude_m=run.amplitude_m, frequency_hz=run.freq_hz
     )
     session.take(math.inf, math.inf)  # drop what came before this run
+    # the tool's documented choice, explicit: a fault of the attempt or run before (the
+    # daemon's log names it) is acknowledged, and the run tried on it
+    session.request(cmd="reset")
     session.request(cmd="arm")
     t_start = session.now() + m.settle_s
     t_end = t_start + m.duration_s

@@ -48,6 +48,9 @@ def _track(
     whether its faults (if any) are all transport faults."""
     session.request(cmd="disarm")
     session.take(np.inf, np.inf)  # drop what came before
+    # a transport fault of the window before is acknowledged (the daemon logs which) to try
+    # again: the tool's documented choice, explicit
+    session.request(cmd="reset")
     session.request(cmd="arm")
     t_start = session.now() + settle_s
     t_end = t_start + duration_s

@@ -101,6 +101,11 @@ def arm(rig: str, zenoh_config: ZenohConfigLike, timeout_s: float = 2.0) -> dict
     return request(rig, {"cmd": "arm"}, zenoh_config, timeout_s)
 
 
+def reset(rig: str, zenoh_config: ZenohConfigLike, timeout_s: float = 2.0) -> dict[str, Any]:
+    """Acknowledge the rig's FAULT (to IDLE): the one way out of FAULT before `arm`."""
+    return request(rig, {"cmd": "reset"}, zenoh_config, timeout_s)
+
+
 def disarm(rig: str, zenoh_config: ZenohConfigLike, timeout_s: float = 2.0) -> dict[str, Any]:
     return request(rig, {"cmd": "disarm"}, zenoh_config, timeout_s)
 

@@ -277,7 +277,7 @@ class Preparer:
 
     def prepare(self, req: dict[str, Any]) -> Change:
         cmd = req["cmd"]
-        if cmd in ("arm", "disarm", "status", "reset_adaptation"):
+        if cmd in ("arm", "disarm", "reset", "status", "reset_adaptation"):
             return Change(cmd)
         return getattr(self, f"_{cmd}")(req)
 
@@ -543,6 +543,7 @@ class Pending:
 COMMANDS = (
     "arm",
     "disarm",
+    "reset",  # acknowledge a FAULT (to IDLE): arm is refused until then
     "status",
     "set_controller",
     "set_model",

@@ -27,6 +27,7 @@ import numpy as np
 import zenoh
 
 from mrrig.errors import MrrigError
+from mrrig.loop.safety import TRANSPORT_FAULTS
 from mrrig.rigio.client import ClientError, ZenohConfigLike, open_session, query
 from mrrig.rigio.sidecar import JSON, keys
 
@@ -247,6 +248,18 @@ def _hold_and_arm(
         time.sleep(period_s)
     pub.put(json.dumps({"force_n": f0}))
     result.hold_samples += 1
+    if status.get("state") == "FAULT" and status.get("fault") in TRANSPORT_FAULTS:
+        # the documented choice for a transport fault (a stall), made explicit: acknowledged
+        # by a reset of its own (audited), then armed; any other fault is the operator's
+        log.warning(
+            "rig %s: acknowledging its transport fault %s (%s) with reset before arming",
+            rig,
+            status.get("fault"),
+            status.get("fault_reason"),
+        )
+        reply = query(session, rig, {"cmd": "reset"}, timeout_s)
+        if not reply.get("ok"):
+            raise SendForceError(f"rig {rig!r}: reset refused: {reply.get('error')}")
     reply = query(session, rig, {"cmd": "arm"}, timeout_s)
     if not reply.get("ok"):
         raise SendForceError(f"rig {rig!r}: arming refused: {reply.get('error')}")
