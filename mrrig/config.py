@@ -272,15 +272,13 @@ class RecordingSection:
     def check(self) -> None:
         if self.can_log is None:
             return
-        from mrrig.rigio.canlog import (
-            SUFFIXES,  # python-can's writers: only when a log is asked for
-        )
+        # python-can's writers: only when a log is asked for
+        from mrrig.rigio.canlog import BusLogError, check_writable
 
-        if self.can_log.suffix.lower() not in SUFFIXES:
-            raise ValueError(
-                f"can_log: unknown bus log format {self.can_log.suffix!r}"
-                f" (one of {', '.join(SUFFIXES)})"
-            )
+        try:
+            check_writable(self.can_log)
+        except BusLogError as exc:
+            raise ValueError(f"can_log: {exc}") from None
 
 
 @dataclass(frozen=True)

@@ -6,6 +6,7 @@ recording (frame counts, the sensor frames' counters); `mrrig review --can-log` 
 from __future__ import annotations
 
 import base64
+import importlib.util
 import re
 import subprocess
 import sys
@@ -125,3 +126,13 @@ def test_an_unknown_bus_log_format_stops_start_up(tmp_path):
     cfg = rig_config(tmp_path, "ws://127.0.0.1:1/", None, **NO_MODEL)
     line = one_error_line(mrrig("run", "--config", str(cfg), "--can-log", "x.txt"))
     assert "unknown bus log format '.txt'" in line
+
+
+@pytest.mark.skipif(importlib.util.find_spec("asammdf") is not None, reason="asammdf installed")
+def test_an_mf4_bus_log_without_asammdf_stops_start_up_before_anything_starts(tmp_path):
+    cfg = rig_config(tmp_path, "ws://127.0.0.1:1/", None, **NO_MODEL)
+    record, bus_log = tmp_path / "rec" / "run.rrd", tmp_path / "logs" / "run.mf4"
+    args = ["--can-log", str(bus_log), "--record", str(record), "--no-telemetry"]
+    line = one_error_line(mrrig("run", "--config", str(cfg), *args))
+    assert "asammdf" in line and ".mf4" in line and str(bus_log) in line, line
+    assert not record.parent.exists() and not bus_log.parent.exists()  # nothing started

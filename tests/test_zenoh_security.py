@@ -14,10 +14,10 @@ import zenoh
 from cryptography import x509
 from cryptography.x509.oid import NameOID
 
-from mrrig.rigio import audit, certs, client
+from mrrig.rigio import audit, certs, client, fleet
 from mrrig.rigio.canbus.bus import find_free_port
 from mrrig.rigio.ipc import LoopEnd, Msg, make_channel
-from mrrig.rigio.sidecar import keys, start_sidecar
+from mrrig.rigio.sidecar import alive_token, keys, start_sidecar
 from mrrig.rigio.zenoh_config import (
     INSECURE_WARNING,
     TEMPLATE,
@@ -466,7 +466,7 @@ def test_the_router_templates_access_control(tmp_path: Path):
                 lambda q: (q.reply(keys("rig")["status"], '{"state": "IDLE"}'), q.drop()),
             ),
             rig.declare_subscriber(keys("rig")["force_ref"], lambda s: reached.append("force")),
-            rig.liveliness().declare_token(keys("rig")["alive"]),
+            rig.liveliness().declare_token(alive_token("rig", str(rig.zid()))),
         ]
         telemetry = rig.declare_publisher(keys("rig")["telemetry"])
         entities.append(telemetry)
@@ -475,7 +475,7 @@ def test_the_router_templates_access_control(tmp_path: Path):
             sessions.append(s)
             got: list[int] = []
             sub = s.declare_subscriber(keys("rig")["telemetry"], lambda _s, got=got: got.append(1))
-            alive = [r.ok for r in s.liveliness().get("mrrig/*/alive", timeout=2.0) if r.ok]
+            alive = [r.ok for r in s.liveliness().get(fleet.ALIVE, timeout=2.0) if r.ok]
             status = [r.ok for r in s.get("mrrig/*/status", timeout=2.0) if r.ok]
             assert len(alive) == 1 and len(status) == 1, role
             deadline = time.monotonic() + 5

@@ -997,6 +997,9 @@ class Daemon:
                 self._sidecar_deadline = now + self.cfg.telemetry.heartbeat_timeout_s
             elif mtype == Msg.NOTICE and payload.get("kind") == "recording_failed":
                 self._recording_failed(str(payload.get("reason", "")))
+            elif mtype == Msg.NOTICE and payload.get("kind") == "duplicate_rig":
+                reason = str(payload.get("reason", ""))
+                self._emit(self.supervisor.trip(self.now(), Fault.DUPLICATE_RIG, reason))
 
     def _recording_failed(self, reason: str) -> None:
         self.recording_failed = reason or "unknown"

@@ -13,6 +13,7 @@ the sidecar writes them (`BusLogWriter`). A batch the pipe cannot take is droppe
 from __future__ import annotations
 
 import dataclasses
+import importlib.util
 import logging
 import time
 from pathlib import Path
@@ -37,6 +38,7 @@ FRAME_DTYPE = np.dtype(
 FLAG_RX, FLAG_EXTENDED = 1, 2
 FRAMES_PER_BATCH = 128  # about 0.12 s of the loop's traffic (0.5 kHz in, 0.5 kHz out)
 SUFFIXES = (".blf", ".asc", ".log", ".trc", ".csv", ".mf4")
+WRITER_PACKAGES = {".mf4": "asammdf"}  # python-can's writers that need an optional package
 
 
 class BusLogError(MrrigError, ValueError):
@@ -49,6 +51,20 @@ def check_suffix(path: str | Path) -> Path:
     if path.suffix.lower() not in SUFFIXES:
         raise BusLogError(
             f"{path}: unknown bus log format {path.suffix!r} (one of {', '.join(SUFFIXES)})"
+        )
+    return path
+
+
+def check_writable(path: str | Path) -> Path:
+    """`check_suffix`, and the optional package its writer needs is installed here: checked
+    where the config is loaded, before anything starts (found missing in the telemetry
+    process, it came as a traceback and a start-up that failed half-way)."""
+    path = check_suffix(path)
+    package = WRITER_PACKAGES.get(path.suffix.lower())
+    if package is not None and importlib.util.find_spec(package) is None:
+        raise BusLogError(
+            f"{path}: a {path.suffix} bus log needs the Python package {package}, not installed"
+            f" here (pip install {package}, or another suffix: {', '.join(SUFFIXES[:-1])})"
         )
     return path
 

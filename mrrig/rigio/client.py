@@ -80,13 +80,29 @@ def query(
     client says it is, for the rig's audit) default to the session's id, user and host."""
     key = keys(rig)["control"]
     attachment = json.dumps(claims or audit.claims(session, None))
+    # every daemon's answer: Zenoh's default consolidation keeps one reply per key, and two
+    # daemons of one name would both act on a request while the client saw one of them
     replies = session.get(
-        key, payload=json.dumps(payload), encoding=JSON, timeout=timeout_s, attachment=attachment
+        key,
+        payload=json.dumps(payload),
+        encoding=JSON,
+        timeout=timeout_s,
+        attachment=attachment,
+        consolidation=zenoh.ConsolidationMode.NONE,
     )
+    answers = []
     for reply in replies:
-        if reply.ok is not None:
-            return json.loads(reply.ok.payload.to_bytes())
-        raise ClientError(f"{key}: error reply: {reply.err.payload.to_string()}")
+        if reply.ok is None:
+            raise ClientError(f"{key}: error reply: {reply.err.payload.to_string()}")
+        answers.append(json.loads(reply.ok.payload.to_bytes()))
+    if len(answers) > 1:
+        raise ClientError(
+            f"{len(answers)} daemons answered as rig {rig!r} on {key} (two daemons of one name"
+            " on the network both obey its requests; stop one): their replies"
+            f" {json.dumps(answers)[:400]}"
+        )
+    if answers:
+        return answers[0]
     raise ClientError(
         f"no daemon answered on {key} within {timeout_s:g} s (is `mrrig run` up for rig "
         f"{rig!r}, with a matching Zenoh config, and does its access control grant you control?)"

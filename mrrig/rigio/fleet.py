@@ -1,9 +1,10 @@
 """A fleet of rigs behind one Zenoh router: `mrrig rigs` and `mrrig watch --all`.
 
-A rig is live while its sidecar holds the liveliness token `mrrig/<rig>/alive` (gone within
-milliseconds of its session closing, or of its process dying); its state, controller and fault
-come from its latest status, which the sidecar answers on `mrrig/<rig>/status` (an observer's
-read, not a control request).
+A rig is live while its sidecar holds its liveliness token `mrrig/<rig>/alive/<session id>`
+(gone within milliseconds of its session closing, or of its process dying); two tokens of one
+name are two daemons that both obey that rig's requests, shown as such. Its state, controller
+and fault come from its latest status, which the sidecar answers on `mrrig/<rig>/status` (an
+observer's read, not a control request).
 """
 
 from __future__ import annotations
@@ -12,6 +13,7 @@ import argparse
 import json
 import sys
 import time
+from collections import Counter
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -23,13 +25,13 @@ from mrrig import json_text
 from mrrig.cli_args import HelpFormatter, positive
 from mrrig.rigio import client
 
-ALIVE = "mrrig/*/alive"
+ALIVE = "mrrig/*/alive/*"
 STATUS = "mrrig/*/status"
 TELEMETRY = "mrrig/*/telemetry"
 
 
 def rig_of(key: str) -> str:
-    """'mrrig/rig2/alive' -> 'rig2'."""
+    """'mrrig/rig2/alive/<id>' -> 'rig2'."""
     return str(key).split("/")[1]
 
 
@@ -37,6 +39,7 @@ def rig_of(key: str) -> str:
 class RigInfo:
     name: str
     status: dict[str, Any] | None  # None: alive, but no status yet (starting)
+    daemons: int = 1  # liveliness tokens of this name: more than one is a duplicate
 
     def row(self) -> dict[str, Any]:
         s = self.status or {}
@@ -45,16 +48,17 @@ class RigInfo:
             "state": s.get("state"),
             "controller": s.get("controller"),
             "fault": s.get("fault"),
+            "daemons": self.daemons,
         }
 
 
 def live_rigs(session: zenoh.Session, timeout_s: float = 1.0) -> list[RigInfo]:
     """The rigs whose liveliness token is up, with their latest status, sorted by name."""
-    names = {
+    names = Counter(
         rig_of(r.ok.key_expr)
         for r in session.liveliness().get(ALIVE, timeout=timeout_s)
         if r.ok is not None
-    }
+    )
     statuses: dict[str, dict[str, Any]] = {}
     if names:
         for reply in session.get(STATUS, timeout=timeout_s):
@@ -63,7 +67,17 @@ def live_rigs(session: zenoh.Session, timeout_s: float = 1.0) -> list[RigInfo]:
                     statuses[rig_of(reply.ok.key_expr)] = json.loads(reply.ok.payload.to_bytes())
                 except ValueError:
                     continue
-    return [RigInfo(name, statuses.get(name)) for name in sorted(names)]
+    return [RigInfo(name, statuses.get(name), names[name]) for name in sorted(names)]
+
+
+def duplicates_text(rigs: list[RigInfo]) -> str:
+    """One line per rig name that more than one daemon serves ("" where none)."""
+    return "\n".join(
+        f"error: rig {r.name!r} is served by {r.daemons} daemons on this network: both obey"
+        " every request for it; stop one, or give it another [rig] name"
+        for r in rigs
+        if r.daemons > 1
+    )
 
 
 def format_rigs(rigs: list[RigInfo]) -> str:
@@ -71,7 +85,10 @@ def format_rigs(rigs: list[RigInfo]) -> str:
         return "no live rigs"
     rows = [r.row() for r in rigs]
     header = {"rig": "RIG", "state": "STATE", "controller": "CONTROLLER", "fault": "FAULT"}
-    cells = [header] + [{k: "-" if v is None else str(v) for k, v in row.items()} for row in rows]
+    cells = [header] + [{k: "-" if row[k] is None else str(row[k]) for k in header} for row in rows]
+    for cell, rig in zip(cells[1:], rigs, strict=True):
+        if rig.daemons > 1:
+            cell["rig"] += f" (x{rig.daemons} DUPLICATE)"
     widths = {k: max(len(c[k]) for c in cells) for k in header}
     return "\n".join("  ".join(c[k].ljust(widths[k]) for k in header).rstrip() for c in cells)
 
@@ -95,17 +112,17 @@ def watch_all(
     with client.open_session(zenoh_config) as session:
         sub = session.declare_subscriber(TELEMETRY)
         alive = session.liveliness().declare_subscriber(ALIVE, history=True)
-        live: set[str] = set()
+        tokens: set[str] = set()  # a rig is live while one of its daemons' tokens is
         t0 = window_start = time.monotonic()
         window: dict[str, dict[str, list[Any]]] = {}
         try:
             while duration_s is None or time.monotonic() - t0 < duration_s:
                 while (token := alive.try_recv()) is not None:
-                    name = rig_of(token.key_expr)
                     if token.kind == zenoh.SampleKind.PUT:
-                        live.add(name)
+                        tokens.add(str(token.key_expr))
                     else:
-                        live.discard(name)
+                        tokens.discard(str(token.key_expr))
+                live = {rig_of(t) for t in tokens}
                 got = False
                 for name, fields in _telemetry(sub):
                     got = True
@@ -156,4 +173,8 @@ def main(argv: list[str] | None = None) -> int:
         print(json_text.dumps([r.row() for r in rigs], indent=2))
     else:
         print(format_rigs(rigs))
+    duplicates = duplicates_text(rigs)
+    if duplicates:
+        print(duplicates, file=sys.stderr)
+        return 1
     return 0

@@ -12,7 +12,7 @@ Sidecar -> loop: READY (JSON {"error": null or one line}, once, when its Zenoh s
 recording are open or have failed), REQUEST (struct '<I' id, then the request's JSON text as
 the client sent it, checked by the sidecar), FORCE_REF (struct '<dd': force in N, sidecar
 receive time from time.monotonic()), HEARTBEAT (empty, every HEARTBEAT_PERIOD_S), NOTICE (JSON
-object: {"kind": "recording_failed", "reason": ...}).
+object: {"kind": "recording_failed" or "duplicate_rig", "reason": ...}).
 """
 
 from __future__ import annotations

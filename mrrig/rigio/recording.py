@@ -29,6 +29,7 @@ import contextlib
 import datetime as dt
 import logging
 import math
+import os
 import signal
 import threading
 import uuid
@@ -278,6 +279,10 @@ class Recorder:
         # full scales of the loops' normalised axes: they only grow, to 1-2-5 steps
         self._scales = {"x": 0.0, "xd": 0.0, "f_meas": 0.0}
         self._last_t: float | None = None
+        # the file as opened (the sink creates it at once): what `check_file` compares with
+        st = os.stat(self.path)
+        self._file_id = (st.st_dev, st.st_ino)
+        self._checked = (st.st_size, self._frames)  # size and samples sent at the last check
         log.info("recording to %s%s", self.path, f" and {live_url}" if live_url else "")
 
     @contextlib.contextmanager
@@ -293,6 +298,35 @@ class Recorder:
     def frames(self) -> int:
         """Samples sent to the recording so far (not counting the buffer)."""
         return self._frames
+
+    def check_file(self) -> int:
+        """The file's size now. Raises RecordingError where the file this recording writes
+        is gone (removed, or its directory), another file, shorter than at the last check, or
+        not grown while samples were sent: the writer keeps writing to what it opened and
+        says nothing, and the run's record would be lost silently."""
+        with self._guard():
+            size, frames = self._checked
+            if self._closed:
+                return size
+            try:
+                st = os.stat(self.path)
+            except OSError as exc:
+                raise RecordingError(
+                    f"{self.path}: the file is gone while recording ({exc.strerror}: removed,"
+                    " or its directory); what is written from here on is lost"
+                ) from None
+            if (st.st_dev, st.st_ino) != self._file_id:
+                raise RecordingError(
+                    f"{self.path}: replaced by another file while recording; the run's"
+                    " record is lost"
+                )
+            if st.st_size < size or (st.st_size == size and self._frames > frames):
+                raise RecordingError(
+                    f"{self.path}: {st.st_size} bytes after {size} at the last check, with"
+                    f" {self._frames - frames} samples sent since: cut or not written"
+                )
+            self._checked = (st.st_size, self._frames)
+            return st.st_size
 
     def add_samples(self, arr: np.ndarray) -> None:
         """Buffer a batch of SAMPLE_DTYPE records; sends once `flush_interval_s` of sensor

@@ -3,10 +3,18 @@
 The control loop talks to it over the pipes of `mrrig.rigio.ipc` and never runs a Zenoh callback.
 The sidecar publishes `mrrig/<rig>/telemetry` (columnar JSON batches at `telemetry_hz`),
 `mrrig/<rig>/status` (on change and every second) and `mrrig/<rig>/events`, holds the
-liveliness token `mrrig/<rig>/alive`, forwards `mrrig/<rig>/control` queries to the loop as
-REQUESTs and `mrrig/<rig>/force_ref` puts as FORCE_REFs, answers `mrrig/<rig>/status` queries
-with the latest status (what `mrrig rigs` reads), and writes the recording. Every control
-request, answered or refused, becomes an audit event (`mrrig.rigio.audit`).
+liveliness token `mrrig/<rig>/alive/<session id>`, forwards `mrrig/<rig>/control` queries to
+the loop as REQUESTs and `mrrig/<rig>/force_ref` puts as FORCE_REFs, answers
+`mrrig/<rig>/status` queries with the latest status (what `mrrig rigs` reads), and writes the
+recording. Every control request, answered or refused, becomes an audit event
+(`mrrig.rigio.audit`).
+
+One rig per name: it does not start where a token of its rig's name is alive, and a token of
+its name that appears while it runs (a second daemon that missed it) is a `duplicate_rig`
+fault for the loop, and every request but `status` and `disarm` is refused while it lasts.
+The recording's file is checked every second: gone, replaced, shrunk or not grown is a
+`recording_failed` (a removed directory otherwise loses the run silently), and the status
+shows its path and size.
 
 Zenoh callbacks only queue their item and wake the main thread through a pipe; all the work
 is done by the main thread, which also closes the session (close waits for callbacks).
@@ -69,6 +77,13 @@ INBOX_BATCH = 50  # Zenoh queries and force references handled between looks at 
 # a `status` control request is answered here from the loop's latest status (it sends one
 # every 0.1 s) while that is younger than this; older (a stalled loop), it goes to the loop
 STATUS_FRESH_S = 0.5
+# a start-up's look for a live daemon of the same name: the answer of every reachable session
+# comes within milliseconds (its peers are connected once the session is open)
+DUPLICATE_CHECK_S = 1.0
+# the commands still taken while a second daemon of the rig's name is alive: the rest would
+# be obeyed by both
+_WHILE_DUPLICATE = ("status", "disarm")
+RECORDING_CHECK_S = 1.0  # how often the recording's file is checked (inode, size)
 # what a status publication is compared on: not the time or the counters, which always move
 _STATUS_KEY = (
     "state",
@@ -98,18 +113,41 @@ class SampleSink(Protocol):
     def add_event(self, t_s: float, level: str, text: str, **fields: Any) -> None: ...
 
     failed: str  # why writing the file failed, "" while it has not
+    path: Path
 
+    def check_file(self) -> int: ...
     def add_summary(self, d: dict[str, Any]) -> None: ...
     def close(self) -> None: ...
     def abandon(self) -> None: ...
 
 
 def keys(rig: str) -> dict[str, str]:
-    """The rig's Zenoh key expressions (spec/system.md)."""
-    return {
-        name: f"mrrig/{rig}/{name}"
-        for name in ("telemetry", "status", "events", "force_ref", "control", "alive")
-    }
+    """The rig's Zenoh key expressions (spec/system.md); `alive` selects the liveliness tokens
+    of every daemon of that name (`alive_token`)."""
+    names = ("telemetry", "status", "events", "force_ref", "control")
+    return {name: f"mrrig/{rig}/{name}" for name in names} | {"alive": f"mrrig/{rig}/alive/*"}
+
+
+def alive_token(rig: str, session_id: str) -> str:
+    """One daemon's liveliness token: with its session's id, so that two daemons of one name
+    are two tokens (Zenoh shows two tokens of one key as one)."""
+    return f"mrrig/{rig}/alive/{session_id}"
+
+
+def duplicate_text(rig: str, others: list[str]) -> str:
+    """The one line for a second daemon of the rig's name on the network."""
+    return (
+        f"rig {rig!r} is already served on this Zenoh network (liveliness token"
+        f" {', '.join(sorted(others))}): a second daemon of one name obeys every request"
+        " meant for the first; stop one, or give this one another [rig] name"
+    )
+
+
+def alive_elsewhere(session: zenoh.Session, rig: str, timeout_s: float) -> list[str]:
+    """The liveliness tokens of other daemons of the rig's name that this session reaches."""
+    own = alive_token(rig, str(session.zid()))
+    replies = session.liveliness().get(keys(rig)["alive"], timeout=timeout_s)
+    return [str(r.ok.key_expr) for r in replies if r.ok is not None and str(r.ok.key_expr) != own]
 
 
 def telemetry_json(rig: str, batch: np.ndarray) -> str:
@@ -191,6 +229,10 @@ class Sidecar:
         self._next_id = 1
         self._entities: list[Any] = []
         self._pubs: dict[str, zenoh.Publisher] = {}  # empty without a session
+        self._own_token = ""
+        self._duplicates: set[str] = set()  # other daemons' tokens of this rig's name
+        self._recording_checked_s = time.monotonic()
+        self._recording_bytes = 0
 
     # -- called from Zenoh threads or signal handlers: queue and wake only ------------------
     def _wake(self) -> None:
@@ -205,6 +247,11 @@ class Sidecar:
 
     def _on_status_query(self, query: zenoh.Query) -> None:
         self._inbox.put(("status_query", query, time.monotonic()))
+        self._wake()
+
+    def _on_alive(self, sample: zenoh.Sample) -> None:
+        put = sample.kind == zenoh.SampleKind.PUT
+        self._inbox.put(("alive", (str(sample.key_expr), put), time.monotonic()))
         self._wake()
 
     def _on_force_ref(self, sample: zenoh.Sample) -> None:
@@ -231,8 +278,13 @@ class Sidecar:
                 s.declare_queryable(self._keys["status"], self._on_status_query),
                 s.declare_subscriber(self._keys["force_ref"], self._on_force_ref),
             ]
+            # a daemon of this name that start-up missed (not yet reachable) shows up here
+            self._entities.append(
+                s.liveliness().declare_subscriber(self._keys["alive"], self._on_alive, history=True)
+            )
             # last, so a token seen by others means the sidecar is ready
-            self._entities.append(s.liveliness().declare_token(self._keys["alive"]))
+            self._own_token = alive_token(self.rig, str(s.zid()))
+            self._entities.append(s.liveliness().declare_token(self._own_token))
             log.info("sidecar for rig %r serving on mrrig/%s/*", self.rig, self.rig)
         else:
             log.info("sidecar for rig %r: recording only, no Zenoh", self.rig)
@@ -278,6 +330,8 @@ class Sidecar:
                 next_telemetry_s = max(next_telemetry_s + self._period_s, now)
             if self._last_status is not None and now >= self._status_sent_s + STATUS_REPEAT_S:
                 self._publish_status(self._status_out, now)
+            if now - self._recording_checked_s >= RECORDING_CHECK_S:
+                self._check_recording(now)
             self._expire_queries(now)
 
     def _heartbeat(self, now: float) -> None:
@@ -310,6 +364,8 @@ class Sidecar:
             try:
                 if kind == "query":
                     self._handle_query(item)
+                elif kind == "alive":
+                    self._handle_alive(*item)
                 elif kind == "status_query":
                     if self._status_out:
                         self._reply(item, self._status_out, self._keys["status"])
@@ -330,6 +386,10 @@ class Sidecar:
         except RequestError as exc:
             # the audit keeps a bounded excerpt of what was refused
             self._answer(query, raw[:200], requester, {"ok": False, "error": str(exc)})
+            return
+        if self._duplicates and request["cmd"] not in _WHILE_DUPLICATE:
+            refused = {"ok": False, "error": duplicate_text(self.rig, list(self._duplicates))}
+            self._answer(query, request, requester, refused)
             return
         now = time.monotonic()
         if request["cmd"] == "status" and now - self._status_rx_s <= STATUS_FRESH_S:
@@ -377,6 +437,23 @@ class Sidecar:
             p = self._pending.pop(request_id)
             self._answer(p.query, p.request, p.requester, NO_ANSWER)
 
+    def _handle_alive(self, token: str, put: bool) -> None:
+        """A liveliness token of this rig's name came or went: another daemon's is a fault."""
+        if token == self._own_token:
+            return
+        if not put:
+            if token in self._duplicates:
+                self._duplicates.discard(token)
+                log.warning("the second daemon of rig %r is gone (%s)", self.rig, token)
+            return
+        self._duplicates.add(token)
+        reason = duplicate_text(self.rig, [token])
+        log.error("%s", reason)
+        self._end.send_notice({"kind": "duplicate_rig", "reason": reason})
+        self._event(
+            {"t": self._last_t_s, "level": "error", "text": reason, "kind": "duplicate_rig"}
+        )
+
     def _handle_force_ref(self, payload: bytes, t_rx_s: float) -> None:
         try:
             force_n = parse_force_ref(payload)
@@ -414,7 +491,9 @@ class Sidecar:
         elif mtype == Msg.STATUS:
             # the loop sends one every 0.1 s; published on a change of state and every second
             now = time.monotonic()
-            key = tuple(decode_json(payload).get(k) for k in _STATUS_KEY)
+            status = decode_json(payload)
+            key = tuple(status.get(k) for k in _STATUS_KEY)
+            payload = self._with_recording(status, payload)
             self._last_status, self._status_rx_s = payload, now
             self._status_out = self._with_warnings(payload)
             if key != self._last_status_key:
@@ -439,6 +518,18 @@ class Sidecar:
             log.warning("reply to an unknown or expired request: %s", reply)
             return
         self._answer(pending.query, pending.request, pending.requester, reply)
+
+    def _with_recording(self, status: dict[str, Any], payload: bytes) -> bytes:
+        """The loop's status with the recording this process writes: path, size at its
+        latest check, samples sent (the loop reports only a failed one)."""
+        if self._recorder is None or status.get("recording") is not None:
+            return payload
+        status["recording"] = {
+            "path": str(self._recorder.path),
+            "bytes": self._recording_bytes,
+            "frames": self._recorder.frames,
+        }
+        return json_text.dumps(status).encode()
 
     def _with_warnings(self, status: bytes) -> bytes:
         if not self._warnings:
@@ -479,30 +570,41 @@ class Sidecar:
         try:
             getattr(self._recorder, method)(*args, **kwargs)
         except Exception as exc:
-            # keep telemetry alive; the recording is lost from here on, loudly: an event, and
-            # the loop is told (a fault: a test run whose record is gone is stopped)
             log.exception("recording failed; recording stopped")
-            path = getattr(self._recorder, "path", "the recording")
-            reason = f"{exc}; {path} is truncated"
-            # told first: closing a stream whose writer hangs may hang too
-            self._end.send_notice({"kind": "recording_failed", "reason": reason})
-            self._publish(
-                "events",
-                json_text.dumps(
-                    {
-                        "t": self._last_t_s,
-                        "level": "error",
-                        "text": f"recording failed; recording stopped: {reason}",
-                        "kind": "recording_failed",
-                        "reason": reason,
-                    }
-                ),
-            )
-            recorder, self._recorder = self._recorder, None
-            if recorder.failed:  # its file writer failed: closing could hang
-                recorder.abandon()
-            else:
-                self._close_recorder_obj(recorder)
+            self._recording_lost(f"{exc}; {self._recorder.path} is truncated")
+
+    def _check_recording(self, now: float) -> None:
+        self._recording_checked_s = now
+        if self._recorder is None:
+            return
+        try:
+            self._recording_bytes = self._recorder.check_file()
+        except OSError as exc:  # `RecordingError`: the file is gone, replaced or cut
+            log.error("recording lost: %s", exc)
+            self._recording_lost(str(exc))
+
+    def _recording_lost(self, reason: str) -> None:
+        """Keep telemetry alive; the recording is lost from here on, loudly: an event, and
+        the loop is told (a fault: a test run whose record is gone is stopped)."""
+        # told first: closing a stream whose writer hangs may hang too
+        self._end.send_notice({"kind": "recording_failed", "reason": reason})
+        self._publish(
+            "events",
+            json_text.dumps(
+                {
+                    "t": self._last_t_s,
+                    "level": "error",
+                    "text": f"recording failed; recording stopped: {reason}",
+                    "kind": "recording_failed",
+                    "reason": reason,
+                }
+            ),
+        )
+        recorder, self._recorder = self._recorder, None
+        if recorder.failed:  # its file writer failed: closing could hang
+            recorder.abandon()
+        else:
+            self._close_recorder_obj(recorder)
 
     def _close_recorder(self) -> None:
         recorder, self._recorder = self._recorder, None
@@ -560,7 +662,8 @@ def run_sidecar(
 ) -> int:
     """Run until STOP, EOF, SIGTERM or SIGINT; returns the exit status: 0, 2 for a refused
     config (`check_secure`: off loopback without authentication and access control, unless
-    `insecure`), 3 if the session cannot open (port taken) or the recording cannot be written.
+    `insecure`) or a daemon of the rig's name alive on the network, 3 if the session cannot
+    open (port taken) or the recording cannot be written.
 
     Once its session and recording are open (or have failed) it sends READY to the loop, with
     the failure as one line: the daemon stops its start-up on it (a rig must not run
@@ -601,6 +704,10 @@ def run_sidecar(
             log.debug("%s: cannot open the Zenoh session: %s", zenoh_config, text)
             end.send_ready(f"{zenoh_config}: cannot open the Zenoh session: {text}{hint}")
             return 3
+        others = alive_elsewhere(session, rig, DUPLICATE_CHECK_S) if session is not None else []
+        if others:
+            end.send_ready(duplicate_text(rig, others))
+            return 2
         if can_log is not None:
             from mrrig.rigio.canlog import BusLogError, BusLogWriter
 
