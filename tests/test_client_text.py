@@ -30,6 +30,12 @@ def test_status_for_a_person_names_state_reference_fault_and_what_to_do():
     assert "  frames_received  6250" in lines
 
 
+def test_status_for_a_person_shows_the_recording_path_and_size():
+    recording = {"path": "recordings/rig1.rrd", "bytes": 1234567, "frames": 6000}
+    lines = format_status({**STATUS, "recording": recording}).splitlines()
+    assert "  recording        recordings/rig1.rrd (1234567 bytes, 6000 samples)" in lines
+
+
 def test_watch_without_telemetry_says_what_is_known_or_what_to_check():
     assert no_telemetry_line("rig1", 3, STATUS) == (
         "no telemetry for 3 s; the daemon's status says FAULT (fault"

@@ -60,6 +60,8 @@ def format_status(status: dict[str, Any]) -> str:
 
 
 def _value(v: Any) -> str:
+    if isinstance(v, dict) and "path" in v and "bytes" in v:  # the recording being written
+        return f"{v['path']} ({v['bytes']} bytes, {v.get('frames')} samples)"
     return f"{v:.3f}" if isinstance(v, float) else str(v)
 
 
