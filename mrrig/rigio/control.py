@@ -56,6 +56,10 @@ MAX_REQUEST_DEPTH = 4
 MAX_FILE_DEPTH = 32
 MAILBOX_SIZE = 4  # ready changes waiting for the loop
 MAX_REQUEST_INT = int(1.7e308)  # larger integers have no float (OverflowError)
+# a model file read by a request (set_model, set_controller) has at most this many numbers
+# (commas + 1): the paper's 4-30-1 network has 181, a history MLP or a small recurrent one a
+# few thousand; 20,000 parse in a few ms, and far fewer already cost more than a period
+MAX_MODEL_NUMBERS = 20_000
 JOB_PUT_TIMEOUT_S = 5.0
 # a controller's settings in a request, besides its name and model
 CONTROLLER_SETTINGS = ("method", "ahead", "feedback", "feedback_tau_s", "continuity", "current_a")
@@ -271,8 +275,25 @@ class Preparer:
     def _read(self, path: Path, dirs: tuple[Path, ...], what: str) -> str:
         c = self.cfg.control
         text = read_limited(path, dirs, c.max_file_bytes, c.read_timeout_s)
-        if json_depth_exceeds(text, MAX_FILE_DEPTH) and path.suffix == ".json":
+        if path.suffix == ".json" and json_depth_exceeds(text, MAX_FILE_DEPTH):
             raise RequestError(f"{path}: {what} nested deeper than {MAX_FILE_DEPTH} levels")
+        return text
+
+    def _read_model(self, path: Path) -> str:
+        """A model file's text, refused unparsed (and unscanned) when it holds more numbers
+        than a model the loop can evaluate: json.loads holds the GIL for the whole text (a
+        2.2 MB model held the loop up 280-580 ms)."""
+        c = self.cfg.control
+        text = read_limited(path, self.model_dirs, c.max_file_bytes, c.read_timeout_s)
+        numbers = text.count(",") + 1
+        if numbers > MAX_MODEL_NUMBERS:
+            raise RequestError(
+                f"{path}: about {numbers} numbers, more than the {MAX_MODEL_NUMBERS} of a model"
+                " the loop can evaluate within its budget (not parsed: that alone would hold"
+                " the loop up)"
+            )
+        if json_depth_exceeds(text, MAX_FILE_DEPTH):
+            raise RequestError(f"{path}: model file nested deeper than {MAX_FILE_DEPTH} levels")
         return text
 
     def prepare(self, req: dict[str, Any]) -> Change:
@@ -314,7 +335,7 @@ class Preparer:
         section = _section(ControllerSection, table, "controller")
         model = None
         if CONTROLLERS[section.name].needs_model:
-            text = self._read(section.model, self.model_dirs, "model file")
+            text = self._read_model(section.model)
             try:
                 model = MLP.from_text(text, section.model)
             except ValueError as exc:
