@@ -19,6 +19,7 @@ import zenoh
 
 from mrrig.rigio import fleet
 from mrrig.rigio.canbus.bus import find_free_port, start_bridge, stop_bridge
+from mrrig.rigio.sidecar import alive_token
 from tests.conftest import REPO, rig_config, stop
 from tests.stall_proof import check_answers, windows
 
@@ -81,7 +82,7 @@ def test_watch_all_prints_one_line_per_rig_and_nothing_without_rigs(tmp_path: Pa
     )
     rig = zenoh.open(zenoh.Config.from_file(str(conf)))
     try:
-        token = rig.liveliness().declare_token("mrrig/bench1/alive")
+        token = rig.liveliness().declare_token(alive_token("bench1", str(rig.zid())))
         pub = rig.declare_publisher("mrrig/bench1/telemetry")
         fields = {"t": [0.0, 0.002], "f_des": [1.0, 2.0], "f_meas": [1.5, 2.5], "i_cmd": [0, 0.1]}
         fields |= {"latency_us": [100.0, 200.0], "state": [1, 1]}

@@ -15,6 +15,7 @@ import zenoh
 
 from mrrig.cli.review import main as review_main
 from mrrig.offline.review import read_recording, verify_rrd
+from mrrig.rigio.sidecar import keys
 from mrrig.rigio.zenoh_config import local_config
 from tests.conftest import rig_config, zenoh_configs
 from tests.stall_proof import explain
@@ -109,7 +110,7 @@ def test_telemetry_control_recording_and_review(tmp_path, bridge, procs, sim_mod
         # stall at the end; arming below is the explicit re-arm
         st = status["status"]
         assert st["state"] in ("IDLE", "FAULT"), st
-        alive = session.liveliness().get(f"mrrig/{RIG}/alive", timeout=2.0)
+        alive = session.liveliness().get(keys(RIG)["alive"], timeout=2.0)
         assert any(r.ok is not None for r in alive), "no liveliness token"
 
         # -- telemetry at the configured rate
@@ -155,6 +156,7 @@ def test_telemetry_control_recording_and_review(tmp_path, bridge, procs, sim_mod
             ),
         )
         assert ok["ok"] and ok["waveform"] == "sine"
+        assert _query(session, json.dumps({"cmd": "reset"}))["ok"]  # a stall's FAULT, if any
         assert _query(session, json.dumps({"cmd": "arm"}))["ok"]
         wrong_state = _query(session, json.dumps({"cmd": "set_controller", "name": "heaviside"}))
         assert wrong_state["ok"] is False and "disarm" in wrong_state["error"]
@@ -182,6 +184,7 @@ def test_telemetry_control_recording_and_review(tmp_path, bridge, procs, sim_mod
             for _ in range(20):
                 pub.put(json.dumps({"force_n": 100.0}))
                 time.sleep(0.01)
+            assert _query(session, json.dumps({"cmd": "reset"}))["ok"]  # the attempt before's
             assert _query(session, json.dumps({"cmd": "arm"}))["ok"]
             for _ in range(50):
                 pub.put(json.dumps({"force_n": 100.0}))
