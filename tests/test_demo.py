@@ -79,7 +79,10 @@ def _demo_with_a_stall(
         stall(_simulator_of(proc.pid), STALL_S)
         for n in range(1, stalls):
             deadline = time.monotonic() + 4.0
-            while out.text().count("state: armed (was FAULT)") < n and time.monotonic() < deadline:
+            while (
+                out.text().count("state: fault acknowledged by reset: ") < n
+                and time.monotonic() < deadline
+            ):
                 time.sleep(0.05)
             time.sleep(0.3)
             stall(_simulator_of(proc.pid), STALL_S)
@@ -116,7 +119,7 @@ def test_the_demo_rearms_the_daemon_after_a_transport_fault(tmp_path, sim_model)
     assert rc == 0, out
     assert "mrrig.loop.daemon: fault: " in out
     _explain_faults(out)
-    assert "state: armed (was FAULT)" in out
+    assert "state: fault acknowledged by reset: " in out
     m = re.search(r"^demo: re-armed the daemon (\d+) times", out, re.MULTILINE)
     assert m and 1 <= int(m.group(1)) <= 10, out
     # the stall costs a few hundred ms of a 6 s run, not the rest of it
@@ -134,7 +137,7 @@ def test_without_rearming_the_daemon_stays_in_fault(tmp_path, sim_model):
     assert re.search(r"^demo: FAIL$", out, re.MULTILINE) and "  FAIL armed " in out
     assert "mrrig.loop.daemon: fault: " in out
     _explain_faults(out)
-    assert "state: armed (was FAULT)" not in out
+    assert "state: fault acknowledged by reset: " not in out
     assert "demo: re-armed the daemon 0 times" in out
     # armed from about 1 s to the stall at about 2 s of the 6 s run
     assert _armed_share(out) < 0.5
@@ -149,7 +152,7 @@ def test_a_second_fault_within_the_window_ends_the_rearming(tmp_path, sim_model)
     # the verdict depends on when the second fault came (the armed share): its exit code too
     verdict = re.search(r"^demo: (PASS|FAIL)$", out, re.MULTILINE)
     assert verdict and rc == {"PASS": 0, "FAIL": 1}[verdict[1]], out
-    assert "state: armed (was FAULT)" in out
+    assert "state: fault acknowledged by reset: " in out
     assert "demo: re-armed the daemon 1 times" in out
     assert "demo: not re-arming after the fault" in out
     assert "1 re-arms in the last 60 s" in out
