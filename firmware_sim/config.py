@@ -150,7 +150,8 @@ class CommandConfig:
     bad_frame_budget: int = 5
     bad_frame_window_s: float = 1.0
     # a test instrument, not firmware: ACTIVE commands that reached the bus longer than this
-    # after the sensor frame they answer are counted (the daemon's loop.max_frame_age_s)
+    # after the sensor frame they answer are counted (the daemon's loop.max_frame_age_s), and
+    # so are those the firmware applied longer than this after it sent their frame
     stale_answer_age_s: float = 0.01
 
     def check(self) -> None:
