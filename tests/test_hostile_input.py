@@ -317,6 +317,7 @@ def test_finding6_a_killed_sidecar_is_a_fault_restarted_once_then_the_daemon_sto
         # restarted once, into a file of its own
         _wait_for(lambda: rig.exchange() and rig.daemon.sidecar is not first, 30.0)
         assert rig.daemon.record_paths[-1].name == "run.restart1.rrd"
+        assert rig.request({"cmd": "reset"})["ok"]  # the fault acknowledged, then armed
         assert rig.request({"cmd": "arm"})["ok"]
         # a stopped (stuck) one: no heartbeat for 0.5 s is the same fault
         second = rig.daemon.sidecar
