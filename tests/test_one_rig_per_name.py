@@ -134,6 +134,8 @@ def test_a_second_daemon_of_a_live_name_refuses_to_start_before_it_opens_the_bus
             assert len(lines) == 1 and "Traceback" not in err, err
             assert f"rig {RIG!r} is already served on this Zenoh network" in lines[0]
             assert f"mrrig/{RIG}/alive/" in lines[0]  # the live daemon's token
+            # no hint to run without Zenoh: that daemon would open the served rig's bus
+            assert "--no-telemetry" not in lines[0], lines[0]
             assert not record.exists(), "the refused daemon started a recording"
             # the running rig never heard of it: no fault, and it still answers alone
             status = client.status(RIG, a.client_config, timeout_s=5.0)["status"]

@@ -1189,7 +1189,7 @@ class Daemon:
     def _spawn_sidecar(self, can_log: bool = True) -> tuple[Any, LoopEnd, ReplyWriter]:
         """Start the telemetry process and wait for it to be ready; `can_log` False: without
         the bus log (a restarted process would start the run's bus log over)."""
-        from mrrig.rigio.sidecar import start_sidecar
+        from mrrig.rigio.sidecar import is_duplicate_text, start_sidecar
 
         fds = make_channel()
         proc = start_sidecar(
@@ -1209,7 +1209,8 @@ class Daemon:
         if error is not None:
             link.close()
             off = ""
-            if self.cfg.telemetry.enabled:
+            # not for a name already served: without Zenoh it would open that rig's bus
+            if self.cfg.telemetry.enabled and not is_duplicate_text(error):
                 off = " (to run without Zenoh: telemetry.enabled = false, or --no-telemetry)"
             raise SidecarStartError(f"the telemetry process could not start: {error}{off}")
         return proc, link, link.reply_writer()

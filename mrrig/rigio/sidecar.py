@@ -134,10 +134,18 @@ def alive_token(rig: str, session_id: str) -> str:
     return f"mrrig/{rig}/alive/{session_id}"
 
 
+_DUPLICATE = "is already served on this Zenoh network"
+
+
+def is_duplicate_text(error: str) -> bool:
+    """Whether a start-up error is `duplicate_text`'s."""
+    return _DUPLICATE in error
+
+
 def duplicate_text(rig: str, others: list[str]) -> str:
     """The one line for a second daemon of the rig's name on the network."""
     return (
-        f"rig {rig!r} is already served on this Zenoh network (liveliness token"
+        f"rig {rig!r} {_DUPLICATE} (liveliness token"
         f" {', '.join(sorted(others))}): a second daemon of one name obeys every request"
         " meant for the first; stop one, or give this one another [rig] name"
     )
