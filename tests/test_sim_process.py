@@ -17,8 +17,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from firmware_sim.firmware import Frame
-from firmware_sim.runner import RunStats
+from firmware_sim.config import SimConfig
+from firmware_sim.firmware import Firmware, Frame
+from firmware_sim.runner import RunStats, _receive
 from mrrig.rigio.canbus import Codec, find_free_port, open_bus, start_bridge, stop_bridge
 
 REPO = Path(__file__).resolve().parents[1]
@@ -140,6 +141,36 @@ def test_run_stats_count_active_commands_applied_to_a_stale_or_invalid_frame():
     stats.on_command(3, 0.0435, safe=True)
     assert (stats.active_applied_stale, stats.active_applied_invalid) == (1, 1)
     assert list(stats.applied_active_age_us) == pytest.approx([1000.0, 12000.0])
+
+
+def test_the_loop_counts_as_applied_only_the_active_commands_the_firmware_did_not_drop():
+    """The runner's receive path: the firmware is told when each frame left; an ACTIVE answer
+    to the frame before the latest is late (dropped, counted by the firmware, not applied)."""
+    fw = Firmware(SimConfig(), CODEC)
+    stats = RunStats(stale_answer_age_s=0.01)
+    packer = CODEC.packer("DAEMON")
+    damper_id = CODEC.layout("DamperCommand").frame_id
+
+    def command(echo: int, t_s: float) -> None:
+        msg = packer.message(
+            "DamperCommand",
+            {"Mode": "ACTIVE", "CurrentSetpoint": 1.0, "SensorCounterEcho": echo,
+             "ControllerId": 1, "DesiredForce": 0.0},
+        )  # fmt: skip
+        _receive(fw, stats, msg, t_s, damper_id)
+
+    sent = []
+    for k in range(3):
+        (frame,) = [f for f in fw.tick(0.002 * k) if f.frame_id == SENSORS_ID]
+        fw.sent(frame, 0.002 * k)
+        stats.on_sensor_sent(frame, 0.002 * k, 0.002 * k)
+        sent.append(frame)
+    command(sent[1].counter, 0.0045)  # the frame before the latest: late
+    command(sent[2].counter, 0.0046)  # the latest: applied
+    assert fw.late_commands == 1
+    assert list(stats.applied_active_age_us) == pytest.approx([600.0])
+    stats.finish()  # the late command still answers its frame, once
+    assert (stats.answered_once, stats.unanswered, stats.active_applied_stale) == (2, 1, 0)
 
 
 def test_run_stats_match_answers_in_turn_through_a_stall_longer_than_the_counter_wraps():
