@@ -223,6 +223,7 @@ def test_adaptation_runs_only_while_armed_and_never_in_a_fault(tmp_path, sim_mod
         assert adapt.updates + adapt.skipped == learnt
         np.testing.assert_array_equal(adapt.theta, theta)
         # freeze and reset on request
+        assert rig.request({"cmd": "reset"})["ok"]  # the sensor fault acknowledged
         assert rig.request({"cmd": "arm"})["ok"]
         assert rig.request({"cmd": "freeze_adaptation"})["ok"]
         _frames(rig, 30, 211)
