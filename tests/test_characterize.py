@@ -229,6 +229,7 @@ def test_validate_switches_models_with_set_model_while_disarmed(tmp_path, sim_mo
         )
         with RigSession(cfg) as session:
             first = clean_window(session)
+            session.request(cmd="reset")  # a transport fault of its last window, if any
             session.request(cmd="arm")
             refused = session.ask({"cmd": "set_model", "path": str(other)})
             assert not refused["ok"] and "not armed" in refused["error"]
