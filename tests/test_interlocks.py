@@ -93,6 +93,20 @@ def test_finding14_an_arm_without_sensor_frames_faults_within_the_sensor_timeout
         assert waited < 0.5
 
 
+def test_finding14_an_arm_at_start_on_a_bus_that_never_carried_a_frame_ends_in_fault(tmp_path):
+    """`--arm` (arm_on_start) and not one frame in the whole run: exit code 1, not 0."""
+    rig = ScriptedRig(tmp_path)
+    with rig:
+        time.sleep(0.2)
+        assert rig.daemon.supervisor.state is RigState.IDLE  # silent: no fault while it runs
+    fault = _faults(rig)[0]
+    assert fault["fault"] == Fault.NO_SENSOR_FRAMES.value
+    assert re.search(r"in the whole run \([\d.]+ s\); the bus carried no frames at all", (
+        fault["reason"]
+    )), fault["reason"]  # fmt: skip
+    assert rig.daemon.exit_code == 1
+
+
 @pytest.mark.process
 def test_finding14_process_the_simulator_on_another_dbc_ends_the_armed_run_in_fault(
     tmp_path, bridge, procs
