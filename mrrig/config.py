@@ -28,6 +28,11 @@ MAX_ARM_SETTLE_S = 60.0
 @dataclass(frozen=True)
 class RigSection:
     name: str = "sim"
+    # the run's identity (recording, catalog): the damper under test, who runs it (default:
+    # the local user), free-text tags
+    specimen: str | None = None
+    operator: str | None = None
+    tags: tuple[str, ...] = ()
 
     def check(self) -> None:
         if not self.name or not all(c.isalnum() or c in "-_" for c in self.name):
@@ -282,6 +287,18 @@ class RecordingSection:
 
 
 @dataclass(frozen=True)
+class CatalogSection:
+    """Where the sidecar registers each finished run (mrrig.catalog): `url` an SQLite file or
+    `postgresql+psycopg://...` (default: `<recording.directory>/catalog.sqlite`); a remote
+    catalog that cannot be reached gets the run later (`mrrig runs sync`) from `spool`
+    (default: that local file)."""
+
+    enabled: bool = True
+    url: str | None = None
+    spool: Path | None = None
+
+
+@dataclass(frozen=True)
 class DaemonConfig:
     bus: BusSection
     rig: RigSection = field(default_factory=RigSection)
@@ -294,6 +311,7 @@ class DaemonConfig:
     telemetry: TelemetrySection = field(default_factory=TelemetrySection)
     recording: RecordingSection = field(default_factory=RecordingSection)
     control: ControlSection = field(default_factory=ControlSection)
+    catalog: CatalogSection = field(default_factory=CatalogSection)
     # error detectors while armed (mrrig/loop/detectors.py): [detectors.velocity] etc.
     detectors: DetectorSettings = field(default_factory=DetectorSettings)
     source: str = "<defaults>"  # the file it came from, for error messages

@@ -70,6 +70,7 @@ from mrrig.rigio.control import (
     settings_in_force,
 )
 from mrrig.rigio.ipc import LoopEnd, Msg, ReplyWriter, make_channel
+from mrrig.rigio.run_identity import run_identity
 from mrrig.rigio.zenoh_config import check_secure, load_zenoh_config
 from mrrig.typed_config import ConfigError
 
@@ -262,6 +263,8 @@ class Daemon:
         self.cfg = cfg
         self.period_s = cfg.loop.period_s
         self.codec = Codec()
+        # who runs what, where and when: into the recording and the run catalog (the sidecar)
+        self.identity = run_identity(cfg, self.codec.dbc_path)
         self.packer = self.codec.packer("DAEMON")
         self._own_messages = frozenset(self.packer.messages)
         self.parser = self.codec.parser()
@@ -1201,6 +1204,7 @@ class Daemon:
             live_url=self.cfg.recording.live_url,
             insecure=self.cfg.telemetry.insecure,
             can_log=self._can_log() if can_log else None,
+            identity=self.identity,
         )
         keep_off_cpu(proc.pid, self.cfg.loop.cpu, "telemetry process")
         link = LoopEnd(*fds.loop_fds())
@@ -1262,6 +1266,7 @@ class Daemon:
         self.summary["stop_reason"] = self.stop_reason
         # the loop's time zero on CLOCK_MONOTONIC: its times set beside another process's
         self.summary["clock_t0_s"] = self.t0
+        self.summary["run_id"] = self.identity["run_id"]
         self.summary["controller"] = self.controller.name
         self.summary["reference"] = self.reference.kind
         if adaptation is not None:
@@ -1319,8 +1324,19 @@ def main(argv: list[str] | None = None) -> int:
         help="allow a Zenoh config off loopback without authentication and access control "
         "(a closed lab network only); warned in every status and recording",
     )
+    ap.add_argument("--specimen", help="the damper under test (its serial number), for the catalog")
+    ap.add_argument("--operator", help="who runs the test (default: the local user)")
+    ap.add_argument("--tag", action="append", default=[], help="a free-text tag (repeatable)")
+    ap.add_argument("--catalog", help="register the run in this catalog (file or database URL)")
     args = ap.parse_args(argv)
     overrides: dict[str, dict] = {}
+    rig = {k: v for k, v in (("specimen", args.specimen), ("operator", args.operator)) if v}
+    if args.tag:
+        rig["tags"] = args.tag
+    if rig:
+        overrides["rig"] = rig
+    if args.catalog:
+        overrides["catalog"] = {"url": args.catalog}
     bus = {k: v for k, v in (("interface", args.bus_interface), ("channel", args.bus_channel)) if v}
     if bus:
         overrides["bus"] = bus

@@ -27,6 +27,7 @@ from mrrig.rigio.recording import (
     FIELD_ENTITIES,
     FRAME_TIMELINE,
     LATER_FIELDS,
+    RUN_ENTITY,
     SUMMARY_ENTITY,
 )
 
@@ -48,6 +49,8 @@ class Recording:
     samples: np.ndarray  # SAMPLE_DTYPE, sorted by t
     events: list[dict[str, Any]]  # t, level, text, plus the extra fields (kind, reason, ...)
     summary: dict[str, Any] | None  # what `Recorder.add_summary` stored, or None
+    # the run's identity (run id, rig, specimen, model and config sha256, ...), where recorded
+    identity: dict[str, Any] | None = None
 
 
 def _read_field(dataset: Any, entity: str, path: Path) -> tuple[np.ndarray, np.ndarray]:
@@ -145,6 +148,13 @@ def read_recording(path: str | Path) -> Recording:
                 f"{path}: not a readable RRD (not an .rrd file, truncated, or without footer;"
                 " see `rerun rrd verify`)"
             )
+        ours = {f"/{e}" for e in FIELD_ENTITIES.values()} | {f"/{SUMMARY_ENTITY}", "/rig"}
+        if not entities & ours:
+            shown = ", ".join(sorted(entities)[:5]) + (", ..." if len(entities) > 5 else "")
+            raise ReviewError(
+                f"{path}: not an mrrig recording: a Rerun file of another application (its"
+                f" entities {shown}; an mrrig recording has /rig and the rig's series)"
+            )
         if FRAME_TIMELINE in indexes:
             samples = _rebuild_samples(dataset, path)
         else:
@@ -157,14 +167,8 @@ def read_recording(path: str | Path) -> Recording:
                 .to_arrow_table()
             )
             events = _rebuild_events(events_table)
-        summary = None
-        if f"/{SUMMARY_ENTITY}" in entities:
-            static = (
-                dataset.filter_contents([f"/{SUMMARY_ENTITY}"]).reader(index=None).to_arrow_table()
-            )
-            summary = json.loads(
-                static.column(f"/{SUMMARY_ENTITY}:TextDocument:text")[0][0].as_py()
-            )
+        summary = _static_json(dataset, entities, SUMMARY_ENTITY)
+        identity = _static_json(dataset, entities, RUN_ENTITY)
     except ReviewError:
         raise
     except Exception as e:
@@ -173,7 +177,15 @@ def read_recording(path: str | Path) -> Recording:
         ) from e
     finally:
         server.shutdown()
-    return Recording(path=path, samples=samples, events=events, summary=summary)
+    return Recording(path=path, samples=samples, events=events, summary=summary, identity=identity)
+
+
+def _static_json(dataset: Any, entities: set[str], entity: str) -> dict[str, Any] | None:
+    """The JSON of a static TextDocument (the summary, the run's identity), or None."""
+    if f"/{entity}" not in entities:
+        return None
+    static = dataset.filter_contents([f"/{entity}"]).reader(index=None).to_arrow_table()
+    return json.loads(static.column(f"/{entity}:TextDocument:text")[0][0].as_py())
 
 
 _VERIFIED_RE = re.compile(r"(\d+) files? verified without error")

@@ -18,6 +18,8 @@ Layout of the recording (the contract `mrrig.offline.review` reads back):
   (JSON object of the extra fields: kind, reason, ...), on `sensor_time` and the `event`
   sequence timeline.
 - `summary`: static `TextDocument` holding the JSON of `add_summary`'s dict (NaN allowed).
+- `run`: static `TextDocument` holding the run's identity (JSON: run id, rig, host, specimen,
+  operator, start UTC, controller and its parameters, model, config and DBC sha256, version).
 
 Samples are buffered and sent with `send_columns` every `flush_interval_s`: one `log` call
 per sample would cost 30-60 us.
@@ -53,6 +55,7 @@ FRAME_TIMELINE = "frame"
 EVENT_TIMELINE = "event"
 EVENTS_ENTITY = "events"
 SUMMARY_ENTITY = "summary"
+RUN_ENTITY = "run"  # the run's identity (JSON), static, from the start
 LOOP_FV_ENTITY = "loops/force_velocity"
 LOOP_FX_ENTITY = "loops/force_displacement"
 # derived series for the viewer only (review reads FIELD_ENTITIES)
@@ -246,7 +249,10 @@ class Recorder:
         rig: str,
         flush_interval_s: float = 0.5,
         live_url: str | None = None,
+        identity: dict[str, Any] | None = None,
     ) -> None:
+        """`identity`: the run's (`mrrig.rigio.run_identity`), a static JSON document at
+        `run`, so that a recording copied elsewhere still says what it is."""
         self.path = Path(path)
         self.rig = rig
         self.flush_interval_s = flush_interval_s
@@ -265,6 +271,8 @@ class Recorder:
             sinks.append(rr.GrpcSink(live_url))
         self._rec.set_sinks(*sinks, default_blueprint=default_blueprint())
         self._rec.log("rig", rr.TextDocument(rig), static=True)
+        if identity is not None:
+            self._rec.log(RUN_ENTITY, rr.TextDocument(json_text.dumps(identity)), static=True)
         for field, entity in FIELD_ENTITIES.items():
             color = _SERIES_COLORS.get(field)
             self._rec.log(

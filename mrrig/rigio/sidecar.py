@@ -121,10 +121,14 @@ class SampleSink(Protocol):
     def abandon(self) -> None: ...
 
 
+# a daemon run's verdict in the catalog, from its exit code (mrrig.loop.daemon.Exit)
+RUN_VERDICTS = {0: "ok", 1: "fault", 3: "bus_lost", 4: "telemetry_lost"}
+
+
 def keys(rig: str) -> dict[str, str]:
     """The rig's Zenoh key expressions (spec/system.md); `alive` selects the liveliness tokens
     of every daemon of that name (`alive_token`)."""
-    names = ("telemetry", "status", "events", "force_ref", "control")
+    names = ("telemetry", "status", "events", "force_ref", "control", "runs")
     return {name: f"mrrig/{rig}/{name}" for name in names} | {"alive": f"mrrig/{rig}/alive/*"}
 
 
@@ -209,10 +213,15 @@ class Sidecar:
         telemetry_hz: float,
         warnings: list[str] | None = None,
         bus_log: BusLog | None = None,
+        identity: dict[str, Any] | None = None,
     ) -> None:
         """`warnings` (an insecure Zenoh config's) go into every status and the recording;
-        `bus_log` writes the loop's FRAMES."""
+        `bus_log` writes the loop's FRAMES; `identity` (`mrrig.rigio.run_identity`): the run,
+        registered in its catalog and published on `runs` with the summary at the end."""
         self._bus_log = bus_log
+        self._identity = identity
+        self._summary: dict[str, Any] | None = None
+        self._record_path = getattr(recorder, "path", None)
         self.rig = rig
         self._keys = keys(rig)
         self._session = session
@@ -510,7 +519,8 @@ class Sidecar:
         elif mtype == Msg.REPLY:
             self._handle_reply(decode_json(payload))
         elif mtype == Msg.SUMMARY:
-            self._record("add_summary", decode_json(payload))
+            self._summary = decode_json(payload)
+            self._record("add_summary", self._summary)
         elif mtype == Msg.FRAMES:
             if self._bus_log is not None:
                 self._bus_log.write(decode_frames(payload))
@@ -643,8 +653,63 @@ class Sidecar:
                 log.warning("undeclare failed: %s", exc)
         self._entities = []
         self._close_recorder()
+        self._register_run()
         os.close(self._wake_r)
         os.close(self._wake_w)
+
+    def _register_run(self) -> None:
+        """The finished run into its catalog (spooled locally where a lab's database cannot
+        be reached) and on `mrrig/<rig>/runs`. After the loop has ended: nothing waits on the
+        database but this process's exit."""
+        ident = self._identity
+        if ident is None or self._summary is None:
+            return
+        record = run_record(ident, self._summary, self._record_path)
+        if record is None:
+            return
+        if self._session is not None:
+            try:
+                self._session.put(
+                    self._keys["runs"], json_text.dumps(record.to_json()), encoding=JSON
+                )
+            except zenoh.ZError as exc:
+                log.warning("publishing the run on %s failed: %s", self._keys["runs"], exc)
+        if ident.get("catalog") is None:
+            return
+        from mrrig.catalog import CatalogError, register_run
+
+        try:
+            where = register_run(ident["catalog"], record, spool_url=ident.get("catalog_spool"))
+        except CatalogError as exc:
+            log.error("run %s not registered: %s", record.run_id, exc)
+            return
+        log.info("run %s registered in %s", record.run_id, where.catalog)
+
+
+def run_record(ident: dict[str, Any], summary: dict[str, Any], recording: Path | None) -> Any:
+    """The catalog's record of a finished run: its identity, the summary's numbers, the
+    recording's path, size and sha256; None (logged) where the identity is not one."""
+    import datetime as dt
+
+    from mrrig.catalog import RecordError, RunRecord, summary_numbers
+    from mrrig.rigio.run_identity import file_sha256
+
+    fields = {k: v for k, v in ident.items() if k not in ("catalog", "catalog_spool")}
+    fields["started_utc"] = dt.datetime.fromisoformat(fields["started_utc"])
+    exists = recording is not None and recording.is_file()
+    try:
+        return RunRecord(
+            **fields,
+            ended_utc=dt.datetime.now(dt.UTC),
+            verdict=RUN_VERDICTS.get(summary.get("exit_code"), "error"),
+            recording_path=str(recording.resolve()) if exists else None,
+            recording_size_bytes=recording.stat().st_size if exists else None,
+            recording_sha256=file_sha256(recording) if exists else None,
+            **summary_numbers(summary),
+        )
+    except (RecordError, TypeError, ValueError) as exc:
+        log.error("run %s: no catalog record: %s", ident.get("run_id"), exc)
+        return None
 
 
 def lower_priority(nice: int) -> None:
@@ -667,6 +732,7 @@ def run_sidecar(
     live_url: str | None = None,
     insecure: bool = False,
     can_log: tuple[str, str] | None = None,
+    identity: dict[str, Any] | None = None,
 ) -> int:
     """Run until STOP, EOF, SIGTERM or SIGINT; returns the exit status: 0, 2 for a refused
     config (`check_secure`: off loopback without authentication and access control, unless
@@ -728,12 +794,14 @@ def run_sidecar(
             from mrrig.rigio.recording import Recorder  # rerun is heavy: only when recording
 
             try:
-                recorder = Recorder(record, rig, flush_interval_s=0.5, live_url=live_url)
+                recorder = Recorder(
+                    record, rig, flush_interval_s=0.5, live_url=live_url, identity=identity
+                )
             except Exception as exc:  # noqa: BLE001 - reported to the daemon as one line
                 text = exc.strerror if isinstance(exc, OSError) and exc.strerror else exc
                 end.send_ready(f"cannot write the recording {record}: {text}")
                 return 3
-        sidecar = Sidecar(rig, session, end, recorder, telemetry_hz, warnings, bus_log)
+        sidecar = Sidecar(rig, session, end, recorder, telemetry_hz, warnings, bus_log, identity)
         for signum in (signal.SIGTERM, signal.SIGINT):
             signal.signal(signum, sidecar.request_stop)
         if stop_early:
@@ -765,6 +833,7 @@ def start_sidecar(
     live_url: str | None = None,
     insecure: bool = False,
     can_log: tuple[str | Path, str] | None = None,
+    identity: dict[str, Any] | None = None,
 ) -> subprocess.Popen[bytes]:
     """Start the sidecar process on the sidecar's ends of `fds`, and close those ends here.
 
@@ -797,6 +866,8 @@ def start_sidecar(
         cmd.append("--insecure")
     if can_log is not None:
         cmd += ["--can-log", str(can_log[0]), "--can-log-channel", can_log[1]]
+    if identity is not None:
+        cmd += ["--identity", json_text.dumps(identity)]
     proc = subprocess.Popen(cmd, pass_fds=fds.sidecar_fds(), start_new_session=True)
     # the loop must see EOF / EPIPE when the sidecar dies, so it holds no copy of these
     os.close(fds.sidecar_rx)
@@ -829,6 +900,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--can-log", default=None, help="bus log file (.blf, .asc, .log, ...)")
     parser.add_argument("--can-log-channel", default="can0", help="channel name in the bus log")
     parser.add_argument("--log-level", default="INFO")
+    parser.add_argument("--identity", default=None, help="the run's identity (JSON)")
     args = parser.parse_args(argv)
     logging.basicConfig(
         level=args.log_level, format="%(asctime)s sidecar %(levelname)s %(name)s: %(message)s"
@@ -845,6 +917,7 @@ def main(argv: list[str] | None = None) -> int:
         args.live_url,
         args.insecure,
         (args.can_log, args.can_log_channel) if args.can_log else None,
+        json.loads(args.identity) if args.identity else None,
     )
 
 

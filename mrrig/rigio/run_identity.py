@@ -1,0 +1,98 @@
+"""A run's identity (spec/system.md, "Runs, plans and the catalog"): made once at the daemon's
+start-up, before the loop, written into the recording by the sidecar at its start and into the
+run catalog with the summary's numbers at its end.
+
+Plain JSON values only: the sidecar gets it on its command line. Nothing here runs on the loop
+thread, and nothing here opens a database (`mrrig.catalog` does, in the sidecar).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import datetime as dt
+import getpass
+import hashlib
+import socket
+import uuid
+from importlib import metadata
+from pathlib import Path
+from typing import Any
+
+from mrrig.config import DaemonConfig
+
+# the catalog of a run whose config names none: beside the recordings
+DEFAULT_CATALOG_NAME = "catalog.sqlite"
+
+
+def file_sha256(path: str | Path) -> str | None:
+    """The file's sha256 (hex), or None where it cannot be read."""
+    h = hashlib.sha256()
+    try:
+        with open(path, "rb") as f:
+            while chunk := f.read(1 << 20):
+                h.update(chunk)
+    except OSError:
+        return None
+    return h.hexdigest()
+
+
+def _operator(cfg: DaemonConfig) -> str:
+    if cfg.rig.operator:
+        return cfg.rig.operator
+    try:
+        return getpass.getuser()
+    except (OSError, KeyError):
+        return ""
+
+
+def _version() -> str:
+    try:
+        return metadata.version("mrrig")
+    except metadata.PackageNotFoundError:
+        return "unknown"
+
+
+def _json_value(v: Any) -> Any:
+    if isinstance(v, Path):
+        return str(v)
+    if isinstance(v, tuple):
+        return [_json_value(x) for x in v]
+    return v
+
+
+def catalog_urls(cfg: DaemonConfig) -> tuple[str, str | None]:
+    """(the catalog the run goes to, the local one it is spooled to where that one cannot be
+    reached): `[catalog] url`, by default `<recording.directory>/catalog.sqlite`; a remote
+    catalog spools to `[catalog] spool`, by default that local file."""
+    local = str(cfg.recording.directory / DEFAULT_CATALOG_NAME)
+    url = cfg.catalog.url or local
+    if url == local or "://" not in url:
+        return url, None
+    return url, str(cfg.catalog.spool) if cfg.catalog.spool else local
+
+
+def run_identity(cfg: DaemonConfig, dbc_path: Path) -> dict[str, Any]:
+    """Who runs what, where, when and with which software: the run's identity (JSON values)."""
+    c = cfg.controller
+    model = str(c.model) if c.model is not None and c.name != "constant" else None
+    url, spool = catalog_urls(cfg)
+    return {
+        "run_id": str(uuid.uuid4()),
+        "rig": cfg.rig.name,
+        "host": socket.gethostname(),
+        "specimen": cfg.rig.specimen,
+        "operator": _operator(cfg),
+        "tags": list(cfg.rig.tags),
+        "started_utc": dt.datetime.now(dt.UTC).isoformat(),
+        "controller": c.name,
+        "controller_params": {
+            k: _json_value(v) for k, v in dataclasses.asdict(c).items() if k not in ("name",)
+        },
+        "model_path": model,
+        "model_sha256": file_sha256(model) if model else None,
+        "config_sha256": file_sha256(cfg.source) if Path(cfg.source).is_file() else None,
+        "dbc_sha256": file_sha256(dbc_path),
+        "mrrig_version": _version(),
+        "catalog": url if cfg.catalog.enabled else None,
+        "catalog_spool": spool if cfg.catalog.enabled else None,
+    }
