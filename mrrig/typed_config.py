@@ -155,4 +155,3 @@ def _text(value: str, source: str, key: str) -> str:
             f"character {exc.start + 1}"
         ) from None
     return value
-
