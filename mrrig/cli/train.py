@@ -19,8 +19,11 @@ import sys
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from mrrig import json_text
 from mrrig.cli_args import COUNT, SEED, HelpFormatter, output_file, positive
+from mrrig.loop.mlp import MIN_SCALE, ModelError
 from mrrig.offline.datasets import DataError
 from mrrig.offline.train_config import TrainConfig, load_train_config
 from mrrig.offline.training import (
@@ -28,11 +31,11 @@ from mrrig.offline.training import (
     HISTORY_SIGNALS,
     SPLITS,
     check_history,
-    exclude_bad_stretches,
-    load_training_data,
     train_and_validate,
 )
+from mrrig.offline.training.report import MetricError, check_finite
 from mrrig.offline.training.select import choose_features, command_varies
+from mrrig.offline.training.stream import training_subset
 
 log = logging.getLogger(__name__)
 
@@ -96,17 +99,28 @@ def _pct(d: dict[str, float] | None) -> str:
 def format_excluded(ex: dict[str, Any] | None) -> list[str]:
     if ex is None:
         return []
-    if ex["keep_all"]:
-        return ["excluded: nothing (--keep-all)"]
+    sub = ex.get("subset")
+    lines = (
+        [
+            f"trained on {sub['samples']} of {sub['of_samples']} samples: whole segments chosen"
+            f" at random (at most {sub['max_samples']})"
+        ]
+        if sub and sub["samples"] < sub["of_samples"]
+        else []
+    )
     if not ex["excluded_samples"]:
-        return ["excluded: nothing (no saturation, idle or transient stretch found)"]
+        what = "--keep-all" if ex["keep_all"] else "no saturation, idle or transient stretch found"
+        return [*lines, f"excluded: nothing ({what})"]
     kinds = ", ".join(f"{k} {n}" for k, n in ex["by_kind"].items())
-    lines = [f"excluded {ex['excluded_samples']} of {ex['of_samples']} samples ({kinds}):"]
+    keep = " (--keep-all: the implausible only)" if ex["keep_all"] else ""
+    lines += [f"excluded {ex['excluded_samples']} of {ex['of_samples']} samples ({kinds}){keep}:"]
     lines += [
-        f"  {st['kind']}: run {st['run']}, {st['t_start_s']:.4f}-{st['t_end_s']:.4f} s"
-        f" ({st['samples']} samples)"
+        f"  {st['kind']}: {st['file'] + ', ' if 'file' in st else ''}run {st['run']},"
+        f" {st['t_start_s']:.4f}-{st['t_end_s']:.4f} s ({st['samples']} samples)"
         for st in ex["stretches"]
     ]
+    if ex.get("stretches_not_listed"):
+        lines.append(f"  and {ex['stretches_not_listed']} more stretches")
     return lines
 
 
@@ -356,9 +370,18 @@ def main(argv: list[str] | None = None) -> int:
     history_stride, hidden = args.history_stride, args.hidden
     columns = _mapping(args.columns, "--columns") if args.columns else dict(cfg.csv.columns)
     units = _mapping(args.units, "--units") if args.units else dict(cfg.csv.units)
-    series = load_training_data(args.data, columns or None, units or None)
-    series, excluded = exclude_bad_stretches(series, args.keep_all)
+    series, excluded = training_subset(
+        args.data, columns or None, units or None, args.keep_all, seed=args.seed
+    )
     log.info("training on %d samples from %d file(s)", len(series), len(args.data))
+    files = ", ".join(map(str, args.data))
+    for name in ("x", "xd", "xdd", "current", "force"):
+        spread = float(np.std(getattr(series, name)))
+        if not spread >= MIN_SCALE:
+            raise DataError(
+                f"{files}: {name} does not vary over the {len(series)} samples trained on"
+                f" (standard deviation {spread:.3g}): no model can be fitted to it"
+            )
     mode = args.features or ("manual" if manual_flags or not command_varies(series) else "auto")
     search = None
     if mode == "auto":
@@ -368,25 +391,37 @@ def main(argv: list[str] | None = None) -> int:
         history_stride, hidden = cand.history_stride, cand.hidden
     else:
         lag_tau_s = args.lag_tau_s
-    fwd, sup, report = train_and_validate(
-        series,
-        n_train=args.n_train,
-        n_val=args.n_val,
-        seed=args.seed,
-        progress=_progress,
-        current_input=current_input,
-        lag_tau_s=lag_tau_s,
-        max_epochs=args.epochs,
-        i_max=args.i_max,
-        supervised=args.supervised,
-        history_samples=history_samples,
-        history_signals=history_signals,
-        restarts=args.restarts,
-        split=args.split,
-        holdout_fraction=args.holdout_fraction,
-        history_stride=history_stride,
-        hidden=hidden,
-    )
+    try:
+        fwd, sup, report = train_and_validate(
+            series,
+            n_train=args.n_train,
+            n_val=args.n_val,
+            seed=args.seed,
+            progress=_progress,
+            current_input=current_input,
+            lag_tau_s=lag_tau_s,
+            max_epochs=args.epochs,
+            i_max=args.i_max,
+            supervised=args.supervised,
+            history_samples=history_samples,
+            history_signals=history_signals,
+            restarts=args.restarts,
+            split=args.split,
+            holdout_fraction=args.holdout_fraction,
+            history_stride=history_stride,
+            hidden=hidden,
+        )
+    except ModelError as exc:  # the data gave a network no file could hold
+        raise DataError(f"{files}: training gave no usable model: {exc}") from None
+    try:
+        check_finite(
+            {k: report[k] for k in ("forward", "network_inversion", "network_inversion_online")},
+            f"{args.out} not written: its hold-out",
+            "the held-out force does not vary, or the model's force overflows",
+        )
+    except MetricError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 1
     report["excluded"] = excluded
     report["features_mode"] = mode
     report["features_search"] = search

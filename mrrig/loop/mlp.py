@@ -12,6 +12,7 @@ from __future__ import annotations
 import hashlib
 import json
 import math
+import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -21,6 +22,10 @@ import numpy as np
 from mrrig.errors import MrrigError
 
 FORMAT = "mrrig-mlp/1"
+# The standardisation's scales (in_std, out_std) a model may have: the inversion divides by
+# their squares, which a smaller scale takes to 0 (ZeroDivisionError) or past a float's range
+MIN_SCALE, MAX_SCALE = 1e-12, 1e12
+_FLOAT_MAX = sys.float_info.max
 
 
 class ModelError(MrrigError, ValueError):
@@ -112,10 +117,15 @@ class MLP:
         for name in ("in_mean", "in_std", "W1", "b1", "W2", "out_mean", "out_std", "b2"):
             if not np.all(np.isfinite(getattr(self, name))):
                 return name, "must be finite"
-        if np.any(self.in_std <= 0.0):
-            return "in_std", "must be > 0"
-        if self.out_std <= 0.0:
-            return "out_std", "must be > 0"
+        for name in ("in_std", "out_std"):
+            scale = np.asarray(getattr(self, name))
+            if np.any(scale <= 0.0):
+                return name, "must be > 0"
+            if np.any(scale < MIN_SCALE) or np.any(scale > MAX_SCALE):
+                return name, (
+                    f"must lie in [{MIN_SCALE:g}, {MAX_SCALE:g}] (a standardisation's scale;"
+                    f" {float(scale.min()):g} overflows the network and its inversion)"
+                )
         return None
 
     def to_dict(self) -> dict[str, Any]:
@@ -176,8 +186,15 @@ class MLP:
             raise ModelError(f"{path}: not a JSON model file: {exc}".replace("\n", " ")) from None
         except RecursionError:
             raise ModelError(f"{path}: not a model file: JSON nested too deeply") from None
+        except ValueError as exc:  # an integer of more digits than Python converts
+            raise ModelError(f"{path}: not a JSON model file: {exc}") from None
         if not isinstance(doc, dict):
             raise ModelError(f"{path}: not a JSON object")
+        huge = _huge_integer(doc)
+        if huge is not None:
+            raise ModelError(
+                f"{path}: field '{huge[0]}': an integer of {huge[1]} digits, beyond a float's range"
+            )
         if doc.get("format") != FORMAT:
             got = doc.get("format")
             raise ModelError(f"{path}: field 'format': expected {FORMAT!r}, got {got!r}")
@@ -217,6 +234,21 @@ _FIELDS: dict[str, str] = {
     "metrics": "object",
     "meta": "object",
 }
+
+
+def _huge_integer(doc: Any) -> tuple[str, int] | None:
+    """(dotted field, about how many digits) of an integer in a decoded JSON document that no
+    float can hold (`float()` of it raises OverflowError), None if there is none."""
+    stack: list[tuple[str, Any]] = [("", doc)]
+    while stack:
+        where, value = stack.pop()
+        if isinstance(value, int) and not isinstance(value, bool) and abs(value) > _FLOAT_MAX:
+            return where, int(value.bit_length() * math.log10(2)) + 1
+        if isinstance(value, dict):
+            stack += [(f"{where}.{k}" if where else str(k), v) for k, v in value.items()]
+        elif isinstance(value, list):
+            stack += [(f"{where}.{k}", v) for k, v in enumerate(value)]
+    return None
 
 
 def _is_number(v: Any) -> bool:

@@ -7,8 +7,6 @@ upper-level controller sending `force_ref`) is fed from outside and goes stale a
 from __future__ import annotations
 
 import abc
-import csv
-import io
 import math
 from pathlib import Path
 
@@ -17,6 +15,7 @@ import numpy as np
 from damper.plant import BoucWenDamper, BoucWenParams
 from damper.signals import bandlimited_noise
 from mrrig.errors import MrrigError
+from mrrig.loop import profile_csv
 
 
 class ForceReferenceError(MrrigError, ValueError):
@@ -112,31 +111,15 @@ class CsvSeries(ForceReference):
         force_column: str = "force_n",
         text: str | None = None,
     ):
-        """`text`: the file's content, already read (the control plane reads under limits)."""
-        if text is None:
-            try:
-                text = Path(path).read_text(encoding="utf-8")
-            except OSError as exc:
-                raise ForceReferenceError(
-                    f"{path}: cannot read force profile: {exc.strerror}"
-                ) from None
-        rows = list(csv.DictReader(io.StringIO(text)))
-        if not rows:
-            raise ForceReferenceError(f"{path}: force profile is empty")
-        for col in (time_column, force_column):
-            if col not in rows[0]:
-                raise ForceReferenceError(f"{path}: column {col!r} missing (have {list(rows[0])})")
+        """`text`: the file's content, already read (the control plane reads under limits).
+        The file is read by `profile_csv` (the reader of `mrrig send-force` too)."""
         try:
-            t = np.array([float(r[time_column]) for r in rows])
-            f = np.array([float(r[force_column]) for r in rows])
-        except ValueError as exc:
-            raise ForceReferenceError(f"{path}: non-numeric value: {exc}") from None
-        if not (np.all(np.isfinite(t)) and np.all(np.isfinite(f))):
-            raise ForceReferenceError(
-                f"{path}: non-finite value in {time_column} or {force_column}"
-            )
-        if np.any(np.diff(t) <= 0):
-            raise ForceReferenceError(f"{path}: {time_column} must increase strictly")
+            if text is None:
+                t, f = profile_csv.read(str(path), time_column, force_column)
+            else:
+                t, f = profile_csv.parse(text, str(path), time_column, force_column)
+        except profile_csv.ProfileError as exc:
+            raise ForceReferenceError(str(exc)) from None
         self.path = Path(path)
         self.t, self.f = t, f
         self._t0 = 0.0

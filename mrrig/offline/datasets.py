@@ -4,6 +4,7 @@ recorded CSV files (C), all as `Series` in SI units (spec/modeling.md section 4)
 from __future__ import annotations
 
 import itertools
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -196,7 +197,7 @@ CSV_UNITS: dict[str, dict[str, float]] = {
 }
 COMMAND_UNITS = {"A": "A", "mA": "A", "V": "V"}  # the command's unit in the Series
 _REQUIRED = ("t", "x", "current", "force")
-CSV_CHUNK_ROWS = 1_000_000  # rows read at a time: a large file streams in chunks
+CSV_CHUNK_ROWS = 200_000  # rows read at a time: a large file streams in chunks (~100 MB)
 # Headers `NAME_UNIT` that name a field without a column map (e.g. t_s, x_cm, force_n, command_v)
 _HEADER_FIELDS = {
     "t": "t",
@@ -278,21 +279,9 @@ def _file_line(path: Path, data_row: int) -> int:
     return -1
 
 
-def load_csv(
-    path: str | Path, columns: dict[str, str], units: dict[str, str] | None = None
-) -> Series:
-    """Read a CSV into a Series in SI units (the command in A, or in V for a driver voltage).
-
-    `columns` maps our fields (t, x, current, force; optional xd, xdd) to CSV headers, `units`
-    gives each field's unit (SI where absent: s, m, m/s, m/s^2, N, A). Absent xd/xdd are None.
-    Read by pandas in chunks of `CSV_CHUNK_ROWS`: blank lines, # comment lines, a BOM, quoted
-    headers and a trailing comma are fine. Any problem raises DataError with a one-line
-    message naming the file, and the line and field of a bad value.
-    """
-    import pandas as pd  # noqa: PLC0415 - see csv_header
-
-    path = Path(path)
-    units = units or {}
+def _csv_scales(path: Path, columns: dict[str, str], units: dict[str, str]) -> dict[str, float]:
+    """Each mapped field's factor to SI; a one-line DataError for an unknown field or unit, a
+    required field without a column or a column the header lacks."""
     for field in itertools.chain(columns, units):
         if field not in CSV_UNITS:
             raise DataError(f"{path}: unknown field {field!r} (known: {', '.join(CSV_UNITS)})")
@@ -310,9 +299,23 @@ def load_csv(
     for field, col in columns.items():
         if col not in header:
             raise DataError(f"{path}: field {field!r}: no column {col!r} in the header")
+    return scale
+
+
+def iter_csv(
+    path: str | Path,
+    columns: dict[str, str],
+    units: dict[str, str] | None = None,
+    chunk_rows: int = CSV_CHUNK_ROWS,
+) -> Iterator[dict[str, np.ndarray]]:
+    """The CSV's mapped fields in SI units, `chunk_rows` rows at a time (memory bounded by
+    the chunk, whatever the file's size): what `load_csv` reads, as it reads it."""
+    import pandas as pd  # noqa: PLC0415 - see csv_header
+
+    path = Path(path)
+    scale = _csv_scales(path, columns, units or {})
     fields = list(columns)
     wanted = [columns[f] for f in fields]
-    parts: dict[str, list[np.ndarray]] = {f: [] for f in fields}
     done = 0
     try:
         reader = pd.read_csv(
@@ -323,14 +326,14 @@ def load_csv(
             skip_blank_lines=True,
             encoding="utf-8-sig",
             index_col=False,
-            chunksize=CSV_CHUNK_ROWS,
+            chunksize=chunk_rows,
             keep_default_na=False,
             skipinitialspace=True,
         )
         for chunk in reader:
             chunk.columns = [str(h).strip() for h in chunk.columns]
+            out = {}
             for field, col in zip(fields, wanted, strict=True):
-                text = chunk[col].to_numpy(dtype=object)
                 values = pd.to_numeric(chunk[col].str.strip(), errors="coerce").to_numpy(
                     dtype=float, na_value=np.nan
                 )
@@ -340,10 +343,11 @@ def load_csv(
                     line = _file_line(path, done + r)
                     raise DataError(
                         f"{path}: line {line}: column {col!r} (field {field!r}): "
-                        f"not a finite number: {text[r]!r}"
+                        f"not a finite number: {chunk[col].iloc[r]!r}"
                     )
-                parts[field].append(values * scale[field])
+                out[field] = values * scale[field]
             done += len(chunk)
+            yield out
     except (OSError, UnicodeDecodeError, ValueError, pd.errors.ParserError) as exc:
         if isinstance(exc, DataError):
             raise
@@ -351,7 +355,26 @@ def load_csv(
         raise DataError(f"{path}: cannot read: {reason}".replace("\n", " ")) from exc
     if done == 0:
         raise DataError(f"{path}: no data rows")
-    data = {f: np.concatenate(parts[f]) for f in fields}
+
+
+def load_csv(
+    path: str | Path, columns: dict[str, str], units: dict[str, str] | None = None
+) -> Series:
+    """Read a CSV into a Series in SI units (the command in A, or in V for a driver voltage).
+
+    `columns` maps our fields (t, x, current, force; optional xd, xdd) to CSV headers, `units`
+    gives each field's unit (SI where absent: s, m, m/s, m/s^2, N, A). Absent xd/xdd are None.
+    Read by pandas in chunks of `CSV_CHUNK_ROWS` (`iter_csv`): blank lines, # comment lines,
+    a BOM, quoted headers and a trailing comma are fine. Any problem raises DataError with a
+    one-line message naming the file, and the line and field of a bad value.
+    """
+    path = Path(path)
+    units = units or {}
+    parts: dict[str, list[np.ndarray]] = {f: [] for f in columns}
+    for chunk in iter_csv(path, columns, units):
+        for field, values in chunk.items():
+            parts[field].append(values)
+    data = {f: np.concatenate(parts[f]) for f in columns}
     return Series(
         t=data["t"],
         x=data["x"],

@@ -13,6 +13,8 @@ from __future__ import annotations
 
 import argparse
 import logging
+import math
+import sys
 from pathlib import Path
 from typing import Any
 
@@ -22,35 +24,74 @@ from mrrig import json_text
 from mrrig.cli_args import output_file
 from mrrig.loop.mlp import MLP, ModelError
 from mrrig.offline.datasets import DataError
-from mrrig.offline.training.data import (
-    exclude_bad_stretches,
-    load_training_data,
-    run_ids,
-    stretches,
+from mrrig.offline.training.data import run_ids, stretches
+from mrrig.offline.training.features import (
+    CURRENT_INPUTS,
+    feature_names,
+    feature_rows,
+    features,
 )
-from mrrig.offline.training.features import feature_names, feature_rows, features
 from mrrig.offline.training.fit import HOLDOUT_FRACTION, block_split
-from mrrig.offline.training.report import evaluate_rows, predict
+from mrrig.offline.training.report import MetricError, Scores
+from mrrig.offline.training.stream import SEGMENT_ROWS, merge_reports, prepare, segments
 
 log = logging.getLogger(__name__)
 
 PLOT_WINDOW_S = 2.0
+PLOT_MAX_ROWS = 1_000_000  # rows a plot keeps, at most, of the window and of the errors
+
+
+# meta field -> (what it must be, the check): the fields of `mrrig train`'s meta read here
+_META = {
+    "current_input": ("one of " + ", ".join(CURRENT_INPUTS), lambda v: v in CURRENT_INPUTS),
+    "lag_tau_s": ("a number > 0", lambda v: _number(v) and 0.0 < v < math.inf),
+    "history_samples": ("an integer >= 0", lambda v: _integer(v) and v >= 0),
+    "history_signals": ("a list of names", lambda v: isinstance(v, list)),
+    "history_stride": ("an integer >= 1", lambda v: _integer(v) and v >= 1),
+    "command_unit": ("A or V", lambda v: v in ("A", "V")),
+    "holdout_fraction": ("a number in (0, 0.5)", lambda v: _number(v) and 0.0 < v < 0.5),
+    "i_max_a": ("a number > 0", lambda v: _number(v) and 0.0 < v < math.inf),
+    "online_continuity": ("a number >= 0", lambda v: _number(v) and 0.0 <= v < math.inf),
+    "excluded": ("an object", lambda v: isinstance(v, dict)),
+}
+
+
+def _number(v: Any) -> bool:
+    return isinstance(v, int | float) and not isinstance(v, bool)
+
+
+def _integer(v: Any) -> bool:
+    return isinstance(v, int) and not isinstance(v, bool)
+
+
+def _meta(model: MLP, path: Path, name: str, default: Any) -> Any:
+    """A field of the model's meta (`default` where absent or null); a one-line ModelError
+    naming the file and the field when it is not what `_META` says."""
+    value = model.meta.get(name)
+    if value is None:
+        return default
+    what, ok = _META[name]
+    if not ok(value):
+        raise ModelError(f"{path}: field 'meta.{name}': expected {what}, got {value!r}")
+    return value
 
 
 def _options(model: MLP, path: Path) -> dict[str, Any]:
     """The model's feature options from its meta (`mrrig train` writes them), checked against
     its input names; a one-line ModelError if they do not give its inputs."""
-    m = model.meta
     opts = {
-        "current_input": m.get("current_input") or "commanded",
-        "lag_tau_s": m.get("lag_tau_s") or 1.0,
-        "history_samples": int(m.get("history_samples") or 0),
-        "history_signals": tuple(m.get("history_signals") or ("x", "xd")),
-        "history_stride": int(m.get("history_stride") or 1),
+        "current_input": _meta(model, path, "current_input", "commanded"),
+        "lag_tau_s": _meta(model, path, "lag_tau_s", 1.0),
+        "history_samples": _meta(model, path, "history_samples", 0),
+        "history_signals": tuple(_meta(model, path, "history_signals", ["x", "xd"])),
+        "history_stride": _meta(model, path, "history_stride", 1),
     }
-    names, _ = feature_names(
-        opts["history_samples"], opts["history_signals"], opts["history_stride"]
-    )
+    try:
+        names, _ = feature_names(
+            opts["history_samples"], opts["history_signals"], opts["history_stride"]
+        )
+    except ValueError as exc:
+        raise ModelError(f"{path}: field 'meta.history_signals': {exc}") from None
     if list(names) != list(model.input_names):
         raise ModelError(
             f"{path}: inputs {', '.join(model.input_names)} are not what its meta's feature "
@@ -67,45 +108,92 @@ def evaluate(
     units: dict[str, str] | None = None,
     keep_all: bool | None = None,
     rows: str = "all",
+    window: tuple[float, float] | None = None,
+    max_rows: int = SEGMENT_ROWS,
 ) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
-    """The numbers (`training.report.evaluate_rows`) and the arrays a plot needs."""
+    """The numbers (`training.report.Scores`) over every segment of the data
+    (`training.stream.segments`, each prepared as `mrrig train` prepares it), and the
+    arrays a plot needs (`_PlotRows`): memory bounded by a segment, whatever the data's size.
+    A MetricError (exit 1) when a number is not finite."""
     opts = _options(model, model_path)
-    series = load_training_data(data, columns, units)
-    unit = model.meta.get("command_unit", "A")
-    if series.current_unit != unit:
-        raise DataError(
-            f"{'+'.join(map(str, data))}: command in {series.current_unit}, but the model's "
-            f"command input is in {unit}"
-        )
+    unit = _meta(model, model_path, "command_unit", "A")
     if keep_all is None:
-        keep_all = bool((model.meta.get("excluded") or {}).get("keep_all", False))
-    series, excluded = exclude_bad_stretches(series, keep_all)
-    X, y = features(series, **opts)
-    frows = feature_rows(series, opts["history_samples"], opts["history_stride"])
-    stretch = stretches(run_ids(series))[frows]
-    if rows == "holdout":
-        fraction = model.meta.get("holdout_fraction") or HOLDOUT_FRACTION
-        pick = block_split(stretch, float(fraction)).val
-    else:
-        pick = np.arange(y.size)
-    i_max = float(model.meta.get("i_max_a") or X[:, model.current_index].max())
-    mu = float(model.meta.get("online_continuity") or 0.0)
-    numbers = evaluate_rows(model, X, y, stretch, pick, i_max, mu)
+        keep_all = bool(_meta(model, model_path, "excluded", {}).get("keep_all", False))
+    fraction = float(_meta(model, model_path, "holdout_fraction", HOLDOUT_FRACTION))
+    i_max = _meta(model, model_path, "i_max_a", None)
+    if i_max is None:
+        raise ModelError(
+            f"{model_path}: field 'meta.i_max_a': missing (not a model of `mrrig train`)"
+        )
+    mu = float(_meta(model, model_path, "online_continuity", 0.0))
+    scores = Scores(mu, float(i_max))
+    plot_rows = _PlotRows(window)
+    reports = []
+    for path, raw in segments(data, columns, units, max_rows):
+        if raw.current_unit != unit:
+            raise DataError(
+                f"{path}: command in {raw.current_unit}, but the model's command input is in {unit}"
+            )
+        series, excluded = prepare(path, raw, keep_all)
+        reports.append(excluded)
+        X, y = features(series, **opts)
+        frows = feature_rows(series, opts["history_samples"], opts["history_stride"])
+        stretch = stretches(run_ids(series))[frows]
+        if rows == "holdout":
+            pick = block_split(stretch, fraction).val
+        else:
+            pick = np.arange(y.size)
+        f_model = scores.add(model, X, y, stretch, pick)
+        plot_rows.add(series.t[frows][pick], X[pick, 1], y[pick], f_model, stretch[pick])
+    numbers = scores.numbers(f"{model_path} on {', '.join(map(str, data))}")
     numbers.update(
         rows=rows,
         data=[str(p) for p in data],
         model=str(model_path),
         command_unit=unit,
-        excluded=excluded,
+        excluded=merge_reports(reports),
     )
-    arrays = {
-        "t": series.t[frows][pick],
-        "xd": X[pick, 1],
-        "f_meas": y[pick],
-        "f_model": predict(model, X[pick]),
-        "stretch": stretch[pick],
-    }
-    return numbers, arrays
+    return numbers, plot_rows.arrays()
+
+
+class _PlotRows:
+    """What a plot needs, bounded: the window's rows (default: the first `PLOT_WINDOW_S` of
+    the first stretch evaluated), at most `PLOT_MAX_ROWS`, and the errors of every row for
+    the histogram, thinned by halves to at most `PLOT_MAX_ROWS`."""
+
+    def __init__(self, window: tuple[float, float] | None) -> None:
+        self.window = window
+        self.parts: list[tuple[np.ndarray, ...]] = []
+        self.kept = 0
+        self.errors: list[np.ndarray] = []
+        self.stride = 1
+        self.n_errors = 0
+        self.started = False
+
+    def add(self, t, xd, f_meas, f_model, stretch) -> None:
+        if self.window is not None:
+            w = (t >= self.window[0]) & (t <= self.window[1])
+        elif self.started or not t.size:
+            w = np.zeros(t.size, dtype=bool)
+        else:
+            first = stretch == stretch[0]
+            w = first & (t <= t[first][0] + PLOT_WINDOW_S)
+        self.started |= bool(t.size)
+        idx = np.flatnonzero(w)[: PLOT_MAX_ROWS - self.kept]
+        if idx.size:
+            self.parts.append((t[idx], xd[idx], f_meas[idx], f_model[idx]))
+            self.kept += idx.size
+        self.errors.append((f_model - f_meas)[:: self.stride])
+        self.n_errors += self.errors[-1].size
+        if self.n_errors > PLOT_MAX_ROWS:
+            self.errors = [np.concatenate(self.errors)[::2]]
+            self.n_errors = self.errors[0].size
+            self.stride *= 2
+
+    def arrays(self) -> dict[str, np.ndarray]:
+        cols = [np.concatenate(c) for c in zip(*self.parts, strict=True)] or [np.empty(0)] * 4
+        t, xd, fm, fp = cols
+        return {"t": t, "xd": xd, "f_meas": fm, "f_model": fp, "error": np.concatenate(self.errors)}
 
 
 def format_numbers(r: dict[str, Any]) -> str:
@@ -128,30 +216,25 @@ def format_numbers(r: dict[str, Any]) -> str:
 
 
 def plot(arrays: dict[str, np.ndarray], path: Path, window: tuple[float, float] | None) -> None:
-    """Measured and model force over the window (default: the first `PLOT_WINDOW_S` of the
-    first run evaluated), the error histogram, force-velocity loops measured and model."""
+    """Measured and model force over the window's rows (`_PlotRows`), the error histogram,
+    force-velocity loops measured and model."""
     import matplotlib  # noqa: PLC0415 - only --plot pays for matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt  # noqa: PLC0415
 
     t, fm, fp, xd = arrays["t"], arrays["f_meas"], arrays["f_model"], arrays["xd"]
-    if window is None:
-        first = arrays["stretch"] == arrays["stretch"][0]
-        w = first & (t <= t[first][0] + PLOT_WINDOW_S)
-    else:
-        w = (t >= window[0]) & (t <= window[1])
-    if not w.any():
+    if not t.size:
         raise DataError(f"--window {window}: no evaluated row in it")
     fig, ax = plt.subplots(1, 3, figsize=(15, 4.5))
-    ax[0].plot(t[w], fm[w], label="measured", lw=1.0)
-    ax[0].plot(t[w], fp[w], label="model", lw=1.0)
+    ax[0].plot(t, fm, label="measured", lw=1.0)
+    ax[0].plot(t, fp, label="model", lw=1.0)
     ax[0].set(xlabel="t (s)", ylabel="force (N)", title="force")
     ax[0].legend()
-    ax[1].hist(fp - fm, bins=80)
+    ax[1].hist(arrays["error"], bins=80)
     ax[1].set(xlabel="model - measured (N)", ylabel="rows", title="error (all rows)")
-    ax[2].plot(xd[w], fm[w], label="measured", lw=0.8)
-    ax[2].plot(xd[w], fp[w], label="model", lw=0.8)
+    ax[2].plot(xd, fm, label="measured", lw=0.8)
+    ax[2].plot(xd, fp, label="model", lw=0.8)
     ax[2].set(xlabel="velocity (m/s)", ylabel="force (N)", title="force-velocity (window)")
     ax[2].legend()
     fig.tight_layout()
@@ -199,9 +282,13 @@ def main(argv: list[str] | None = None) -> int:
         raise ModelError(f"{args.model}: no input named 'current': not a forward model")
     columns = _mapping(args.columns, "--columns")
     units = _mapping(args.units, "--units")
-    numbers, arrays = evaluate(
-        model, args.model, args.data, columns, units, args.keep_all, args.rows
-    )
+    try:
+        numbers, arrays = evaluate(
+            model, args.model, args.data, columns, units, args.keep_all, args.rows, args.window
+        )
+    except MetricError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 1
     print(format_numbers(numbers))
     if args.plot:
         plot(arrays, args.plot, args.window)

@@ -13,7 +13,6 @@ Progress goes to `out` once a second: time, the force sent, the daemon's state a
 from __future__ import annotations
 
 import contextlib
-import csv
 import json
 import logging
 import math
@@ -27,6 +26,7 @@ import numpy as np
 import zenoh
 
 from mrrig.errors import MrrigError
+from mrrig.loop import profile_csv
 from mrrig.loop.safety import TRANSPORT_FAULTS
 from mrrig.rigio.client import ClientError, ZenohConfigLike, open_session, query
 from mrrig.rigio.sidecar import JSON, keys
@@ -42,53 +42,14 @@ class SendForceError(MrrigError, RuntimeError):
 
 
 def load_force_csv(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
-    """A force profile CSV: time (s) and force (N). With a header, the columns are found by
-    name (`t_s`, `force_n`, any order, other columns ignored); without one, the first two
-    columns are t_s, force_n. Blank lines are skipped. Returns (t_s, force_n), t increasing.
-    Any row that is not finite numbers is an error naming it: a dropped row would be bridged
-    by interpolation and streamed as if it were the profile."""
-    path = Path(path)
-    lines = [(n, line) for n, line in enumerate(path.read_text().splitlines(), 1) if line.strip()]
-    if not lines:
-        raise ValueError(f"{path}: empty force profile (expected columns t_s,force_n)")
-    first = next(csv.reader([lines[0][1]]))
-    cols = (0, 1)
-    if not _numbers(first):
-        names = [c.strip() for c in first]
-        missing = [c for c in (TIME_COLUMN, FORCE_COLUMN) if c not in names]
-        if missing:
-            raise ValueError(
-                f"{path}:{lines[0][0]}: header {','.join(names)!r} has no column"
-                f" {' or '.join(missing)} (expected t_s and force_n)"
-            )
-        cols = (names.index(TIME_COLUMN), names.index(FORCE_COLUMN))
-        lines = lines[1:]
-    rows = []
-    for number, line in lines:
-        cells = next(csv.reader([line]))
-        try:
-            row = (float(cells[cols[0]]), float(cells[cols[1]]))
-        except (ValueError, IndexError):
-            raise ValueError(
-                f"{path}:{number}: expected t_s,force_n numbers, got {line!r}"
-            ) from None
-        if not all(map(math.isfinite, row)):
-            raise ValueError(f"{path}:{number}: t_s and force_n must be finite, got {line!r}")
-        rows.append(row)
-    if len(rows) < 2:
+    """A force profile CSV (`loop.profile_csv`, the daemon's reader): time (s) and force (N),
+    t increasing, at least two rows. Any row that is not finite numbers is an error naming
+    it: a dropped row would be bridged by interpolation and streamed as if it were the
+    profile."""
+    t_s, force_n = profile_csv.read(str(path), TIME_COLUMN, FORCE_COLUMN)
+    if t_s.size < 2:
         raise ValueError(f"{path}: a force profile needs at least two rows t_s,force_n")
-    data = np.array(rows)
-    if not np.all(np.diff(data[:, 0]) > 0):
-        raise ValueError(f"{path}: time column must be strictly increasing")
-    return data[:, 0], data[:, 1]
-
-
-def _numbers(cells: list[str]) -> bool:
-    try:
-        [float(c) for c in cells]
-    except ValueError:
-        return False
-    return bool(cells)
+    return t_s, force_n
 
 
 def csv_profile(path: str | Path) -> tuple[Callable[[float], float], float]:

@@ -464,7 +464,7 @@ def exclude_bad_stretches(series: Series, keep_all: bool = False) -> tuple[Serie
     idx = np.flatnonzero(~bad)
     gap = np.concatenate([[False], np.diff(idx) > 1])
     rid = run_ids(kept)
-    new = np.cumsum(np.concatenate([[True], (rid[1:] != rid[:-1]) | gap[1:]])) - 1
+    new = np.cumsum(np.concatenate([[True], (rid[1:] != rid[:-1]) | gap[1:]])[: idx.size]) - 1
     return replace(kept, run_id=new.astype(int)), report
 
 

@@ -11,11 +11,14 @@ in time, as many blocks of the data side by side in one loop (`online_inversion`
 from __future__ import annotations
 
 import logging
+import math
 from collections.abc import Callable, Sequence
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
+from mrrig.errors import MrrigError
 from mrrig.loop.inversion import exact_inversion
 from mrrig.loop.mlp import MLP
 from mrrig.offline.metrics import error_norm, percentiles, rmse
@@ -275,30 +278,109 @@ def choose_continuity(
     return best[0], best[2], scores
 
 
-def evaluate_rows(
-    model: MLP,
-    X: np.ndarray,
-    y: np.ndarray,
-    stretch: np.ndarray,
-    rows: np.ndarray,
-    i_max: float,
-    continuity: float,
-    block: int | None = ONLINE_BLOCK_ROWS,
-) -> dict[str, Any]:
-    """A model's numbers on `rows` of (X, y): forward Et and RMSE, and network inversion's
-    inverse-current RMSE, each sample alone (from 0 A) and on-line (`online_inversion` with
-    `continuity`, from `ONLINE_WARMUP_ROWS` rows before each piece of `rows`). What `mrrig
-    evaluate` prints and the training report's hold-out numbers (the same function)."""
-    c = model.current_index
-    f = predict(model, X[rows])
-    feats = np.delete(X[rows], c, axis=1)
-    i_alone = exact_inversion(model, feats, y[rows], 0.0, i_max=i_max)
-    i_on = online_inversion(model, X, y, stretch, i_max, continuity, rows=rows, block=block)[rows]
-    return {
-        "n": int(rows.size),
-        "forward": {"et": error_norm(y[rows], f), "rmse_n": rmse(y[rows], f)},
-        "inverse_current_rmse": rmse(i_alone, X[rows, c]),
-        "inverse_current_rmse_online": rmse(i_on, X[rows, c]),
-        "continuity": continuity,
-        "i_max": i_max,
-    }
+class MetricError(MrrigError, ArithmeticError):
+    """A metric that came out NaN or infinite: the data cannot be scored as they are."""
+
+
+@dataclass
+class Scores:
+    """A model's numbers on rows given piece by piece (`add`): forward Et and RMSE, and network
+    inversion's inverse-current RMSE, each sample alone (from 0 A) and on-line
+    (`online_inversion`). Sums only, so memory does not grow with the rows; the force's
+    spread is combined piece by piece (Chan et al.), so one piece gives exactly what
+    `metrics.error_norm` and `metrics.rmse` give. What `mrrig evaluate` prints."""
+
+    continuity: float
+    i_max: float
+    n: int = 0
+    mean_f: float = 0.0
+    m2_f: float = 0.0  # sum of squared deviations of the measured force from its mean
+    sse_f: float = 0.0
+    sse_alone: float = 0.0
+    sse_online: float = 0.0
+
+    def add(
+        self,
+        model: MLP,
+        X: np.ndarray,
+        y: np.ndarray,
+        stretch: np.ndarray,
+        rows: np.ndarray,
+        block: int | None = ONLINE_BLOCK_ROWS,
+    ) -> np.ndarray:
+        """Score `rows` of (X, y) (stretch ids `stretch`, the on-line inversion running from
+        `ONLINE_WARMUP_ROWS` rows before each piece of them); returns the model's force there."""
+        c = model.current_index
+        y_r = y[rows]
+        f = predict(model, X[rows])
+        i_alone = np.empty(rows.size)
+        for a in range(0, rows.size, PREDICT_CHUNK_ROWS):
+            r = rows[a : a + PREDICT_CHUNK_ROWS]
+            feats = np.delete(X[r], c, axis=1)
+            i_alone[a : a + r.size] = exact_inversion(model, feats, y[r], 0.0, i_max=self.i_max)
+        i_on = online_inversion(
+            model, X, y, stretch, self.i_max, self.continuity, rows=rows, block=block
+        )[rows]
+        i_true = X[rows, c]
+        n, mean = rows.size, float(np.mean(y_r)) if rows.size else 0.0
+        m2 = float(np.sum((y_r - mean) ** 2))
+        if self.n == 0:
+            self.mean_f, self.m2_f = mean, m2
+        elif n:
+            delta, total = mean - self.mean_f, self.n + n
+            self.mean_f += delta * n / total
+            self.m2_f += m2 + delta * delta * self.n * n / total
+        self.n += n
+        d = y_r - f
+        self.sse_f += float(np.sum(d * d))
+        d = i_alone - i_true
+        self.sse_alone += float(np.sum(d * d))
+        d = i_on - i_true
+        self.sse_online += float(np.sum(d * d))
+        return f
+
+    def numbers(self, where: str) -> dict[str, Any]:
+        """The numbers (eqs 41-43 for Et); a MetricError naming `where` and the reason when
+        one is not finite."""
+        if self.n == 0:
+            raise MetricError(f"{where}: no row to evaluate")
+        with np.errstate(divide="ignore", invalid="ignore"):
+            et = float(np.sqrt(self.sse_f) / np.sqrt(self.m2_f))  # eqs 41-43
+        out = {
+            "n": self.n,
+            "forward": {"et": et, "rmse_n": float(np.sqrt(self.sse_f / self.n))},
+            "inverse_current_rmse": float(np.sqrt(self.sse_alone / self.n)),
+            "inverse_current_rmse_online": float(np.sqrt(self.sse_online / self.n)),
+            "continuity": self.continuity,
+            "i_max": self.i_max,
+        }
+        if not self.m2_f > 0.0:
+            raise MetricError(
+                f"{where}: forward Et is {et}: the measured force does not vary over the"
+                f" {self.n} rows (Et is relative to its spread)"
+            )
+        check_finite(
+            out,
+            f"{where}, {self.n} rows",
+            "the model's force or the data's values overflow (a model of other data, or"
+            " values far outside what it was trained on)",
+        )
+        return out
+
+
+def check_finite(numbers: dict[str, Any], where: str, why: str) -> None:
+    """A MetricError naming `where`, every number of `numbers` (nested) that is NaN or
+    infinite, and `why`: a report that cannot be trusted."""
+    bad = [f"{k} {v}" for k, v in _flat_numbers(numbers).items() if not math.isfinite(v)]
+    if bad:
+        raise MetricError(f"{where}: {', '.join(bad)}: not finite: {why}")
+
+
+def _flat_numbers(d: Any, prefix: str = "") -> dict[str, float]:
+    out: dict[str, float] = {}
+    if isinstance(d, dict):
+        for k, v in d.items():
+            out.update(_flat_numbers(v, f"{prefix}{k}."))
+    elif isinstance(d, float | int) and not isinstance(d, bool):
+        out[prefix.rstrip(".")] = float(d)
+    return out
