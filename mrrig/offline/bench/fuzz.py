@@ -196,13 +196,16 @@ class Requests:
     def send(self, payload: str | bytes) -> None:
         self.answered.append(False)
         self.sent_s.append(time.monotonic())
-        self.session.get(
-            self.key,
-            functools.partial(self._on_reply, len(self.sent_s) - 1),
-            payload=payload,
-            encoding=JSON,
-            timeout=REQUEST_TIMEOUT_S,
-        )
+        try:
+            self.session.get(
+                self.key,
+                functools.partial(self._on_reply, len(self.sent_s) - 1),
+                payload=payload,
+                encoding=JSON,
+                timeout=REQUEST_TIMEOUT_S,
+            )
+        except zenoh.ZError:  # the session closed: a daemon that did not come back
+            return
 
     def unanswered(
         self, excused: list[tuple[float, float]], wait_s: float = REQUEST_TIMEOUT_S + 1.0
@@ -216,9 +219,13 @@ class Requests:
         )
 
     def ask(self, request: dict) -> dict | None:
-        for reply in self.session.get(
-            self.key, payload=json.dumps(request), encoding=JSON, timeout=REQUEST_TIMEOUT_S
-        ):
+        try:
+            replies = self.session.get(
+                self.key, payload=json.dumps(request), encoding=JSON, timeout=REQUEST_TIMEOUT_S
+            )
+        except zenoh.ZError:  # the session closed: a daemon that did not come back
+            return None
+        for reply in replies:
             if reply.ok is not None:
                 return json.loads(reply.ok.payload.to_bytes())
         return None
@@ -505,7 +512,7 @@ def run(minutes: float, config: Path, sim_config: Path, seed: int, out: Path | N
             if kind in ("amplitude", "frequency"):
                 requests.ask(BASE_MOTION)
             elif kind == "force_ref":
-                requests.ask({"cmd": "set_profile", "kind": "zenoh", "timeout_s": 0.5})
+                requests.ask({"cmd": "set_profile", "kind": "zenoh", "timeout_s": 1.0})
                 daemon.session.put(force_ref_key, "0")  # not stale when armed
             steps = chain(kind, rng)
             if kind != "set_profile":
@@ -555,6 +562,8 @@ def run(minutes: float, config: Path, sim_config: Path, seed: int, out: Path | N
         t_next = time.monotonic()
         armed = False
         while (now := time.monotonic()) < end or len(unsent) > 1 or pending is not None:
+            # after a step that blocked (a restart, a sequence): on at the rates, no catch-up
+            t_next, next_req = max(t_next, now - 0.1), max(next_req, now - 0.1)
             if now >= t_next:
                 bad = now >= next_bad
                 if bad:
@@ -763,4 +772,8 @@ def main(argv: list[str] | None = None) -> int:
     from mrrig.cli.demo import SIM_MODEL, ensure_sim_model
 
     ensure_sim_model(SIM_MODEL)  # the configs' model: trained on first use, as the demo does
-    return run(args.minutes, args.config, args.sim_config, args.seed, args.json)
+    try:
+        return run(args.minutes, args.config, args.sim_config, args.seed, args.json)
+    except RuntimeError as exc:  # the daemon did not come up at the start
+        log.error("error: %s", exc)
+        return 1
