@@ -31,6 +31,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "send-force": ("mrrig.cli.client", "stream a desired-force profile to the daemon"),
     "control": ("mrrig.cli.client", "send one JSON control request and print the reply"),
     "review": ("mrrig.cli.review", "print the metrics of a Rerun recording (.rrd)"),
+    "export": ("mrrig.cli.export", "a recording as Parquet, CSV or MDF4, columns with units"),
     "characterize": ("mrrig.offline.characterize", "run the characterization matrix on the rig"),
     "train": ("mrrig.cli.train", "train the forward network from recorded data"),
     "evaluate": ("mrrig.offline.evaluate", "a forward model's Et and inverse RMSE on data, --plot"),

@@ -13,15 +13,18 @@ from pathlib import Path
 
 from mrrig import json_text
 from mrrig.cli_args import HelpFormatter, finite, output_file
+from mrrig.export import read_any
 from mrrig.loop.summary import format_summary, summarize
-from mrrig.offline.review import read_recording, verify_rrd
+from mrrig.offline.review import verify_rrd
 
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(
         formatter_class=HelpFormatter, prog="mrrig review", description=__doc__
     )
-    ap.add_argument("file", type=Path, help="a recording (.rrd) written by the daemon")
+    ap.add_argument(
+        "file", type=Path, help="a recording (.rrd) written by the daemon, or its .parquet or .mf4"
+    )
     ap.add_argument("--from", dest="t_from", type=finite, help="window start, sensor time (s)")
     ap.add_argument("--to", dest="t_to", type=finite, help="window end, sensor time (s)")
     ap.add_argument("--plot", type=output_file, help="also write a figure (PNG) of the window")
@@ -42,7 +45,7 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     if args.verify:
         verify_rrd(args.file)
-    rec = read_recording(args.file)
+    rec = read_any(args.file)  # .rrd, or its Parquet or MDF4 export
     if rec.summary is None:
         logging.getLogger("mrrig.offline.review").error(
             "%s: truncated: no end-of-run summary (the recording failed or the run was killed); %s",

@@ -20,6 +20,7 @@ from typing import Any
 
 import numpy as np
 
+from mrrig.export import RECORDING_SUFFIXES
 from mrrig.loop.estimation import kalman_lanes
 from mrrig.offline.datasets import (
     TIDY_HEADER,
@@ -131,8 +132,8 @@ def sample_period(t: np.ndarray) -> float:
 
 
 def load_recording(path: str | Path) -> Series:
-    """A daemon recording (.rrd) as a Series: x_est, xd, xdd (the daemon's own Kalman
-    estimates, the inputs its controller saw), f_meas, i_cmd.
+    """A daemon recording (.rrd, or its .parquet/.mf4 export) as a Series: x_est, xd, xdd (the
+    daemon's own Kalman estimates, the inputs its controller saw), f_meas, i_cmd.
 
     Samples in FAULT are dropped: there the command path is not trusted. In IDLE the daemon
     sends SAFE 0 A and records i_cmd = 0, which is what the firmware applies, so those samples
@@ -141,11 +142,11 @@ def load_recording(path: str | Path) -> Series:
     stretch or time gap over 5 sample periods, so lag filters restart there.
     """
     # rerun and pyarrow are slow to import: only .rrd inputs pay for them
+    from mrrig.export import read_any
     from mrrig.loop.samples import RigState
-    from mrrig.offline.review import read_recording
 
     path = Path(path)
-    s = read_recording(path).samples
+    s = read_any(path).samples  # the .rrd, or its Parquet or MDF4 export
     fields = ("t", "x_est", "xd", "xdd", "f_meas", "i_cmd")
     keep = s["state"] != RigState.FAULT
     for f in fields:
@@ -270,7 +271,7 @@ def load_file(
     (`datasets.columns_from_header`); a new run wherever time does not increase."""
     if not path.is_file():
         raise DataError(f"{path}: no such file")
-    if path.suffix.lower() == ".rrd":
+    if path.suffix.lower() in RECORDING_SUFFIXES:
         return load_recording(path)
     if _is_tidy(path):
         return load_tidy(path)

@@ -28,6 +28,7 @@ from typing import Any
 
 import numpy as np
 
+from mrrig.export import RECORDING_SUFFIXES
 from mrrig.offline.datasets import (
     COMMAND_UNITS,
     DataError,
@@ -159,7 +160,7 @@ def segments(
     for path in map(Path, paths):
         if not path.is_file():
             raise DataError(f"{path}: no such file")
-        if path.suffix.lower() == ".rrd" or _is_tidy(path):
+        if path.suffix.lower() in RECORDING_SUFFIXES or _is_tidy(path):
             for s in _cut(load_file(path, columns, units), max_rows):
                 yield path, s
         else:

@@ -1,0 +1,226 @@
+"""`mrrig export`: a recording as Parquet, CSV and MDF4, read back by pyarrow, pandas and
+asammdf with the recording's values, units and sample count and an absolute UTC time; `mrrig
+review` and the training/evaluate loader read the Parquet and MDF4 files back."""
+
+from __future__ import annotations
+
+import datetime as dt
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pyarrow as pa
+import pyarrow.parquet as pq
+import pytest
+from asammdf import MDF
+
+from mrrig.export import COLUMNS, META_KEY, UTC_COLUMN, read_any
+from mrrig.loop.samples import SAMPLE_DTYPE
+from mrrig.loop.summary import summarize
+from mrrig.offline.review import read_recording
+from mrrig.offline.training.data import load_file
+from tests.conftest import REPO, rig_config, start, stop
+from tests.test_lifecycle_errors import NO_MODEL, one_error_line
+from tests.test_recording import run_events, synthetic_run, write_recording
+
+UNITS = {
+    "t_s": "s",
+    "x_m": "m",
+    "xd_m_s": "m/s",
+    "xdd_m_s2": "m/s^2",
+    "force_n": "N",
+    "f_des_n": "N",
+    "f_model_n": "N",
+    "i_cmd_a": "A",
+    "i_meas_a": "A",
+    "latency_us": "us",
+    "temp_degc": "degC",
+}
+
+
+def mrrig(*args: str) -> subprocess.CompletedProcess:
+    return subprocess.run(
+        [sys.executable, "-m", "mrrig", *args],
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+        timeout=120,
+        check=False,
+    )
+
+
+def export(rrd: Path, fmt: str) -> Path:
+    out = rrd.with_suffix(f".{fmt}")
+    proc = mrrig("export", str(rrd), "--to", fmt, "--out", str(out))
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    assert f"{out}: " in proc.stdout
+    return out
+
+
+@pytest.fixture(scope="module")
+def real_run(tmp_path_factory) -> tuple[Path, object]:
+    """A 3 s armed run of the daemon against firmware_sim, recorded, and its read-back."""
+    from mrrig.rigio.canbus.bus import find_free_port, start_bridge, stop_bridge
+
+    tmp = tmp_path_factory.mktemp("export")
+    port = find_free_port()
+    bridge = start_bridge(port)
+    channel = f"ws://127.0.0.1:{port}/"
+    sim = start(["-m", "firmware_sim", "--config", "configs/sim.toml", "-c", channel])
+    try:
+        cfg = rig_config(tmp, channel, None, **NO_MODEL)
+        rrd = tmp / "rig1-run.rrd"
+        proc = mrrig("run", "--config", str(cfg), "--duration", "3", "--arm", "--record", str(rrd))
+        assert proc.returncode == 0, proc.stdout + proc.stderr
+    finally:
+        stop(sim)
+        stop_bridge(bridge)
+    return rrd, read_recording(rrd)
+
+
+@pytest.fixture(scope="module")
+def synthetic(tmp_path_factory) -> tuple[Path, object]:
+    """A recording without run identity, its name holding the recorder's UTC start."""
+    path = tmp_path_factory.mktemp("export_syn") / "rig1-20260101T120000Z.rrd"
+    s = synthetic_run(1500)
+    events = run_events(s)
+    write_recording(path, s, events, summarize(s, events, {"frames_received": 1500}))
+    return path, read_recording(path)
+
+
+def _same(a: np.ndarray, b: np.ndarray) -> bool:
+    return a.shape == b.shape and bool(np.array_equal(a, b, equal_nan=a.dtype.kind == "f"))
+
+
+def _started(rec) -> dt.datetime:
+    return dt.datetime.fromisoformat(rec.identity["started_utc"]).astimezone(dt.UTC)
+
+
+def _utc_ns(t0: dt.datetime, t: np.ndarray) -> np.ndarray:
+    base = int(t0.timestamp()) * 1_000_000_000 + t0.microsecond * 1000
+    return base + np.round(t * 1e9).astype(np.int64)
+
+
+@pytest.mark.process
+def test_parquet_reads_back_with_pyarrow_with_the_values_units_and_utc(real_run):
+    rrd, rec = real_run
+    assert rec.samples.size > 1000 and rec.identity  # 3 s at 500 Hz, with its identity
+    table = pq.read_table(export(rrd, "parquet"))
+    assert table.num_rows == rec.samples.size
+    assert table.column_names == [UTC_COLUMN] + [c.name for c in COLUMNS]
+    for c in COLUMNS:
+        assert _same(table.column(c.name).to_numpy(), rec.samples[c.field]), c.name
+        meta = table.schema.field(c.name).metadata
+        assert meta[b"unit"].decode() == c.unit and meta[b"field"].decode() == c.field
+    for name, unit in UNITS.items():
+        assert table.schema.field(name).metadata[b"unit"].decode() == unit
+    utc = table.column(UTC_COLUMN).cast("int64").to_numpy()
+    assert np.array_equal(utc, _utc_ns(_started(rec), rec.samples["t"]))
+    meta = json.loads(table.schema.metadata[META_KEY.encode()])
+    assert meta["utc_source"] == "run identity started_utc"
+    assert meta["identity"]["run_id"] == rec.identity["run_id"]
+    assert meta["summary"]["frames"] == rec.summary["frames"]
+
+
+@pytest.mark.process
+def test_mf4_reads_back_with_asammdf_with_the_values_units_and_utc(real_run):
+    rrd, rec = real_run
+    mdf = MDF(export(rrd, "mf4"))
+    try:
+        assert mdf.header.start_time.astimezone(dt.UTC) == _started(rec)
+        for c in COLUMNS[1:]:
+            sig = mdf.get(c.name)
+            assert sig.samples.size == rec.samples.size, c.name
+            assert _same(sig.samples, rec.samples[c.field]), c.name
+            assert sig.unit == c.unit and sig.comment == c.description, c.name
+            assert _same(sig.timestamps, rec.samples["t"]), c.name
+        for name, unit in UNITS.items():
+            if name != "t_s":
+                assert mdf.get(name).unit == unit
+        assert mdf.groups[0].channels[0].name == "t_s"
+        utc = mdf.get("utc_unix_s").samples
+        expected = _utc_ns(_started(rec), rec.samples["t"]) / 1e9
+        assert np.abs(utc - expected).max() < 1e-6  # float64 Unix seconds: to a microsecond
+    finally:
+        mdf.close()
+
+
+@pytest.mark.process
+def test_review_of_the_parquet_and_mf4_gives_the_metrics_of_the_rrd(real_run):
+    rrd, _ = real_run
+    metrics = {}
+    for path in (rrd, rrd.with_suffix(".parquet"), rrd.with_suffix(".mf4")):
+        if not path.exists():
+            export(rrd, path.suffix[1:])
+        out = path.with_suffix(path.suffix + ".json")
+        proc = mrrig("review", str(path), "--json", str(out))
+        assert proc.returncode == 0, proc.stdout + proc.stderr
+        metrics[path.suffix] = json.loads(out.read_text())
+    assert metrics[".rrd"]["frames"] > 1000
+    assert "et" in metrics[".rrd"]
+    assert metrics[".parquet"] == metrics[".rrd"]
+    assert metrics[".mf4"] == metrics[".rrd"]
+
+
+def test_csv_has_unit_named_columns_a_commented_preamble_and_the_values(synthetic, tmp_path):
+    rrd, rec = synthetic
+    csv = export(rrd, "csv")
+    preamble = [line for line in csv.read_text().splitlines() if line.startswith("#")]
+    assert any(line.startswith("# force_n [N]: load-cell force") for line in preamble)
+    meta = json.loads(preamble[1].removeprefix(f"# {META_KEY}: "))
+    assert meta["columns"]["xd_m_s"] == {"unit": "m/s", "field": "xd"}
+    frame = pd.read_csv(csv, comment="#")
+    assert list(frame.columns) == [UTC_COLUMN] + [c.name for c in COLUMNS]
+    assert len(frame) == rec.samples.size
+    for c in COLUMNS:
+        assert _same(frame[c.name].to_numpy(), rec.samples[c.field]), c.name
+
+
+def test_without_identity_the_utc_comes_from_the_file_name_and_says_so(synthetic):
+    rrd, rec = synthetic
+    assert rec.identity is None
+    table = pq.read_table(export(rrd, "parquet"))
+    meta = json.loads(table.schema.metadata[META_KEY.encode()])
+    assert meta["utc_source"].startswith("file name")
+    t0 = dt.datetime(2026, 1, 1, 12, 0, 0, tzinfo=dt.UTC)
+    utc = table.column(UTC_COLUMN).cast("int64").to_numpy()
+    assert np.array_equal(utc, _utc_ns(t0, rec.samples["t"]))
+
+
+def test_the_training_and_evaluate_loader_reads_the_exports_as_the_rrd(synthetic):
+    rrd, _ = synthetic
+    want = load_file(rrd)
+    for fmt in ("parquet", "mf4"):
+        got = load_file(export(rrd, fmt))
+        for name in ("t", "x", "xd", "xdd", "current", "force", "run_id"):
+            assert _same(getattr(got, name), getattr(want, name)), (fmt, name)
+
+
+def test_read_any_gives_the_recording_of_the_rrd(synthetic):
+    rrd, rec = synthetic
+    for fmt in ("parquet", "mf4"):
+        back = read_any(export(rrd, fmt))
+        assert back.samples.dtype == SAMPLE_DTYPE
+        for name in SAMPLE_DTYPE.names:
+            assert _same(back.samples[name], rec.samples[name]), (fmt, name)
+        assert back.events == rec.events and back.identity == rec.identity
+        assert json.dumps(back.summary) == json.dumps(rec.summary)
+
+
+def test_a_parquet_file_of_another_tool_is_one_error_line(tmp_path):
+    other = tmp_path / "other.parquet"
+    pq.write_table(pa.table({"a": [1.0, 2.0]}), other)
+    proc = mrrig("review", str(other))
+    assert one_error_line(proc) == f"error: {other}: not an mrrig export (no 'mrrig' metadata)"
+
+
+def test_export_onto_the_recording_itself_is_refused(synthetic, tmp_path):
+    rrd, _ = synthetic
+    parquet = export(rrd, "parquet")
+    before = parquet.read_bytes()
+    proc = mrrig("export", str(parquet), "--to", "parquet")
+    assert proc.returncode == 2 and "is the recording itself" in proc.stderr
+    assert parquet.read_bytes() == before
