@@ -105,12 +105,10 @@ def utc_start(rec: Recording) -> tuple[dt.datetime | None, str]:
     return None, "none: no run identity, no time in the file name, no samples"
 
 
-def _utc_ns(rec: Recording, t0: dt.datetime | None) -> np.ndarray:
-    """Nanoseconds since the Unix epoch, UTC, per sample (int64)."""
-    if t0 is None:
-        return np.full(rec.samples.size, np.iinfo(np.int64).min, dtype=np.int64)  # NaT
+def utc_ns(t: np.ndarray, t0: dt.datetime) -> np.ndarray:
+    """Nanoseconds since the Unix epoch, UTC (int64), of sensor times `t` (s) after `t0`."""
     base = int(t0.timestamp()) * 1_000_000_000 + t0.microsecond * 1000
-    return base + np.round(rec.samples["t"] * 1e9).astype(np.int64)
+    return base + np.round(t * 1e9).astype(np.int64)
 
 
 def _meta(rec: Recording, utc_source: str, t0: dt.datetime | None) -> str:
@@ -160,9 +158,11 @@ def _write_parquet(rec: Recording, out: Path, t0: dt.datetime | None, meta: str)
             metadata={"unit": "UTC", "description": UTC_DESCRIPTION},
         )
     ]
-    arrays = [pa.array(_utc_ns(rec, t0), type=pa.int64()).cast(pa.timestamp("ns", tz="UTC"))]
+    utc_type = pa.timestamp("ns", tz="UTC")
     if t0 is None:
-        arrays[0] = pa.nulls(s.size, pa.timestamp("ns", tz="UTC"))
+        arrays = [pa.nulls(s.size, utc_type)]
+    else:
+        arrays = [pa.array(utc_ns(s["t"], t0), type=pa.int64()).cast(utc_type)]
     for c in COLUMNS:
         arrays.append(pa.array(s[c.field]))
         fields.append(
@@ -180,7 +180,7 @@ def _write_csv(rec: Recording, out: Path, t0: dt.datetime | None, meta: str) -> 
     import pandas as pd
 
     frame = pd.DataFrame({c.name: rec.samples[c.field] for c in COLUMNS})
-    utc = pd.to_datetime(_utc_ns(rec, t0), utc=True) if t0 else pd.NaT
+    utc = pd.to_datetime(utc_ns(rec.samples["t"], t0), utc=True) if t0 else pd.NaT
     frame.insert(0, UTC_COLUMN, utc)
     with out.open("w", newline="") as f:
         f.write(f"# mrrig export of {rec.path.name}; metadata (JSON) on the next line\n")
@@ -199,7 +199,7 @@ def _write_mf4(rec: Recording, out: Path, t0: dt.datetime | None, meta: str) -> 
     mdf = MDF(version="4.10")
     if t0 is not None:
         mdf.header.start_time = t0
-    utc_s = _utc_ns(rec, t0) / 1e9 if t0 else np.full(s.size, np.nan)
+    utc_s = utc_ns(s["t"], t0) / 1e9 if t0 else np.full(s.size, np.nan)
     signals = [
         Signal(utc_s, t, name="utc_unix_s", unit="s", comment=f"{UTC_DESCRIPTION}, Unix time")
     ]
