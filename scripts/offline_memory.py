@@ -63,7 +63,14 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--samples", type=int, default=20_000_000)
     ap.add_argument("--pool-runs", type=int, default=20, help="distinct simulated runs")
+    ap.add_argument(
+        "--train-defaults",
+        action="store_true",
+        help="train with mrrig train's defaults (the feature search, restarts, the supervised"
+        " inverse) instead of one manual network: longer",
+    )
     args = ap.parse_args()
+    flags = [] if args.train_defaults else TRAIN_FLAGS
     tmp = Path(tempfile.mkdtemp(prefix="mrrig-offline-memory-"))
     try:
         data = tmp / "big.csv"
@@ -77,7 +84,7 @@ def main() -> int:
         print(f"segments of {SEGMENT_ROWS} samples; train keeps at most {TRAIN_MAX_SAMPLES}")
         model = tmp / "m.json"
         runs = {
-            "train": [str(MRRIG), "-q", "train", str(data), "--out", str(model), *TRAIN_FLAGS],
+            "train": [str(MRRIG), "-q", "train", str(data), "--out", str(model), *flags],
             "evaluate": [str(MRRIG), "-q", "evaluate", str(model), str(data)],
         }
         worst = 0

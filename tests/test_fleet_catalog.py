@@ -78,7 +78,8 @@ def test_three_rigs_register_their_runs_in_one_catalog_a_fourth_client_finds_the
         for daemon in daemons.values():
             out, _ = daemon.communicate(timeout=120)
             assert daemon.returncode in (0, 1), out  # 1: a fault; the catalog says so too
-            assert "registered in" in out, out[-2000:]
+            assert "Traceback" not in out, out[-3000:]
+            assert " registered in " in out and " (spooled" not in out, out[-2000:]
     finally:
         for proc in sims.values():
             stop(proc)

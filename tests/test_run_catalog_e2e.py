@@ -60,8 +60,10 @@ def test_a_daemon_run_is_in_the_catalog_in_its_recording_and_on_zenoh(tmp_path, 
         sub.undeclare()
     out.join()
     print(out.text()[-1500:])
+    assert "Traceback" not in out.text(), out.text()[-3000:]
     assert rc in (0, 1), out.text()  # 1: ended in a fault (checked below against the catalog)
     summary = json.loads(summary_path.read_text())
+    assert f"run {summary['run_id']} registered in sqlite" in out.text(), out.text()[-2000:]
     listed = subprocess.run(
         [sys.executable, "-m", "mrrig", "runs", "--json", "--catalog", str(catalog)],
         cwd=REPO, capture_output=True, text=True, timeout=60,

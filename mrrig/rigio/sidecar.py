@@ -683,7 +683,8 @@ class Sidecar:
         except CatalogError as exc:
             log.error("run %s not registered: %s", record.run_id, exc)
             return
-        log.info("run %s registered in %s", record.run_id, where.catalog)
+        spooled = " (spooled: the catalog asked for was unreachable)" if where.spooled else ""
+        log.info("run %s registered in %s%s", record.run_id, where.url, spooled)
 
 
 def run_record(ident: dict[str, Any], summary: dict[str, Any], recording: Path | None) -> Any:
