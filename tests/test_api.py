@@ -149,6 +149,9 @@ def test_an_unclosed_rig_does_not_keep_the_interpreter_from_exiting(rig):
         f"""
         from mrrig.api import Rig
         r = Rig({RIG!r}, zenoh_config={str(rig)!r})
+        r.me = r  # in a reference cycle, left to the interpreter's end
+        batches = iter(r.telemetry(duration_s=5.0))
+        next(batches)  # a subscriber declared, mid-iteration
         print(r.status()["state"], flush=True)
         """
     )
