@@ -30,6 +30,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from mrrig import json_text
 from mrrig.errors import MrrigError
 from mrrig.loop.samples import SAMPLE_DTYPE, RigState
 
@@ -112,8 +113,8 @@ def utc_ns(t: np.ndarray, t0: dt.datetime) -> np.ndarray:
 
 
 def _meta(rec: Recording, utc_source: str, t0: dt.datetime | None) -> str:
-    """The run's identity, summary and events (as the recording stores them: NaN allowed)."""
-    return json.dumps(
+    """The run's identity, summary and events, strict JSON (an undefined number is null)."""
+    return json_text.dumps(
         {
             "source": rec.path.name,
             "identity": rec.identity,
