@@ -114,6 +114,20 @@ def _shared_base(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return root.parent if os.environ.get("PYTEST_XDIST_WORKER") else root
 
 
+@pytest.fixture(scope="session", autouse=True)
+def _runs_catalog_of_the_tests(tmp_path_factory: pytest.TempPathFactory) -> Iterator[None]:
+    """The daemons the tests start register their runs in a catalog of the test run's own
+    ($MRRIG_CATALOG, inherited by every process), not in the checkout's recordings/."""
+    path = tmp_path_factory.mktemp("catalog") / "catalog.sqlite"
+    old = os.environ.get("MRRIG_CATALOG")
+    os.environ["MRRIG_CATALOG"] = str(path)
+    yield
+    if old is None:
+        os.environ.pop("MRRIG_CATALOG", None)
+    else:
+        os.environ["MRRIG_CATALOG"] = old
+
+
 @pytest.fixture(scope="module", autouse=True)
 def _process_modules_run_alone(
     request: pytest.FixtureRequest, tmp_path_factory: pytest.TempPathFactory

@@ -12,6 +12,7 @@ import dataclasses
 import datetime as dt
 import getpass
 import hashlib
+import os
 import socket
 import uuid
 from importlib import metadata
@@ -22,6 +23,7 @@ from mrrig.config import DaemonConfig
 
 # the catalog of a run whose config names none: beside the recordings
 DEFAULT_CATALOG_NAME = "catalog.sqlite"
+CATALOG_ENV = "MRRIG_CATALOG"  # the catalog of runs whose config names none
 
 
 def file_sha256(path: str | Path) -> str | None:
@@ -62,10 +64,11 @@ def _json_value(v: Any) -> Any:
 
 def catalog_urls(cfg: DaemonConfig) -> tuple[str, str | None]:
     """(the catalog the run goes to, the local one it is spooled to where that one cannot be
-    reached): `[catalog] url`, by default `<recording.directory>/catalog.sqlite`; a remote
-    catalog spools to `[catalog] spool`, by default that local file."""
+    reached): `[catalog] url`, else `$MRRIG_CATALOG` (as `mrrig runs` reads it), else
+    `<recording.directory>/catalog.sqlite`; a remote catalog spools to `[catalog] spool`, by
+    default that local file."""
     local = str(cfg.recording.directory / DEFAULT_CATALOG_NAME)
-    url = cfg.catalog.url or local
+    url = cfg.catalog.url or os.environ.get(CATALOG_ENV) or local
     if url == local or "://" not in url:
         return url, None
     return url, str(cfg.catalog.spool) if cfg.catalog.spool else local

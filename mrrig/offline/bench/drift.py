@@ -33,6 +33,7 @@ from mrrig.loop.samples import RigState
 from mrrig.offline.metrics import error_norm
 from mrrig.rigio import client
 from mrrig.rigio.canbus.bus import find_free_port, start_bridge, stop_bridge
+from mrrig.rigio.run_identity import CATALOG_ENV
 from mrrig.typed_config import load_toml
 
 log = logging.getLogger(__name__)
@@ -235,6 +236,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--json", type=output_file, help="also write the numbers to this JSON file")
     args = ap.parse_args(argv)
     work = Path(tempfile.mkdtemp(prefix="mrrig-drift-"))
+    # the benchmark's daemon runs go into a catalog of their own, not the lab's
+    os.environ[CATALOG_ENV] = str(work / "catalog.sqlite")
     result = run(args.duration, args.sim_config, args.config, work)
     print(format_report(result))
     print(f"recordings: {work}")

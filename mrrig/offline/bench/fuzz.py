@@ -39,6 +39,7 @@ import collections
 import functools
 import json
 import logging
+import os
 import random
 import signal
 import subprocess
@@ -58,6 +59,7 @@ from mrrig.cli_args import HelpFormatter, output_file, positive
 from mrrig.config import load_config
 from mrrig.rigio.canbus.bus import find_free_port, open_bus, start_bridge, stop_bridge
 from mrrig.rigio.canbus.codec import Codec
+from mrrig.rigio.run_identity import CATALOG_ENV
 from mrrig.rigio.sidecar import JSON, keys
 from mrrig.rigio.zenoh_config import local_config
 
@@ -431,6 +433,8 @@ def run(minutes: float, config: Path, sim_config: Path, seed: int, out: Path | N
     phase_s = min(PHASE_S, total_s / 4)
     fuzz_s = total_s - 2 * phase_s
     work = Path(tempfile.mkdtemp(prefix="mrrig-bench-fuzz-"))
+    # the benchmark's daemon runs go into a catalog of their own, not the lab's
+    os.environ[CATALOG_ENV] = str(work / "catalog.sqlite")
     daemon_config, endpoints = _daemon_config(config, cfg, work)
     port = find_free_port()
     channel = f"ws://127.0.0.1:{port}/"

@@ -30,6 +30,7 @@ from mrrig.config import load_config
 from mrrig.loop import memory
 from mrrig.loop.realtime import keep_off_cpu
 from mrrig.rigio.canbus.bus import find_free_port, start_bridge, stop_bridge
+from mrrig.rigio.run_identity import CATALOG_ENV
 
 log = logging.getLogger(__name__)
 
@@ -62,6 +63,8 @@ BUDGET_P999_US = 1000.0  # transport floor; daemon without / with telemetry+reco
 
 def run_once(config: Path, sim_config: Path, duration_s: float, mode: str) -> dict:
     work = Path(tempfile.mkdtemp(prefix="mrrig-bench-loop-"))
+    # the benchmark's daemon runs go into a catalog of their own, not the lab's
+    os.environ[CATALOG_ENV] = str(work / "catalog.sqlite")
     port = find_free_port()
     channel = f"ws://127.0.0.1:{port}/"
     bridge = start_bridge(port)
