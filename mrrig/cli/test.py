@@ -1,0 +1,156 @@
+"""`mrrig test PLAN.toml --rig NAME`: run a test plan on a live rig, step by step, with a
+verdict per step, a table at the end and, on request, JUnit XML and HTML reports.
+
+The rig is driven only through its public interfaces (control requests, status, telemetry over
+Zenoh), so the same plan runs on the simulator, on vcan and at a real rig. `--sim` starts the
+simulated rig first (the CAN bridge on 127.0.0.1, firmware_sim, the daemon with telemetry), as
+`mrrig demo` does, and stops it at the end.
+
+Exit codes: 0 every step passed; 1 a step failed or was aborted (a fault, Ctrl-C: the rig is
+left disarmed, the reports still written); 2 the plan could not run (a plan error, no rig).
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import datetime as dt
+import logging
+import subprocess
+import sys
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+from mrrig.cli_args import HelpFormatter
+from mrrig.errors import MrrigError
+from mrrig.plans.plan import load_plan
+from mrrig.rigio import client
+
+log = logging.getLogger(__name__)
+
+SIM_START_S = 30.0  # how long --sim waits for the daemon's first status
+
+
+class SimError(MrrigError, RuntimeError):
+    """--sim: the simulated rig did not start."""
+
+
+@contextlib.contextmanager
+def simulated_rig(config: Path, sim_config: Path, zenoh_config: Path) -> Iterator[str]:
+    """The CAN bridge, firmware_sim and a daemon (`config`, on the bridge's channel, no
+    recording), as `mrrig demo` starts them; yields the rig's name once it answers."""
+    from mrrig.cli.demo import _stop, ensure_sim_model
+    from mrrig.config import load_config
+    from mrrig.rigio.canbus.bus import find_free_port, start_bridge, stop_bridge
+
+    cfg = load_config(config)
+    if not cfg.telemetry.enabled:
+        raise SimError(f"{config}: telemetry.enabled = false: a plan needs the rig's telemetry")
+    if cfg.controller.model is not None:
+        ensure_sim_model(cfg.controller.model)
+    port = find_free_port()
+    channel = f"ws://127.0.0.1:{port}/"
+    bridge = start_bridge(port)
+    procs: list[tuple[subprocess.Popen, str]] = []
+    try:
+        sim = subprocess.Popen(
+            [
+                sys.executable,
+                "-m",
+                "firmware_sim",
+                "--config",
+                str(sim_config),
+                "--bus-channel",
+                channel,
+            ]
+        )
+        procs.append((sim, "firmware_sim"))
+        time.sleep(1.0)  # the simulator connects and starts streaming
+        if sim.poll() is not None:
+            raise SimError(f"firmware_sim exited at start (code {sim.returncode})")
+        cmd = [sys.executable, "-m", "mrrig", "run", "--config", str(config)]
+        daemon = subprocess.Popen([*cmd, "--bus-channel", channel, "--no-record"])
+        procs.append((daemon, "daemon"))
+        deadline = time.monotonic() + SIM_START_S
+        while True:
+            if daemon.poll() is not None:
+                raise SimError(f"the daemon exited at start (code {daemon.returncode})")
+            try:
+                client.status(cfg.rig.name, zenoh_config, timeout_s=1.0)
+                break
+            except MrrigError:
+                if time.monotonic() > deadline:
+                    raise SimError(f"the daemon did not answer within {SIM_START_S:g} s") from None
+                time.sleep(0.5)
+        yield cfg.rig.name
+    finally:
+        for proc, name in reversed(procs):
+            _stop(proc, name)
+        stop_bridge(bridge)
+
+
+def main(argv: list[str] | None = None) -> int:
+    from mrrig.cli.main import version
+
+    ap = argparse.ArgumentParser(
+        formatter_class=HelpFormatter, prog="mrrig test", description=__doc__
+    )
+    ap.add_argument("plan", type=Path, help="the plan (TOML: [plan], [[step]]s)")
+    ap.add_argument("--rig", help="the rig's name (default: the plan's [plan] rig)")
+    ap.add_argument(
+        "--zenoh-config", type=Path, default=client.DEFAULT_CONFIG, help="Zenoh client config"
+    )
+    ap.add_argument("--junit", type=Path, help="write a JUnit XML report here")
+    ap.add_argument("--html", type=Path, help="write a self-contained HTML report here")
+    ap.add_argument(
+        "--sim",
+        action="store_true",
+        help="start the simulated rig first (bridge, firmware_sim, daemon) and stop it after",
+    )
+    ap.add_argument(
+        "--config", type=Path, default=Path("configs/rig.toml"), help="--sim: the daemon's config"
+    )
+    ap.add_argument(
+        "--sim-config", type=Path, default=Path("configs/sim.toml"), help="--sim: the simulator's"
+    )
+    args = ap.parse_args(argv)
+
+    plan = load_plan(args.plan)  # a PlanError: one line, exit 2 (mrrig.cli.main)
+    with contextlib.ExitStack() as stack:
+        if args.sim:
+            rig_name = stack.enter_context(
+                simulated_rig(args.config, args.sim_config, args.zenoh_config)
+            )
+            if args.rig and args.rig != rig_name:
+                raise SimError(f"--rig {args.rig}: the simulated rig ({args.config}) is {rig_name}")
+        else:
+            rig_name = args.rig or plan.rig
+            if rig_name is None:
+                ap.error("--rig: the plan names no rig ([plan] rig): give --rig NAME")
+        return _run(plan, rig_name, args, version())
+
+
+def _run(plan, rig_name: str, args: argparse.Namespace, mrrig_version: str) -> int:
+    from mrrig.api import Rig
+    from mrrig.plans.report import Identity, write_html, write_junit
+    from mrrig.plans.runner import overall, run_plan, table
+
+    started = dt.datetime.now(dt.UTC).isoformat(timespec="seconds")
+    with Rig(rig_name, zenoh_config=args.zenoh_config) as rig:
+        rig.status()  # no rig answering: one line, exit 2, before any step
+        print(
+            f"plan {plan.name} ({len(plan.steps)} steps) on rig {rig_name}, {started}", flush=True
+        )
+        results, interrupted = run_plan(plan, rig, lambda line: print(line, flush=True))
+    print(table(results))
+    verdict = overall(results)
+    print(f"plan {plan.name}: {verdict.upper()}" + (" (interrupted)" if interrupted else ""))
+    ident = Identity.of(plan.path, rig_name, mrrig_version, started)
+    if args.junit:
+        write_junit(args.junit, plan.name, ident, results)
+        print(f"JUnit report: {args.junit}")
+    if args.html:
+        write_html(args.html, plan.name, ident, results)
+        print(f"HTML report: {args.html}")
+    return 0 if verdict == "passed" else 1

@@ -1,0 +1,95 @@
+"""A step's numbers from its telemetry and its verdict against the plan's criteria (numerics:
+no I/O).
+
+Et is the paper's error norm (`mrrig.offline.metrics.error_norm`) over the samples whose force
+answers an armed command, after the step's settling time; peak current, latency p99 and the
+highest temperature over the same samples.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Literal
+
+import numpy as np
+
+from mrrig.loop.safety import TRANSPORT_FAULTS
+from mrrig.loop.samples import RigState
+from mrrig.offline.metrics import error_norm
+
+
+@dataclass(frozen=True)
+class Criteria:
+    et_max: float | None = None  # the paper's error norm over the armed samples after settling
+    faults: Literal["none", "transport"] = "none"  # transport: stalls are re-armed, counted
+    peak_current_a_max: float | None = None
+    latency_p99_us_max: float | None = None
+    temperature_max_degc: float | None = None
+
+    def check(self) -> None:
+        for name in ("et_max", "peak_current_a_max", "latency_p99_us_max"):
+            value = getattr(self, name)
+            if value is not None and not value > 0:
+                raise ValueError(f"{name}: must be > 0")
+
+
+@dataclass(frozen=True)
+class Numbers:
+    samples: int  # armed samples after settling
+    et: float  # NaN: no armed sample, or a desired force without spread (a constant)
+    peak_current_a: float
+    latency_p99_us: float
+    temperature_max_degc: float
+
+
+def judged_samples(samples: np.ndarray, settle_s: float) -> np.ndarray:
+    """The armed samples from `settle_s` after the first armed one on."""
+    armed = samples[samples["state"] == RigState.ARMED]
+    if armed.size == 0:
+        return armed
+    return armed[armed["t"] >= armed["t"][0] + settle_s]
+
+
+def measure(samples: np.ndarray, settle_s: float) -> Numbers:
+    s = judged_samples(samples, settle_s)
+    if s.size == 0:
+        nan = math.nan
+        return Numbers(0, nan, nan, nan, nan)
+    ok = np.isfinite(s["f_des"]) & np.isfinite(s["f_meas"])
+    f_des, f_meas = s["f_des"][ok], s["f_meas"][ok]
+    spread = f_des.size > 1 and float(np.ptp(f_des)) > 0
+    et = error_norm(f_des, f_meas) if spread else math.nan
+    return Numbers(
+        samples=int(s.size),
+        et=et,
+        peak_current_a=float(np.nanmax(np.abs(s["i_cmd"]))),
+        latency_p99_us=float(np.nanpercentile(s["latency_us"], 99)),
+        temperature_max_degc=float(np.nanmax(s["temp_degc"])),
+    )
+
+
+def failures(criteria: Criteria, numbers: Numbers, faults: list[str]) -> list[str]:
+    """Why the step failed (empty: passed): each criterion not met, with the number."""
+    out = []
+    if numbers.samples == 0:
+        return ["no armed sample after settling (the rig never ran armed)"]
+    allowed = TRANSPORT_FAULTS if criteria.faults == "transport" else frozenset()
+    bad = [f for f in faults if f not in allowed]
+    if bad:
+        out.append(f"faults: {', '.join(bad)} (allowed: {criteria.faults})")
+    limits = (
+        ("et_max", "Et", numbers.et, ""),
+        ("peak_current_a_max", "peak current", numbers.peak_current_a, " A"),
+        ("latency_p99_us_max", "latency p99", numbers.latency_p99_us, " us"),
+        ("temperature_max_degc", "temperature max", numbers.temperature_max_degc, " degC"),
+    )
+    for field, what, value, unit in limits:
+        limit = getattr(criteria, field)
+        if limit is None:
+            continue
+        if math.isnan(value):
+            out.append(f"{field}: {what} is undefined (a desired force without spread?)")
+        elif value > limit:
+            out.append(f"{field}: {what} {value:.4g}{unit} > {limit:g}{unit}")
+    return out

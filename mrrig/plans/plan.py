@@ -1,0 +1,132 @@
+"""Test plans (`mrrig test PLAN.toml`): TOML parsed once into typed, validated steps.
+
+A plan is `[plan]` (name, the rig it is meant for) and an ordered list of `[[step]]`s, each
+with what the daemon's control requests take (`actuator`, `controller` = `set_controller`,
+`reference` = `set_profile`), its duration and settling time, and its `criteria`. An error is
+one line naming the file, the step (index and name) and the field.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from mrrig.config import ActuatorSection, ControllerSection, ReferenceSection
+from mrrig.loop.controllers import CONTROLLERS
+from mrrig.plans.criteria import Criteria
+from mrrig.typed_config import ConfigError, load_toml, parse
+
+# a model-using controller without `model` keeps the daemon's model (set_controller's rule):
+# the plan checks every other field with this stand-in, and sends no model
+_DAEMONS_MODEL = "(the daemon's model)"
+
+
+class PlanError(ConfigError):
+    """A plan that cannot run; the message is one line naming file, step and field."""
+
+
+@dataclass(frozen=True)
+class Step:
+    name: str
+    duration_s: float
+    settle_s: float = 1.0  # after arming, left out of the criteria
+    actuator: ActuatorSection | None = None
+    controller: ControllerSection | None = None
+    reference: ReferenceSection | None = None
+    criteria: Criteria = field(default_factory=Criteria)
+    # the request fields the plan gave (the daemon keeps the others as they are)
+    given: dict[str, tuple[str, ...]] = field(default_factory=dict)
+
+    def check(self) -> None:
+        if not 0 < self.duration_s <= 24 * 3600:
+            raise ValueError("duration_s: must be in (0, 86400] s")
+        if not 0 <= self.settle_s <= 600:
+            raise ValueError("settle_s: must be in [0, 600] s")
+
+    def requests(self) -> list[dict[str, Any]]:
+        """The control requests that set this step up (while disarmed), in order."""
+        out = []
+        for cmd, section in (
+            ("actuator", self.actuator),
+            ("set_controller", self.controller),
+            ("set_profile", self.reference),
+        ):
+            if section is None:
+                continue
+            fields = self.given[cmd]
+            req = {k: getattr(section, k) for k in fields}
+            out.append(
+                {"cmd": cmd, **{k: str(v) if isinstance(v, Path) else v for k, v in req.items()}}
+            )
+        return out
+
+
+@dataclass(frozen=True)
+class Plan:
+    name: str
+    path: Path
+    steps: tuple[Step, ...]
+    rig: str | None = None  # the rig it is meant for (--rig overrides)
+    description: str = ""
+
+
+@dataclass(frozen=True)
+class _Header:
+    name: str
+    rig: str | None = None
+    description: str = ""
+
+
+def load_plan(path: str | Path) -> Plan:
+    """Parse and check a plan file; PlanError (one line: file, step, field) when it cannot run."""
+    path = Path(path)
+    try:
+        table = load_toml(path)
+    except ConfigError as exc:
+        raise PlanError(str(exc)) from None
+    source = str(path)
+    unknown = sorted(set(table) - {"plan", "step"})
+    if unknown:
+        raise PlanError(f"{source}: {unknown[0]}: unknown table (known: plan, step)")
+    try:
+        header = parse(_Header, table.get("plan", {}), source, "plan")
+    except ConfigError as exc:
+        raise PlanError(str(exc)) from None
+    steps = table.get("step")
+    if not isinstance(steps, list) or not steps:
+        raise PlanError(f"{source}: step: a plan needs at least one [[step]]")
+    return Plan(
+        name=header.name,
+        path=path,
+        steps=tuple(_step(i, raw, source) for i, raw in enumerate(steps, start=1)),
+        rig=header.rig,
+        description=header.description,
+    )
+
+
+def _step(index: int, raw: Any, source: str) -> Step:
+    name = raw.get("name") if isinstance(raw, dict) else None
+    where = f"step {index} ({name})" if isinstance(name, str) else f"step {index}"
+    if not isinstance(raw, dict):
+        raise PlanError(f"{source}: {where}: expected a table")
+    table = dict(raw)
+    given: dict[str, tuple[str, ...]] = {}
+    for key, cmd in (
+        ("actuator", "actuator"),
+        ("controller", "set_controller"),
+        ("reference", "set_profile"),
+    ):
+        sub = table.get(key)
+        if isinstance(sub, dict):
+            given[cmd] = tuple(sub)
+            if key == "controller" and "model" not in sub:
+                needs = CONTROLLERS.get(sub.get("name", "network_inversion"))
+                if needs is not None and needs.needs_model:
+                    table[key] = {**sub, "model": _DAEMONS_MODEL}
+    table["given"] = {}
+    try:
+        step = parse(Step, table, source, where)
+    except ConfigError as exc:
+        raise PlanError(str(exc)) from None
+    return Step(**{**step.__dict__, "given": given})

@@ -1,0 +1,169 @@
+"""A plan run's reports: JUnit XML (one testcase per step, the numbers as properties) and one
+self-contained HTML file (the identity, the table of steps, a force plot per step)."""
+
+from __future__ import annotations
+
+import base64
+import getpass
+import hashlib
+import html
+import io
+import math
+import xml.etree.ElementTree as ET
+from dataclasses import dataclass
+from pathlib import Path
+
+from mrrig.plans.runner import StepResult, overall
+
+
+@dataclass(frozen=True)
+class Identity:
+    plan: Path
+    plan_sha256: str
+    rig: str
+    mrrig_version: str
+    started_utc: str
+    operator: str
+
+    @classmethod
+    def of(cls, plan: Path, rig: str, version: str, started_utc: str) -> Identity:
+        digest = hashlib.sha256(plan.read_bytes()).hexdigest()
+        try:
+            operator = getpass.getuser()
+        except (OSError, KeyError):
+            operator = "unknown"
+        return cls(plan, digest, rig, version, started_utc, operator)
+
+
+def _number(value: float) -> str:
+    return "nan" if math.isnan(value) else f"{value:.6g}"
+
+
+def write_junit(path: Path, plan_name: str, ident: Identity, results: list[StepResult]) -> None:
+    """One testsuite (in <testsuites>) named after the plan; a failed step is a <failure>, an
+    aborted one an <error>, a skipped one <skipped>, each with the reason as its message."""
+    root = ET.Element("testsuites", name=plan_name)
+    suite = ET.SubElement(
+        root,
+        "testsuite",
+        name=plan_name,
+        tests=str(len(results)),
+        failures=str(sum(r.verdict == "failed" for r in results)),
+        errors=str(sum(r.verdict == "aborted" for r in results)),
+        skipped=str(sum(r.verdict == "skipped" for r in results)),
+        time=f"{sum(r.wall_s for r in results):.3f}",
+        timestamp=ident.started_utc,
+    )
+    props = ET.SubElement(suite, "properties")
+    for name, value in (
+        ("plan", str(ident.plan)),
+        ("plan_sha256", ident.plan_sha256),
+        ("rig", ident.rig),
+        ("mrrig_version", ident.mrrig_version),
+        ("operator", ident.operator),
+    ):
+        ET.SubElement(props, "property", name=name, value=value)
+    for r in results:
+        case = ET.SubElement(
+            suite, "testcase", classname=plan_name, name=r.step.name, time=f"{r.wall_s:.3f}"
+        )
+        cprops = ET.SubElement(case, "properties")
+        values = {
+            "verdict": r.verdict,
+            "controller": r.controller or "",
+            "faults": ",".join(r.faults),
+        }
+        if r.numbers is not None:
+            n = r.numbers
+            values |= {
+                "samples": str(n.samples),
+                "et": _number(n.et),
+                "peak_current_a": _number(n.peak_current_a),
+                "latency_p99_us": _number(n.latency_p99_us),
+                "temperature_max_degc": _number(n.temperature_max_degc),
+            }
+        for name, value in values.items():
+            ET.SubElement(cprops, "property", name=name, value=value)
+        message = "; ".join(r.reasons)
+        tag = {"failed": "failure", "aborted": "error", "skipped": "skipped"}.get(r.verdict)
+        if tag is not None:
+            ET.SubElement(case, tag, message=message).text = message
+    tree = ET.ElementTree(root)
+    ET.indent(tree)
+    tree.write(path, encoding="utf-8", xml_declaration=True)
+
+
+def _plot_png(r: StepResult) -> str:
+    """The step's desired and measured force against time, as base64 PNG."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(8, 2.6), dpi=90)
+    ax = fig.add_subplot()
+    s = r.samples
+    if s.size:
+        t = s["t"] - s["t"][0]
+        ax.plot(t, s["f_des"], label="f_des", lw=1)
+        ax.plot(t, s["f_meas"], label="f_meas", lw=1, alpha=0.8)
+        ax.legend(loc="upper right")
+    ax.set_xlabel("t (s)")
+    ax.set_ylabel("force (N)")
+    ax.set_title(f"{r.step.name}: {r.verdict}")
+    fig.tight_layout()
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png")
+    return base64.b64encode(buf.getvalue()).decode("ascii")
+
+
+def write_html(path: Path, plan_name: str, ident: Identity, results: list[StepResult]) -> None:
+    e = html.escape
+    controllers = ", ".join(sorted({r.controller for r in results if r.controller})) or "-"
+    ident_rows = [
+        ("plan", f"{ident.plan} (sha256 {ident.plan_sha256})"),
+        ("rig", ident.rig),
+        ("controller", controllers),
+        ("mrrig version", ident.mrrig_version),
+        ("started (UTC)", ident.started_utc),
+        ("operator", ident.operator),
+        ("verdict", overall(results)),
+    ]
+    rows = []
+    for i, r in enumerate(results, start=1):
+        n = r.numbers
+        cells = (
+            [
+                _number(n.et),
+                _number(n.peak_current_a),
+                _number(n.latency_p99_us),
+                _number(n.temperature_max_degc),
+            ]
+            if n
+            else ["-"] * 4
+        )
+        rows.append(
+            f"<tr class='{r.verdict}'><td>{i}</td><td>{e(r.step.name)}</td><td>{r.verdict}</td>"
+            + "".join(f"<td>{c}</td>" for c in cells)
+            + f"<td>{e(', '.join(r.faults) or '-')}</td><td>{e('; '.join(r.reasons))}</td></tr>"
+        )
+    plots = [
+        f"<h3>{i}. {e(r.step.name)}</h3><img alt='force of step {i}' "
+        f"src='data:image/png;base64,{_plot_png(r)}'>"
+        for i, r in enumerate(results, start=1)
+    ]
+    page = f"""<!DOCTYPE html>
+<html><head><meta charset="utf-8"><title>mrrig test: {e(plan_name)}</title>
+<style>body{{font-family:sans-serif}} td,th{{border:1px solid #ccc;padding:2px 6px}}
+table{{border-collapse:collapse}} .passed{{background:#dfd}}
+.failed,.aborted{{background:#fdd}}</style>
+</head><body><h1>mrrig test: {e(plan_name)}: {overall(results)}</h1>
+<table>{"".join(f"<tr><th>{e(k)}</th><td>{e(v)}</td></tr>" for k, v in ident_rows)}</table>
+<h2>Steps</h2><table><tr><th>#</th><th>step</th><th>verdict</th><th>Et</th><th>peak current (A)</th>
+<th>latency p99 (us)</th><th>temperature max (degC)</th><th>faults</th><th>reason</th></tr>
+{"".join(rows)}</table>
+<h2>Force per step</h2>
+{"".join(plots)}
+</body></html>
+"""
+    path.write_text(page, encoding="utf-8")

@@ -1,0 +1,199 @@
+"""Run a plan on a live rig through its public interfaces only (control requests, status,
+telemetry over Zenoh: `mrrig.api.Rig`), step by step.
+
+Per step: out of FAULT by an explicit `reset` (spec/system.md: a new step needs it), disarm,
+the step's actuator, controller and profile, arm, settle, telemetry for the step's duration,
+disarm, verdict. A fault aborts the step with the fault's reason (with `faults = "transport"`
+a transport fault is reset and re-armed, and counted); Ctrl-C disarms, marks the step aborted
+and ends the plan.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from mrrig.api import Rig, RigError
+from mrrig.loop.safety import TRANSPORT_FAULTS
+from mrrig.loop.samples import SAMPLE_DTYPE
+from mrrig.plans.criteria import Numbers, failures, measure
+from mrrig.plans.plan import Plan, Step
+
+log = logging.getLogger(__name__)
+
+STATUS_PERIOD_S = 0.25  # how often a running step asks for the status (faults)
+PROGRESS_PERIOD_S = 1.0
+
+
+@dataclass
+class StepResult:
+    step: Step
+    verdict: str  # "passed", "failed", "aborted", "skipped"
+    reasons: list[str] = field(default_factory=list)
+    numbers: Numbers | None = None
+    faults: list[str] = field(default_factory=list)
+    rearms: int = 0
+    wall_s: float = 0.0
+    samples: np.ndarray = field(default_factory=lambda: np.empty(0, SAMPLE_DTYPE))
+    controller: str | None = None
+
+
+class StepAborted(Exception):
+    """The step cannot go on: a fault (its reason) or a refused request."""
+
+
+Progress = Callable[[str], None]
+
+
+def run_plan(plan: Plan, rig: Rig, progress: Progress) -> tuple[list[StepResult], bool]:
+    """Every step in order, and whether Ctrl-C ended the plan (the step it came in aborted,
+    the rig disarmed, the rest `skipped`)."""
+    results: list[StepResult] = []
+    interrupted = False
+    for index, step in enumerate(plan.steps, start=1):
+        if interrupted:
+            results.append(StepResult(step, "skipped", ["not run: the plan was interrupted"]))
+            continue
+        result = StepResult(step, "aborted")
+        t0 = time.monotonic()
+        try:
+            _run_step(index, len(plan.steps), step, rig, result, progress)
+        except StepAborted as exc:
+            result.verdict, result.reasons = "aborted", [str(exc)]
+        except KeyboardInterrupt:
+            interrupted = True
+            result.verdict, result.reasons = "aborted", ["interrupted (Ctrl-C): the rig disarmed"]
+        finally:
+            _disarm(rig)
+            result.wall_s = time.monotonic() - t0
+        results.append(result)
+        progress(_step_line(index, len(plan.steps), result))
+    return results, interrupted
+
+
+def _disarm(rig: Rig) -> None:
+    """SAFE whatever happened (a second Ctrl-C here is not honoured: the disarm comes first)."""
+    try:
+        rig.disarm()
+    except (RigError, OSError) as exc:
+        log.error("disarm after the step: %s", exc)
+
+
+def _request(rig: Rig, req: dict) -> None:
+    try:
+        rig.request(req)
+    except RigError as exc:
+        raise StepAborted(str(exc)) from None
+
+
+def _out_of_fault(rig: Rig) -> None:
+    status = rig.status()
+    if status["state"] != "FAULT":
+        return
+    log.info("rig in FAULT (%s): reset before the step", status.get("fault"))
+    try:
+        rig.reset()
+    except RigError as exc:
+        if "unknown" in str(exc):
+            raise StepAborted(
+                f"the rig is in FAULT ({status.get('fault')}) and its daemon has no `reset` "
+                f"command to leave it ({exc}): restart the daemon"
+            ) from None
+        raise StepAborted(f"reset of the FAULT ({status.get('fault')}) refused: {exc}") from None
+    _wait_state(rig, "IDLE")
+
+
+def _wait_state(rig: Rig, state: str, timeout_s: float = 3.0) -> dict:
+    """The status once in `state`: the sidecar answers with the daemon's last published one,
+    which may lag a request by a status period."""
+    deadline = time.monotonic() + timeout_s
+    while (status := rig.status())["state"] != state:
+        if time.monotonic() > deadline:
+            raise StepAborted(f"the rig is {status['state']}, not {state}, after {timeout_s:g} s")
+        time.sleep(0.05)
+    return status
+
+
+def _run_step(
+    index: int, count: int, step: Step, rig: Rig, result: StepResult, progress: Progress
+) -> None:
+    _out_of_fault(rig)
+    _request(rig, {"cmd": "disarm"})
+    for req in step.requests():
+        _request(rig, req)
+    result.controller = rig.status().get("controller")
+    tele = rig.telemetry(duration_s=step.settle_s + step.duration_s, quiet_s=2.0)
+    _request(rig, {"cmd": "arm"})
+    t0 = last_status = last_progress = time.monotonic()
+    total = step.settle_s + step.duration_s
+    for _batch in tele:
+        now = time.monotonic()
+        if now - last_status >= STATUS_PERIOD_S:
+            last_status = now
+            _check_faults(step, rig, result)
+        if now - last_progress >= PROGRESS_PERIOD_S:
+            last_progress = now
+            numbers = measure(tele.samples, step.settle_s)
+            phase = "settling" if now - t0 < step.settle_s else "running"
+            progress(
+                f"  step {index}/{count} {step.name}: {now - t0:4.0f}/{total:g} s {phase}, "
+                f"Et {numbers.et:.4f}, faults {len(result.faults)}"
+            )
+    _check_faults(step, rig, result)
+    result.samples = tele.samples
+    if time.monotonic() - t0 < total - 1.0:
+        raise StepAborted(f"telemetry stopped after {time.monotonic() - t0:.1f} s")
+    result.numbers = measure(result.samples, step.settle_s)
+    result.reasons = failures(step.criteria, result.numbers, result.faults)
+    result.verdict = "failed" if result.reasons else "passed"
+
+
+def _check_faults(step: Step, rig: Rig, result: StepResult) -> None:
+    status = rig.status()
+    if status["state"] != "FAULT":
+        return
+    fault = status.get("fault") or "unknown"
+    reason = status.get("fault_reason") or fault
+    result.faults.append(fault)
+    if step.criteria.faults == "transport" and fault in TRANSPORT_FAULTS:
+        log.warning("transport fault %s (%s): reset and re-arm", fault, reason)
+        _request(rig, {"cmd": "reset"})
+        _wait_state(rig, "IDLE")
+        _request(rig, {"cmd": "arm"})
+        result.rearms += 1
+        return
+    raise StepAborted(f"fault {fault}: {reason}")
+
+
+def _step_line(index: int, count: int, r: StepResult) -> str:
+    why = f": {'; '.join(r.reasons)}" if r.reasons else ""
+    return f"step {index}/{count} {r.step.name}: {r.verdict.upper()}{why}"
+
+
+def table(results: list[StepResult]) -> str:
+    """The console table at the end: one row per step."""
+    head = (
+        f"{'#':>2}  {'step':<24} {'verdict':<8} {'Et':>8} {'I peak A':>8} {'lat p99 us':>10}"
+        f" {'T max':>7} faults"
+    )
+    rows = [head, "-" * len(head)]
+    for i, r in enumerate(results, start=1):
+        n = r.numbers
+        nums = (
+            f"{n.et:>8.4f} {n.peak_current_a:>8.3f} {n.latency_p99_us:>10.0f}"
+            f" {n.temperature_max_degc:>7.1f}"
+            if n
+            else f"{'-':>8} {'-':>8} {'-':>10} {'-':>7}"
+        )
+        rows.append(
+            f"{i:>2}  {r.step.name[:24]:<24} {r.verdict:<8} {nums} {','.join(r.faults) or '-'}"
+        )
+    return "\n".join(rows)
+
+
+def overall(results: list[StepResult]) -> str:
+    return "passed" if results and all(r.verdict == "passed" for r in results) else "failed"

@@ -1,0 +1,366 @@
+"""Test plans (`mrrig test`, mrrig/plans): plan errors, criteria on synthetic telemetry, the
+JUnit and HTML reports read back, and plans run against firmware_sim and a daemon."""
+
+from __future__ import annotations
+
+import math
+import re
+import signal
+import subprocess
+import sys
+import textwrap
+import time
+
+import numpy as np
+import pytest
+from junitparser import Error, Failure, JUnitXml, Properties, Property
+
+from mrrig.loop.samples import SAMPLE_DTYPE, RigState
+from mrrig.offline.metrics import error_norm
+from mrrig.plans.criteria import Criteria, failures, measure
+from mrrig.plans.plan import PlanError, load_plan
+from mrrig.plans.report import Identity, write_html, write_junit
+from mrrig.plans.runner import StepResult
+from tests.conftest import REPO, rig_config, start, stop, zenoh_configs
+from tests.test_lifecycle_errors import NO_MODEL
+
+RIG = "plans"
+
+PLAN = """
+[plan]
+name = "two steps"
+
+[[step]]
+name = "constant current"
+duration_s = {d1}
+settle_s = 0.5
+actuator = {{ waveform = "sine", amplitude_m = 0.005, frequency_hz = 1.0 }}
+controller = {{ name = "constant", current_a = 0.5 }}
+reference = {{ kind = "constant" }}
+criteria = {{ faults = "transport", peak_current_a_max = 0.6 }}
+
+[[step]]
+name = "impossible Et"
+duration_s = 2
+settle_s = 0.5
+controller = {{ name = "constant", current_a = 0.3 }}
+reference = {{ kind = "sine", amplitude_n = 300.0, freq_hz = 1.0 }}
+criteria = {{ et_max = 0.0001, faults = "transport" }}
+"""
+
+
+CRITERIA = 'et_max = 0.0001, faults = "transport"'
+
+
+def write(tmp_path, text: str, name: str = "plan.toml"):
+    path = tmp_path / name
+    path.write_text(textwrap.dedent(text))
+    return path
+
+
+def mrrig(*args: str, timeout_s: float = 120.0, **kw) -> subprocess.CompletedProcess:
+    return subprocess.run(
+        [sys.executable, "-m", "mrrig", *args],
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+        timeout=timeout_s,
+        **kw,
+    )
+
+
+# --- plan errors ---------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    ("change", "where"),
+    [
+        (CRITERIA, "step 2 (impossible Et).criteria.et_max"),  # as it is: no error
+        ('et_max = "small"', "step 2 (impossible Et).criteria.et_max: expected a number"),
+        ('faults = "all"', "step 2 (impossible Et).criteria.faults: expected one of"),
+        ("et_max = -1.0", "step 2 (impossible Et).criteria.et_max: must be > 0"),
+        ("etmax = 0.1", "step 2 (impossible Et).criteria.etmax: unknown field"),
+    ],
+)
+def test_a_plan_error_names_the_step_and_the_field(tmp_path, change, where):
+    path = write(tmp_path, PLAN.format(d1=1).replace(CRITERIA, change))
+    if change == CRITERIA:
+        assert load_plan(path).steps[1].criteria.et_max == 0.0001
+        return
+    with pytest.raises(PlanError) as err:
+        load_plan(path)
+    assert where in str(err.value) and str(path) in str(err.value)
+    assert "\n" not in str(err.value)
+
+
+def test_step_sections_are_checked_as_the_daemon_checks_them(tmp_path):
+    bad = PLAN.format(d1=1).replace("amplitude_m = 0.005", "amplitude_m = 0.5")
+    with pytest.raises(PlanError, match=r"step 1 \(constant current\)\.actuator\.amplitude_m"):
+        load_plan(write(tmp_path, bad))
+    bad = PLAN.format(d1=1).replace('name = "constant", current_a = 0.3', 'name = "pid"')
+    with pytest.raises(PlanError, match=r"step 2 \(impossible Et\)\.controller\.name: unknown"):
+        load_plan(write(tmp_path, bad))
+    bad = PLAN.format(d1="-1")
+    with pytest.raises(PlanError, match=r"step 1 \(constant current\)\.duration_s"):
+        load_plan(write(tmp_path, bad))
+
+
+def test_only_the_given_fields_are_sent_and_a_model_is_kept(tmp_path):
+    plan = load_plan(
+        write(
+            tmp_path,
+            """
+            [plan]
+            name = "p"
+            [[step]]
+            name = "ni"
+            duration_s = 1
+            controller = { name = "network_inversion", continuity = 0.03 }
+            reference = { kind = "sine", amplitude_n = 100.0 }
+            """,
+        )
+    )
+    assert plan.steps[0].requests() == [
+        {"cmd": "set_controller", "name": "network_inversion", "continuity": 0.03},
+        {"cmd": "set_profile", "kind": "sine", "amplitude_n": 100.0},
+    ]
+
+
+def test_a_plan_error_exits_2_with_one_line(tmp_path):
+    path = write(tmp_path, PLAN.format(d1=1).replace("settle_s = 0.5", "settle_s = true", 1))
+    out = mrrig("test", str(path), "--rig", "nobody")
+    assert out.returncode == 2
+    assert out.stderr.strip().splitlines() == [
+        f"error: {path}: step 1 (constant current).settle_s: expected a number, got True"
+    ]
+
+
+# --- criteria on synthetic telemetry -------------------------------------------------------
+
+
+def synthetic(n: int = 1000, idle: int = 200, error: float = 0.02) -> np.ndarray:
+    """`idle` IDLE samples (a huge error that must not count), then armed ones at 500 Hz."""
+    s = np.zeros(n, SAMPLE_DTYPE)
+    s["t"] = np.arange(n) * 0.002
+    s["f_des"] = 500.0 * np.sin(2 * np.pi * s["t"])
+    s["f_meas"] = s["f_des"] * (1 + error)
+    s["f_meas"][:idle] = 0.0
+    s["state"] = RigState.ARMED
+    s["state"][:idle] = RigState.IDLE
+    s["i_cmd"] = 0.4
+    if idle + 10 < n:
+        s["i_cmd"][idle + 10] = 1.7  # within the settling time: not counted
+    s["i_cmd"][-1] = 1.2
+    s["latency_us"] = np.linspace(100.0, 1100.0, n)
+    s["temp_degc"] = 30.0
+    return s
+
+
+def test_measure_counts_armed_samples_after_settling_only():
+    s = synthetic()
+    numbers = measure(s, settle_s=0.199)
+    judged = s[300:]  # 200 idle, then 100 samples (0.2 s) of settling
+    assert numbers.samples == 700
+    assert numbers.et == pytest.approx(error_norm(judged["f_des"], judged["f_meas"]))
+    assert numbers.et == pytest.approx(0.02, rel=0.05)  # a 2 % gain error
+    assert numbers.peak_current_a == 1.2
+    assert numbers.latency_p99_us == pytest.approx(np.percentile(judged["latency_us"], 99))
+    assert numbers.temperature_max_degc == 30.0
+
+
+def test_failures_name_each_criterion_not_met():
+    numbers = measure(synthetic(), settle_s=0.2)
+    assert failures(Criteria(et_max=0.05, peak_current_a_max=1.5), numbers, []) == []
+    reasons = failures(
+        Criteria(et_max=0.01, peak_current_a_max=1.0, latency_p99_us_max=500.0), numbers, []
+    )
+    assert [r.split(":")[0] for r in reasons] == [
+        "et_max",
+        "peak_current_a_max",
+        "latency_p99_us_max",
+    ]
+    assert re.fullmatch(r"et_max: Et 0\.02\d* > 0\.01", reasons[0])
+    # a transport fault is allowed only with faults = "transport"; another fault never
+    assert failures(Criteria(faults="transport"), numbers, ["sensor_timeout"]) == []
+    assert failures(Criteria(), numbers, ["sensor_timeout"]) == [
+        "faults: sensor_timeout (allowed: none)"
+    ]
+    assert failures(Criteria(faults="transport"), numbers, ["overcurrent"])[0].startswith(
+        "faults: overcurrent"
+    )
+
+
+def test_a_constant_force_has_no_et_and_an_et_criterion_on_it_fails():
+    s = synthetic()
+    s["f_des"] = 200.0
+    numbers = measure(s, settle_s=0.2)
+    assert math.isnan(numbers.et)
+    assert failures(Criteria(), numbers, []) == []
+    assert "undefined" in failures(Criteria(et_max=0.1), numbers, [])[0]
+    never_armed = measure(synthetic(idle=1000), settle_s=0.0)
+    assert never_armed.samples == 0 and failures(Criteria(), never_armed, [])
+
+
+# --- reports -------------------------------------------------------------------------------
+
+
+def junit_cases(path) -> dict:
+    (suite,) = JUnitXml.fromfile(str(path))
+    return {case.name: case for case in suite}
+
+
+def case_properties(case) -> dict[str, str]:
+    """A testcase's <properties> (junitparser reads a testsuite's, not a testcase's)."""
+    (props,) = case.iterchildren(Properties)
+    return {p.name: p.value for p in props.iterchildren(Property)}
+
+
+def results_of(tmp_path) -> tuple[object, list[StepResult]]:
+    plan = load_plan(write(tmp_path, PLAN.format(d1=1)))
+    s = synthetic()
+    ok = StepResult(plan.steps[0], "passed", numbers=measure(s, 0.2), samples=s, wall_s=1.5)
+    bad_numbers = measure(s, 0.2)
+    reasons = failures(plan.steps[1].criteria, bad_numbers, [])
+    bad = StepResult(plan.steps[1], "failed", reasons, bad_numbers, samples=s, wall_s=2.5)
+    return plan, [ok, bad]
+
+
+def test_junit_is_read_back_with_the_failed_step_and_its_numbers(tmp_path):
+    plan, results = results_of(tmp_path)
+    ident = Identity.of(plan.path, "rig1", "1.2.3", "2026-12-04T20:00:00+00:00")
+    path = tmp_path / "report.xml"
+    write_junit(path, plan.name, ident, results)
+    (suite,) = JUnitXml.fromfile(str(path))
+    cases = {c.name: c for c in suite}
+    assert list(cases) == ["constant current", "impossible Et"]
+    assert cases["constant current"].is_passed
+    failed = cases["impossible Et"]
+    assert not failed.is_passed
+    (failure,) = failed.result
+    assert isinstance(failure, Failure) and re.fullmatch(
+        r"et_max: Et 0\.02\d* > 0\.0001", failure.message
+    )
+    props = case_properties(failed)
+    assert float(props["et"]) == pytest.approx(results[1].numbers.et, rel=1e-5)
+    assert float(props["peak_current_a"]) == 1.2
+    assert props["verdict"] == "failed"
+    suite_props = {p.name: p.value for p in suite.properties()}
+    assert suite_props["rig"] == "rig1" and len(suite_props["plan_sha256"]) == 64
+
+
+def test_junit_marks_an_aborted_step_as_an_error(tmp_path):
+    plan, results = results_of(tmp_path)
+    results[1] = StepResult(plan.steps[1], "aborted", ["fault overcurrent: 2.3 A"])
+    path = tmp_path / "report.xml"
+    write_junit(path, plan.name, Identity.of(plan.path, "r", "v", "t"), results)
+    (error,) = junit_cases(path)["impossible Et"].result
+    assert isinstance(error, Error) and error.message == "fault overcurrent: 2.3 A"
+
+
+def test_html_holds_the_identity_the_table_and_one_plot_per_step(tmp_path):
+    plan, results = results_of(tmp_path)
+    ident = Identity.of(plan.path, "rig1", "1.2.3", "2026-12-04T20:00:00+00:00")
+    path = tmp_path / "report.html"
+    write_html(path, plan.name, ident, results)
+    text = path.read_text()
+    assert text.count("src='data:image/png;base64,") == 2
+    assert ident.plan_sha256 in text and "rig1" in text and ident.operator in text
+    assert "<h1>mrrig test: two steps: failed</h1>" in text
+
+
+# --- against the simulated rig -------------------------------------------------------------
+
+
+def wait_status(client_cfg, timeout_s: float = 120.0) -> dict:
+    from mrrig.rigio import client
+
+    deadline = time.monotonic() + timeout_s
+    while True:
+        try:
+            return client.status(RIG, client_cfg, 1.0)["status"]
+        except client.ClientError:
+            if time.monotonic() > deadline:
+                raise
+            time.sleep(0.5)
+
+
+@pytest.fixture(scope="module")
+def rig(tmp_path_factory):
+    """firmware_sim and a daemon (constant controller, telemetry); yields the client's Zenoh
+    config."""
+    from mrrig.rigio.canbus.bus import find_free_port, start_bridge, stop_bridge
+
+    tmp = tmp_path_factory.mktemp("plans")
+    port = find_free_port()
+    bridge = start_bridge(port)
+    channel = f"ws://127.0.0.1:{port}/"
+    daemon_z, client_z, _ = zenoh_configs(tmp)
+    cfg = rig_config(
+        tmp,
+        channel,
+        None,
+        rig={"name": RIG},
+        telemetry={"enabled": True, "zenoh_config": str(daemon_z), "rate_hz": 50.0},
+        **NO_MODEL,
+    )
+    sim = start(["-m", "firmware_sim", "--config", "configs/sim.toml", "-c", channel])
+    daemon = start(["-m", "mrrig", "run", "--config", str(cfg), "--no-record"])
+    try:
+        wait_status(client_z)
+        yield client_z
+    finally:
+        stop(daemon)
+        stop(sim)
+        stop_bridge(bridge)
+
+
+@pytest.mark.process
+def test_a_failing_criterion_exits_1_and_its_step_fails_in_the_reports(rig, tmp_path):
+    plan = write(tmp_path, PLAN.format(d1=2))
+    junit, html = tmp_path / "r.xml", tmp_path / "r.html"
+    args = ["--rig", RIG, "--zenoh-config", str(rig), "--junit", str(junit), "--html", str(html)]
+    out = mrrig("test", str(plan), *args)
+    assert out.returncode == 1, out.stdout + out.stderr
+    cases = junit_cases(junit)
+    props = {n: case_properties(c) for n, c in cases.items()}
+    if any(p["faults"] for p in props.values()):
+        print(f"transport faults during the plan (re-armed): {props}")
+    assert props["constant current"]["verdict"] == "passed", out.stdout
+    assert float(props["constant current"]["peak_current_a"]) == pytest.approx(0.5)
+    failed = cases["impossible Et"]
+    (failure,) = failed.result
+    assert isinstance(failure, Failure) and failure.message.startswith("et_max: Et ")
+    assert float(props["impossible Et"]["et"]) > 0.0001
+    assert int(props["impossible Et"]["samples"]) > 500  # about 1.5 s at 500 Hz
+    assert "step 2/2 impossible Et: FAILED: et_max" in out.stdout
+    assert html.read_text().count("src='data:image/png;base64,") == 2
+
+
+@pytest.mark.process
+def test_ctrl_c_in_a_step_leaves_the_rig_safe_and_the_step_aborted(rig, tmp_path):
+    from mrrig.api import Rig
+
+    plan = write(tmp_path, PLAN.format(d1=30))
+    junit = tmp_path / "r.xml"
+    args = ["--rig", RIG, "--zenoh-config", str(rig), "--junit", str(junit)]
+    proc = start(["-m", "mrrig", "test", str(plan), *args], stdout=subprocess.PIPE, text=True)
+    try:
+        with Rig(RIG, zenoh_config=rig) as r:
+            deadline = time.monotonic() + 20
+            while r.status()["state"] != "ARMED":
+                assert time.monotonic() < deadline, "the plan never armed the rig"
+                time.sleep(0.05)
+            time.sleep(1.0)
+            proc.send_signal(signal.SIGINT)
+            t0 = time.monotonic()
+            while r.status()["state"] == "ARMED":
+                assert time.monotonic() - t0 < 1.0, "still ARMED 1 s after Ctrl-C"
+                time.sleep(0.01)
+            stdout, _ = proc.communicate(timeout=30)
+    finally:
+        stop(proc)
+    assert proc.returncode == 1, stdout
+    cases = junit_cases(junit)
+    (error,) = cases["constant current"].result
+    assert isinstance(error, Error) and "interrupted" in error.message
+    assert cases["impossible Et"].result[0].message.startswith("not run")
