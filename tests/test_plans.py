@@ -337,6 +337,41 @@ def test_a_failing_criterion_exits_1_and_its_step_fails_in_the_reports(rig, tmp_
 
 
 @pytest.mark.process
+def test_a_fault_aborts_its_step_and_the_next_step_resets_it_first(rig, tmp_path):
+    plan = write(
+        tmp_path,
+        """
+        [plan]
+        name = "a fault"
+        [[step]]
+        name = "no force stream"
+        duration_s = 3
+        settle_s = 0.5
+        controller = { name = "constant", current_a = 0.3 }
+        reference = { kind = "zenoh", timeout_s = 0.1 }
+        criteria = { faults = "transport" }
+        [[step]]
+        name = "after the reset"
+        duration_s = 1.5
+        settle_s = 0.5
+        reference = { kind = "constant" }
+        criteria = { faults = "transport", peak_current_a_max = 0.4 }
+        """,
+    )
+    junit = tmp_path / "r.xml"
+    out = mrrig("test", str(plan), "--rig", RIG, "--zenoh-config", str(rig), "--junit", str(junit))
+    assert out.returncode == 1, out.stdout + out.stderr
+    cases = junit_cases(junit)
+    (error,) = cases["no force stream"].result
+    # armed with no force streamed: the daemon's stale-reference FAULT, which no stall explains
+    assert isinstance(error, Error) and error.message.startswith("fault stale_reference"), (
+        out.stdout
+    )
+    assert cases["after the reset"].is_passed, out.stdout
+    assert float(case_properties(cases["after the reset"])["peak_current_a"]) == pytest.approx(0.3)
+
+
+@pytest.mark.process
 def test_ctrl_c_in_a_step_leaves_the_rig_safe_and_the_step_aborted(rig, tmp_path):
     from mrrig.api import Rig
 

@@ -98,7 +98,7 @@ def _out_of_fault(rig: Rig) -> None:
     try:
         rig.reset()
     except RigError as exc:
-        if "unknown" in str(exc):
+        if "unknown command" in str(exc):  # a daemon from before `reset`
             raise StepAborted(
                 f"the rig is in FAULT ({status.get('fault')}) and its daemon has no `reset` "
                 f"command to leave it ({exc}): restart the daemon"
