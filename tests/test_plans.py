@@ -372,6 +372,28 @@ def test_a_fault_aborts_its_step_and_the_next_step_resets_it_first(rig, tmp_path
 
 
 @pytest.mark.process
+def test_sim_starts_the_rig_and_a_failed_step_exits_1(tmp_path):
+    """`mrrig test --sim` (as .ci/run runs the smoke plan): bridge, firmware_sim and a daemon
+    started and stopped by the command; a failed step is exit 1, so CI fails."""
+    daemon_z, client_z, _ = zenoh_configs(tmp_path)
+    cfg = rig_config(
+        tmp_path,
+        "ws://127.0.0.1:1/",  # --sim gives the daemon its bridge's channel
+        None,
+        rig={"name": "plans-sim"},
+        telemetry={"enabled": True, "zenoh_config": str(daemon_z)},
+        **NO_MODEL,
+    )
+    plan = write(tmp_path, PLAN.format(d1=1))
+    args = ["--sim", "--config", str(cfg), "--zenoh-config", str(client_z)]
+    out = mrrig("test", str(plan), *args, "--junit", str(tmp_path / "r.xml"))
+    assert out.returncode == 1, out.stdout + out.stderr
+    assert "step 2/2 impossible Et: FAILED: et_max" in out.stdout
+    cases = junit_cases(tmp_path / "r.xml")
+    assert cases["constant current"].is_passed and cases["impossible Et"].is_failure
+
+
+@pytest.mark.process
 def test_ctrl_c_in_a_step_leaves_the_rig_safe_and_the_step_aborted(rig, tmp_path):
     from mrrig.api import Rig
 

@@ -54,23 +54,20 @@ def simulated_rig(config: Path, sim_config: Path, zenoh_config: Path) -> Iterato
     bridge = start_bridge(port)
     procs: list[tuple[subprocess.Popen, str]] = []
     try:
+        # their own sessions: Ctrl-C reaches `mrrig test` alone, which disarms, ends the step,
+        # writes the reports and then stops them
         sim = subprocess.Popen(
-            [
-                sys.executable,
-                "-m",
-                "firmware_sim",
-                "--config",
-                str(sim_config),
-                "--bus-channel",
-                channel,
-            ]
+            [sys.executable, "-m", "firmware_sim", "--config", str(sim_config), "-c", channel],
+            start_new_session=True,
         )
         procs.append((sim, "firmware_sim"))
         time.sleep(1.0)  # the simulator connects and starts streaming
         if sim.poll() is not None:
             raise SimError(f"firmware_sim exited at start (code {sim.returncode})")
         cmd = [sys.executable, "-m", "mrrig", "run", "--config", str(config)]
-        daemon = subprocess.Popen([*cmd, "--bus-channel", channel, "--no-record"])
+        daemon = subprocess.Popen(
+            [*cmd, "--bus-channel", channel, "--no-record"], start_new_session=True
+        )
         procs.append((daemon, "daemon"))
         deadline = time.monotonic() + SIM_START_S
         while True:
