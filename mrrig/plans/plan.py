@@ -110,6 +110,8 @@ def _step(index: int, raw: Any, source: str) -> Step:
     where = f"step {index} ({name})" if isinstance(name, str) else f"step {index}"
     if not isinstance(raw, dict):
         raise PlanError(f"{source}: {where}: expected a table")
+    if "given" in raw:  # the plan's own bookkeeping, not a field a plan sets
+        raise PlanError(f"{source}: {where}.given: unknown field")
     table = dict(raw)
     given: dict[str, tuple[str, ...]] = {}
     for key, cmd in (
@@ -124,7 +126,6 @@ def _step(index: int, raw: Any, source: str) -> Step:
                 needs = CONTROLLERS.get(sub.get("name", "network_inversion"))
                 if needs is not None and needs.needs_model:
                     table[key] = {**sub, "model": _DAEMONS_MODEL}
-    table["given"] = {}
     try:
         step = parse(Step, table, source, where)
     except ConfigError as exc:
