@@ -17,7 +17,6 @@ import time
 from pathlib import Path
 from types import FrameType
 
-import can
 from can_remote.websocket import WebsocketClosed
 
 from firmware_sim.config import FAULT_KINDS, ConfigError, FaultSpec, load_config
@@ -26,6 +25,7 @@ from firmware_sim.runner import RunStats, run, tune_process
 from mrrig import json_text
 from mrrig.cli_args import HelpFormatter, add_bus_options, output_file, positive
 from mrrig.loop.realtime import leave_realtime
+from mrrig.pycan import can
 from mrrig.rigio.canbus import DEFAULT_DBC_PATH, BusError, Codec, open_bus
 
 logger = logging.getLogger("firmware_sim")

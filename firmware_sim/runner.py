@@ -20,11 +20,11 @@ from array import array
 from collections.abc import Callable
 from typing import Any
 
-import can
 import numpy as np
 
 from firmware_sim.firmware import Firmware, Frame
 from mrrig.loop.realtime import make_realtime
+from mrrig.pycan import can
 
 logger = logging.getLogger(__name__)
 

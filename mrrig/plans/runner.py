@@ -18,6 +18,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from mrrig.api import Rig, RigError
+from mrrig.errors import MrrigError
 from mrrig.loop.safety import TRANSPORT_FAULTS
 from mrrig.loop.samples import SAMPLE_DTYPE
 from mrrig.plans.criteria import Numbers, failures, measure
@@ -42,7 +43,7 @@ class StepResult:
     controller: str | None = None
 
 
-class StepAborted(Exception):
+class StepAborted(MrrigError):
     """The step cannot go on: a fault (its reason) or a refused request."""
 
 

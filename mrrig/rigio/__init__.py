@@ -6,3 +6,7 @@ control requests' checks and worker (`control`), the router, the clients (`clien
 `force_stream`, `fleet`), certificates, systemd notification, and `rig_session` (a loop run in a
 thread of a tool's process). No torch, and never the offline work or the CLI.
 """
+
+# python-can without asammdf (and pandas), before any module here or a library it uses
+# (can_remote, cantools) imports python-can: see mrrig/pycan.py
+import mrrig.pycan  # noqa: E402, F401

@@ -19,10 +19,10 @@ import time
 from pathlib import Path
 from typing import Any
 
-import can
 import numpy as np
 
 from mrrig.errors import MrrigError
+from mrrig.pycan import can, with_mf4
 
 log = logging.getLogger(__name__)
 
@@ -125,6 +125,8 @@ class BusLogWriter:
         self.frames = 0
         try:
             self.path.parent.mkdir(parents=True, exist_ok=True)
+            if self.path.suffix.lower() == ".mf4":
+                with_mf4()
             self._writer = can.Logger(str(self.path))
         except ImportError as exc:  # .mf4 without asammdf
             raise BusLogError(f"{self.path}: cannot write this format here: {exc}") from exc
@@ -174,6 +176,8 @@ def read_bus_log(path: str | Path) -> list[can.Message]:
     path = check_suffix(path)
     if not path.is_file():
         raise BusLogError(f"{path}: no such file")
+    if path.suffix.lower() == ".mf4":
+        with_mf4()
     try:
         return list(can.LogReader(str(path)))
     except Exception as exc:  # noqa: BLE001 - python-can's readers raise anything on bad files

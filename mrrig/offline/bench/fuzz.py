@@ -50,13 +50,13 @@ import time
 from pathlib import Path
 from typing import Any
 
-import can
 import numpy as np
 import zenoh
 
 from mrrig import json_text
 from mrrig.cli_args import HelpFormatter, output_file, positive
 from mrrig.config import load_config
+from mrrig.pycan import can
 from mrrig.rigio.canbus.bus import find_free_port, open_bus, start_bridge, stop_bridge
 from mrrig.rigio.canbus.codec import Codec
 from mrrig.rigio.run_identity import CATALOG_ENV

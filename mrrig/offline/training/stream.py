@@ -54,7 +54,7 @@ from mrrig.offline.training.data import (
 log = logging.getLogger(__name__)
 
 SEGMENT_ROWS = 250_000  # samples prepared at a time (`segments`)
-TRAIN_MAX_SAMPLES = 1_000_000  # samples `mrrig train` keeps at most (`training_subset`)
+TRAIN_MAX_SAMPLES = 500_000  # samples `mrrig train` keeps at most (`training_subset`)
 IMPLAUSIBLE_PAD_S = 0.02  # excluded either side of an implausible sample
 MAX_LISTED_STRETCHES = 200  # stretches a report lists (the rest are counted)
 DBC_PATH = Path(__file__).resolve().parents[3] / "configs" / "mrrig.dbc"

@@ -20,11 +20,11 @@ import tempfile
 import time
 from typing import Any
 
-import can
 from can_remote.client import RemoteBus
 from can_remote.websocket import WebsocketClosed
 
 from mrrig.errors import MrrigError
+from mrrig.pycan import can
 
 logger = logging.getLogger(__name__)
 

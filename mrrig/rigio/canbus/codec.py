@@ -17,11 +17,11 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import NamedTuple
 
-import can
 import cantools
 from cantools.database.can import Message as DbcMessage
 
 from mrrig.errors import MrrigError
+from mrrig.pycan import can
 
 logger = logging.getLogger(__name__)
 
