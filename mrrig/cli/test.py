@@ -16,6 +16,7 @@ import argparse
 import contextlib
 import datetime as dt
 import logging
+import signal
 import subprocess
 import sys
 import time
@@ -139,7 +140,16 @@ def _run(plan, rig_name: str, args: argparse.Namespace, mrrig_version: str) -> i
         print(
             f"plan {plan.name} ({len(plan.steps)} steps) on rig {rig_name}, {started}", flush=True
         )
-        results, interrupted = run_plan(plan, rig, lambda line: print(line, flush=True))
+        # Ctrl-C, a kill or a dropped ssh session ends the step it comes in (the rig
+        # disarmed, the step aborted, the reports written), even where this process was
+        # started with SIGINT ignored (a background job; pytest-xdist's workers)
+        stops = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
+        old = {sig: signal.signal(sig, signal.default_int_handler) for sig in stops}
+        try:
+            results, interrupted = run_plan(plan, rig, lambda line: print(line, flush=True))
+        finally:
+            for sig, handler in old.items():
+                signal.signal(sig, handler)
     print(table(results))
     verdict = overall(results)
     print(f"plan {plan.name}: {verdict.upper()}" + (" (interrupted)" if interrupted else ""))
