@@ -50,6 +50,7 @@ from mrrig.offline.training.data import (
     run_ids,
     select,
 )
+from mrrig.rigio.canbus.codec import DEFAULT_DBC_PATH
 
 log = logging.getLogger(__name__)
 
@@ -57,7 +58,6 @@ SEGMENT_ROWS = 250_000  # samples prepared at a time (`segments`)
 TRAIN_MAX_SAMPLES = 500_000  # samples `mrrig train` keeps at most (`training_subset`)
 IMPLAUSIBLE_PAD_S = 0.02  # excluded either side of an implausible sample
 MAX_LISTED_STRETCHES = 200  # stretches a report lists (the rest are counted)
-DBC_PATH = Path(__file__).resolve().parents[3] / "configs" / "mrrig.dbc"
 # field -> (message, signal) of the CAN contract whose range bounds it
 SENSOR_SIGNALS = {
     "x": ("RigSensors", "Displacement"),
@@ -67,7 +67,7 @@ SENSOR_SIGNALS = {
 
 
 @cache
-def sensor_ranges(dbc_path: Path = DBC_PATH) -> dict[str, tuple[float, float]]:
+def sensor_ranges(dbc_path: Path = DEFAULT_DBC_PATH) -> dict[str, tuple[float, float]]:
     """(min, max) in SI units of each field the CAN contract bounds (`SENSOR_SIGNALS`)."""
     import cantools  # noqa: PLC0415 - only the offline tools that check ranges pay for it
 
@@ -229,7 +229,9 @@ def prepare(path: Path, raw: Series, keep_all: bool = False) -> tuple[Series, di
     n_raw = len(raw)
     s, implausible = drop_implausible(path, raw)
     if len(s) == 0:
-        raise DataError(f"{path}: every sample is outside the sensors' ranges of {DBC_PATH.name}")
+        raise DataError(
+            f"{path}: every sample is outside the sensors' ranges of {DEFAULT_DBC_PATH.name}"
+        )
     if s.xd is None or s.xdd is None:
         s = estimate_derivatives(s)
         if len(s) == 0:
