@@ -337,8 +337,11 @@ def test_mtls_and_access_control_with_the_daemon(tmp_path: Path, bridge, procs):
         operator = _open(op_conf)
         events = operator.declare_subscriber(keys(rig)["events"])
         pub = operator.declare_publisher(keys(rig)["force_ref"])
-        # put until the daemon has counted one, as send-force does: a new session's first
-        # puts may go before its routes are in place
+        # a settled session: a Zenoh client drops puts that match no subscriber it was told
+        # of, and the rig's access control must tell operators of force_ref's (its first
+        # second's puts went through without: CI, loaded, saw none arrive in 10 s)
+        time.sleep(2.0)
+        # put until the daemon has counted one, as send-force does
         deadline = time.monotonic() + 10
         while time.monotonic() < deadline:
             pub.put(json.dumps({"force_n": 1234.0}))
