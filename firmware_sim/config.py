@@ -10,6 +10,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
 
+from mrrig.resources import resolve
 from mrrig.typed_config import ConfigError, load_toml, parse
 
 FaultKind = Literal[
@@ -212,6 +213,7 @@ class SimConfig:
 
 def load_config(path: str | Path) -> SimConfig:
     """Read and validate a simulator config; raises a one-line `ConfigError`."""
+    path = resolve(path)
     return parse(SimConfig, load_toml(path), str(path))
 
 

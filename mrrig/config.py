@@ -1,6 +1,7 @@
 """The rig daemon's configuration: TOML parsed once into typed, validated objects.
 
-Relative paths are taken from the working directory (run `mrrig` from the project root).
+A relative path (the file's own and those in it) is taken from the working directory, else
+beside the config file, else from the shipped configs (`mrrig.resources`).
 """
 
 from __future__ import annotations
@@ -12,6 +13,7 @@ from typing import Any, Literal
 from mrrig.loop.adaptation import AdaptationSettings
 from mrrig.loop.controllers import CONTROLLERS
 from mrrig.loop.detectors import DetectorSettings
+from mrrig.resources import resolve
 from mrrig.typed_config import ConfigError, load_toml, parse
 
 __all__ = ["ConfigError", "DaemonConfig", "load_config", "reference_from_table"]
@@ -320,7 +322,9 @@ class DaemonConfig:
 def load_config(
     path: str | Path, overrides: dict[str, dict[str, Any]] | None = None
 ) -> DaemonConfig:
-    """Load and check a daemon config; `overrides` ({section: {field: value}}) win over the file."""
+    """Load and check a daemon config; `overrides` ({section: {field: value}}) win over the file.
+    The file and the paths in it are found as `mrrig.resources.resolve` says."""
+    path = resolve(path)
     table = load_toml(path)
     for section, values in (overrides or {}).items():
         table.setdefault(section, {}).update(values)

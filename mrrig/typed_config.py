@@ -15,6 +15,7 @@ from pathlib import Path
 from typing import Any, TypeVar
 
 from mrrig.errors import MrrigError
+from mrrig.resources import resolve
 
 T = TypeVar("T")
 
@@ -24,8 +25,9 @@ class ConfigError(MrrigError, ValueError):
 
 
 def load_toml(path: str | Path) -> dict[str, Any]:
-    """Read a TOML file, turning every failure into a one-line ConfigError."""
-    p = Path(path)
+    """Read a TOML file (found as `mrrig.resources.resolve` says), turning every failure into a
+    one-line ConfigError."""
+    p = resolve(path)
     try:
         with p.open("rb") as fh:
             return tomllib.load(fh)
@@ -136,7 +138,10 @@ def _convert(tp: Any, value: Any, source: str, key: str) -> Any:
     if tp is Path:
         if not isinstance(value, str):
             raise ConfigError(f"{source}: {key}: expected a path string, got {value!r}")
-        return Path(_text(value, source, key))
+        # relative to the config file where it is not in the working directory
+        source_file = Path(source)
+        base = source_file.parent if source_file.is_file() else None
+        return resolve(_text(value, source, key), base)
     raise TypeError(f"unsupported config type {tp!r} for {key}")
 
 

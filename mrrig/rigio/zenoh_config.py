@@ -19,6 +19,7 @@ from typing import Any
 import zenoh
 
 from mrrig.errors import MrrigError
+from mrrig.resources import resolve
 
 _DEFAULT_MODE = "peer"
 _RUST_SOURCE = re.compile(r"\s+at \S+\.rs:\d+\.?$")
@@ -170,8 +171,9 @@ def check_secure(conf: zenoh.Config, source: str, insecure: bool = False) -> lis
 
 
 def load_zenoh_config(path: str | Path) -> zenoh.Config:
-    """Read a Zenoh JSON5 config file: one line naming the file on any error."""
-    source = str(path)
+    """Read a Zenoh JSON5 config file (found as `mrrig.resources.resolve` says): one line naming
+    the file on any error."""
+    source = str(resolve(path))
     try:
         return zenoh.Config.from_file(source)
     except Exception as exc:  # zenoh.ZError for both missing files and JSON5 syntax

@@ -22,10 +22,11 @@ from cantools.database.can import Message as DbcMessage
 
 from mrrig.errors import MrrigError
 from mrrig.pycan import can
+from mrrig.resources import shipped
 
 logger = logging.getLogger(__name__)
 
-DEFAULT_DBC_PATH = Path(__file__).resolve().parents[3] / "configs" / "mrrig.dbc"
+DEFAULT_DBC_PATH = shipped("mrrig.dbc")
 
 # Message attributes of the DBC that define the E2E protection.
 ATTR_PROFILE = "E2EProfile"
