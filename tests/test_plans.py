@@ -425,3 +425,38 @@ def test_ctrl_c_in_a_step_leaves_the_rig_safe_and_the_step_aborted(rig, tmp_path
     (error,) = cases["constant current"].result
     assert isinstance(error, Error) and "interrupted" in error.message
     assert cases["impossible Et"].result[0].message.startswith("not run")
+
+
+@pytest.mark.process
+def test_force_against_the_motion_is_judged_before_arming_and_measured(rig, tmp_path):
+    """A force that stays in tension on a sine stroke asks the damper to push back on every
+    return (about 45 % of the samples): said before arming, measured from the frames, and
+    given as the reason of the Et it cannot reach."""
+    plan = write(
+        tmp_path,
+        """
+        [plan]
+        name = "against the motion"
+        [[step]]
+        name = "tension only"
+        duration_s = 3
+        settle_s = 1
+        actuator = { waveform = "sine", amplitude_m = 0.005, frequency_hz = 1.0 }
+        controller = { name = "constant", current_a = 0.5 }
+        reference = { kind = "sine", offset_n = 300.0, amplitude_n = 100.0, freq_hz = 0.5 }
+        criteria = { et_max = 0.5, faults = "transport" }
+        """,
+    )
+    junit = tmp_path / "r.xml"
+    out = mrrig("test", str(plan), "--rig", RIG, "--zenoh-config", str(rig), "--junit", str(junit))
+    assert out.returncode == 1, out.stdout + out.stderr
+    before = re.search(r"force against the motion: ([\d.]+)% of the samples", out.stdout)
+    assert before, out.stdout
+    case = junit_cases(junit)["tension only"]
+    props = case_properties(case)
+    measured = float(props["against_motion_share"])
+    print(f"force against the motion: {before.group(1)} % before arming, {measured:.1%} measured")
+    assert 0.4 < float(before.group(1)) / 100 < 0.5
+    assert measured == pytest.approx(float(before.group(1)) / 100, abs=0.05)
+    (failure,) = case.result
+    assert failure.message.startswith("et_max: Et ") and "oppose the motion" in failure.message

@@ -8,6 +8,7 @@ from typing import Any
 
 import numpy as np
 
+from mrrig.loop.feasibility import F_DEADBAND_N, V_DEADBAND_M_S, opposed
 from mrrig.loop.samples import RigState
 
 
@@ -95,6 +96,7 @@ class SummaryAccumulator:
         # frame of an armed stretch measures the damper as it was before arming)
         self.f_des_answered = _Moments()
         self.sse_answered = 0.0
+        self.opposed = 0  # answered frames whose desired force opposes the motion
         self._last_armed = False  # the previous batch's last frame
         self.error = Histogram(ERROR_BIN_N, ERROR_TOP_N)
         self.i_cmd = _Moments()  # every frame
@@ -125,6 +127,7 @@ class SummaryAccumulator:
         f_des_a = samples["f_des"][answered]
         self.f_des_answered.add(f_des_a)
         self.sse_answered += float(((f_des_a - samples["f_meas"][answered]) ** 2).sum())
+        self.opposed += int(opposed(f_des_a, samples["xd"][answered]).sum())
         self.error.add(np.abs(f_des - f_meas))
         self.i_cmd.add(samples["i_cmd"])
         self._add_steps(samples["i_cmd"].astype(float), armed)
@@ -169,6 +172,11 @@ class SummaryAccumulator:
             ],
             "et": et,
             "et_answered": et_answered,
+            # what no current of a semi-active damper gives (mrrig.loop.feasibility)
+            "force_against_motion": {
+                "frames": self.opposed,
+                "share": self.opposed / fa.n if fa.n else math.nan,
+            },
             "tracking_error_n": self.error.percentiles((50, 95)),
             "i_cmd_a": {
                 "mean": i.mean if i.n else math.nan,
@@ -268,6 +276,18 @@ def _step_line(d: Mapping[str, Any]) -> str:
     )
 
 
+def _against_line(d: Mapping[str, Any]) -> list[str]:
+    """A summary from before the count has none."""
+    a = d.get("force_against_motion")
+    if not a:
+        return []
+    return [
+        f"against motion {_fmt(a['share'] * 100.0, ' %', 3)} of those frames ({a['frames']}) ask"
+        f" force against the motion (beyond {F_DEADBAND_N:g} N, {V_DEADBAND_M_S * 1e3:g} mm/s):"
+        " no current of a semi-active damper gives it"
+    ]
+
+
 def format_summary(d: Mapping[str, Any]) -> str:
     """Multi-line text of a `summarize` dict for a terminal."""
     lines = [
@@ -275,6 +295,7 @@ def format_summary(d: Mapping[str, Any]) -> str:
         f" ({d['armed_frames']} armed)",
         f"Et            {_fmt(d['et'])} (armed frames); {_fmt(d['et_answered'])} where the"
         " force answers an armed command (all but each armed stretch's first frame)",
+        *_against_line(d),
         f"|f_des-f_meas| {_stats_line(d['tracking_error_n'], ' N')}",
         f"i_cmd         {_stats_line(d['i_cmd_a'], ' A')}",
         f"i_cmd steps   {_step_line(d['i_cmd_step_a'])} (between armed frames)",
@@ -291,6 +312,7 @@ def format_summary(d: Mapping[str, Any]) -> str:
         "armed_frames",
         "et",
         "et_answered",
+        "force_against_motion",
         "tracking_error_n",
         "i_cmd_a",
         "i_cmd_step_a",

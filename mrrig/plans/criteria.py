@@ -2,8 +2,9 @@
 no I/O).
 
 Et is the paper's error norm (`mrrig.offline.metrics.error_norm`) over the samples whose force
-answers an armed command, after the step's settling time; peak current, latency p99 and the
-highest temperature over the same samples.
+answers an armed command, after the step's settling time; peak current, latency p99, the
+highest temperature and the share of desired forces against the motion (which a semi-active
+damper cannot give: `mrrig.loop.feasibility`) over the same samples.
 """
 
 from __future__ import annotations
@@ -14,6 +15,7 @@ from typing import Literal
 
 import numpy as np
 
+from mrrig.loop.feasibility import opposed_share
 from mrrig.loop.safety import TRANSPORT_FAULTS
 from mrrig.loop.samples import RigState
 from mrrig.offline.metrics import error_norm
@@ -41,6 +43,9 @@ class Numbers:
     peak_current_a: float
     latency_p99_us: float
     temperature_max_degc: float
+    # of the samples, those whose desired force opposes the estimated velocity: Et near 1
+    # with a large share is the profile, not the controller
+    opposed_share: float = math.nan
 
 
 def judged_samples(samples: np.ndarray, settle_s: float) -> np.ndarray:
@@ -66,6 +71,7 @@ def measure(samples: np.ndarray, settle_s: float) -> Numbers:
         peak_current_a=float(np.nanmax(np.abs(s["i_cmd"]))),
         latency_p99_us=float(np.nanpercentile(s["latency_us"], 99)),
         temperature_max_degc=float(np.nanmax(s["temp_degc"])),
+        opposed_share=opposed_share(s["f_des"], s["xd"]),
     )
 
 
@@ -91,5 +97,20 @@ def failures(criteria: Criteria, numbers: Numbers, faults: list[str]) -> list[st
         if math.isnan(value):
             out.append(f"{field}: {what} is undefined (a desired force without spread?)")
         elif value > limit:
-            out.append(f"{field}: {what} {value:.4g}{unit} > {limit:g}{unit}")
+            out.append(
+                f"{field}: {what} {value:.4g}{unit} > {limit:g}{unit}" + _why(field, numbers)
+            )
     return out
+
+
+# an Et failure with at least this share of forces against the motion says so
+EXPLAIN_SHARE = 0.05
+
+
+def _why(field: str, numbers: Numbers) -> str:
+    if field != "et_max" or not numbers.opposed_share >= EXPLAIN_SHARE:
+        return ""
+    return (
+        f" ({numbers.opposed_share:.1%} of the desired forces oppose the motion: a semi-active"
+        " damper cannot give them at any current)"
+    )

@@ -73,6 +73,8 @@ def write_junit(path: Path, plan_name: str, ident: Identity, results: list[StepR
             "controller": r.controller or "",
             "faults": ",".join(r.faults),
         }
+        if r.predicted is not None:
+            values["against_motion_before"] = r.predicted.text()
         if r.numbers is not None:
             n = r.numbers
             values |= {
@@ -81,6 +83,7 @@ def write_junit(path: Path, plan_name: str, ident: Identity, results: list[StepR
                 "peak_current_a": _number(n.peak_current_a),
                 "latency_p99_us": _number(n.latency_p99_us),
                 "temperature_max_degc": _number(n.temperature_max_degc),
+                "against_motion_share": _number(n.opposed_share),
             }
         for name, value in values.items():
             ET.SubElement(cprops, "property", name=name, value=value)
@@ -138,14 +141,17 @@ def write_html(path: Path, plan_name: str, ident: Identity, results: list[StepRe
                 _number(n.peak_current_a),
                 _number(n.latency_p99_us),
                 _number(n.temperature_max_degc),
+                _number(n.opposed_share),
             ]
             if n
-            else ["-"] * 4
+            else ["-"] * 5
         )
+        before = r.predicted.text() if r.predicted else "-"
         rows.append(
             f"<tr class='{r.verdict}'><td>{i}</td><td>{e(r.step.name)}</td><td>{r.verdict}</td>"
             + "".join(f"<td>{c}</td>" for c in cells)
-            + f"<td>{e(', '.join(r.faults) or '-')}</td><td>{e('; '.join(r.reasons))}</td></tr>"
+            + f"<td>{e(before)}</td><td>{e(', '.join(r.faults) or '-')}</td>"
+            + f"<td>{e('; '.join(r.reasons))}</td></tr>"
         )
     plots = [
         f"<h3>{i}. {e(r.step.name)}</h3><img alt='force of step {i}' "
@@ -160,7 +166,8 @@ table{{border-collapse:collapse}} .passed{{background:#dfd}}
 </head><body><h1>mrrig test: {e(plan_name)}: {overall(results)}</h1>
 <table>{"".join(f"<tr><th>{e(k)}</th><td>{e(v)}</td></tr>" for k, v in ident_rows)}</table>
 <h2>Steps</h2><table><tr><th>#</th><th>step</th><th>verdict</th><th>Et</th><th>peak current (A)</th>
-<th>latency p99 (us)</th><th>temperature max (degC)</th><th>faults</th><th>reason</th></tr>
+<th>latency p99 (us)</th><th>temperature max (degC)</th><th>force against the motion (share)</th>
+<th>force against the motion, before arming</th><th>faults</th><th>reason</th></tr>
 {"".join(rows)}</table>
 <h2>Force per step</h2>
 {"".join(plots)}

@@ -22,6 +22,7 @@ from mrrig.errors import MrrigError
 from mrrig.loop.safety import TRANSPORT_FAULTS
 from mrrig.loop.samples import SAMPLE_DTYPE
 from mrrig.plans.criteria import Numbers, failures, measure
+from mrrig.plans.feasibility import Prediction, before_arming
 from mrrig.plans.plan import Plan, Step
 
 log = logging.getLogger(__name__)
@@ -41,6 +42,8 @@ class StepResult:
     wall_s: float = 0.0
     samples: np.ndarray = field(default_factory=lambda: np.empty(0, SAMPLE_DTYPE))
     controller: str | None = None
+    # the share of desired forces against the motion, as known before arming
+    predicted: Prediction | None = None
 
 
 class StepAborted(MrrigError):
@@ -127,6 +130,8 @@ def _run_step(
     for req in step.requests():
         _request(rig, req)
     result.controller = rig.status().get("controller")
+    result.predicted = before_arming(step)
+    progress(f"  step {index}/{count} {step.name}: {result.predicted.text()}")
     tele = rig.telemetry(duration_s=step.settle_s + step.duration_s, quiet_s=2.0)
     _request(rig, {"cmd": "arm"})
     t0 = last_status = last_progress = time.monotonic()
@@ -176,19 +181,20 @@ def _step_line(index: int, count: int, r: StepResult) -> str:
 
 
 def table(results: list[StepResult]) -> str:
-    """The console table at the end: one row per step."""
+    """The console table at the end: one row per step; `against`: the share of its desired
+    forces that oppose the motion (no current of a semi-active damper gives them)."""
     head = (
         f"{'#':>2}  {'step':<24} {'verdict':<8} {'Et':>8} {'I peak A':>8} {'lat p99 us':>10}"
-        f" {'T max':>7} faults"
+        f" {'T max':>7} {'against':>7} faults"
     )
     rows = [head, "-" * len(head)]
     for i, r in enumerate(results, start=1):
         n = r.numbers
         nums = (
             f"{n.et:>8.4f} {n.peak_current_a:>8.3f} {n.latency_p99_us:>10.0f}"
-            f" {n.temperature_max_degc:>7.1f}"
+            f" {n.temperature_max_degc:>7.1f} {n.opposed_share:>7.1%}"
             if n
-            else f"{'-':>8} {'-':>8} {'-':>10} {'-':>7}"
+            else f"{'-':>8} {'-':>8} {'-':>10} {'-':>7} {'-':>7}"
         )
         rows.append(
             f"{i:>2}  {r.step.name[:24]:<24} {r.verdict:<8} {nums} {','.join(r.faults) or '-'}"
