@@ -4,6 +4,8 @@
   structured array, SI units: `t` s, `x` m, `xd` m/s, `f_meas` N, `i_cmd` A, ...), `events`,
   `summary`, `identity`, `to_pandas()` (columns named with their units, and `utc`).
 - `runs(**filters)`: the run catalog (`mrrig runs`) as a pandas DataFrame.
+- `register_run(rig, started_utc, ...)`: one run into the catalog (what a plan step,
+  characterize and validate call; the daemon's sidecar registers its own runs).
 - `Rig(name)`: a running daemon over Zenoh: `status()`, `arm()`, `disarm()`, `reset()`,
   `stream_force(...)`, `telemetry(...)`. Use it as a context manager (`with Rig("rig1") as
   rig:`) or call `close()`: it holds one Zenoh session, and an open session keeps the
@@ -18,8 +20,9 @@ from __future__ import annotations
 import json
 import math
 import os
+import uuid
 import weakref
-from collections.abc import Iterable, Iterator
+from collections.abc import Iterable, Iterator, Mapping
 from datetime import datetime
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -33,9 +36,10 @@ if TYPE_CHECKING:
     import pandas as pd
     import zenoh
 
+    from mrrig.catalog import RunRecord
     from mrrig.rigio.force_stream import SendResult
 
-__all__ = ["Recording", "Rig", "RigError", "Telemetry", "runs"]
+__all__ = ["Recording", "Rig", "RigError", "Telemetry", "register_run", "runs"]
 
 ENV_CATALOG = "MRRIG_CATALOG"  # as `mrrig runs`
 _NAMES = {c.field: c.name for c in COLUMNS}
@@ -119,11 +123,11 @@ def runs(
     """
     import pandas as pd
 
-    from mrrig.catalog import DEFAULT_PATH, find_runs
+    from mrrig.catalog import find_runs
     from mrrig.catalog.query import parse_since
 
     found = find_runs(
-        catalog or os.environ.get(ENV_CATALOG) or DEFAULT_PATH,
+        catalog or default_catalog(),
         rig=rig,
         specimen=specimen,
         plan=plan,
@@ -139,6 +143,59 @@ def runs(
         if name in frame:
             frame[name] = pd.to_datetime(frame[name], utc=True)
     return frame
+
+
+def default_catalog() -> str:
+    """The catalog `mrrig runs` reads by default: $MRRIG_CATALOG, else
+    `recordings/catalog.sqlite`."""
+    from mrrig.catalog import DEFAULT_PATH
+
+    return os.environ.get(ENV_CATALOG) or str(DEFAULT_PATH)
+
+
+def register_run(
+    rig: str,
+    started_utc: datetime,
+    *,
+    catalog: str | Path | None = None,
+    spool: str | Path | None = None,
+    summary: Mapping[str, Any] | None = None,
+    recording: str | Path | None = None,
+    model: str | Path | None = None,
+    config: str | Path | None = None,
+    **fields: Any,
+) -> RunRecord:
+    """Register one run in the catalog and return its record (a new run id unless `run_id`
+    is given; registering the same id again replaces its row).
+
+    `started_utc` (and `ended_utc` in `fields`): aware datetimes. `catalog`: an SQLite file
+    or a `postgresql://` URL (default: `default_catalog()`); `spool`: where the run goes when
+    that one cannot be reached (`mrrig runs sync` brings it over later). `summary`: a run
+    summary (`mrrig.loop.summary`: Et, faults, latency in us, current in A, temperature in
+    degC) for the numbers; `recording` (a finished one: `recording_path` names one still
+    being written), `model`, `config`: files whose path and sha256 are kept. `fields`: any other `RunRecord` field (`plan`, `step`, `verdict`, `controller`,
+    `controller_params`, `specimen`, `tags`, `operator`, `et`, ...), over the summary's.
+    CatalogError where the catalog (and the spool) cannot take it."""
+    from mrrig.catalog import RunRecord, summary_numbers
+    from mrrig.catalog import register_run as register
+    from mrrig.rigio.run_identity import file_sha256, operator_of
+
+    values: dict[str, Any] = summary_numbers(summary) if summary is not None else {}
+    values |= {"run_id": fields.pop("run_id", None) or uuid.uuid4(), "operator": operator_of(None)}
+    if model is not None:
+        values |= {"model_path": str(model), "model_sha256": file_sha256(model)}
+    if config is not None:
+        values["config_sha256"] = file_sha256(config)
+    if recording is not None:
+        path = Path(recording).resolve()
+        values |= {
+            "recording_path": str(path),
+            "recording_size_bytes": path.stat().st_size,
+            "recording_sha256": file_sha256(path),
+        }
+    record = RunRecord(rig=rig, started_utc=started_utc, **(values | fields))
+    register(catalog or default_catalog(), record, spool_url=spool)
+    return record
 
 
 class Telemetry:
@@ -267,6 +324,15 @@ class Rig:
             self._session = None
             self._finalizer.detach()
             self._cm.__exit__(None, None, None)
+
+    @property
+    def operator(self) -> str:
+        """Who drives the rig (for the runs this client registers): the common name of the
+        Zenoh config's certificate where it authenticates with mutual TLS, else its Zenoh
+        user where it authenticates by user and password, else the local user."""
+        from mrrig.rigio.run_identity import operator_of
+
+        return operator_of(self._conf)
 
     @property
     def session(self) -> zenoh.Session:

@@ -99,6 +99,11 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument(
         "--zenoh-config", type=Path, default=client.DEFAULT_CONFIG, help="Zenoh client config"
     )
+    ap.add_argument(
+        "--catalog",
+        help="register each step as a run in this catalog: an SQLite file or a postgresql://"
+        " URL (default: $MRRIG_CATALOG, else recordings/catalog.sqlite)",
+    )
     ap.add_argument("--junit", type=Path, help="write a JUnit XML report here")
     ap.add_argument("--html", type=Path, help="write a self-contained HTML report here")
     ap.add_argument(
@@ -130,7 +135,7 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def _run(plan, rig_name: str, args: argparse.Namespace, mrrig_version: str) -> int:
-    from mrrig.api import Rig
+    from mrrig.api import Rig, default_catalog
     from mrrig.plans.report import Identity, write_html, write_junit
     from mrrig.plans.runner import overall, run_plan, table
 
@@ -146,7 +151,9 @@ def _run(plan, rig_name: str, args: argparse.Namespace, mrrig_version: str) -> i
         stops = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
         old = {sig: signal.signal(sig, signal.default_int_handler) for sig in stops}
         try:
-            results, interrupted = run_plan(plan, rig, lambda line: print(line, flush=True))
+            results, interrupted = run_plan(
+                plan, rig, lambda line: print(line, flush=True), args.catalog or default_catalog()
+            )
         finally:
             for sig, handler in old.items():
                 signal.signal(sig, handler)

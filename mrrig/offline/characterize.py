@@ -32,7 +32,8 @@ import numpy as np
 
 from mrrig import json_text
 from mrrig.cli_args import HelpFormatter
-from mrrig.config import load_config
+from mrrig.config import DaemonConfig, load_config
+from mrrig.errors import MrrigError
 from mrrig.loop.samples import RigState
 from mrrig.loop.summary import summarize
 from mrrig.offline.datasets import TIDY_HEADER, dataset_b_conditions
@@ -190,6 +191,36 @@ def write_run_recording(path: Path, rig: str, run: Run, s: np.ndarray, m: Matrix
     os.replace(tmp, path)
 
 
+def register_tool_run(cfg: DaemonConfig, started_utc: dt.datetime, **fields: Any) -> None:
+    """One run of this tool (or `validate`) into the rig config's catalog (`[catalog]`, where
+    the daemon's own runs go), with the config's specimen, tags and operator; a catalog that
+    cannot take it is logged and the tool goes on. `fields`: `mrrig.api.register_run`'s."""
+    if not cfg.catalog.enabled:
+        return
+    from mrrig.api import register_run
+    from mrrig.rigio.run_identity import catalog_urls
+
+    url, spool = catalog_urls(cfg)
+    if cfg.rig.operator:
+        fields["operator"] = cfg.rig.operator
+    try:
+        register_run(
+            cfg.rig.name,
+            started_utc,
+            ended_utc=dt.datetime.now(dt.UTC),
+            catalog=url,
+            spool=spool,
+            specimen=cfg.rig.specimen,
+            tags=list(cfg.rig.tags),
+            config=cfg.source,
+            **fields,
+        )
+    except MrrigError as exc:
+        log.error(
+            "%s %s not registered in the catalog: %s", fields.get("plan"), fields.get("step"), exc
+        )
+
+
 # ---------------------------------------------------------------------------------- the output
 class MatrixStore:
     """DIR/done.json (the truth about finished runs), DIR/matrix.csv, DIR/run-NNN.rrd."""
@@ -343,6 +374,7 @@ def characterize(
         progress.start(run)
         attempts_failed: list[dict] = []
         for attempt in range(1, store.m.attempts + 1):
+            started_utc = dt.datetime.now(dt.UTC)
             try:
                 s = record_run(session, run, store.m, stop)
             except RunFailed as exc:
@@ -351,6 +383,17 @@ def characterize(
                 session.wait_until(session.now() + RETRY_PAUSE_S, stop, fail_on_fault=False)
                 continue
             store.save(rig, run, s, attempt, attempts_failed)
+            register_tool_run(
+                session.cfg,
+                started_utc,
+                plan="characterize",
+                step=f"run-{run.run_id:03d}",
+                controller="constant",
+                controller_params=asdict(run),
+                summary=summarize(s, []),
+                recording=store.rrd_path(run),
+                verdict="ok",
+            )
             in_a_row = 0
             break
         else:

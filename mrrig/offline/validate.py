@@ -12,6 +12,7 @@ the windows it discarded.
 from __future__ import annotations
 
 import argparse
+import datetime as dt
 import logging
 import sys
 import threading
@@ -28,7 +29,12 @@ from mrrig.loop.daemon import build_controller
 from mrrig.loop.safety import TRANSPORT_FAULTS
 from mrrig.loop.samples import RigState
 from mrrig.loop.summary import format_summary, summarize
-from mrrig.offline.characterize import EXIT_INTERRUPTED, FLUSH_MARGIN_S, RETRY_PAUSE_S
+from mrrig.offline.characterize import (
+    EXIT_INTERRUPTED,
+    FLUSH_MARGIN_S,
+    RETRY_PAUSE_S,
+    register_tool_run,
+)
 from mrrig.rigio.rig_session import (
     Interrupted,
     RigError,
@@ -174,10 +180,21 @@ def main(argv: list[str] | None = None) -> int:
                     if k:
                         session.request(cmd="disarm")
                         session.request(cmd="set_model", path=str(model))
+                    started_utc = dt.datetime.now(dt.UTC)
                     r = track_with_attempts(
                         session, args.settle, args.duration, args.attempts, stop
                     )
                     r = {"model": str(model), "setup": _setup(cfg), **r}
+                    register_tool_run(
+                        cfg,
+                        started_utc,
+                        plan="validate",
+                        step=model.name,
+                        controller=cfg.controller.name,
+                        model=model,
+                        summary=r,
+                        verdict="fault" if r["faults"] else "ok",
+                    )
                     r["clock_t0_s"] = session.clock_t0_s  # the faults' `t` on CLOCK_MONOTONIC
                     reports.append(r)
                     print(format_report(r), flush=True)

@@ -10,6 +10,7 @@ and ends the plan.
 
 from __future__ import annotations
 
+import datetime as dt
 import logging
 import time
 from collections.abc import Callable
@@ -17,7 +18,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from mrrig.api import Rig, RigError
+from mrrig.api import Rig, RigError, register_run
 from mrrig.errors import MrrigError
 from mrrig.loop.safety import TRANSPORT_FAULTS
 from mrrig.loop.samples import SAMPLE_DTYPE
@@ -42,6 +43,7 @@ class StepResult:
     wall_s: float = 0.0
     samples: np.ndarray = field(default_factory=lambda: np.empty(0, SAMPLE_DTYPE))
     controller: str | None = None
+    recording: str | None = None  # the daemon's recording the step is in
     # the share of desired forces against the motion, as known before arming
     predicted: Prediction | None = None
 
@@ -53,9 +55,12 @@ class StepAborted(MrrigError):
 Progress = Callable[[str], None]
 
 
-def run_plan(plan: Plan, rig: Rig, progress: Progress) -> tuple[list[StepResult], bool]:
+def run_plan(
+    plan: Plan, rig: Rig, progress: Progress, catalog: str | None = None
+) -> tuple[list[StepResult], bool]:
     """Every step in order, and whether Ctrl-C ended the plan (the step it came in aborted,
-    the rig disarmed, the rest `skipped`)."""
+    the rig disarmed, the rest `skipped`). With `catalog`, each step run is registered there
+    as a run (plan, step, verdict, numbers) when it ends."""
     results: list[StepResult] = []
     interrupted = False
     for index, step in enumerate(plan.steps, start=1):
@@ -63,7 +68,7 @@ def run_plan(plan: Plan, rig: Rig, progress: Progress) -> tuple[list[StepResult]
             results.append(StepResult(step, "skipped", ["not run: the plan was interrupted"]))
             continue
         result = StepResult(step, "aborted")
-        t0 = time.monotonic()
+        t0, started_utc = time.monotonic(), dt.datetime.now(dt.UTC)
         try:
             _run_step(index, len(plan.steps), step, rig, result, progress)
         except StepAborted as exc:
@@ -76,7 +81,40 @@ def run_plan(plan: Plan, rig: Rig, progress: Progress) -> tuple[list[StepResult]
             result.wall_s = time.monotonic() - t0
         results.append(result)
         progress(_step_line(index, len(plan.steps), result))
+        if catalog is not None:
+            _register(catalog, plan, rig, result, started_utc)
     return results, interrupted
+
+
+def _register(catalog: str, plan: Plan, rig: Rig, r: StepResult, started_utc: dt.datetime) -> None:
+    """The step's run into the catalog; a catalog that cannot take it does not stop the plan."""
+    n = r.numbers
+    numbers = {}
+    if n is not None:
+        numbers = {
+            "et": n.et,
+            "peak_current_a": n.peak_current_a,
+            "latency_p99_us": n.latency_p99_us,
+            "temp_max_degc": n.temperature_max_degc,
+        }
+    try:
+        register_run(
+            rig.name,
+            started_utc,
+            ended_utc=dt.datetime.now(dt.UTC),
+            catalog=catalog,
+            plan=plan.name,
+            step=r.step.name,
+            verdict=r.verdict,
+            controller=r.controller or "",
+            faults=[{"fault": f} for f in r.faults],
+            faults_count=len(r.faults),
+            operator=rig.operator,
+            recording_path=r.recording,  # still being written: no sha256 yet
+            **numbers,
+        )
+    except MrrigError as exc:
+        log.error("step %s not registered in the catalog: %s", r.step.name, exc)
 
 
 def _disarm(rig: Rig) -> None:
@@ -129,7 +167,10 @@ def _run_step(
     _request(rig, {"cmd": "disarm"})
     for req in step.requests():
         _request(rig, req)
-    result.controller = rig.status().get("controller")
+    status = rig.status()
+    result.controller = status.get("controller")
+    recording = status.get("recording")  # the sidecar's file, or the loop's "failed: ..."
+    result.recording = recording.get("path") if isinstance(recording, dict) else None
     result.predicted = before_arming(step)
     progress(f"  step {index}/{count} {step.name}: {result.predicted.text()}")
     tele = rig.telemetry(duration_s=step.settle_s + step.duration_s, quiet_s=2.0)

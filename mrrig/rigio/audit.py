@@ -20,29 +20,16 @@ import getpass
 import json
 import logging
 import socket
-from pathlib import Path
 from typing import Any
 
 import zenoh
+
+from mrrig.rigio.run_identity import certificate_cn
 
 log = logging.getLogger(__name__)
 
 MAX_REQUEST_CHARS = 2048  # an audit keeps a request's text up to this, then a mark
 _RESULT_KEYS = ("ok", "error", "state", "message", "controller", "reference")
-
-
-def _certificate_name(path: str | None) -> str | None:
-    if not path:
-        return None
-    try:
-        from cryptography import x509
-        from cryptography.x509.oid import NameOID
-
-        cert = x509.load_pem_x509_certificate(Path(path).read_bytes())
-        names = cert.subject.get_attributes_for_oid(NameOID.COMMON_NAME)
-        return str(names[0].value) if names else None
-    except (OSError, ValueError):
-        return None
 
 
 def _config_value(conf: zenoh.Config, key: str) -> Any:
@@ -61,7 +48,7 @@ def claims(session: zenoh.Session, conf: zenoh.Config | None) -> dict[str, Any]:
         pass
     out["host"] = socket.gethostname()
     if conf is not None:
-        cn = _certificate_name(_config_value(conf, "transport/link/tls/connect_certificate"))
+        cn = certificate_cn(_config_value(conf, "transport/link/tls/connect_certificate"))
         if cn:
             out["cert_cn"] = cn
         zenoh_user = _config_value(conf, "transport/auth/usrpwd/user")

@@ -12,6 +12,7 @@ import dataclasses
 import datetime as dt
 import getpass
 import hashlib
+import json
 import os
 import socket
 import uuid
@@ -38,9 +39,45 @@ def file_sha256(path: str | Path) -> str | None:
     return h.hexdigest()
 
 
-def _operator(cfg: DaemonConfig) -> str:
-    if cfg.rig.operator:
-        return cfg.rig.operator
+def certificate_cn(path: str | Path | None) -> str | None:
+    """The common name of the PEM certificate at `path`, or None (no file, no CN)."""
+    if not path:
+        return None
+    try:
+        from cryptography import x509
+        from cryptography.x509.oid import NameOID
+
+        cert = x509.load_pem_x509_certificate(Path(path).read_bytes())
+        names = cert.subject.get_attributes_for_oid(NameOID.COMMON_NAME)
+        return str(names[0].value) if names else None
+    except (OSError, ValueError):
+        return None
+
+
+def _zenoh_value(conf: Any, key: str) -> Any:
+    try:
+        return json.loads(conf.get_json(key))
+    except Exception:  # noqa: BLE001 - zenoh.ZError: the config has no such key
+        return None
+
+
+def operator_of(conf: Any) -> str:
+    """Who runs a run whose Zenoh session is opened with `conf` (a `zenoh.Config`, or None
+    where there is no Zenoh): the common name of its certificate where it authenticates with
+    mutual TLS, else its user where it authenticates by user and password, else the local
+    user ("" where this process has no user name). Duck-typed: the loop, which imports this
+    module, never imports Zenoh."""
+    if conf is not None:
+        tls = _zenoh_value(conf, "transport/link/tls") or {}
+        if tls.get("enable_mtls") is True:
+            cn = certificate_cn(tls.get("connect_certificate")) or certificate_cn(
+                tls.get("listen_certificate")
+            )
+            if cn:
+                return cn
+        user = (_zenoh_value(conf, "transport/auth/usrpwd") or {}).get("user")
+        if user:
+            return str(user)
     try:
         return getpass.getuser()
     except (OSError, KeyError):
@@ -84,7 +121,8 @@ def run_identity(cfg: DaemonConfig, dbc_path: Path) -> dict[str, Any]:
         "rig": cfg.rig.name,
         "host": socket.gethostname(),
         "specimen": cfg.rig.specimen,
-        "operator": _operator(cfg),
+        # the config's, else the sidecar's Zenoh identity (`operator_of`), filled in there
+        "operator": cfg.rig.operator,
         "tags": list(cfg.rig.tags),
         "started_utc": dt.datetime.now(dt.UTC).isoformat(),
         "controller": c.name,

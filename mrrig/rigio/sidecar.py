@@ -58,6 +58,7 @@ from mrrig.rigio.ipc import (
     decode_json,
     decode_samples,
 )
+from mrrig.rigio.run_identity import operator_of
 from mrrig.rigio.zenoh_config import (
     ZenohConfigError,
     check_secure,
@@ -749,6 +750,8 @@ def run_sidecar(
         conf = load_zenoh_config(zenoh_config) if zenoh_config else None
         if conf is not None:
             warnings = check_secure(conf, str(zenoh_config), insecure)
+        if identity is not None and not identity.get("operator"):
+            identity = {**identity, "operator": operator_of(conf)}
     except ZenohConfigError as exc:
         log.debug("%s", exc)
         end.send_ready(str(exc))
