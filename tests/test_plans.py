@@ -271,13 +271,13 @@ def test_html_holds_the_identity_the_table_and_one_plot_per_step(tmp_path):
 # --- against the simulated rig -------------------------------------------------------------
 
 
-def wait_status(client_cfg, timeout_s: float = 120.0) -> dict:
+def wait_status(client_cfg, timeout_s: float = 120.0, rig: str = RIG) -> dict:
     from mrrig.rigio import client
 
     deadline = time.monotonic() + timeout_s
     while True:
         try:
-            return client.status(RIG, client_cfg, 1.0)["status"]
+            return client.status(rig, client_cfg, 1.0)["status"]
         except client.ClientError:
             if time.monotonic() > deadline:
                 raise
@@ -460,3 +460,134 @@ def test_force_against_the_motion_is_judged_before_arming_and_measured(rig, tmp_
     assert measured == pytest.approx(float(before.group(1)) / 100, abs=0.05)
     (failure,) = case.result
     assert failure.message.startswith("et_max: Et ") and "oppose the motion" in failure.message
+
+
+# --- markers in the recording, and review's budget verdict on it ----------------------------
+
+
+@pytest.mark.parametrize(
+    ("req", "error"),
+    [
+        ({"text": "step 1: start", "data": {"step": 1}}, None),
+        ({"data": {}}, "text: a mark needs a text"),
+        ({"text": "  "}, "text: a mark needs a text"),
+        ({"text": "x" * 201}, "text: 201 characters, over the limit of 200"),
+        ({"text": "two\nlines"}, "text: a control character"),
+        ({"text": "t", "data": [1, 2]}, "data: expected a JSON object, got list"),
+        ({"text": "t", "data": {"s": "x" * 1300}}, "data: 1309 characters of JSON, over the limit"),
+        ({"text": "t", "level": "error"}, "level: unknown field of mark (known: text, data)"),
+    ],
+)
+def test_a_mark_is_one_bounded_line_with_a_json_object(req, error):
+    from mrrig.rigio.control import RequestError, check_mark, check_request
+
+    req = check_request({"cmd": "mark", **req})  # a known command of the control plane
+    if error is None:
+        assert check_mark(req) == ("step 1: start", {"step": 1})
+        return
+    with pytest.raises(RequestError) as err:
+        check_mark(req)
+    assert str(err.value).startswith(error)
+
+
+def test_the_budget_verdict_without_the_work_is_never_over_on_the_latency_alone():
+    """The latency from the bus's receive holds the wait before the loop's read: over the
+    budget it proves nothing about the work (the daemon's measure), within it it bounds it."""
+    from mrrig.loop.summary import format_summary, summarize
+
+    s = synthetic()
+    d = summarize(s, [])  # latency 100 to 1100 us: p99 over 300 us
+    assert "budget of the work per frame p99 <= 300 us, p99.9 <= 1000 us: not judged" in (
+        format_summary(d)
+    )
+    s["latency_us"] = 120.0
+    assert "within it (the latency, which holds the work)" in format_summary(summarize(s, []))
+    work = {"work": {"p50": 80.0, "p99": 350.0, "p99.9": 400.0, "max": 500.0}}
+    d = summarize(s, [], {"latency_split_us": work})
+    assert "OVER it at p99 (its work)" in format_summary(d)
+
+
+RECORDED = "plans-rec"
+
+
+@pytest.fixture(scope="module")
+def recorded(tmp_path_factory):
+    """The two-step plan run by `mrrig test` on a daemon that records, then stopped: (the
+    recording, what the daemon printed, what `mrrig test` printed)."""
+    from mrrig.rigio.canbus.bus import find_free_port, start_bridge, stop_bridge
+
+    tmp = tmp_path_factory.mktemp("recorded")
+    port = find_free_port()
+    bridge = start_bridge(port)
+    channel = f"ws://127.0.0.1:{port}/"
+    daemon_z, client_z, _ = zenoh_configs(tmp)
+    cfg = rig_config(
+        tmp,
+        channel,
+        None,
+        rig={"name": RECORDED},
+        telemetry={"enabled": True, "zenoh_config": str(daemon_z), "rate_hz": 50.0},
+        **NO_MODEL,
+    )
+    rrd, printed = tmp / "run.rrd", tmp / "daemon.txt"
+    sim = start(["-m", "firmware_sim", "--config", "configs/sim.toml", "-c", channel])
+    with printed.open("w") as out:
+        daemon = start(
+            ["-m", "mrrig", "run", "--config", str(cfg), "--record", str(rrd)], stdout=out
+        )
+    try:
+        wait_status(client_z, rig=RECORDED)
+        plan = write(tmp, PLAN.format(d1=1))
+        ran = mrrig("test", str(plan), "--rig", RECORDED, "--zenoh-config", str(client_z))
+    finally:
+        stop(daemon)
+        stop(sim)
+        stop_bridge(bridge)
+    assert ran.returncode == 1, ran.stdout + ran.stderr  # step 2's Et criterion
+    return rrd, printed.read_text(), ran.stdout
+
+
+@pytest.mark.process
+def test_each_step_leaves_its_start_and_end_marks_with_its_settings_in_the_recording(recorded):
+    from mrrig.offline.review import read_recording
+
+    rrd, _, _ = recorded
+    rec = read_recording(rrd)
+    marks = [e for e in rec.events if e.get("kind") == "mark"]
+    where = ["plan two steps: step 1/2 constant current", "plan two steps: step 2/2 impossible Et"]
+    assert [m["text"] for m in marks] == [
+        f"{where[0]}: start",
+        f"{where[0]}: end, passed",
+        f"{where[1]}: start",
+        f"{where[1]}: end, failed",
+    ], [e["text"] for e in rec.events]
+    settings = marks[0]["data"]["settings"]
+    assert settings["set_controller"] == {"name": "constant", "current_a": 0.5}
+    assert settings["actuator"]["amplitude_m"] == 0.005 and marks[0]["data"]["settle_s"] == 0.5
+    assert marks[3]["data"]["verdict"] == "failed" and marks[3]["data"]["et"] > 0.0001
+    assert marks[3]["data"]["reasons"].startswith("et_max: Et ")
+    # each step's armed frames lie between its marks (a mark's time is the latest sensor
+    # time the recording's writer had: a telemetry batch, 20 ms, may still be on its way)
+    armed = rec.samples[rec.samples["state"] == RigState.ARMED]["t"]
+    for begin, end in (marks[0:2], marks[2:4]):
+        inside = armed[(armed >= begin["t"]) & (armed <= end["t"] + 0.1)]
+        assert inside.size > 500, (begin["t"], end["t"])  # over a second at 500 Hz
+    assert armed[armed < marks[0]["t"]].size == 0
+    assert armed[(armed > marks[1]["t"] + 0.1) & (armed < marks[2]["t"])].size == 0
+    audits = [e for e in rec.events if e.get("kind") == "audit" and "control mark" in e["text"]]
+    assert len(audits) == 4 and all("accepted" in a["text"] for a in audits)
+
+
+@pytest.mark.process
+def test_review_of_a_recording_gives_the_daemons_latency_budget_verdict(recorded):
+    rrd, daemon_printed, _ = recorded
+    reviewed = mrrig("review", str(rrd))
+    assert reviewed.returncode == 0, reviewed.stderr
+
+    def budget(text: str) -> str:
+        (line,) = [ln.strip() for ln in text.splitlines() if "the spec's budget" in ln]
+        return line
+
+    print(f"daemon: {budget(daemon_printed)}\nreview: {budget(reviewed.stdout)}")
+    assert budget(reviewed.stdout) == budget(daemon_printed)
+    assert budget(daemon_printed).endswith("(its work)")

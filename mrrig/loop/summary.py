@@ -199,26 +199,38 @@ class SummaryAccumulator:
 LATENCY_BUDGET_US = {"p99": 300.0, "p99.9": 1000.0}
 
 
-def _budget_line(work_us: Mapping[str, float], what: str) -> str:
-    over = [k for k, limit in LATENCY_BUDGET_US.items() if not work_us.get(k, math.nan) <= limit]
+def _over_budget(us: Mapping[str, float]) -> list[str]:
+    return [k for k, limit in LATENCY_BUDGET_US.items() if not us.get(k, math.nan) <= limit]
+
+
+def _budget_line(d: Mapping[str, Any]) -> str:
+    """One rule wherever a summary is printed (the daemon's, `mrrig review`'s): the budget is
+    for the loop's work per frame (`latency_split_us`, which the daemon measures and a
+    recording's summary keeps). Without it, the latency (bus receive -> send) decides only
+    where it is within the budget: it holds the wait before the loop reads the frame too."""
     budget = ", ".join(f"{k} <= {v:g} us" for k, v in LATENCY_BUDGET_US.items())
-    verdict = "within it" if not over else "OVER it at " + ", ".join(over)
-    return f"the spec's budget of the work per frame {budget}: {verdict} ({what})"
+    head = f"the spec's budget of the work per frame {budget}:"
+    work = (d.get("latency_split_us") or {}).get("work")
+    if work:
+        over = _over_budget(work)
+        verdict = "within it" if not over else "OVER it at " + ", ".join(over)
+        return f"{head} {verdict} (its work)"
+    if not _over_budget(d["latency_us"]):
+        return f"{head} within it (the latency, which holds the work)"
+    return (
+        f"{head} not judged (no work per frame here: the latency over it holds the wait"
+        " before the loop's read too; the whole run's summary has the work)"
+    )
 
 
 def _latency_lines(d: Mapping[str, Any]) -> list[str]:
-    """The latency from the bus's receive timestamp, and the loop's own work per frame that
-    the budget is for; a recording holds the latency only."""
+    """The latency from the bus's receive timestamp, the loop's own work per frame where the
+    summary has it, and the budget's verdict (`_budget_line`)."""
     work = (d.get("latency_split_us") or {}).get("work")
     lines = [f"latency       {_stats_line(d['latency_us'], ' us')} (bus receive -> send)"]
     if work:
-        lines += [
-            f"  of it work  {_stats_line(work, ' us')} (the loop's read -> send)",
-            f"              {_budget_line(work, 'its work')}",
-        ]
-    else:
-        lines.append(f"              {_budget_line(d['latency_us'], 'on the latency: no split')}")
-    return lines
+        lines.append(f"  of it work  {_stats_line(work, ' us')} (the loop's read -> send)")
+    return [*lines, f"              {_budget_line(d)}"]
 
 
 def frame_gaps(t_s: np.ndarray) -> dict[str, float | int]:

@@ -11,7 +11,9 @@ and ends the plan.
 from __future__ import annotations
 
 import datetime as dt
+import json
 import logging
+import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -25,6 +27,7 @@ from mrrig.loop.samples import SAMPLE_DTYPE
 from mrrig.plans.criteria import Numbers, failures, measure
 from mrrig.plans.feasibility import Prediction, before_arming
 from mrrig.plans.plan import Plan, Step
+from mrrig.rigio.control import MAX_MARK_CHARS, MAX_MARK_DATA_CHARS
 
 log = logging.getLogger(__name__)
 
@@ -69,7 +72,9 @@ def run_plan(
             continue
         result = StepResult(step, "aborted")
         t0, started_utc = time.monotonic(), dt.datetime.now(dt.UTC)
+        where = f"plan {plan.name}: step {index}/{len(plan.steps)} {step.name}"
         try:
+            _mark(rig, f"{where}: start", _start_data(plan, index, step))
             _run_step(index, len(plan.steps), step, rig, result, progress)
         except StepAborted as exc:
             result.verdict, result.reasons = "aborted", [str(exc)]
@@ -79,6 +84,7 @@ def run_plan(
         finally:
             _disarm(rig)
             result.wall_s = time.monotonic() - t0
+            _mark(rig, f"{where}: end, {result.verdict}", _end_data(plan, index, result))
         results.append(result)
         progress(_step_line(index, len(plan.steps), result))
         if catalog is not None:
@@ -115,6 +121,42 @@ def _register(catalog: str, plan: Plan, rig: Rig, r: StepResult, started_utc: dt
         )
     except MrrigError as exc:
         log.error("step %s not registered in the catalog: %s", r.step.name, exc)
+
+
+def _mark(rig: Rig, text: str, data: dict) -> None:
+    """A marker in the rig's recording (`mark`: its telemetry process writes it, and audits
+    the request); a rig that takes none (a daemon from before `mark`, or without telemetry)
+    does not stop the plan."""
+    if len(json.dumps(data)) > MAX_MARK_DATA_CHARS:
+        data = {k: v for k, v in data.items() if k in ("plan", "step", "name")}
+        data["note"] = "settings too long for a mark: see the plan"
+    try:
+        rig.request({"cmd": "mark", "text": text[:MAX_MARK_CHARS], "data": data})
+    except RigError as exc:
+        log.warning("no marker in the recording (%s): %s", text, exc)
+
+
+def _start_data(plan: Plan, index: int, step: Step) -> dict:
+    """The step's settings, as it sends them."""
+    settings = {r["cmd"]: {k: v for k, v in r.items() if k != "cmd"} for r in step.requests()}
+    return {
+        "plan": plan.name,
+        "step": index,
+        "name": step.name,
+        "duration_s": step.duration_s,
+        "settle_s": step.settle_s,
+        "settings": settings,
+    }
+
+
+def _end_data(plan: Plan, index: int, r: StepResult) -> dict:
+    """The step's verdict and numbers (JSON has no NaN: an undefined number is null)."""
+    out = {"plan": plan.name, "step": index, "name": r.step.name, "verdict": r.verdict}
+    if r.numbers is not None:
+        for key in ("et", "opposed_share", "peak_current_a", "latency_p99_us"):
+            value = getattr(r.numbers, key)
+            out[key] = None if math.isnan(value) else value
+    return out | {"faults": r.faults, "reasons": "; ".join(r.reasons)[:300]}
 
 
 def _disarm(rig: Rig) -> None:
@@ -237,8 +279,10 @@ def table(results: list[StepResult]) -> str:
             if n
             else f"{'-':>8} {'-':>8} {'-':>10} {'-':>7} {'-':>7}"
         )
+        beside = ", ".join(f"{k} {v:.4f}" for k, v in r.step.compare_et.items())
         rows.append(
             f"{i:>2}  {r.step.name[:24]:<24} {r.verdict:<8} {nums} {','.join(r.faults) or '-'}"
+            + (f"  (Et {beside})" if beside else "")
         )
     return "\n".join(rows)
 

@@ -30,6 +30,7 @@ import queue
 import stat
 import threading
 import time
+import unicodedata
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -61,6 +62,9 @@ MAX_REQUEST_INT = int(1.7e308)  # larger integers have no float (OverflowError)
 # few thousand; 20,000 parse in a few ms, and far fewer already cost more than a period
 MAX_MODEL_NUMBERS = 20_000
 JOB_PUT_TIMEOUT_S = 5.0
+# a `mark`'s text (one line) and the JSON of its data: a plan step's name and settings fit
+MAX_MARK_CHARS = 200
+MAX_MARK_DATA_CHARS = 1200
 # a controller's settings in a request, besides its name and model
 CONTROLLER_SETTINGS = ("method", "ahead", "feedback", "feedback_tau_s", "continuity", "current_a")
 
@@ -156,6 +160,30 @@ def check_request(req: Any) -> dict[str, Any]:
     if not isinstance(cmd, str) or cmd not in COMMANDS:
         raise RequestError(f"unknown command {cmd!r} (known: {', '.join(COMMANDS)})")
     return req
+
+
+def check_mark(req: dict[str, Any]) -> tuple[str, dict[str, Any]]:
+    """A `mark` request's text (one line of at most MAX_MARK_CHARS) and data (a JSON object
+    of at most MAX_MARK_DATA_CHARS): a marker in the recording, as a plan leaves at each
+    step's start and end with its settings."""
+    unknown = sorted(set(req) - {"cmd", "id", "text", "data"})
+    if unknown:
+        raise RequestError(f"{unknown[0]}: unknown field of mark (known: text, data)")
+    text, data = req.get("text"), req.get("data", {})
+    if not isinstance(text, str) or not text.strip():
+        raise RequestError("text: a mark needs a text (a string, not blank)")
+    if len(text) > MAX_MARK_CHARS:
+        raise RequestError(f"text: {len(text)} characters, over the limit of {MAX_MARK_CHARS}")
+    if any(unicodedata.category(c) == "Cc" for c in text):
+        raise RequestError("text: a control character (a line break, ...): a mark is one line")
+    if not isinstance(data, dict):
+        raise RequestError(f"data: expected a JSON object, got {type(data).__name__}")
+    size = len(json.dumps(data))
+    if size > MAX_MARK_DATA_CHARS:
+        raise RequestError(
+            f"data: {size} characters of JSON, over the limit of {MAX_MARK_DATA_CHARS}"
+        )
+    return text, data
 
 
 # ---------------------------------------------------------------------------- changes
@@ -298,6 +326,11 @@ class Preparer:
 
     def prepare(self, req: dict[str, Any]) -> Change:
         cmd = req["cmd"]
+        if cmd == "mark":
+            raise RequestError(
+                "mark: taken by the telemetry process, which writes the recording (this daemon"
+                " runs without one)"
+            )
         if cmd in ("arm", "disarm", "reset", "status", "reset_adaptation"):
             return Change(cmd)
         return getattr(self, f"_{cmd}")(req)
@@ -572,4 +605,5 @@ COMMANDS = (
     "actuator",
     "reset_adaptation",
     "freeze_adaptation",
+    "mark",  # a marker in the recording (answered by the telemetry process, which writes it)
 )

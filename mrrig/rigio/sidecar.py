@@ -47,7 +47,7 @@ import zenoh
 from mrrig import json_text
 from mrrig.loop.samples import FIELDS, SAMPLE_DTYPE
 from mrrig.rigio import audit
-from mrrig.rigio.control import RequestError, parse_request
+from mrrig.rigio.control import RequestError, check_mark, parse_request
 from mrrig.rigio.ipc import (
     HEARTBEAT_PERIOD_S,
     MAX_REQUEST_PAYLOAD,
@@ -409,6 +409,9 @@ class Sidecar:
             refused = {"ok": False, "error": duplicate_text(self.rig, list(self._duplicates))}
             self._answer(query, request, requester, refused)
             return
+        if request["cmd"] == "mark":
+            self._answer(query, request, requester, self._mark(request))
+            return
         now = time.monotonic()
         if request["cmd"] == "status" and now - self._status_rx_s <= STATUS_FRESH_S:
             status = decode_json(self._last_status)
@@ -425,6 +428,17 @@ class Sidecar:
             self._answer(query, request, requester, NO_ANSWER)
             return
         self._pending[request_id] = _Pending(query, now + CONTROL_TIMEOUT_S, request, requester)
+
+    def _mark(self, request: dict[str, Any]) -> dict[str, Any]:
+        """A marker in the recording (a plan's step start and end, with its settings): an
+        event of kind `mark` at the latest sensor time, before the request's audit event."""
+        try:
+            text, data = check_mark(request)
+        except RequestError as exc:
+            return {"ok": False, "error": str(exc)}
+        t = self._last_t_s
+        self._event({"t": t, "level": "info", "text": text, "kind": "mark", "data": data})
+        return {"ok": True, "t": t}
 
     def _answer(
         self,
