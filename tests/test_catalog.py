@@ -41,6 +41,7 @@ from mrrig.catalog import (
     sync,
 )
 from mrrig.catalog.schema import SCHEMA_REVISION, metadata
+from mrrig.catalog.schema import runs as runs_table
 from mrrig.catalog.store import open_catalog
 from mrrig.cli.main import main as mrrig_main
 from mrrig.loop.samples import SAMPLE_DTYPE, RigState
@@ -328,6 +329,44 @@ def test_unreachable_lab_database_spools_locally_and_sync_brings_each_run_once(p
     assert sync(local, lab).updated == 1
     assert get_run(lab, run(2).run_id).verdict == "re-reviewed"
     assert len(find_runs(lab)) == 4
+
+
+ROLES_SQL = Path(__file__).parents[1] / "mrrig" / "catalog" / "roles.sql"
+
+
+def test_postgresql_roles_observers_read_rigs_insert_but_do_not_delete(pg_server, tmp_path):
+    """mrrig/catalog/roles.sql, as the README says to apply it: an observer's login reads the
+    catalog and cannot register; a rig's registers and registers again, and cannot delete."""
+    lab = _new_pg_database(pg_server)
+    register_run(lab, run(0))  # the owner makes the schema
+    suffix = uuid.uuid4().hex[:8]  # roles are the server's, not the database's
+    observer, rig = f"alice_{suffix}", f"rig1_{suffix}"
+    owner = sa.create_engine(lab.replace("postgresql://", "postgresql+psycopg://"))
+    with owner.begin() as conn:
+        conn.exec_driver_sql(ROLES_SQL.read_text())
+        conn.exec_driver_sql(f"CREATE ROLE {observer} LOGIN IN ROLE mrrig_observer")
+        conn.exec_driver_sql(f"CREATE ROLE {rig} LOGIN IN ROLE mrrig_rig")
+    owner.dispose()
+    as_observer, as_rig = (lab.replace("postgres@", f"{who}@") for who in (observer, rig))
+
+    assert [r.run_id for r in find_runs(as_observer)] == [run(0).run_id]
+    with pytest.raises(CatalogError, match="permission denied for table runs"):
+        register_run(as_observer, run(1))
+
+    assert register_run(as_rig, run(1)).new
+    assert not register_run(as_rig, run(1, verdict="re-reviewed")).new  # the upsert
+    assert get_run(as_observer, run(1).run_id).verdict == "re-reviewed"
+    with pytest.raises(CatalogError, match="permission denied for table runs"):
+        with open_catalog(as_rig).connect(write=True) as conn:
+            conn.execute(sa.delete(runs_table))
+    with pytest.raises(CatalogError, match="permission denied for table runs"):
+        with open_catalog(as_observer).connect(write=True) as conn:
+            conn.execute(sa.delete(runs_table))
+    assert len(find_runs(lab)) == 2
+    listed = subprocess.run(
+        [*MRRIG, "runs", "--json", "--catalog", as_observer], capture_output=True, text=True
+    )
+    assert listed.returncode == 0 and len(json.loads(listed.stdout)) == 2, listed.stderr
 
 
 def test_sync_interrupted_by_kill_9_then_run_again_copies_each_run_exactly_once(url, tmp_path):
