@@ -5,9 +5,13 @@ DATA are tidy characterization CSVs, daemon recordings (.rrd) or other CSVs with
 that name field and unit (`x_cm`, `command_v`). Bad stretches (saturation, idle, transients)
 are excluded unless `--keep-all`; the end of each run is held out (`--split blocks`);
 `--features auto` (default where the command changes within runs) chooses the inputs and the
-hidden size by blocked cross-validation on the training blocks. Writes the model file and
-prints the validation report (spec/modeling.md section 5). `--history N` adds N earlier
-samples of `--history-signals` (default x,xd) to the forward network's inputs.
+hidden size by cross-validation on the training blocks: over whole tests where several are
+given (a file is a test), else over time blocks. The block hold-out is optimistic (its
+neighbours were trained on): the report puts the other-test estimate beside it (leave one
+test out, `--cv-folds`) and the Et of tests kept out altogether (`--validate FILES`).
+Writes the model file and prints the validation report (spec/modeling.md section 5).
+`--history N` adds N earlier samples of `--history-signals` (default x,xd) to the forward
+network's inputs.
 `--config FILE` (configs/train.toml) gives the defaults of the options; flags win over it.
 """
 
@@ -25,6 +29,7 @@ from mrrig import json_text
 from mrrig.cli_args import COUNT, SEED, HelpFormatter, output_file, positive
 from mrrig.loop.mlp import MIN_SCALE, ModelError
 from mrrig.offline.datasets import DataError
+from mrrig.offline.evaluate import evaluate, format_coverage
 from mrrig.offline.train_config import TrainConfig, load_train_config
 from mrrig.offline.training import (
     CURRENT_INPUTS,
@@ -33,9 +38,10 @@ from mrrig.offline.training import (
     check_history,
     train_and_validate,
 )
+from mrrig.offline.training.crossval import MAX_FOLDS, SEGMENTS, cross_validate
 from mrrig.offline.training.report import MetricError, check_finite
 from mrrig.offline.training.select import choose_features, command_varies
-from mrrig.offline.training.stream import training_subset
+from mrrig.offline.training.stream import sample_tests, training_subset
 
 log = logging.getLogger(__name__)
 
@@ -145,6 +151,46 @@ def format_search(fs: dict[str, Any] | None) -> list[str]:
     return lines
 
 
+def format_other_tests(cv: dict[str, Any] | None) -> list[str]:
+    """The other-test estimate (`crossval.cross_validate`): Et per left-out test and overall."""
+    if cv is None:
+        return []
+    kind = cv["kind"]
+    lines = [f"other-test estimate, {cv['method']} ({cv['seconds']:.0f} s):"]
+    lines += [
+        f"  {g[kind]}: Et {g['et']:.4f} ({g['n']} rows)" if g["n"] else f"  {g[kind]}: no rows"
+        for g in cv["per_group"]
+    ]
+    o = cv["overall"]
+    lines.append(
+        f"  overall Et {o['et']:.4f} (pooled over the {o['n']} left-out rows;"
+        f" mean of the {kind}s {cv['mean_et']:.4f})"
+    )
+    if cv["optimistic"]:
+        lines.append(
+            "  (one test: its segments are the same test, so this is optimistic too; only"
+            " another test, --validate FILE, says how the model holds elsewhere)"
+        )
+    return lines
+
+
+def format_validate(v: dict[str, Any] | None) -> list[str]:
+    """The validation tests' numbers (`--validate`: kept out of training and choice)."""
+    if v is None:
+        return []
+    lines = [
+        f"validation tests (--validate: never trained on nor chosen by),"
+        f" {len(v['per_test'])} test(s):"
+    ]
+    lines += [
+        f"  {t['file']}: Et {t['et']:.4f} ({t['n']} rows)" if t["n"] else f"  {t['file']}: no rows"
+        for t in v["per_test"]
+    ]
+    lines.append(f"  overall Et {v['forward']['et']:.4f} (pooled over {v['n']} rows)")
+    lines += ["  " + line for line in format_coverage(v["coverage"], v["command_unit"])]
+    return lines
+
+
 def format_report(r: dict[str, Any]) -> str:
     ni = r["network_inversion"]
     unit = r.get("command_unit", "A")
@@ -177,7 +223,14 @@ def format_report(r: dict[str, Any]) -> str:
         ),
         f"forward Et on the {r['n_val']} held-out samples ({r['split']['kind']}):"
         f" {r['forward']['et']:.4f}"
-        f" (RMSE {r['forward']['rmse_n']:.2f} N)",
+        f" (RMSE {r['forward']['rmse_n']:.2f} N)"
+        + (
+            "  [optimistic: the end of each run of the tests trained on, beside samples trained on]"
+            if r["split"]["kind"] == "blocks"
+            else "  [optimistic: random samples, neighbours of samples trained on]"
+        ),
+        *format_other_tests(r.get("other_tests")),
+        *format_validate(r.get("validate")),
         f"network inversion: inverse-current RMSE {ni['current_rmse_a']:.4f} A (paper 0.09 A),"
         f" i_max {r['i_max_a']:g} A",
         "  tracking error, forward model at the inverted current (N): "
@@ -345,7 +398,46 @@ def _parser(cfg: TrainConfig) -> argparse.ArgumentParser:
         help="train the supervised inverse MLP (--no-supervised: skip it, faster)",
     )
     ap.add_argument("--report", type=output_file, help="write the validation report as JSON")
+    ap.add_argument(
+        "--validate",
+        nargs="+",
+        type=Path,
+        metavar="FILE",
+        help="tests kept out of training and of every choice, the model scored on each (Et per"
+        " test and overall): how it holds on tests it never saw",
+    )
+    ap.add_argument(
+        "--cv-folds",
+        type=_folds,
+        default=MAX_FOLDS,
+        metavar="K",
+        help="the other-test estimate: leave-one-test-out over the tests (files) given, up to"
+        " K tests; K folds of tests beyond (default %(default)s; 0: none). One test: its"
+        f" {SEGMENTS} segments left out in turn (the same test: optimistic)",
+    )
     return ap
+
+
+def _folds(text: str) -> int:
+    value = int(text) if text.lstrip("-").isdigit() else -1
+    if value != 0 and value < 2:
+        raise argparse.ArgumentTypeError(f"must be 0 (none) or >= 2, got {text}")
+    return value
+
+
+def _check_files(data: list[Path], validate: list[Path] | None) -> None:
+    """A one-line DataError for a data file given twice or a validation test trained on."""
+    seen: dict[Path, Path] = {}
+    for p in data:
+        key = p.resolve()
+        if key in seen:
+            raise DataError(f"{p}: given twice as training data")
+        seen[key] = p
+    for p in validate or []:
+        if p.resolve() in seen:
+            raise DataError(
+                f"--validate {p}: also given as training data (a validation test is kept out)"
+            )
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -370,9 +462,12 @@ def main(argv: list[str] | None = None) -> int:
     history_stride, hidden = args.history_stride, args.hidden
     columns = _mapping(args.columns, "--columns") if args.columns else dict(cfg.csv.columns)
     units = _mapping(args.units, "--units") if args.units else dict(cfg.csv.units)
+    _check_files(args.data, args.validate)
     series, excluded = training_subset(
         args.data, columns or None, units or None, args.keep_all, seed=args.seed
     )
+    tests = sample_tests(excluded)
+    test_names = [t["file"] for t in excluded["tests"]]
     log.info("training on %d samples from %d file(s)", len(series), len(args.data))
     files = ", ".join(map(str, args.data))
     for name in ("x", "xd", "xdd", "current", "force"):
@@ -385,7 +480,7 @@ def main(argv: list[str] | None = None) -> int:
     mode = args.features or ("manual" if manual_flags or not command_varies(series) else "auto")
     search = None
     if mode == "auto":
-        cand, search = choose_features(series, args.seed, args.holdout_fraction)
+        cand, search = choose_features(series, args.seed, args.holdout_fraction, tests=tests)
         current_input, lag_tau_s = cand.current_input, cand.lag_tau_s
         history_samples, history_signals = cand.history_samples, cand.history_signals
         history_stride, hidden = cand.history_stride, cand.hidden
@@ -422,6 +517,32 @@ def main(argv: list[str] | None = None) -> int:
     except MetricError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 1
+    if args.cv_folds:
+        options = dict(
+            current_input=current_input,
+            lag_tau_s=lag_tau_s,
+            history_samples=history_samples,
+            history_signals=history_signals,
+            history_stride=history_stride,
+            hidden=hidden,
+            split=args.split,
+            holdout_fraction=args.holdout_fraction,
+        )
+        log.info("the other-test estimate: cross-validation over %d test(s)", len(test_names))
+        cv = cross_validate(
+            series,
+            tests,
+            test_names,
+            options,
+            max_folds=args.cv_folds,
+            seed=args.seed,
+            max_epochs=args.epochs,
+        )
+        report["other_tests"] = cv
+        fwd.meta["other_tests"] = {k: v for k, v in cv.items() if k != "per_group"} | {
+            "et": {r[cv["kind"]]: r["et"] for r in cv["per_group"]}
+        }
+        fwd.metrics["other_test_et"] = cv["overall"]["et"]
     report["excluded"] = excluded
     report["features_mode"] = mode
     report["features_search"] = search
@@ -432,6 +553,17 @@ def main(argv: list[str] | None = None) -> int:
     fwd.meta["data_files"] = [str(p) for p in args.data]
     if config_path is not None:
         fwd.meta["train_config"] = str(config_path)
+    if args.validate:
+        numbers, _ = evaluate(
+            fwd, args.out, args.validate, columns or None, units or None, args.keep_all
+        )
+        report["validate"] = numbers
+        fwd.meta["validate"] = {
+            "files": [str(p) for p in args.validate],
+            "et": numbers["forward"]["et"],
+            "et_per_test": {t["file"]: t["et"] for t in numbers["per_test"]},
+        }
+        fwd.metrics["validate_et"] = numbers["forward"]["et"]
     fwd.save(args.out)
     log.info("wrote %s", args.out)
     if sup is not None and args.supervised_out:

@@ -5,7 +5,10 @@ on-line (in time order, as the daemon inverts, with the model's continuity), on 
 or on the model's own hold-out (`--rows holdout`: the last fraction of each run that its
 `mrrig train` held out, the same rows and the same numbers as the training report). The data
 are read and cleaned as `mrrig train` does (bad stretches excluded unless the model was
-trained with --keep-all or --keep-all is given). `--plot FILE.png`: measured and model force
+trained with --keep-all or --keep-all is given). Et is printed per test (file) and overall;
+the coverage lines say which share of the rows lies outside the model's training envelope
+(`loop.coverage`), the Et inside and outside it, and the band shares of force and velocity
+beside the model's. `--plot FILE.png`: measured and model force
 over a window, the error histogram, force-velocity loops; `--json FILE`: the numbers.
 """
 
@@ -22,6 +25,18 @@ import numpy as np
 
 from mrrig import json_text
 from mrrig.cli_args import output_file
+from mrrig.loop.coverage import (
+    BAND_EDGES_HZ,
+    BAND_SIGNALS,
+    ENVELOPE_INPUTS,
+    OUTSIDE_BITS,
+    Envelope,
+    band_labels,
+    band_power,
+    contiguous_pieces,
+    model_envelope,
+    shares,
+)
 from mrrig.loop.mlp import MLP, ModelError
 from mrrig.offline.datasets import DataError
 from mrrig.offline.training.data import run_ids, stretches
@@ -32,7 +47,7 @@ from mrrig.offline.training.features import (
     features,
 )
 from mrrig.offline.training.fit import HOLDOUT_FRACTION, block_split
-from mrrig.offline.training.report import MetricError, Scores
+from mrrig.offline.training.report import EtSum, MetricError, Scores
 from mrrig.offline.training.stream import SEGMENT_ROWS, merge_reports, prepare, segments
 
 log = logging.getLogger(__name__)
@@ -127,6 +142,8 @@ def evaluate(
         )
     mu = float(_meta(model, model_path, "online_continuity", 0.0))
     scores = Scores(mu, float(i_max))
+    per_test: dict[str, EtSum] = {}
+    coverage = _Coverage(model_envelope(model.meta, str(model_path)))
     plot_rows = _PlotRows(window)
     reports = []
     for path, raw in segments(data, columns, units, max_rows):
@@ -144,6 +161,8 @@ def evaluate(
         else:
             pick = np.arange(y.size)
         f_model = scores.add(model, X, y, stretch, pick)
+        per_test.setdefault(str(path), EtSum()).add(y[pick], f_model)
+        coverage.add(series, frows[pick], stretch[pick], y[pick], f_model)
         plot_rows.add(series.t[frows][pick], X[pick, 1], y[pick], f_model, stretch[pick])
     numbers = scores.numbers(f"{model_path} on {', '.join(map(str, data))}")
     numbers.update(
@@ -152,8 +171,62 @@ def evaluate(
         model=str(model_path),
         command_unit=unit,
         excluded=merge_reports(reports),
+        per_test=[{"file": f, **s.numbers()} for f, s in per_test.items()],
+        coverage=coverage.numbers(),
     )
     return numbers, plot_rows.arrays()
+
+
+class _Coverage:
+    """Where the evaluated rows leave the model's training envelope (`loop.coverage`): the
+    share outside (all inputs, and by input), Et inside and outside, and the band shares of
+    the force's and the velocity's power beside the model's. Sums only (memory bounded)."""
+
+    def __init__(self, envelope: Envelope | None) -> None:
+        self.envelope = envelope
+        self.inside, self.outside = EtSum(), EtSum()
+        self.by_input = np.zeros(len(OUTSIDE_BITS), dtype=np.int64)
+        self.power = {s: np.zeros(len(BAND_EDGES_HZ)) for s in BAND_SIGNALS}
+
+    def add(self, series, rows, stretch, y, f_model) -> None:
+        env = self.envelope
+        if env is None or not rows.size:
+            return
+        state = np.column_stack(
+            [series.x[rows], series.xd[rows], series.xdd[rows], series.current[rows]]
+        )
+        marks = env.outside_rows(state)
+        out = marks != 0
+        self.inside.add(y[~out], f_model[~out])
+        self.outside.add(y[out], f_model[out])
+        for k, bit in enumerate(OUTSIDE_BITS.values()):
+            self.by_input[k] += int(((marks & bit) != 0).sum())
+        pieces = contiguous_pieces(rows, stretch)
+        dt = np.diff(series.t[rows])
+        dt_s = float(np.median(dt[dt > 0.0])) if np.any(dt > 0.0) else env.sample_period_s
+        self.power["force"] += band_power(y, pieces, dt_s)
+        self.power["xd"] += band_power(series.xd[rows], pieces, dt_s)
+
+    def numbers(self) -> dict[str, Any] | None:
+        env = self.envelope
+        if env is None:
+            return None
+        n = self.inside.n + self.outside.n
+        return {
+            "rows": n,
+            "outside_rows": self.outside.n,
+            "outside_share": self.outside.n / n if n else math.nan,
+            "outside_share_by_input": {
+                name: int(k) / n if n else math.nan
+                for name, k in zip(OUTSIDE_BITS, self.by_input, strict=True)
+            },
+            "inside": self.inside.numbers(),
+            "outside": self.outside.numbers(),
+            "envelope": {"lo": list(env.lo), "hi": list(env.hi)},
+            "bands": band_labels(),
+            "band_shares_model": env.bands,
+            "band_shares_data": {s: shares(p) for s, p in self.power.items()},
+        }
 
 
 class _PlotRows:
@@ -196,6 +269,40 @@ class _PlotRows:
         return {"t": t, "xd": xd, "f_meas": fm, "f_model": fp, "error": np.concatenate(self.errors)}
 
 
+def _et(d: dict[str, Any]) -> str:
+    return f"{d['et']:.4f} ({d['n']} rows)" if d["n"] else "- (no rows)"
+
+
+def format_coverage(c: dict[str, Any] | None, unit: str) -> list[str]:
+    """The coverage lines of `evaluate`'s numbers (none for a model without an envelope)."""
+    if c is None:
+        return ["coverage: the model keeps no training envelope (trained before models kept one)"]
+    names = dict(zip(ENVELOPE_INPUTS, ("x", "xd", "xdd", f"command ({unit})"), strict=True))
+    env = c["envelope"]
+    ranges = ", ".join(
+        f"{names[k]} [{lo:.4g}, {hi:.4g}]"
+        for k, lo, hi in zip(ENVELOPE_INPUTS, env["lo"], env["hi"], strict=True)
+    )
+    by = ", ".join(f"{k} {v:.1%}" for k, v in c["outside_share_by_input"].items())
+    lines = [
+        f"coverage: {c['outside_share']:.1%} of the rows outside the model's training envelope"
+        f" ({c['outside_rows']} of {c['rows']}; by input: {by})",
+        f"  envelope (SI): {ranges}",
+        f"  forward Et inside {_et(c['inside'])}, outside {_et(c['outside'])}",
+    ]
+    for sig in BAND_SIGNALS:
+        model, data = c["band_shares_model"].get(sig), c["band_shares_data"].get(sig)
+        if model is None or data is None:
+            continue
+        bands = ", ".join(
+            f"{label} {m:.0%}/{d:.0%}"
+            for label, m, d in zip(c["bands"], model, data, strict=True)
+            if m >= 0.005 or d >= 0.005
+        )
+        lines.append(f"  {sig} power by band, model's training data / these data: {bands}")
+    return lines
+
+
 def format_numbers(r: dict[str, Any]) -> str:
     unit = r["command_unit"]
     ex = r["excluded"]
@@ -204,6 +311,7 @@ def format_numbers(r: dict[str, Any]) -> str:
         if ex["keep_all"]
         else f"{ex['excluded_samples']} samples excluded as bad stretches"
     )
+    tests = [f"  {t['file']}: Et {_et(t)}" for t in r["per_test"]]
     return "\n".join(
         [
             f"{r['model']} on {', '.join(r['data'])}: {r['n']} rows ({r['rows']}; {excl})",
@@ -211,6 +319,9 @@ def format_numbers(r: dict[str, Any]) -> str:
             f"inverse command RMSE ({unit}): each sample alone {r['inverse_current_rmse']:.4f},"
             f" on-line {r['inverse_current_rmse_online']:.4f}"
             f" (continuity {r['continuity']:g}, bound {r['i_max']:g} {unit})",
+            f"forward Et per test ({len(tests)}; overall {r['forward']['et']:.4f}, pooled):",
+            *tests,
+            *format_coverage(r["coverage"], unit),
         ]
     )
 

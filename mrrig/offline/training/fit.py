@@ -21,6 +21,7 @@ from typing import Any
 
 import numpy as np
 
+from mrrig.loop.coverage import Envelope, contiguous_pieces
 from mrrig.loop.mlp import MLP, data_fingerprint
 from mrrig.offline.datasets import DataError, Series
 from mrrig.offline.training.data import measured_series, run_ids, stretch_bounds, stretches
@@ -277,6 +278,9 @@ def train_forward(
         data_fingerprint=series_fingerprint(series),
         current_range_a=[float(X[:, CURRENT_COLUMN].min()), float(X[:, CURRENT_COLUMN].max())],
     )
+    envelope = training_envelope(series, rows, sp)
+    if envelope is not None:
+        model.meta["envelope"] = envelope.to_meta()
     report = {
         "split": {
             "rule": sp.rule,
@@ -295,6 +299,22 @@ def train_forward(
         "val_mse_n2": tr.val_mse,
     }
     return model, report
+
+
+def training_envelope(series: Series, rows: np.ndarray, sp: Split) -> Envelope | None:
+    """The model's coverage (`loop.coverage.Envelope`): the ranges of x, xd, xdd and the
+    command (as given, not lagged: the daemon checks its own command) over the training rows
+    of the split, and the band shares of force and velocity over the feature rows' contiguous
+    pieces (a random split's training rows have no contiguous pieces to take spectra of)."""
+    dt = _period(series)
+    if dt is None:
+        return None
+    train = rows[sp.train]
+    state = np.column_stack(
+        [series.x[train], series.xd[train], series.xdd[train], series.current[train]]
+    )
+    pieces = contiguous_pieces(rows, stretches(run_ids(series))[rows])
+    return Envelope.of_data(state, series.force[rows], series.xd[rows], pieces, dt)
 
 
 def _period(series: Series) -> float | None:

@@ -384,3 +384,34 @@ def _flat_numbers(d: Any, prefix: str = "") -> dict[str, float]:
     elif isinstance(d, float | int) and not isinstance(d, bool):
         out[prefix.rstrip(".")] = float(d)
     return out
+
+
+@dataclass
+class EtSum:
+    """Forward Et (eqs 41-43) and RMSE of rows given piece by piece (`add`): sums only, the
+    force's spread combined piece by piece (Chan et al.), as `Scores` does."""
+
+    n: int = 0
+    mean_f: float = 0.0
+    m2_f: float = 0.0
+    sse_f: float = 0.0
+
+    def add(self, y: np.ndarray, f: np.ndarray) -> None:
+        y, f = np.asarray(y, dtype=float), np.asarray(f, dtype=float)
+        n = y.size
+        if not n:
+            return
+        mean = float(np.mean(y))
+        m2 = float(np.sum((y - mean) ** 2))
+        total = self.n + n
+        delta = mean - self.mean_f
+        self.m2_f += m2 + delta * delta * self.n * n / total
+        self.mean_f += delta * n / total
+        self.n = total
+        self.sse_f += float(np.sum((y - f) ** 2))
+
+    def numbers(self) -> dict[str, Any]:
+        """n, et (NaN without rows or without spread of the force) and rmse_n."""
+        et = math.sqrt(self.sse_f) / math.sqrt(self.m2_f) if self.m2_f > 0.0 else math.nan
+        rms = math.sqrt(self.sse_f / self.n) if self.n else math.nan
+        return {"n": self.n, "et": et, "rmse_n": rms}

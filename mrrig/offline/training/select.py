@@ -1,14 +1,15 @@
 """Choosing the forward network's structure from the data (`mrrig train --features auto`).
 
-Blocked cross-validation on the TRAINING rows only: the hold-out of every candidate (the last
-part of each run, `fit.block_split`) is set aside first; the rest of each run is cut into
-`FOLDS` contiguous blocks, and each candidate is fitted on the other blocks (a coverage
-subsample of `SEARCH_FIT_ROWS`, at most `SEARCH_EPOCHS` LM epochs) and scored by Et on each
-block in turn. The search is staged, each stage keeping the best so far: the command input
-(as commanded, or lagged with the time constant `features.fit_lag_tau` finds), then the
-history (depth in time, and its signals; then twice the taps over the best span), then the hidden
-size. A candidate whose real-time
-inversion (`inversion.ScalarInverter.solve`, one sample, as the daemon solves) takes more than
+Cross-validation on the TRAINING rows only: the hold-out of every candidate (the last part
+of each run, `fit.block_split`) is set aside first; with several tests each fold is whole
+tests (`crossval.fold_of_groups`: a structure is judged on tests it never saw), with one test
+the rest of each run is cut into `FOLDS` contiguous blocks. Each candidate is fitted on the
+other folds (a coverage subsample of `SEARCH_FIT_ROWS`, at most `SEARCH_EPOCHS` LM epochs)
+and scored by Et on each fold in turn. The search is staged, each stage keeping the best so
+far: the command input (as commanded, or lagged with the time constant `features.fit_lag_tau`
+finds), then the history (depth in time, and its signals; then twice the taps over the best
+span), then the hidden size. A candidate whose real-time inversion
+(`inversion.ScalarInverter.solve`, one sample, as the daemon solves) takes more than
 `INVERSION_BUDGET_US` median is not chosen. Measured force is never an input: past force
 would make the inversion for the present current ill-posed.
 """
@@ -26,6 +27,7 @@ from mrrig.loop.inversion import ScalarInverter
 from mrrig.loop.mlp import MLP
 from mrrig.offline.datasets import Series
 from mrrig.offline.metrics import error_norm
+from mrrig.offline.training.crossval import fold_of_groups
 from mrrig.offline.training.data import run_ids, sample_period, stretch_bounds, stretches
 from mrrig.offline.training.features import (
     COIL_LAG_TAU_S,
@@ -142,9 +144,17 @@ def _series_rows(series: Series, cand: Candidate) -> tuple[np.ndarray, np.ndarra
     return rows, stretches(run_ids(series))[rows]
 
 
-def _folds(series: Series, cands: list[Candidate], fraction: float) -> np.ndarray:
+def _folds(
+    series: Series,
+    cands: list[Candidate],
+    fraction: float,
+    tests: np.ndarray | None = None,
+    seed: int = 0,
+) -> np.ndarray:
     """Fold number (0..FOLDS-1) of each series sample, -1 for samples outside the search:
-    any candidate's hold-out, and rows without the deepest candidate's history."""
+    any candidate's hold-out, and rows without the deepest candidate's history. With
+    several tests (`tests`: each sample's), a fold is whole tests (`FOLDS` folds of tests
+    dealt at random, or one per test where fewer), else a time block of each run."""
     n = len(series)
     usable = np.zeros(n, dtype=bool)
     usable[_series_rows(series, max(cands, key=Candidate.depth))[0]] = True
@@ -152,6 +162,10 @@ def _folds(series: Series, cands: list[Candidate], fraction: float) -> np.ndarra
         rows, st = _series_rows(series, c)
         usable[rows[block_split(st, fraction).val]] = False
     fold = np.full(n, -1)
+    if tests is not None and np.unique(tests).size >= 2:
+        by_test = fold_of_groups(int(tests.max()) + 1, FOLDS, seed)
+        fold[usable] = by_test[tests[usable]]
+        return fold
     idx = np.flatnonzero(usable)
     first, length = stretch_bounds(stretches(run_ids(series))[idx])
     for f, m in zip(first.tolist(), length.tolist(), strict=True):
@@ -176,7 +190,7 @@ def _score(series: Series, cand: Candidate, fold: np.ndarray, seed: int) -> dict
     )
     ets, model = [], None
     t0 = time.perf_counter()
-    for k in range(FOLDS):
+    for k in range(int(fold.max()) + 1):
         test = np.flatnonzero(f_of == k)
         train = np.flatnonzero((f_of >= 0) & (f_of != k))
         fit = coverage_subsample(X, train, SEARCH_FIT_ROWS, seed)
@@ -210,9 +224,11 @@ def choose_features(
     seed: int = 0,
     holdout_fraction: float = HOLDOUT_FRACTION,
     budget_s: float = SEARCH_BUDGET_S,
+    tests: np.ndarray | None = None,
 ) -> tuple[Candidate, dict[str, Any]]:
-    """The structure chosen by blocked CV on the training blocks (module docstring) and the
-    report: every candidate's fold Ets, mean, inversion time and whether it was in budget."""
+    """The structure chosen by CV on the training blocks (module docstring) and the report:
+    every candidate's fold Ets, mean, inversion time and whether it was in budget. With
+    several tests (`tests`: each sample's test), the folds leave whole tests out."""
     t_start = time.perf_counter()
     first, length = stretch_bounds(stretches(run_ids(series)))
     dt = sample_period(series.t[first[0] : first[0] + length[0]]) if len(series) > 1 else 1.0
@@ -231,7 +247,8 @@ def choose_features(
         + [Candidate(history_samples=h, history_signals=g, history_stride=st) for h, g, st in hist],
         key=Candidate.depth,
     )
-    fold = _folds(series, [base, deepest], holdout_fraction)
+    fold = _folds(series, [base, deepest], holdout_fraction, tests, seed)
+    n_folds = int(fold.max()) + 1
     results: list[dict[str, Any]] = []
     skipped: list[str] = []
 
@@ -291,8 +308,13 @@ def choose_features(
     best = best_of(stage)
     chosen: Candidate = best["candidate"]
     report = {
-        "method": f"blocked {FOLDS}-fold cross-validation on the training blocks"
-        f" ({SEARCH_FIT_ROWS} LM rows, <= {SEARCH_EPOCHS} epochs per fit); hold-out unused",
+        "method": (
+            f"{n_folds}-fold cross-validation over whole tests"
+            if tests is not None and np.unique(tests).size >= 2
+            else f"blocked {n_folds}-fold cross-validation"
+        )
+        + f" on the training blocks ({SEARCH_FIT_ROWS} LM rows, <= {SEARCH_EPOCHS} epochs"
+        " per fit); hold-out unused",
         "command_varies": varies,
         "lag_fit": lag,
         "inversion_budget_us": INVERSION_BUDGET_US,

@@ -8,7 +8,7 @@ run: the Kalman warm-up and history restart there). Tidy characterization CSVs a
 recordings (.rrd) are read whole, then cut the same way. `mrrig evaluate` goes through every
 segment (`segments`); `mrrig train` keeps at most `TRAIN_MAX_SAMPLES` of them
 (`training_subset`: all where the data has fewer, else a seeded random choice of whole
-segments).
+segments), each file one test (`sample_tests`: the tests that cross-validation leaves out).
 
 Implausible values are samples outside the sensors' ranges of the CAN contract
 (`configs/mrrig.dbc`: RigSensors Displacement and Force, RigStatus CoilCurrent for a command
@@ -273,6 +273,13 @@ def merge_reports(reports: Sequence[dict[str, Any]]) -> dict[str, Any]:
     return out
 
 
+def sample_tests(report: dict[str, Any]) -> np.ndarray:
+    """The test (file) index of each sample of `training_subset`'s Series, from its report."""
+    return np.repeat(
+        np.arange(len(report["tests"])), [t["samples"] for t in report["tests"]]
+    ).astype(int)
+
+
 def training_subset(
     paths: Sequence[str | Path],
     columns: dict[str, str] | None = None,
@@ -319,5 +326,10 @@ def training_subset(
         reports.append(report)
     report = merge_reports(reports)
     report["subset"] = {"samples": total, "of_samples": seen, "max_samples": max_samples}
+    # the tests trained on (a file is a test), in the Series' order: `sample_tests`
+    tests: dict[str, int] = {}
+    for (_, path, _), s in zip(sorted(kept, key=lambda e: e[0]), parts, strict=True):
+        tests[str(path)] = tests.get(str(path), 0) + len(s)
+    report["tests"] = [{"file": f, "samples": n} for f, n in tests.items()]
     names = dict.fromkeys(s.name for s in parts)
     return concatenate(parts, name="+".join(names)), report
