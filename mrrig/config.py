@@ -64,6 +64,21 @@ class BusSection:
 
 
 @dataclass(frozen=True)
+class CanSection:
+    """The rig profile (mrrig/rigio/canbus/profile.py): the lab's DBC (found beside this
+    file) and `[can.signals]`, role = "MESSAGE.SIGNAL" or "absent". Without `dbc`: the CAN
+    contract's configs/mrrig.dbc, whose roles `signals` may remap."""
+
+    dbc: Path | None = None
+    signals: dict[str, str] = field(default_factory=dict)
+
+    def check(self) -> None:
+        for role, text in self.signals.items():
+            if not isinstance(text, str):
+                raise ValueError(f"signals.{role}: expected \"MESSAGE.SIGNAL\" or \"absent\"")
+
+
+@dataclass(frozen=True)
 class LoopSection:
     period_s: float = 0.002  # the firmware's RigSensors period
     i_max_a: float = 2.0  # commands are clamped to [0, i_max_a]
@@ -304,6 +319,7 @@ class CatalogSection:
 class DaemonConfig:
     bus: BusSection
     rig: RigSection = field(default_factory=RigSection)
+    can: CanSection = field(default_factory=CanSection)
     loop: LoopSection = field(default_factory=LoopSection)
     estimator: EstimatorSection = field(default_factory=EstimatorSection)
     controller: ControllerSection = field(default_factory=ControllerSection)

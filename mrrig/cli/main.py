@@ -44,6 +44,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "router": ("mrrig.rigio.router", "a Zenoh router where a fleet of rigs and their clients meet"),
     "rigs": ("mrrig.rigio.fleet", "list the live rigs: state, controller, fault (Zenoh)"),
     "runs": ("mrrig.cli.runs", "the run catalog: find, show, compare and sync runs"),
+    "dbc": ("mrrig.cli.dbc", "check a rig profile (DBC + [can.signals]); show its mapping"),
     "test": ("mrrig.cli.test", "run a test plan (TOML steps with criteria) on a live rig"),
 }
 

@@ -60,6 +60,7 @@ from mrrig.loop.summary import (
 from mrrig.rigio import sdnotify
 from mrrig.rigio.canbus.bus import open_bus
 from mrrig.rigio.canbus.codec import Codec
+from mrrig.rigio.canbus.profile import load_profile
 from mrrig.rigio.control import (
     Change,
     ControlWorker,
@@ -262,11 +263,20 @@ class Daemon:
         such as characterize); otherwise the loop keeps none and its memory stays fixed."""
         self.cfg = cfg
         self.period_s = cfg.loop.period_s
-        self.codec = Codec()
+        # the rig profile: the DBC and its roles ([can]); the start-up line names what is off
+        self.profile = load_profile(cfg.can.dbc, cfg.can.signals, cfg.loop.period_s, cfg.source)
+        log.log(
+            logging.WARNING if self.profile.protections_off else logging.INFO,
+            self.profile.startup_line(),
+        )
+        self.codec = self.profile.codec
         # who runs what, where and when: into the recording and the run catalog (the sidecar)
         self.identity = run_identity(cfg, self.codec.dbc_path)
-        self.packer = self.codec.packer("DAEMON")
+        self.packer = self.profile.packer()
         self._own_messages = frozenset(self.packer.messages)
+        self._sensor_msg = self.profile.sensor_message
+        self._status_msg = self.profile.status_message
+        self._status_in_sensors = self._status_msg == self._sensor_msg
         self.parser = self.codec.parser()
         self.controller = build_controller(cfg)
         self.reference = build_reference(cfg.reference, self.period_s)
@@ -425,7 +435,7 @@ class Daemon:
 
     def _send_command(self, active: bool, current_a: float, f_des: float, echo: int) -> None:
         ok = self._send(
-            "DamperCommand",
+            self.profile.command_message,
             {
                 "Mode": 1 if active else 0,
                 "CurrentSetpoint": current_a if active else 0.0,
@@ -440,8 +450,11 @@ class Daemon:
 
     def _send_actuator(self) -> None:
         a = self.actuator
+        if self.profile.actuator_message is None:  # the lab's firmware drives its actuator
+            self._last_actuator_sent = self.now()
+            return
         self._send(
-            "ActuatorCommand",
+            self.profile.actuator_message,
             {
                 "Waveform": WAVEFORMS[a.waveform],
                 "Amplitude": a.amplitude_m,
@@ -686,7 +699,7 @@ class Daemon:
             self._note_id(msg, t_rx)
         # 29-bit, remote and error frames are none of the DBC's 11-bit messages
         p = self.parser.parse_message(msg, t_rx)
-        if p.name == "RigSensors":
+        if p.name == self._sensor_msg:
             if not p.ok:
                 self.counters["sensor_frames_invalid"] += 1
                 self._emit(self.supervisor.bad_frame(t_rx - self.t0, p.reason))
@@ -711,28 +724,29 @@ class Daemon:
                 self._first_sensor_t = t_rx
             if self._arm_pending and t_rx - self._first_sensor_t >= self.cfg.loop.arm_settle_s:
                 self._arm_at_start(t_rx)
-            self.cycle(p.values, p.counter, t_rx, queued_s)
+            counter = p.counter or 0  # None: a layout without E2E has no counter to echo
+            self.cycle(p.values, counter, t_rx, queued_s)
             self._last_sensor_t = t_rx
-            self._last_counter = p.counter
-        elif p.name == "RigStatus" and p.ok:
-            v = p.values
-            self.counters["status_frames"] += 1
-            self._i_meas = v["CoilCurrent"]
-            self._temp_degc = v["DamperTemperature"]
-            state = self.codec.choices("RigStatus", "State").get(int(v["State"]), "?")
-            code = int(v["FaultCode"])
-            label = self.codec.choices("RigStatus", "FaultCode").get(code, str(code))
-            self._emit(
-                self.supervisor.firmware_status(
-                    t_rx - self.t0, state, code, label, int(v["CommandTimeouts"])
-                )
-            )
+            self._last_counter = counter
+            if self._status_in_sensors:
+                self._on_status(p.values, t_rx)
+        elif p.name == self._status_msg and p.ok:
+            self._on_status(p.values, t_rx)
         elif p.name in self._own_messages:
             self.counters["foreign_commands"] += 1
             self._emit(self.supervisor.foreign_command(t_rx - self.t0, p.name))
         elif not p.ok and p.name is None:
             self.counters["frames_ignored"] += 1
             log.debug("ignored frame: %s", p.reason)
+
+    def _on_status(self, v: dict[str, float], t_rx: float) -> None:
+        """The firmware's status (RigStatus, or the roles a profile has in another frame)."""
+        self.counters["status_frames"] += 1
+        self._i_meas = v["CoilCurrent"]
+        self._temp_degc = v["DamperTemperature"]
+        status = self.profile.firmware_status(v)
+        if status is not None:
+            self._emit(self.supervisor.firmware_status(t_rx - self.t0, *status))
 
     def _note_id(self, msg, t_rx: float) -> None:
         """Count a frame by its CAN ID until the first valid sensor frame: a no_sensor_frames
@@ -774,12 +788,12 @@ class Daemon:
             heard = f"the bus carried {n} other frames: {ids}{more}"
         else:
             heard = "the bus carried no frames at all"
-        sensors = self.codec.db.get_message_by_name("RigSensors").frame_id
+        sensors = self.profile.sensor_layout
         self._emit(
             self.supervisor.trip(
                 now_abs - self.t0,
                 Fault.NO_SENSOR_FRAMES,
-                f"no valid RigSensors frame (0x{sensors:03X}) {when}; {heard} "
+                f"no valid {sensors.name} frame (0x{sensors.frame_id:03X}) {when}; {heard} "
                 "(another DBC, channel or rig?)",
             )
         )

@@ -1,17 +1,21 @@
 """DBC-driven CAN codec with AUTOSAR E2E profile 2: packer, parser and per-message validity.
 
-`configs/mrrig.dbc` is the only source of the layout. At start-up the codec reads every
-message's id, length, signals (start bit, length, sign, scale, offset, range, value table), the
-E2E Data ID and the names of the CRC and counter signals from it, and builds plain-int
-packers/unpackers and the CRC-8H2F table, so that the hot path (parse RigSensors + encode
-DamperCommand every 2 ms) costs a few microseconds instead of cantools' ~15 us plus a
-pure-Python CRC. Tests check both paths agree.
+The DBC is the only source of the layout: `configs/mrrig.dbc` (the contract, package data) or
+a rig profile's own (`mrrig.rigio.canbus.profile`). At start-up the codec reads every
+message's id (11 or 29-bit), length, frame format (classic or CAN FD), signals (start bit,
+length, byte order, sign, integer or IEEE float, scale, offset, range, value table,
+multiplexer), the E2E Data ID and the names of the CRC and counter signals where the message
+has E2E, and builds plain-int packers/unpackers and the CRC-8H2F table, so that the hot path
+(parse RigSensors + encode DamperCommand every 2 ms) costs a few microseconds instead of
+cantools' ~15 us plus a pure-Python CRC. Intel integer messages take the fast path; Motorola,
+float and multiplexed ones a general one. Tests check both paths agree with cantools.
 """
 
 from __future__ import annotations
 
 import logging
 import math
+import struct
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -74,17 +78,24 @@ def profile2_crc(payload: bytes | bytearray, data_id: int) -> int:
 
 
 class SignalField(NamedTuple):
-    """One payload signal, as the fast path needs it (raw = (word >> shift) & mask)."""
+    """One payload signal, as the fast path needs it: raw = (word >> shift) & mask, `word` the
+    payload read little-endian (Intel) or big-endian (Motorola, `big`)."""
 
-    name: str
+    name: str  # the signal's name, or the role key a rig profile gave it
     shift: int
     mask: int
     sign_bit: int  # 0 for unsigned signals
-    scale: float
+    scale: float  # the DBC's, times the profile's conversion to SI
     offset: float
     raw_min: int
     raw_max: int
     labels: dict[str, int]  # value table, label -> raw
+    big: bool = False  # Motorola byte order
+    float_bits: int = 0  # 32 or 64: an IEEE float signal
+    lo: float = -math.inf  # physical range (float signals: checked on the value)
+    hi: float = math.inf
+    mux: tuple[str, frozenset[int]] | None = None  # (selector signal, its values) if multiplexed
+    default_raw: int = 0  # what a packer that fills unmapped signals puts (the DBC's initial)
 
 
 @dataclass(frozen=True)
@@ -97,15 +108,32 @@ class MessageLayout:
     senders: tuple[str, ...]
     data_id: int
     period_s: float | None
-    crc_signal: str
+    crc_signal: str  # "" without E2E
     counter_signal: str
     counter_shift: int
     counter_mask: int
-    fields: tuple[SignalField, ...]  # payload signals, without the E2E ones
+    fields: tuple[SignalField, ...]  # payload signals, without the E2E ones; muxed ones last
+    e2e: bool = True  # AUTOSAR E2E profile 2 (CRC and counter) protects it
+    is_extended: bool = False  # a 29-bit identifier
+    is_fd: bool = False  # a CAN FD frame
+    # Intel integer signals only, nothing multiplexed: the fast path
+    simple: bool = True
+    constants: dict[str, float] = field(default_factory=dict)  # keys a profile declares absent
 
     @property
     def signal_names(self) -> tuple[str, ...]:
         return tuple(f.name for f in self.fields)
+
+    @property
+    def key(self) -> int:
+        return frame_key(self.frame_id, self.is_extended)
+
+
+EXTENDED_KEY = 1 << 31  # beyond any 29-bit identifier: the parser's key of an extended frame
+
+
+def frame_key(frame_id: int, is_extended: bool) -> int:
+    return frame_id | EXTENDED_KEY if is_extended else frame_id
 
 
 def _attribute(msg: DbcMessage, name: str) -> int | float | str:
@@ -119,85 +147,175 @@ def _physical_to_raw(value: float, signal: cantools.database.can.Signal) -> floa
     return round((value - signal.offset) / signal.scale, 6)
 
 
-def _signal_field(msg: DbcMessage, signal: cantools.database.can.Signal) -> SignalField:
-    if signal.byte_order != "little_endian":
-        raise CodecError(f"{msg.name}.{signal.name}: only Intel (little-endian) signals supported")
-    if signal.is_float:
-        raise CodecError(f"{msg.name}.{signal.name}: float signals not supported")
+class Rename(NamedTuple):
+    """A rig profile's name for a signal and the factor from its DBC unit to SI."""
+
+    key: str
+    factor: float = 1.0
+
+
+def _signal_field(
+    msg: DbcMessage, signal: cantools.database.can.Signal, rename: Rename | None
+) -> SignalField:
+    where = f"{msg.name}.{signal.name}"
     mask = (1 << signal.length) - 1
-    if signal.is_signed:
+    big = signal.byte_order != "little_endian"
+    nbits = 8 * msg.length
+    if big:
+        # cantools' start bit of a Motorola signal is its MSB in the DBC's sawtooth numbering
+        msb = 8 * (signal.start // 8) + (7 - signal.start % 8)
+        shift = nbits - (msb + signal.length)
+    else:
+        shift = signal.start
+    if shift < 0 or shift + signal.length > nbits:
+        raise CodecError(f"{where}: does not fit in the message's {msg.length} bytes")
+    float_bits = 0
+    if signal.is_float:
+        if signal.length not in (32, 64):
+            raise CodecError(f"{where}: a float signal must be 32 or 64 bits long")
+        float_bits = signal.length
+    if signal.is_signed and not float_bits:
         sign_bit = 1 << (signal.length - 1)
         raw_min, raw_max = -sign_bit, sign_bit - 1
     else:
         sign_bit = 0
         raw_min, raw_max = 0, mask
     # DBC [min|max] are physical: narrow the raw range to them (rounded to absorb float error
-    # of limits that are multiples of the scale).
-    if signal.minimum is not None:
-        raw_min = max(raw_min, math.ceil(_physical_to_raw(signal.minimum, signal)))
-    if signal.maximum is not None:
-        raw_max = min(raw_max, math.floor(_physical_to_raw(signal.maximum, signal)))
+    # of limits that are multiples of the scale); a float signal's are checked on its value
+    lo, hi = -math.inf, math.inf
+    if float_bits:
+        if signal.minimum is not None:
+            lo = signal.minimum
+        if signal.maximum is not None:
+            hi = signal.maximum
+    else:
+        if signal.minimum is not None:
+            raw_min = max(raw_min, math.ceil(_physical_to_raw(signal.minimum, signal)))
+        if signal.maximum is not None:
+            raw_max = min(raw_max, math.floor(_physical_to_raw(signal.maximum, signal)))
     labels = {str(label): raw for raw, label in (signal.choices or {}).items()}
+    mux = None
+    if signal.multiplexer_ids:
+        if signal.is_multiplexer:
+            raise CodecError(f"{where}: nested multiplexing not supported")
+        mux = (signal.multiplexer_signal, frozenset(signal.multiplexer_ids))
+    name, factor = rename if rename is not None else (signal.name, 1.0)
+    initial = signal.raw_initial if isinstance(signal.raw_initial, int | float) else 0
+    default_raw = initial if float_bits else min(max(int(initial), raw_min), raw_max)
     return SignalField(
-        name=signal.name,
-        shift=signal.start,
+        name=name,
+        shift=shift,
         mask=mask,
         sign_bit=sign_bit,
-        scale=signal.scale,
-        offset=signal.offset,
+        scale=signal.scale * factor,
+        offset=signal.offset * factor,
         raw_min=raw_min,
         raw_max=raw_max,
         labels=labels,
+        big=big,
+        float_bits=float_bits,
+        lo=lo * factor,
+        hi=hi * factor,
+        mux=mux,
+        default_raw=default_raw,
     )
 
 
-def _message_layout(msg: DbcMessage) -> MessageLayout:
-    if msg.is_extended_frame or msg.frame_id > 0x7FF:
-        raise CodecError(f"{msg.name}: only 11-bit identifiers supported")
-    if msg.is_multiplexed() or msg.is_container:
-        raise CodecError(f"{msg.name}: multiplexed/container messages not supported")
-    profile = _attribute(msg, ATTR_PROFILE)
-    if profile != PROFILE_2:
-        raise CodecError(f"{msg.name}: E2E profile {profile!r} not supported (want {PROFILE_2})")
-    crc_name = str(_attribute(msg, ATTR_CRC_SIGNAL))
-    counter_name = str(_attribute(msg, ATTR_COUNTER_SIGNAL))
-    crc = msg.get_signal_by_name(crc_name)
-    counter = msg.get_signal_by_name(counter_name)
-    # Profile 2 fixes where they live: CRC = byte 0, counter = low nibble of byte 1.
-    if (crc.start, crc.length, crc.is_signed) != (0, 8, False):
-        raise CodecError(f"{msg.name}.{crc_name}: profile 2 CRC must be 0|8 unsigned")
-    if (counter.start, counter.length, counter.is_signed) != (8, 4, False):
-        raise CodecError(f"{msg.name}.{counter_name}: profile 2 counter must be 8|4 unsigned")
-    cycle_ms = msg.dbc.attributes.get(ATTR_CYCLE_TIME) if msg.dbc is not None else None
+def _message_layout(
+    msg: DbcMessage,
+    renames: Mapping[tuple[str, str], Rename],
+    constants: Mapping[str, Mapping[str, float]],
+) -> MessageLayout:
+    if msg.is_container:
+        raise CodecError(f"{msg.name}: container messages not supported")
+    if not msg.is_extended_frame and msg.frame_id > 0x7FF:
+        raise CodecError(f"{msg.name}: id 0x{msg.frame_id:x} beyond 11 bits (extended?)")
+    attributes = msg.dbc.attributes if msg.dbc is not None else {}
+    profile = attributes["E2EProfile"].value if ATTR_PROFILE in attributes else ""
+    e2e = bool(profile)
+    crc_name = counter_name = ""
+    data_id, counter_shift, counter_mask = 0, 0, 0
+    if e2e:
+        if profile != PROFILE_2:
+            raise CodecError(
+                f"{msg.name}: E2E profile {profile!r} not supported (want {PROFILE_2})"
+            )
+        crc_name = str(_attribute(msg, ATTR_CRC_SIGNAL))
+        counter_name = str(_attribute(msg, ATTR_COUNTER_SIGNAL))
+        data_id = int(_attribute(msg, ATTR_DATA_ID))
+        crc = msg.get_signal_by_name(crc_name)
+        counter = msg.get_signal_by_name(counter_name)
+        # Profile 2 fixes where they live: CRC = byte 0, counter = low nibble of byte 1.
+        if (crc.start, crc.length, crc.is_signed, crc.byte_order) != (
+            0,
+            8,
+            False,
+            "little_endian",
+        ):
+            raise CodecError(f"{msg.name}.{crc_name}: profile 2 CRC must be 0|8@1+")
+        if (counter.start, counter.length, counter.is_signed, counter.byte_order) != (
+            8,
+            4,
+            False,
+            "little_endian",
+        ):
+            raise CodecError(f"{msg.name}.{counter_name}: profile 2 counter must be 8|4@1+")
+        counter_shift, counter_mask = counter.start, (1 << counter.length) - 1
+    cycle_ms = attributes.get(ATTR_CYCLE_TIME)
     period_s = cycle_ms.value / 1000.0 if cycle_ms is not None and cycle_ms.value else None
     fields = tuple(
-        _signal_field(msg, s) for s in msg.signals if s.name not in (crc_name, counter_name)
+        _signal_field(msg, s, renames.get((msg.name, s.name)))
+        for s in msg.signals
+        if s.name not in (crc_name, counter_name)
     )
+    # the selectors first: a multiplexed signal is read after the value that selects it
+    fields = tuple(f for f in fields if f.mux is None) + tuple(f for f in fields if f.mux)
+    simple = not any(f.big or f.float_bits or f.mux for f in fields)
     return MessageLayout(
         name=msg.name,
         frame_id=msg.frame_id,
         length=msg.length,
         senders=tuple(msg.senders),
-        data_id=int(_attribute(msg, ATTR_DATA_ID)),
+        data_id=data_id,
         period_s=period_s,
         crc_signal=crc_name,
         counter_signal=counter_name,
-        counter_shift=counter.start,
-        counter_mask=(1 << counter.length) - 1,
+        counter_shift=counter_shift,
+        counter_mask=counter_mask,
         fields=fields,
+        e2e=e2e,
+        is_extended=bool(msg.is_extended_frame),
+        is_fd=bool(msg.is_fd),
+        simple=simple,
+        constants=dict(constants.get(msg.name, {})),
     )
 
 
 class Codec:
-    """The CAN contract loaded from a DBC: message layouts, packers and parsers."""
+    """The CAN layout loaded from a DBC: message layouts, packers and parsers.
 
-    def __init__(self, dbc_path: str | Path = DEFAULT_DBC_PATH) -> None:
+    `renames` ({(message, signal): Rename}) and `constants` ({message: {key: value}}) are a rig
+    profile's (`mrrig.rigio.canbus.profile`): its signals decoded under the role's key in SI
+    units, and the keys of roles its layout lacks, with the value the loop takes for them.
+    """
+
+    def __init__(
+        self,
+        dbc_path: str | Path = DEFAULT_DBC_PATH,
+        renames: Mapping[tuple[str, str], Rename] | None = None,
+        constants: Mapping[str, Mapping[str, float]] | None = None,
+    ) -> None:
         self.dbc_path = Path(dbc_path)
-        self.db = cantools.database.load_file(str(self.dbc_path), strict=True)
+        try:
+            self.db = cantools.database.load_file(str(self.dbc_path), strict=True)
+        except (OSError, cantools.database.UnsupportedDatabaseFormatError, ValueError) as exc:
+            text = " ".join(str(exc).split())
+            raise CodecError(f"{self.dbc_path}: cannot read the DBC: {text}") from None
         self.layouts: dict[str, MessageLayout] = {
-            msg.name: _message_layout(msg) for msg in self.db.messages
+            msg.name: _message_layout(msg, renames or {}, constants or {})
+            for msg in self.db.messages
         }
-        self.by_id: dict[int, MessageLayout] = {lay.frame_id: lay for lay in self.layouts.values()}
+        self.by_id: dict[int, MessageLayout] = {lay.key: lay for lay in self.layouts.values()}
         logger.debug("loaded %d messages from %s", len(self.layouts), self.dbc_path)
 
     def layout(self, name: str) -> MessageLayout:
@@ -222,17 +340,57 @@ class Codec:
         return Parser(self)
 
 
+def _to_raw(f: SignalField, value: float, name: str) -> int:
+    """The raw bits of one physical value (checked against the signal's range)."""
+    if f.float_bits:
+        phys = (value - f.offset) / f.scale
+        if not f.lo <= value <= f.hi:
+            raise EncodeError(f"{name}: {f.name}={value!r} outside [{f.lo:g}, {f.hi:g}]")
+        fmt = "<f" if f.float_bits == 32 else "<d"
+        return int.from_bytes(struct.pack(fmt, phys), "little")
+    raw = round((value - f.offset) / f.scale)
+    if not f.raw_min <= raw <= f.raw_max:
+        raise EncodeError(
+            f"{name}: {f.name}={value!r} outside "
+            f"[{f.raw_min * f.scale + f.offset:g}, {f.raw_max * f.scale + f.offset:g}]"
+        )
+    return raw & f.mask
+
+
+def _from_raw(f: SignalField, bits: int) -> float | None:
+    """The physical value of a field's raw bits; None where it is outside the DBC's range."""
+    if f.float_bits:
+        fmt = "<f" if f.float_bits == 32 else "<d"
+        raw = struct.unpack(fmt, bits.to_bytes(f.float_bits // 8, "little"))[0]
+        value = raw * f.scale + f.offset
+        return value if f.lo <= value <= f.hi else None
+    if bits & f.sign_bit:
+        bits -= f.mask + 1
+    if not f.raw_min <= bits <= f.raw_max:
+        return None
+    return bits * f.scale + f.offset
+
+
 class Packer:
     """Encodes the messages one node sends; fills the E2E counter and CRC itself.
 
     Each message has its own rolling counter: the first frame carries 0, then +1 per frame,
     wrapping at the counter's width. Callers pass every payload signal, in physical units
     (value-table labels are accepted for signals that have one), and never the E2E signals.
+    A packer of `messages` (a rig profile's: `sender` None) is lenient instead: a signal not
+    given takes the DBC's initial value, and a key no signal has is left alone (a role the
+    layout lacks).
     """
 
-    def __init__(self, codec: Codec, sender: str) -> None:
-        self.sender = sender
-        self._layouts = {n: lay for n, lay in codec.layouts.items() if sender in lay.senders}
+    def __init__(
+        self, codec: Codec, sender: str | None, messages: tuple[str, ...] | None = None
+    ) -> None:
+        self.sender = sender or "the rig profile"
+        self.strict = messages is None
+        if messages is None:
+            self._layouts = {n: lay for n, lay in codec.layouts.items() if sender in lay.senders}
+        else:
+            self._layouts = {n: codec.layout(n) for n in messages}
         if not self._layouts:
             raise CodecError(f"node {sender!r} sends no message in {codec.dbc_path}")
         self._next_counter = dict.fromkeys(self._layouts, 0)
@@ -249,52 +407,105 @@ class Packer:
             lay = self._layouts[name]
         except KeyError:
             raise EncodeError(f"{self.sender} does not send {name!r}") from None
-        fields = lay.fields
-        if len(values) != len(fields):
-            raise self._signal_set_error(lay, values)
-        word = 0
-        for f in fields:
-            try:
-                value = values[f.name]
-            except KeyError:
-                raise self._signal_set_error(lay, values) from None
-            if type(value) is str:
-                if value not in f.labels:
-                    raise EncodeError(f"{name}: {f.name}={value!r} not in its value table")
-                value = f.labels[value]
-            try:
-                raw = round((value - f.offset) / f.scale)
-            except (TypeError, ValueError, OverflowError) as exc:
-                raise EncodeError(f"{name}: {f.name}={value!r}: {exc}") from None
-            if not f.raw_min <= raw <= f.raw_max:
-                raise EncodeError(
-                    f"{name}: {f.name}={value!r} outside "
-                    f"[{f.raw_min * f.scale + f.offset:g}, {f.raw_max * f.scale + f.offset:g}]"
-                )
-            word |= (raw & f.mask) << f.shift
+        if not lay.simple:
+            payload = self._encode_general(lay, values)
+        else:
+            fields = lay.fields
+            if self.strict and len(values) != len(fields):
+                raise self._signal_set_error(lay, values)
+            word = 0
+            for f in fields:
+                try:
+                    value = values[f.name]
+                except KeyError:
+                    if self.strict:
+                        raise self._signal_set_error(lay, values) from None
+                    word |= (f.default_raw & f.mask) << f.shift
+                    continue
+                if type(value) is str:
+                    if value not in f.labels:
+                        raise EncodeError(f"{name}: {f.name}={value!r} not in its value table")
+                    value = f.labels[value]
+                try:
+                    raw = round((value - f.offset) / f.scale)
+                except (TypeError, ValueError, OverflowError) as exc:
+                    raise EncodeError(f"{name}: {f.name}={value!r}: {exc}") from None
+                if not f.raw_min <= raw <= f.raw_max:
+                    raise EncodeError(
+                        f"{name}: {f.name}={value!r} outside "
+                        f"[{f.raw_min * f.scale + f.offset:g}, {f.raw_max * f.scale + f.offset:g}]"
+                    )
+                word |= (raw & f.mask) << f.shift
+            payload = word.to_bytes(lay.length, "little")
+        if not lay.e2e:
+            return payload
         if counter is None:
             counter = self._next_counter[name]
         elif not 0 <= counter <= lay.counter_mask:
             raise EncodeError(f"{name}: counter {counter} outside [0, {lay.counter_mask}]")
         self._next_counter[name] = (counter + 1) & lay.counter_mask
-        payload = bytearray((word | counter << lay.counter_shift).to_bytes(lay.length, "little"))
-        payload[0] = profile2_crc(payload, lay.data_id)
-        return bytes(payload)
+        framed = bytearray(payload)
+        framed[1] |= counter << (lay.counter_shift - 8)
+        framed[0] = profile2_crc(framed, lay.data_id)
+        return bytes(framed)
+
+    def _encode_general(self, lay: MessageLayout, values: Mapping[str, object]) -> bytes:
+        """Motorola, float and multiplexed signals: both byte orders' words, then merged."""
+        name = lay.name
+        word_le = word_be = 0
+        raws: dict[str, int] = {}
+        used = set()
+        for f in lay.fields:
+            if f.mux is not None and raws.get(f.mux[0]) not in f.mux[1]:
+                continue  # another multiplexer value's signal
+            if f.name in values:
+                value = values[f.name]
+                used.add(f.name)
+                if type(value) is str:
+                    if value not in f.labels:
+                        raise EncodeError(f"{name}: {f.name}={value!r} not in its value table")
+                    value = f.labels[value]
+                try:
+                    raw = _to_raw(f, value, name)
+                except (TypeError, ValueError, OverflowError) as exc:
+                    if isinstance(exc, EncodeError):
+                        raise
+                    raise EncodeError(f"{name}: {f.name}={value!r}: {exc}") from None
+            elif self.strict:
+                raise self._signal_set_error(lay, values)
+            else:
+                raw = _to_raw(f, f.default_raw * f.scale + f.offset, name)
+            raws[f.name] = raw if f.float_bits else _signed(f, raw)
+            if f.big:
+                word_be |= raw << f.shift
+            else:
+                word_le |= raw << f.shift
+        if self.strict and used != set(values):
+            raise self._signal_set_error(lay, values)
+        merged = word_le.to_bytes(lay.length, "little")
+        if word_be:
+            big = word_be.to_bytes(lay.length, "big")
+            merged = bytes(a | b for a, b in zip(merged, big, strict=True))
+        return merged
 
     def message(
         self, name: str, values: Mapping[str, float | int | str], counter: int | None = None
     ) -> can.Message:
-        """`encode` wrapped in an 11-bit `can.Message`."""
+        """`encode` wrapped in a `can.Message` of the DBC's frame format (11 or 29-bit, FD)."""
         payload = self.encode(name, values, counter)
         lay = self._layouts[name]
         return can.Message(
-            arbitration_id=lay.frame_id, is_extended_id=False, dlc=lay.length, data=payload
+            arbitration_id=lay.frame_id,
+            is_extended_id=lay.is_extended,
+            is_fd=lay.is_fd,
+            dlc=lay.length,
+            data=payload,
         )
 
     @staticmethod
     def _signal_set_error(lay: MessageLayout, values: Mapping[str, object]) -> EncodeError:
         given, wanted = set(values), set(lay.signal_names)
-        e2e = sorted(given & {lay.crc_signal, lay.counter_signal})
+        e2e = sorted(given & {lay.crc_signal, lay.counter_signal} - {""})
         parts = []
         if e2e:
             parts.append(f"E2E signals {e2e} are filled by the packer")
@@ -303,6 +514,38 @@ class Packer:
         if unknown := sorted(given - wanted - set(e2e)):
             parts.append(f"unknown {unknown}")
         return EncodeError(f"{lay.name}: " + "; ".join(parts))
+
+
+def _signed(f: SignalField, raw: int) -> int:
+    return raw - (f.mask + 1) if raw & f.sign_bit else raw
+
+
+def _decode_general(
+    lay: MessageLayout, data: bytes | bytearray
+) -> tuple[dict[str, float] | None, str]:
+    """Motorola, float and multiplexed signals: (values, "") or (None, why not)."""
+    word_le = int.from_bytes(data, "little")
+    word_be = int.from_bytes(data, "big")
+    values = lay.constants.copy()
+    raws: dict[str, int] = {}
+    selectors: dict[str, set[int]] = {}
+    for f in lay.fields:
+        if f.mux is not None:
+            selector, ids = f.mux
+            selectors.setdefault(selector, set()).update(ids)
+            if raws.get(selector) not in ids:
+                continue
+        bits = ((word_be if f.big else word_le) >> f.shift) & f.mask
+        value = _from_raw(f, bits)
+        if value is None:
+            return None, f"{f.name} raw {bits:#x} outside the DBC's range"
+        if not f.float_bits:
+            raws[f.name] = _signed(f, bits)
+        values[f.name] = value
+    for selector, ids in selectors.items():
+        if raws.get(selector) not in ids:
+            return None, f"multiplexer {selector} = {raws.get(selector)} selects no signals"
+    return values, ""
 
 
 class Parsed(NamedTuple):
@@ -342,10 +585,11 @@ class MessageStats:
 class Parser:
     """Checks and decodes received frames, keeping per-message validity and last good values.
 
-    A frame is rejected for an unknown id, a wrong length, a CRC mismatch, a counter equal
-    to the previous valid one, or a raw value outside its signal's DBC range. A counter
-    jump is accepted and counted as lost frames. Rejected frames never touch the last good
-    values or the counter reference.
+    A frame is rejected for an unknown id (or one of the other identifier length), a wrong
+    length or frame format, a CRC mismatch, a counter equal to the previous valid one, or a
+    value outside its signal's DBC range. A counter jump is accepted and counted as lost
+    frames. A message without E2E has neither check: its counter is None. Rejected frames
+    never touch the last good values or the counter reference.
     """
 
     def __init__(self, codec: Codec) -> None:
@@ -354,48 +598,69 @@ class Parser:
         self.unknown_id = 0
         self._last_counter: dict[str, int | None] = dict.fromkeys(codec.layouts)
 
-    def parse(self, arbitration_id: int, data: bytes | bytearray, timestamp_s: float) -> Parsed:
-        lay = self._by_id.get(arbitration_id)
+    def parse(
+        self,
+        arbitration_id: int,
+        data: bytes | bytearray,
+        timestamp_s: float,
+        is_extended: bool = False,
+        is_fd: bool = False,
+    ) -> Parsed:
+        lay = self._by_id.get(arbitration_id | EXTENDED_KEY if is_extended else arbitration_id)
         if lay is None:
             self.unknown_id += 1
             return _rejected(None, timestamp_s, f"0x{arbitration_id:x}: unknown id")
         name = lay.name
         stats = self.stats[name]
-        if len(data) != lay.length:
+        if len(data) != lay.length or is_fd != lay.is_fd:
             stats.wrong_length += 1
-            return _rejected(
-                name, timestamp_s, f"{name}: wrong length {len(data)} (want {lay.length})"
-            )
-        crc = profile2_crc(data, lay.data_id)
-        if crc != data[0]:
-            stats.bad_crc += 1
-            return _rejected(
-                name, timestamp_s, f"{name}: CRC mismatch (got 0x{data[0]:02x}, want 0x{crc:02x})"
-            )
-        word = int.from_bytes(data, "little")
-        counter = (word >> lay.counter_shift) & lay.counter_mask
-        previous = self._last_counter[name]
+            if len(data) != lay.length:
+                why = f"wrong length {len(data)} (want {lay.length})"
+            else:
+                why = "a CAN FD frame" if is_fd else "a classic frame (the DBC says CAN FD)"
+            return _rejected(name, timestamp_s, f"{name}: {why}")
+        counter = None
         lost = 0
-        if previous is not None:
-            delta = (counter - previous) & lay.counter_mask
-            if delta == 0:
-                stats.repeated_counter += 1
-                return _rejected(name, timestamp_s, f"{name}: repeated counter {counter}", counter)
-            lost = delta - 1
-        values = {}
-        for f in lay.fields:
-            raw = (word >> f.shift) & f.mask
-            if raw & f.sign_bit:
-                raw -= f.mask + 1
-            if not f.raw_min <= raw <= f.raw_max:
-                stats.decode_errors += 1
+        if lay.e2e:
+            crc = profile2_crc(data, lay.data_id)
+            if crc != data[0]:
+                stats.bad_crc += 1
                 return _rejected(
                     name,
                     timestamp_s,
-                    f"{name}: {f.name} raw {raw} outside DBC range [{f.raw_min}, {f.raw_max}]",
-                    counter,
+                    f"{name}: CRC mismatch (got 0x{data[0]:02x}, want 0x{crc:02x})",
                 )
-            values[f.name] = raw * f.scale + f.offset
+            counter = (data[1] >> (lay.counter_shift - 8)) & lay.counter_mask
+            previous = self._last_counter[name]
+            if previous is not None:
+                delta = (counter - previous) & lay.counter_mask
+                if delta == 0:
+                    stats.repeated_counter += 1
+                    return _rejected(
+                        name, timestamp_s, f"{name}: repeated counter {counter}", counter
+                    )
+                lost = delta - 1
+        if lay.simple:
+            word = int.from_bytes(data, "little")
+            values = lay.constants.copy()
+            for f in lay.fields:
+                raw = (word >> f.shift) & f.mask
+                if raw & f.sign_bit:
+                    raw -= f.mask + 1
+                if not f.raw_min <= raw <= f.raw_max:
+                    stats.decode_errors += 1
+                    return _rejected(
+                        name,
+                        timestamp_s,
+                        f"{name}: {f.name} raw {raw} outside DBC range [{f.raw_min}, {f.raw_max}]",
+                        counter,
+                    )
+                values[f.name] = raw * f.scale + f.offset
+        else:
+            values, why = _decode_general(lay, data)
+            if values is None:
+                stats.decode_errors += 1
+                return _rejected(name, timestamp_s, f"{name}: {why}", counter)
         self._last_counter[name] = counter
         stats.frames_ok += 1
         stats.lost_frames += lost
@@ -404,13 +669,14 @@ class Parser:
         return parsed
 
     def parse_message(self, msg: can.Message, timestamp_s: float | None = None) -> Parsed:
-        """`parse` for a python-can message; extended, remote and error frames are unknown."""
+        """`parse` for a python-can message; remote and error frames are unknown, and so is a
+        29-bit identifier the DBC does not declare extended (and an 11-bit one it does)."""
         t_s = msg.timestamp if timestamp_s is None else timestamp_s
-        if msg.is_extended_id or msg.is_remote_frame or msg.is_error_frame:
+        if msg.is_remote_frame or msg.is_error_frame:
             self.unknown_id += 1
-            kind = "error" if msg.is_error_frame else "remote" if msg.is_remote_frame else "29-bit"
+            kind = "error" if msg.is_error_frame else "remote"
             return _rejected(None, t_s, f"0x{msg.arbitration_id:x}: {kind} frame")
-        return self.parse(msg.arbitration_id, msg.data, t_s)
+        return self.parse(msg.arbitration_id, msg.data, t_s, msg.is_extended_id, msg.is_fd)
 
     def last(self, name: str) -> Parsed | None:
         """Last valid frame of `name`, or None if none arrived yet."""

@@ -1,0 +1,184 @@
+"""A rig profile: the lab's DBC and [can.signals] (configs/profiles/lab-1khz.toml, other IDs, mm
+and kN, no E2E, 1 kHz), units to SI by the table, the protections that are off named at
+start-up, and `mrrig dbc check`: one line per problem, exit 2."""
+
+from __future__ import annotations
+
+import logging
+import shutil
+from pathlib import Path
+
+import cantools
+import pytest
+
+from mrrig.cli import dbc as dbc_cli
+from mrrig.config import load_config
+from mrrig.rigio.canbus.profile import ProfileError, check_profile, load_profile
+from tests.conftest import REPO
+
+PROFILES = REPO / "configs" / "profiles"
+
+
+def _lab(tmp_path: Path, dbc_edit: tuple[str, str] = ("", ""), toml_edit=("", "")) -> Path:
+    """configs/profiles/lab-1khz.{dbc,toml} copied into a folder of their own (the config
+    finds its DBC beside it), each with one edit."""
+    folder = tmp_path / "lab"
+    folder.mkdir()
+    for suffix, (old, new) in ((".dbc", dbc_edit), (".toml", toml_edit)):
+        text = (PROFILES / f"lab-1khz{suffix}").read_text()
+        assert old in text
+        (folder / f"lab-1khz{suffix}").write_text(text.replace(old, new, 1) if old else text)
+    return folder / "lab-1khz.toml"
+
+
+def _profile(config: Path):
+    cfg = load_config(config)
+    return load_profile(cfg.can.dbc, cfg.can.signals, cfg.loop.period_s, cfg.source)
+
+
+def test_the_lab_profile_reads_mm_and_kn_as_metres_and_newtons(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)  # the DBC is found beside the config, not in the checkout
+    profile = _profile(_lab(tmp_path))
+    db = cantools.database.load_file(str(PROFILES / "lab-1khz.dbc"))
+    msg = db.get_message_by_name("LabSensors")
+    frame = msg.encode(
+        {"Position": 12.345, "Load": 1.23456, "Enabled": 1, "EStop": 0, "Fault": 0, "Coil": 850}
+    )
+    parsed = profile.codec.parser().parse(msg.frame_id, frame, 0.0)
+    assert parsed.ok and parsed.counter is None
+    v = parsed.values
+    assert v["Displacement"] == pytest.approx(0.012345)
+    assert v["Force"] == pytest.approx(1234.56)
+    assert v["CoilCurrent"] == pytest.approx(0.85)
+    # the flags the layout lacks read as quiet, and are named off at start-up
+    assert (v["LimitTripped"], v["SensorFault"], v["CommandTimeouts"]) == (0.0, 0.0, 0.0)
+
+
+def test_the_daemons_command_is_packed_in_the_profiles_units(tmp_path):
+    profile = _profile(_lab(tmp_path))
+    payload = profile.packer().encode(
+        "HostCommand",
+        {
+            "Mode": 1,
+            "CurrentSetpoint": 1.2345,
+            "SensorCounterEcho": 3,  # roles this layout lacks are left alone
+            "ControllerId": 1,
+            "DesiredForce": 1200.0,
+        },
+    )
+    db = cantools.database.load_file(str(PROFILES / "lab-1khz.dbc"))
+    decoded = db.get_message_by_name("HostCommand").decode(payload)
+    assert decoded["Current"] == pytest.approx(1234.5)  # mA
+    assert decoded["Force"] == pytest.approx(1.2)  # kN, not 1200 read as newtons
+    assert decoded["Active"] == 1
+
+
+def test_a_fault_flag_is_a_fault_not_the_watchdogs_code_1(tmp_path):
+    profile = _profile(_lab(tmp_path))
+    values = {"FaultCode": 1.0, "CommandTimeouts": 0.0}
+    state, code, label, _ = profile.firmware_status(values)
+    # the contract's code 1 is the watchdog's (it does not block arming); a lab's flag is not
+    assert (state, code, label) == ("FAULT", -1, "1")
+
+
+def test_the_start_up_line_names_the_protections_that_are_off(tmp_path, caplog):
+    from mrrig.loop.daemon import Daemon
+
+    cfg = load_config(
+        _lab(tmp_path),
+        {"controller": {"name": "constant", "current_a": 0.5}, "telemetry": {"enabled": False}},
+    )
+    with caplog.at_level(logging.INFO, "mrrig.loop.daemon"):
+        daemon = Daemon(cfg)
+    line = next(r for r in caplog.records if "CAN profile" in r.getMessage())
+    assert line.levelno == logging.WARNING
+    text = line.getMessage()
+    for off in ("E2E on LabSensors", "E2E on HostCommand", "the counter echo", "watchdog"):
+        assert off in text, text
+    assert daemon.packer.messages == ("HostCommand", "HostMotion")
+
+
+def test_the_contracts_profile_has_every_protection_on():
+    profile, problems = check_profile(None, {}, 0.002, "rig.toml")
+    assert problems == [] and profile.protections_off == []
+    assert profile.codec.layout("RigSensors").e2e
+
+
+def test_the_daemon_refuses_a_profile_with_its_first_problem_in_one_line(tmp_path):
+    config = _lab(tmp_path, ('"mm" HOST', '"in" HOST'))
+    with pytest.raises(ProfileError) as err:
+        _profile(config)
+    assert "LabSensors.Position: unit 'in' not in the unit table" in str(err.value)
+    assert "\n" not in str(err.value)
+
+
+# ---- mrrig dbc check: a test per problem class, one line, exit 2 -----------------------------
+@pytest.mark.parametrize(
+    ("dbc_edit", "toml_edit", "expected"),
+    [
+        pytest.param(
+            ('"mm" HOST', '"in" HOST'),
+            ("", ""),
+            "lab-1khz.dbc: LabSensors.Position: unit 'in' not in the unit table (m, mm, um, N,"
+            " kN, A, mA, V, degC, Hz)",
+            id="unknown unit",
+        ),
+        pytest.param(
+            ("", ""),
+            ('estop = "LabSensors.EStop"\n', ""),
+            "can.signals.estop: unmapped role (map it to MESSAGE.SIGNAL of lab-1khz.dbc or"
+            ' declare it "absent")',
+            id="unmapped role",
+        ),
+        pytest.param(
+            ("BO_ 770 HostCommand", "BO_ 769 HostCommand"),
+            ("", ""),
+            "lab-1khz.dbc: ID clash: LabSensors and HostCommand both use 0x301",
+            id="ID clash",
+        ),
+        pytest.param(
+            (" SG_ Coil : 51|13@1+", " SG_ Coil : 51|14@1+"),
+            ("", ""),
+            "lab-1khz.dbc: frame overflow: LabSensors.Coil (14 bits from 51) beyond the frame's"
+            " 8 bytes",
+            id="frame overflow",
+        ),
+        pytest.param(
+            ("", ""),
+            ("period_s = 0.001", "period_s = 0.002"),
+            "period mismatch: loop.period_s 0.002 s, but LabSensors's GenMsgCycleTime in"
+            " lab-1khz.dbc is 1 ms",
+            id="period mismatch",
+        ),
+    ],
+)
+def test_dbc_check_names_each_problem_in_one_line(tmp_path, capsys, dbc_edit, toml_edit, expected):
+    config = _lab(tmp_path, dbc_edit, toml_edit)
+    rc = dbc_cli.main(["check", "--config", str(config)])
+    lines = capsys.readouterr().out.splitlines()
+    assert rc == 2
+    assert len(lines) == 1, lines
+    assert lines[0].endswith(expected), lines[0]
+
+
+def test_dbc_check_passes_both_shipped_profiles(tmp_path, capsys):
+    assert dbc_cli.main(["check", "--config", str(PROFILES / "lab-1khz.toml")]) == 0
+    assert dbc_cli.main(["check", "--config", str(REPO / "configs" / "rig.toml")]) == 0
+    out = capsys.readouterr().out
+    assert "protections off" in out and "all on" in out
+
+
+def test_dbc_show_prints_the_mapping_the_daemon_uses(capsys):
+    assert dbc_cli.main(["show", "--config", str(PROFILES / "lab-1khz.toml")]) == 0
+    out = capsys.readouterr().out
+    assert "force                LabSensors.Load" in out and "kN x 1000" in out
+    assert "counter_echo         absent" in out
+
+
+def test_the_shipped_dbc_files_are_copies_of_nothing_else(tmp_path):
+    """The example profile is package data like the contract (mrrig.resources)."""
+    from mrrig.resources import shipped
+
+    assert shipped("profiles/lab-1khz.dbc").is_file()
+    shutil.copy(shipped("profiles/lab-1khz.dbc"), tmp_path / "x.dbc")
+    assert cantools.database.load_file(str(tmp_path / "x.dbc"), strict=True).messages
