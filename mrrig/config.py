@@ -202,7 +202,9 @@ class AdaptationSection(AdaptationSettings):
 
 @dataclass(frozen=True)
 class ReferenceSection:
-    kind: Literal["constant", "sine", "noise", "csv", "bouc_wen", "zenoh"] = "constant"
+    kind: Literal["constant", "sine", "noise", "csv", "bouc_wen", "paper_case", "zenoh"] = (
+        "constant"
+    )
     offset_n: float = 0.0
     amplitude_n: float = 0.0
     freq_hz: float = 1.0
@@ -213,8 +215,14 @@ class ReferenceSection:
     current_a: float = 0.5  # bouc_wen: the reference damper's current, A
     current_amp_a: float = 0.0
     current_freq_hz: float = 1.0
+    case: int = 1  # paper_case: Table 6's validation case, 1-7 in the table's column order
+    current_scale: float = 1.0  # paper_case: A per paper volt of the case's coil input
 
     def check(self) -> None:
+        if not 1 <= self.case <= 7:
+            raise ValueError("case: must be 1-7 (Table 6's validation cases)")
+        if not 0 < self.current_scale <= 2:
+            raise ValueError("current_scale: must be in (0, 2] A per V")
         if self.kind == "csv" and self.path is None:
             raise ValueError("path: a csv reference needs a path")
         if not 0 <= self.amplitude_n <= F_RANGE_LIMIT_N:

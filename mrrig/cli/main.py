@@ -46,6 +46,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "runs": ("mrrig.cli.runs", "the run catalog: find, show, compare and sync runs"),
     "dbc": ("mrrig.cli.dbc", "check a rig profile (DBC + [can.signals]); show its mapping"),
     "test": ("mrrig.cli.test", "run a test plan (TOML steps with criteria) on a live rig"),
+    "tune": ("mrrig.cli.tune", "tune the controller's free parameters by closed-loop trials"),
 }
 
 

@@ -238,6 +238,8 @@ def build_reference(r: ReferenceSection, dt_s: float) -> ref.ForceReference:
         return ref.CsvSeries(r.path)
     if r.kind == "bouc_wen":
         return ref.BoucWenReference(r.preset, r.current_a, r.current_amp_a, r.current_freq_hz, dt_s)
+    if r.kind == "paper_case":
+        return ref.PaperCase(r.case, r.current_scale, r.preset, dt_s)
     return ref.External(r.timeout_s)
 
 

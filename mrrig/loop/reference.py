@@ -164,9 +164,11 @@ class BoucWenReference(ForceReference):
         self._prepared_t = -math.inf
         self._prepared_f = 0.0
 
+    def _current(self, t_s: float) -> float:
+        return max(0.0, self.current_a + self.current_amp_a * math.sin(self.w * t_s))
+
     def _step(self, t_s: float, x_m: float, xd_m_s: float) -> float:
-        i = max(0.0, self.current_a + self.current_amp_a * math.sin(self.w * t_s))
-        return self._damper.step(x_m, xd_m_s, i, self.dt_s)
+        return self._damper.step(x_m, xd_m_s, self._current(t_s), self.dt_s)
 
     def prepare(self, t_s: float, x_m: float, xd_m_s: float) -> None:
         self._prepared_f = self._step(t_s, x_m, xd_m_s)
@@ -177,6 +179,58 @@ class BoucWenReference(ForceReference):
         if abs(t_s - self._prepared_t) < 0.5 * self.dt_s:
             return self._prepared_f
         return self._step(t_s, x_m, xd_m_s)
+
+
+# Table 6's validation cases (spec/modeling.md section 4 A): 6 s at 1 ms, drawn with data set
+# A's validation seed (mrrig.offline.datasets draws them the same way; tests/test_tune.py
+# checks the two agree)
+PAPER_CASE_NAMES = ("1,k=1", "1,k=2", "1,k=3", "2", "3,k=1", "3,k=2", "3,k=3")
+PAPER_CASE_SEED = 4202
+PAPER_CASE_DT_S = 1e-3
+PAPER_CASE_S = 6.0
+
+
+def paper_case_command(case: int, seed: int = PAPER_CASE_SEED) -> np.ndarray:
+    """The coil input of validation case `case` (1-7, Table 6's column order) over its 6 s at
+    1 ms, in the paper's volts: (1) 1.5 V; (2) 2 V + noise 0-2 Hz peak 2 V, clipped at 0;
+    (3) 1.5 + 0.75 sin(2 k pi t) V."""
+    if not 1 <= case <= len(PAPER_CASE_NAMES):
+        raise ForceReferenceError(f"paper_case: case must be 1-{len(PAPER_CASE_NAMES)}, got {case}")
+    n = round(PAPER_CASE_S / PAPER_CASE_DT_S)
+    t = np.arange(n) * PAPER_CASE_DT_S
+    if case <= 3:
+        return np.full(n, 1.5)
+    if case >= 5:
+        return 1.5 + 0.75 * np.sin(2.0 * (case - 4) * np.pi * t)
+    rng = np.random.default_rng(seed)
+    bandlimited_noise(n, PAPER_CASE_DT_S, 2.0, 0.02, rng)  # the cases' displacement comes first
+    return np.maximum(bandlimited_noise(n, PAPER_CASE_DT_S, 2.0, 2.0, rng)[0] + 2.0, 0.0)
+
+
+class PaperCase(BoucWenReference):
+    """The force the reference damper gives for the measured motion and the coil input of one
+    of Table 6's validation cases (`paper_case_command`), repeated every 6 s from the source's
+    start: the paper's desired force, "the plant's force for the validation displacement and
+    voltage", brought to the rig. The paper's volts become `current_scale` A per V (the
+    rig-current preset is Table 3 per ampere: 1 A per V asks the paper's forces themselves)."""
+
+    kind = "paper_case"
+
+    def __init__(self, case: int, current_scale: float, preset: str, dt_s: float) -> None:
+        self._i = (current_scale * paper_case_command(case)).tolist()
+        # the damper starts as the one that made the desired force: its coil at the first input
+        super().__init__(preset, self._i[0], 0.0, 1.0, dt_s)
+        self._t0 = 0.0
+
+    def reset(self, t_s: float, x_m: float) -> None:
+        self._t0 = t_s
+        super().reset(t_s, x_m)
+
+    def _current(self, t_s: float) -> float:
+        # the input held over the step that ends at t_s (zero-order hold, as the paper's plant
+        # is simulated: `damper.plant.simulate`)
+        k = round((t_s - self._t0) / PAPER_CASE_DT_S) - 1
+        return self._i[k % len(self._i)]
 
 
 class External(ForceReference):

@@ -37,8 +37,13 @@ class Step:
     criteria: Criteria = field(default_factory=Criteria)
     # the request fields the plan gave (the daemon keeps the others as they are)
     given: dict[str, tuple[str, ...]] = field(default_factory=dict)
+    # figures printed beside the step's Et, by source (e.g. the paper's for the same case)
+    compare_et: dict[str, float] = field(default_factory=dict)
 
     def check(self) -> None:
+        for source, value in self.compare_et.items():
+            if isinstance(value, bool) or not isinstance(value, int | float):
+                raise ValueError(f"compare_et.{source}: expected a number, got {value!r}")
         if not 0 < self.duration_s <= 24 * 3600:
             raise ValueError("duration_s: must be in (0, 86400] s")
         if not 0 <= self.settle_s <= 600:

@@ -8,15 +8,17 @@ paper's, together with the forward model's Et, the training time and the inversi
 sample of the paper's gradient method and of the default exact solve, measured in the same
 run. The gradient's descent starts from a random current, so its rows run from
 `RANDOM_STARTS` starts side by side: the table keeps the first, with the mean, smallest and
-largest beneath. The default exact solve is the daemon's: its continuity is the model's own,
-chosen on the training rows as `mrrig train` chooses it (`default_continuity`); the root
-(continuity 0) runs beside it.
+largest beneath. The daemon's default row (network inversion one step ahead with the load-cell
+feedback) has its continuity, feedback time constant and, with adaptation, its memory chosen
+by the tuning rule of `mrrig tune` (`mrrig.tune`): the smallest closed-loop Et on held-out
+blocks of the TRAINING signal, never on the validation cases. The present-instant exact
+solve keeps the continuity `mrrig train` chooses open-loop (`default_continuity`), the root
+(continuity 0) beside it.
 
 Beyond the paper, network inversion one step ahead: a forward network of the lagged current
 (the coil's lag, eq. 36, eta known from Table 3), solved for the instant the command first
-acts on, the command inverting the lag (mrrig/loop/controllers.py). Its feedback time constant and
-continuity are chosen by closed-loop Et on held-out blocks of the TRAINING signal, never on
-the validation cases.
+acts on, the command inverting the lag (mrrig/loop/controllers.py); with the feedback, it is
+the daemon's default above.
 """
 
 from __future__ import annotations
@@ -24,6 +26,7 @@ from __future__ import annotations
 import argparse
 import logging
 import time
+from dataclasses import replace
 
 import numpy as np
 
@@ -46,8 +49,9 @@ from mrrig.offline.datasets import Series, dataset_a_training, dataset_a_validat
 from mrrig.offline.metrics import error_norm
 from mrrig.offline.rnn_training import BLOCK_S, holdout_blocks, train_rnn
 from mrrig.offline.simulation import closed_loop
-from mrrig.offline.training import ONLINE_CONTINUITY_CANDIDATES, choose_continuity, features
+from mrrig.offline.training import choose_continuity, features
 from mrrig.offline.training.lm import train_lm
+from mrrig.tune import ADAPTATION_MEMORY_CANDIDATES_S, Candidate, Trial, choose, grid
 
 log = logging.getLogger(__name__)
 
@@ -56,8 +60,6 @@ N_TRAIN = 12771  # the paper's training and validation sizes
 N_VAL = 1419
 FEEDBACK_TAU_S = 0.002
 LAG_TAU_S = 1.0 / BoucWenParams.preset("paper-volt").eta  # the coil lag 1/eta (eq. 36, Table 3)
-# one-step-ahead inversion: the candidates of its choice on the training blocks
-FEEDBACK_TAU_CANDIDATES_S = (0.0, FEEDBACK_TAU_S)
 CONTINUITY_STRETCH_S = 5.0  # default_continuity: the training signal in 20 stretches
 CHOICE_WARMUP_S = 0.2  # not scored: each block's loop starts at rest, the training damper did not
 # The paper's descent starts from a random current (eq. 2); its rows run from this many starts
@@ -168,58 +170,80 @@ DEFAULT_ADAPTATION = AdaptationSection(enabled=True).settings()
 
 
 def daemon_default(
-    model: MLP, continuity: float, adaptation: bool = False, method: str | None = None
+    model: MLP,
+    continuity: float,
+    feedback_tau_s: float = DEFAULT.feedback_tau_s,
+    adaptation_memory_s: float | None = None,
+    method: str | None = None,
 ) -> Controller:
-    """The controller `mrrig run` builds from an empty [controller] section for a model of
-    the lagged current (its `online_continuity`: `continuity`), with [adaptation] on or off;
-    `method` swaps the solve for the same loop with another."""
+    """The controller `mrrig run` builds from a [controller] section with only the tuned
+    values set (`continuity`, `feedback_tau_s`) for a model of the lagged current, with
+    [adaptation] on at `adaptation_memory_s` (None: off); `method` swaps the solve for the
+    same loop with another."""
+    adaptation = None
+    if adaptation_memory_s is not None:
+        adaptation = replace(DEFAULT_ADAPTATION, memory_s=adaptation_memory_s)
     return _make(
         DEFAULT.name,
         model,
         method=method or DEFAULT.method,
-        feedback_tau_s=DEFAULT.feedback_tau_s if DEFAULT.feedback else None,
+        feedback_tau_s=feedback_tau_s if DEFAULT.feedback else None,
         continuity=continuity,
         ahead=DEFAULT.ahead,
-        adaptation=DEFAULT_ADAPTATION if adaptation else None,
+        adaptation=adaptation,
     )
 
 
 def choose_on_training_blocks(model: MLP, train: Series, params: BoucWenParams) -> dict:
-    """Feedback time constant and continuity of `one_step_ahead`, without and with feedback:
-    the smallest mean closed-loop Et over the held-out blocks of the training signal
-    (`rnn_training.holdout_blocks`; the desired force is the training force), each block
-    scored after `CHOICE_WARMUP_S`. The validation cases play no part."""
+    """The tuning rule of `mrrig tune` (`mrrig.tune.choose`) against the simulated plant:
+    each candidate of `mrrig.tune.grid` runs in closed loop on the held-out blocks of the
+    training signal (`rnn_training.holdout_blocks`; the desired force is the training force),
+    its Et the mean over the blocks, each scored after `CHOICE_WARMUP_S`; the smallest wins.
+    Without feedback (`one_step_ahead`'s open row), with it (the daemon's default), then the
+    adaptation's memory at the chosen continuity and feedback. The validation cases play no
+    part."""
     _, held = holdout_blocks(len(train.t), round(BLOCK_S / DT_S))
     x, xd, xdd, f = (
         np.stack([a[b] for b in held]) for a in (train.x, train.xd, train.xdd, train.force)
     )
     warm = round(CHOICE_WARMUP_S / DT_S)
-    scores: dict[tuple[float | None, float], float] = {}
-    for tau in (None, *FEEDBACK_TAU_CANDIDATES_S):
-        for mu in ONLINE_CONTINUITY_CANDIDATES:
-            res = closed_loop(one_step_ahead(model, tau, mu), params, DT_S, x, xd, xdd, f)
-            scores[tau, mu] = float(
-                np.mean(
-                    [error_norm(res.f_des[b, warm:], res.f_act[b, warm:]) for b in range(len(held))]
-                )
+
+    def trial(c: Candidate) -> Trial:
+        ctrl = (
+            one_step_ahead(model, None, c.continuity)
+            if c.feedback_tau_s is None
+            else daemon_default(model, c.continuity, c.feedback_tau_s, c.adaptation_memory_s)
+        )
+        res = closed_loop(ctrl, params, DT_S, x, xd, xdd, f)
+        et = float(
+            np.mean(
+                [error_norm(res.f_des[b, warm:], res.f_act[b, warm:]) for b in range(len(held))]
             )
-            log.info(
-                "one step ahead, feedback tau %s, continuity %g: training-block Et %.4f",
-                tau,
-                mu,
-                scores[tau, mu],
-            )
-    best_open = min((k for k in scores if k[0] is None), key=scores.__getitem__)
-    best_fb = min((k for k in scores if k[0] is not None), key=scores.__getitem__)
+        )
+        log.info("tuning on the training blocks, %s: Et %.4f", c.label(), et)
+        return Trial(c, et)
+
+    open_trials = [trial(c) for c in grid(feedback_taus_s=(None,))]
+    feedback_trials = [trial(c) for c in grid()]
+    best_open, best_fb = choose(open_trials), choose(feedback_trials)
+    fb = best_fb.candidate
+    memory_trials = [
+        trial(c) for c in grid([fb.continuity], [fb.feedback_tau_s], ADAPTATION_MEMORY_CANDIDATES_S)
+    ]
+    best_memory = choose(memory_trials)
     return {
         "blocks_s": [[b.start * DT_S, b.stop * DT_S] for b in held],
-        "open": {"continuity": best_open[1], "training_block_et": scores[best_open]},
+        "open": {"continuity": best_open.candidate.continuity, "training_block_et": best_open.et},
         "feedback": {
-            "feedback_tau_s": best_fb[0],
-            "continuity": best_fb[1],
-            "training_block_et": scores[best_fb],
+            "feedback_tau_s": fb.feedback_tau_s,
+            "continuity": fb.continuity,
+            "training_block_et": best_fb.et,
         },
-        "scores": {f"tau={k[0]}, mu={k[1]:g}": v for k, v in scores.items()},
+        "adaptation": {
+            "memory_s": best_memory.candidate.adaptation_memory_s,
+            "training_block_et": best_memory.et,
+        },
+        "trials": [t.as_dict() for t in open_trials + feedback_trials + memory_trials],
     }
 
 
@@ -251,11 +275,13 @@ def default_continuity(model: MLP, train: Series, seed: int, lagged: bool = Fals
 def controllers(
     models: dict[str, MLP], choice: dict, mu: float, mu_lagged: float
 ) -> dict[str, Controller]:
-    """Every controller of Table 6, the daemon's default with and without adaptation, and our
-    variants of network inversion; `mu`: the present-instant exact solve's continuity,
-    `mu_lagged`: the lagged model's (`default_continuity`). All from the registry."""
+    """Every controller of Table 6, the daemon's default (tuned: `choice`) with and without
+    adaptation, and our variants of network inversion; `mu`: the present-instant exact
+    solve's continuity, `mu_lagged`: the lagged model's as `mrrig train` chooses it
+    (`default_continuity`, open loop). All from the registry."""
     fwd, lagged = models["forward"], models["forward_lagged"]
     fb = choice["feedback"]
+    tuned = (fb["continuity"], fb["feedback_tau_s"])
     tau = FEEDBACK_TAU_S
 
     def ni(model=fwd, **kw) -> Controller:
@@ -267,13 +293,17 @@ def controllers(
         "rnn": _make("rnn", models["rnn"]),
         "supervised": _make("supervised", models["supervised"]),
         "network_inversion": ni(method="gradient"),
-        "default": daemon_default(lagged, mu_lagged),
-        "default_adaptation": daemon_default(lagged, mu_lagged, adaptation=True),
+        "default": daemon_default(lagged, *tuned),
+        "default_adaptation": daemon_default(
+            lagged, *tuned, adaptation_memory_s=choice["adaptation"]["memory_s"]
+        ),
         # the same loop with the paper's solver in place of the exact one, and its fast flow
         **{
-            f"default_{method}": daemon_default(lagged, mu_lagged, method=method)
+            f"default_{method}": daemon_default(lagged, *tuned, method=method)
             for method in ("gradient", "flow")
         },
+        # the same loop at the continuity mrrig train keeps (open loop): the rule tune replaced
+        "default_train_continuity": daemon_default(lagged, mu_lagged, fb["feedback_tau_s"]),
         "network_inversion_exact": ni(continuity=mu),
         "network_inversion_feedback": ni(feedback_tau_s=tau, continuity=mu),
         "network_inversion_root": ni(),
@@ -283,9 +313,6 @@ def controllers(
             feedback_tau_s=tau, continuity=PAPER_CONTINUITY
         ),
         "network_inversion_ahead": one_step_ahead(lagged, None, choice["open"]["continuity"]),
-        "network_inversion_ahead_feedback": one_step_ahead(
-            lagged, fb["feedback_tau_s"], fb["continuity"]
-        ),
     }
 
 
@@ -294,14 +321,15 @@ def inversion_cost(
     lagged: MLP,
     cases: list[Series],
     mu: float,
-    mu_lagged: float,
+    tuned: tuple[float, float, float],
     n: int = 1000,
     seed: int = 0,
 ) -> dict:
     """Per-sample cost of the gradient method and of the exact solve, same samples, same run;
     and of a whole controller step on the real-time path (`command_one`), the paper's
     gradient network inversion against the daemon's default (`lagged`, one step ahead with
-    the feedback) and its flow and adaptive variants."""
+    the feedback; `tuned`: its continuity, feedback tau and adaptation memory) and its flow
+    and adaptive variants."""
     X = np.concatenate([np.column_stack([c.x, c.xd, c.xdd, c.current]) for c in cases])
     f = np.concatenate([c.force for c in cases])
     pick = np.random.default_rng(seed).choice(len(f), size=n, replace=False)
@@ -359,9 +387,10 @@ def inversion_cost(
         return us
 
     step_gradient_us = step_cost(_make("network_inversion", model, method="gradient"), 100)
-    step_ahead_us = step_cost(daemon_default(lagged, mu_lagged), n)
-    step_adapt_us = step_cost(daemon_default(lagged, mu_lagged, adaptation=True), n)
-    step_flow_us = step_cost(daemon_default(lagged, mu_lagged, method="flow"), n)
+    mu_tuned, tau_tuned, memory_tuned = tuned
+    step_ahead_us = step_cost(daemon_default(lagged, mu_tuned, tau_tuned), n)
+    step_adapt_us = step_cost(daemon_default(lagged, *tuned), n)
+    step_flow_us = step_cost(daemon_default(lagged, mu_tuned, tau_tuned, method="flow"), n)
 
     def force_err(i):
         Xi = X.copy()
@@ -513,8 +542,16 @@ def run(
     log.info("present-instant exact solve: continuity %g of the training rows", mu)
     default_lagged = default_continuity(models["forward_lagged"], train, seed, lagged=True)
     mu_lagged = default_lagged["continuity"]
-    models["forward_lagged"].meta["online_continuity"] = mu_lagged
-    log.info("the daemon's default: continuity %g of the training rows", mu_lagged)
+    log.info("mrrig train's continuity of the lagged model: %g (open loop)", mu_lagged)
+    tuned = choice["feedback"]
+    # where `mrrig tune` writes its choice, the daemon reads it
+    models["forward_lagged"].meta["online_continuity"] = tuned["continuity"]
+    log.info(
+        "the daemon's default, tuned: continuity %g, feedback tau %g s, adaptation memory %g s",
+        tuned["continuity"],
+        tuned["feedback_tau_s"],
+        choice["adaptation"]["memory_s"],
+    )
 
     fwd = models["forward"]
     open_loop = [
@@ -579,13 +616,19 @@ def run(
         "default_settings": {
             "method": DEFAULT.method,
             "ahead": DEFAULT.ahead,
-            "feedback_tau_s": DEFAULT.feedback_tau_s if DEFAULT.feedback else None,
-            "continuity": mu_lagged,
-            "adaptation": vars(DEFAULT_ADAPTATION),
+            "feedback_tau_s": tuned["feedback_tau_s"],
+            "continuity": tuned["continuity"],
+            "train_continuity": mu_lagged,
+            "adaptation": vars(DEFAULT_ADAPTATION) | {"memory_s": choice["adaptation"]["memory_s"]},
         },
         "labels": labels(choice, mu, mu_lagged),
         "inversion_cost": inversion_cost(
-            fwd, models["forward_lagged"], cases, mu, mu_lagged, seed=seed
+            fwd,
+            models["forward_lagged"],
+            cases,
+            mu,
+            (tuned["continuity"], tuned["feedback_tau_s"], choice["adaptation"]["memory_s"]),
+            seed=seed,
         ),
     }
 
@@ -620,17 +663,21 @@ TABLE_ROWS = (
 
 def labels(choice: dict, mu: float, mu_lagged: float) -> dict[str, str]:
     """Row labels: `LABELS`, and the rows with chosen settings (the present-instant exact
-    solve's continuity `mu`, the daemon's default's `mu_lagged`, the one-step-ahead rows').
-    Only the daemon's default row has the word "default" in its label."""
+    solve's continuity `mu`, the daemon's default's tuned ones in `choice`, `mu_lagged` the
+    continuity mrrig train keeps). Only the daemon's default row has the word "default" in
+    its label."""
     fb, mu_open = choice["feedback"], choice["open"]["continuity"]
+    memory = choice.get("adaptation", {}).get("memory_s")
     return LABELS | {
-        "default": f"Ours, the daemon's default, mu {mu_lagged:g}",
+        "default": f"Ours, the daemon's default, mu {fb['continuity']:g}",
+        "default_adaptation": (
+            f"  + on-line adaptation, memory {memory:g} s"
+            if memory
+            else LABELS["default_adaptation"]
+        ),
+        "default_train_continuity": f"  at mrrig train's mu {mu_lagged:g} (open loop)",
         "network_inversion_exact": f"NI, exact solve, present instant, mu {mu:g}",
         "network_inversion_ahead": f"NI, lagged u, 1 step ahead, mu {mu_open:g}",
-        "network_inversion_ahead_feedback": (
-            f"  + feedback tau {fb['feedback_tau_s'] * 1e3:g} ms, mu {fb['continuity']:g}"
-            " (chosen on training blocks)"
-        ),
     }
 
 
@@ -638,8 +685,7 @@ FEEDBACK_ROWS = {
     "network_inversion_feedback": "exact, present instant + feedback",
     "network_inversion_root_feedback": "exact root + feedback",
     "network_inversion_continuity_feedback": "exact, continuity 1 + feedback",
-    "network_inversion_ahead_feedback": "1 step ahead + feedback, exact",
-    "default": "the daemon's default",
+    "default": "the daemon's default (1 step ahead + feedback)",
     "default_adaptation": "the daemon's default + adaptation",
     "default_gradient": "the same, gradient",
     "default_flow": "the same, flow",
@@ -713,10 +759,16 @@ def default_lines(r: dict) -> list[str]:
         for m in ets
     )
     lines = [
-        f"The daemon's default (mrrig run, empty [controller]): network inversion one step"
-        f" ahead, feedback tau {d['feedback_tau_s'] * 1e3:g} ms,",
-        f"  solve {d['method']}, continuity {d['continuity']:g} (the model's own, chosen on"
-        " the training rows as mrrig train chooses it).",
+        f"The daemon's default (mrrig run, [controller] as mrrig tune leaves it): network"
+        f" inversion one step ahead, feedback tau {d['feedback_tau_s'] * 1e3:g} ms,",
+        f"  solve {d['method']}, continuity {d['continuity']:g}: tuned as mrrig tune tunes"
+        " (mrrig.tune), the smallest closed-loop Et",
+        "  on held-out blocks of the training signal, not on the validation cases"
+        + (
+            f" (mrrig train's open-loop choice: mu {d['train_continuity']:g})."
+            if "train_continuity" in d
+            else "."
+        ),
         f"  Mean Et of each solve in this loop: {costs};",
         f"  the measurement picks {best}"
         + (" (the default)." if best == d["method"] else f", not the default {d['method']}."),
@@ -731,6 +783,14 @@ def default_lines(r: dict) -> list[str]:
             f"  With on-line adaptation: largest Et {worst:.4f} (without: {max(t['default']):.4f})."
         )
     return lines
+
+
+def _tau_text(tau_s: float | None) -> str:
+    return "no fb" if tau_s is None else f"{tau_s * 1e3:g} ms"
+
+
+def _memory_text(memory_s: float | None) -> str:
+    return "-" if memory_s is None else f"{memory_s:g} s"
 
 
 def rnn_lines() -> list[str]:
@@ -810,10 +870,16 @@ def format_report(r: dict, detail: bool = False) -> str:
         "NI 1 step ahead: the network of the lagged current u (eq. 36, eta from Table 3) solved",
         "  for the next instant's force at the state predicted by eq. 21, the feedback residual",
         "  extrapolated at its last rate; the command takes u there in one period (eq. 36",
-        "  inverted). Feedback tau and continuity mu: the smallest mean closed-loop Et",
-        f"  on the training signal's held-out blocks ({blocks} s):",
+        "  inverted). Feedback tau, continuity mu and adaptation memory by the tuning rule",
+        f"  (mrrig.tune) on the training signal's held-out blocks ({blocks} s), mean Et:",
         f"  {ch['open']['training_block_et']:.4f} without feedback,"
-        f" {ch['feedback']['training_block_et']:.4f} with ({ch['seconds']:.1f} s)",
+        f" {ch['feedback']['training_block_et']:.4f} with,"
+        f" {ch['adaptation']['training_block_et']:.4f} with adaptation ({ch['seconds']:.1f} s)",
+    ]
+    lines += [
+        f"  {t['continuity']:>6g} {_tau_text(t['feedback_tau_s']):>9}"
+        f" {_memory_text(t['adaptation_memory_s']):>8}  Et {t['et']:.4f}"
+        for t in ch["trials"]
     ]
     d = r["default_continuity"]
     lines += [

@@ -1,0 +1,153 @@
+"""Tuning (`mrrig tune`, mrrig/tune): the rule chooses the smallest measured Et and never a
+faulted or unmeasured trial; `mrrig tune --sim` runs its trials on the simulated rig over the
+bridge and writes the choice where the daemon reads it; the paper's validation cases as a
+force reference (`paper_case`) and as a plan (configs/plans/paper-validation.toml)."""
+
+from __future__ import annotations
+
+import json
+import math
+import re
+import shutil
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from mrrig.loop.mlp import MLP
+from mrrig.loop.reference import PaperCase, paper_case_command
+from mrrig.offline.datasets import dataset_a_validation
+from mrrig.offline.metrics import error_norm
+from mrrig.plans.plan import PlanError, load_plan
+from mrrig.plans.runner import StepResult, table
+from mrrig.tune import Candidate, Trial, TuneError, choose, grid
+from tests.conftest import REPO, rig_config, zenoh_configs
+
+PAPER_PLAN = REPO / "configs/plans/paper-validation.toml"
+
+# --- the rule (pure) -------------------------------------------------------------------------
+
+
+def test_the_rule_chooses_the_smallest_measured_et():
+    trials = [Trial(Candidate(mu), et) for mu, et in ((0.0, 0.02), (0.03, 0.011), (0.3, 0.05))]
+    assert choose(trials).candidate.continuity == 0.03
+
+
+def test_the_rule_never_chooses_a_faulted_or_unmeasured_trial():
+    trials = [
+        Trial(Candidate(0.0), 0.001, faults=("sensor_timeout",)),  # the smallest Et, faulted
+        Trial(Candidate(0.01), math.nan),  # aborted before a measurement
+        Trial(Candidate(0.03), 0.02),
+        Trial(Candidate(0.3), 0.03),
+    ]
+    chosen = choose(trials)
+    assert chosen.candidate.continuity == 0.03
+    assert [t.usable for t in trials] == [False, False, True, True]
+
+
+def test_the_rule_refuses_when_every_trial_faulted():
+    with pytest.raises(TuneError, match="no usable trial among 2"):
+        choose(
+            [Trial(Candidate(0.0), 0.01, faults=("lost_frames",)), Trial(Candidate(1.0), math.nan)]
+        )
+
+
+def test_the_grid_is_every_combination_and_refuses_bad_values():
+    g = grid([0.0, 0.1], [None, 0.002], [None, 2.0])
+    assert (
+        len(g) == 8 and g[0] == Candidate(0.0, None, None) and g[-1] == Candidate(0.1, 0.002, 2.0)
+    )
+    with pytest.raises(TuneError, match="continuity"):
+        grid([-1.0])
+    with pytest.raises(TuneError, match="feedback_tau_s"):
+        grid([0.0], [20.0])
+
+
+# --- the paper's validation cases as a force reference ---------------------------------------
+
+
+def test_paper_case_command_is_data_set_a_validation_input():
+    for k, case in enumerate(dataset_a_validation(), start=1):
+        np.testing.assert_array_equal(paper_case_command(k), case.current, err_msg=case.name)
+
+
+@pytest.mark.parametrize("k", [1, 4, 7])
+def test_paper_case_reference_gives_the_papers_desired_force_for_the_cases_motion(k):
+    """Driven by the case's own motion (1 ms, volts as the paper's plant takes them), the
+    reference is the paper's desired force: the plant's force for that displacement and input."""
+    case = dataset_a_validation()[k - 1]
+    ref = PaperCase(k, 1.0, "paper-volt", 1e-3)
+    ref.reset(10.0, case.x[0])  # any start time: the case's time runs from the reset
+    f = np.array(
+        [ref.force(10.0 + t, x, xd) for t, x, xd in zip(case.t, case.x, case.xd, strict=True)]
+    )
+    assert error_norm(case.force, f) < 1e-3  # 1e-5 to 6e-5 measured: the RK4 sub-steps differ
+
+
+def test_the_paper_validation_plan_parses_with_the_seven_cases_and_their_figures():
+    plan = load_plan(PAPER_PLAN)
+    assert len(plan.steps) == 7
+    assert [s.reference.kind for s in plan.steps] == ["paper_case"] * 7
+    assert [s.reference.case for s in plan.steps] == list(range(1, 8))
+    assert all(set(s.compare_et) == {"paper", "bench"} for s in plan.steps)
+    assert all(s.criteria.et_max == 0.010 for s in plan.steps)
+    # never tuned on: the tuning profile is not a validation case
+    assert all(s.controller is None for s in plan.steps)
+
+
+def test_a_figure_beside_et_must_be_a_number_and_is_printed_in_the_table(tmp_path):
+    text = PAPER_PLAN.read_text().replace("paper = 0.1335", 'paper = "x"')
+    bad = tmp_path / "bad.toml"
+    bad.write_text(text)
+    with pytest.raises(PlanError, match=r"step 4 \(case 2\).*compare_et.paper: expected a number"):
+        load_plan(bad)
+    step = load_plan(PAPER_PLAN).steps[3]
+    assert "(Et paper 0.1335, bench" in table([StepResult(step, "skipped")])
+
+
+# --- mrrig tune --sim ------------------------------------------------------------------------
+
+
+@pytest.mark.process
+def test_tune_sim_runs_the_trials_prints_the_table_and_writes_the_choice(tmp_path):
+    """A 2-trial grid on the simulated rig over the bridge: the table printed, kept as JSON and
+    CSV, the smallest usable Et chosen, its continuity written into the model file (where the
+    daemon reads it: the daemon reports it in force) and the feedback into a config snippet."""
+    model = tmp_path / "model.json"
+    shutil.copy(REPO / "models/sim-forward.json", model)
+    before = MLP.load(model).meta["online_continuity"]
+    daemon_z, client_z, _ = zenoh_configs(tmp_path)
+    cfg = rig_config(
+        tmp_path,
+        "ws://127.0.0.1:1/",  # --sim gives the daemon its bridge's channel
+        model,
+        rig={"name": "tune-sim"},
+        telemetry={"enabled": True, "zenoh_config": str(daemon_z)},
+    )
+    args = ["--sim", "--config", str(cfg), "--zenoh-config", str(client_z)]
+    grid_args = ["--continuity", "0,1", "--feedback-tau-s", "0", "--duration", "3", "--settle", "1"]
+    out = subprocess.run(
+        [sys.executable, "-m", "mrrig", "tune", *args, *grid_args],
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+        timeout=90,
+    )
+    assert out.returncode == 0, out.stdout[-3000:] + out.stderr[-3000:]
+    assert "trial 1/2: mu 0, feedback tau 0 ms" in out.stdout  # progress
+    record = json.loads(model.with_suffix(".tune.json").read_text())
+    trials = record["trials"]
+    assert [t["continuity"] for t in trials] == [0.0, 1.0]
+    usable = [t for t in trials if t["usable"]]
+    best = min(usable, key=lambda t: t["et"])
+    assert record["chosen"]["continuity"] == best["continuity"]
+    assert model.with_suffix(".tune.csv").read_text().startswith("continuity,feedback_tau_s")
+    rows = re.findall(r"^ ?\d+\s+(\S+)\s+\S+\s+(\S+).*$", out.stdout, re.M)
+    assert [float(mu) for mu, _ in rows] == [0.0, 1.0]
+    assert "<- chosen" in out.stdout
+    written = MLP.load(model).meta["online_continuity"]
+    assert written == best["continuity"] != before
+    assert f"in force on rig tune-sim now: continuity {float(written)}" in out.stdout
+    snippet = model.with_suffix(".tune.toml").read_text()
+    assert "[controller]" in snippet and "feedback_tau_s = 0.0" in snippet
