@@ -75,6 +75,7 @@ COLUMNS: tuple[Column, ...] = (
     Column("adapt_offset_n", "adapt_offset_n", "N", "on-line adaptation's force offset"),
     Column("temp_degc", "temp_degc", "degC", "damper temperature (latest RigStatus)"),
     Column("state", "state", "", f"the daemon's safety state ({_STATES})"),
+    Column("outside", "outside", "", "inputs outside the model's envelope (NaN: none kept)"),
 )
 UTC_DESCRIPTION = "absolute time, UTC: the run's UTC start plus t_s"
 _NAME_UTC = re.compile(r"-(\d{8}T\d{6}Z)$")

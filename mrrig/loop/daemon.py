@@ -41,6 +41,7 @@ from mrrig.loop.controllers import (
     ControllerSettings,
     make_controller,
 )
+from mrrig.loop.coverage import controller_envelope
 from mrrig.loop.detectors import Detectors
 from mrrig.loop.estimation import RealtimeKalman
 from mrrig.loop.inversion import DEFAULT_CONTINUITY
@@ -281,6 +282,8 @@ class Daemon:
         self._status_in_sensors = self._status_msg == self._sensor_msg
         self.parser = self.codec.parser()
         self.controller = build_controller(cfg)
+        # the model's training envelope: each frame is marked against it (`coverage`)
+        self.envelope = controller_envelope(self.controller)
         self.reference = build_reference(cfg.reference, self.period_s)
         try:
             ref.check_in_range(self.reference, cfg.loop.f_range_n)
@@ -571,6 +574,8 @@ class Daemon:
         row["f_model"], row["i_cmd"] = f_model, i_cmd if active else 0.0
         row["i_meas"], row["latency_us"], row["state"] = self._i_meas, latency_us, sup.state
         row["temp_degc"] = self._temp_degc
+        env = self.envelope  # off the latency path: the command is sent
+        row["outside"] = math.nan if env is None else env.outside(x, xd, xdd, i_cmd)
         adapt = getattr(self.controller, "adapt", None)
         if adapt is None:
             row["adapt_gain"] = row["adapt_offset_n"] = math.nan
@@ -943,6 +948,7 @@ class Daemon:
         if c.cmd in ("set_controller", "set_profile") and sup.state is RigState.ARMED:
             raise RequestError(f"{c.cmd} only when not armed (disarm first)")
         if c.cmd == "set_controller":
+            self.envelope = controller_envelope(c.controller)
             self.controller = c.controller
             self.controller.reset(1)
             self.reset_reference(self.now(), self.last_x)  # its desired forces ahead, if any

@@ -39,6 +39,9 @@ SAMPLE_DTYPE = np.dtype(
         ("adapt_offset_n", "f8"),  # and its offset, N
         ("temp_degc", "f8"),  # damper temperature (latest RigStatus), degC
         ("state", "u1"),  # RigState
+        # the frame against the model's training envelope (mrrig/loop/coverage.py): 0 inside,
+        # else a bit per input outside its range; NaN where the model keeps no envelope
+        ("outside", "f8"),
     ]
 )
 

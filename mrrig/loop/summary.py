@@ -8,6 +8,7 @@ from typing import Any
 
 import numpy as np
 
+from mrrig.loop.coverage import OUTSIDE_BITS
 from mrrig.loop.feasibility import F_DEADBAND_N, V_DEADBAND_M_S, opposed
 from mrrig.loop.samples import RigState
 
@@ -106,6 +107,9 @@ class SummaryAccumulator:
         self._last_cmd: tuple[float, bool] | None = None  # the previous batch's last frame
         self.latency = Histogram(LATENCY_BIN_US, LATENCY_TOP_US)
         self.max_gap_ms, self.gaps_over_10_ms = math.nan, 0
+        # armed frames marked against the model's envelope, those outside, and by input
+        self.covered = self.outside = 0
+        self.outside_by = np.zeros(len(OUTSIDE_BITS), dtype=np.int64)
 
     def add(self, samples: np.ndarray) -> None:
         if not samples.size:
@@ -132,6 +136,12 @@ class SummaryAccumulator:
         self.i_cmd.add(samples["i_cmd"])
         self._add_steps(samples["i_cmd"].astype(float), armed)
         self.latency.add(samples["latency_us"])
+        marks = samples["outside"][armed]
+        marks = marks[np.isfinite(marks)].astype(np.int64)
+        self.covered += int(marks.size)
+        self.outside += int((marks != 0).sum())
+        for k, bit in enumerate(OUTSIDE_BITS.values()):
+            self.outside_by[k] += int(((marks & bit) != 0).sum())
 
     def _add_steps(self, i_cmd: np.ndarray, armed: np.ndarray) -> None:
         if self._last_cmd is not None:
@@ -190,6 +200,16 @@ class SummaryAccumulator:
             "latency_us": self.latency.percentiles((50, 99, 99.9)),
             "frame_gap_ms": {"max": self.max_gap_ms, "over_10_ms": self.gaps_over_10_ms},
         }
+        if self.covered:
+            out["coverage"] = {
+                "armed_frames_marked": self.covered,
+                "outside_frames": self.outside,
+                "outside_share": self.outside / self.covered,
+                "outside_share_by_input": {
+                    name: int(n) / self.covered
+                    for name, n in zip(OUTSIDE_BITS, self.outside_by, strict=True)
+                },
+            }
         for key, value in (counters or {}).items():
             out.setdefault(key, value)
         return out
@@ -231,6 +251,18 @@ def _latency_lines(d: Mapping[str, Any]) -> list[str]:
     if work:
         lines.append(f"  of it work  {_stats_line(work, ' us')} (the loop's read -> send)")
     return [*lines, f"              {_budget_line(d)}"]
+
+
+def _coverage_lines(c: Mapping[str, Any] | None) -> list[str]:
+    """The share of armed frames outside the model's training envelope; none for a run
+    without an envelope (no model, or a model trained before models kept one)."""
+    if not c:
+        return []
+    by = ", ".join(f"{k} {v:.1%}" for k, v in c["outside_share_by_input"].items())
+    return [
+        f"coverage      {c['outside_share']:.1%} of {c['armed_frames_marked']} armed frames"
+        f" outside the model's training envelope ({c['outside_frames']} frames; by input: {by})"
+    ]
 
 
 def frame_gaps(t_s: np.ndarray) -> dict[str, float | int]:
@@ -314,6 +346,7 @@ def format_summary(d: Mapping[str, Any]) -> str:
         *_latency_lines(d),
         f"frame gaps    max {_fmt(d['frame_gap_ms']['max'], ' ms')},"
         f" {d['frame_gap_ms']['over_10_ms']} over 10 ms",
+        *_coverage_lines(d.get("coverage")),
         f"faults        {len(d['faults'])}",
     ]
     lines += [f"  t={_fmt(f['t'], ' s', 6)}  {f['reason']}" for f in d["faults"]]
@@ -332,6 +365,7 @@ def format_summary(d: Mapping[str, Any]) -> str:
         "frame_gap_ms",
         "faults",
         "clock_t0_s",  # for tools that set the run beside another process's clock
+        "coverage",
     }
     extra = {k: v for k, v in d.items() if k not in known}
     if extra:

@@ -15,6 +15,7 @@ from typing import Literal
 
 import numpy as np
 
+from mrrig.loop.coverage import outside_shares
 from mrrig.loop.feasibility import opposed_share
 from mrrig.loop.safety import TRANSPORT_FAULTS
 from mrrig.loop.samples import RigState
@@ -28,12 +29,17 @@ class Criteria:
     peak_current_a_max: float | None = None
     latency_p99_us_max: float | None = None
     temperature_max_degc: float | None = None
+    # the share of samples outside the model's training envelope (mrrig/loop/coverage.py)
+    coverage_outside_max: float | None = None
 
     def check(self) -> None:
         for name in ("et_max", "peak_current_a_max", "latency_p99_us_max"):
             value = getattr(self, name)
             if value is not None and not value > 0:
                 raise ValueError(f"{name}: must be > 0")
+        share = self.coverage_outside_max
+        if share is not None and not 0 <= share <= 1:
+            raise ValueError("coverage_outside_max: must be in [0, 1] (a share of the samples)")
 
 
 @dataclass(frozen=True)
@@ -46,6 +52,8 @@ class Numbers:
     # of the samples, those whose desired force opposes the estimated velocity: Et near 1
     # with a large share is the profile, not the controller
     opposed_share: float = math.nan
+    # of the samples, those outside the model's training envelope (NaN: it keeps none)
+    outside_share: float = math.nan
 
 
 def judged_samples(samples: np.ndarray, settle_s: float) -> np.ndarray:
@@ -72,6 +80,7 @@ def measure(samples: np.ndarray, settle_s: float) -> Numbers:
         latency_p99_us=float(np.nanpercentile(s["latency_us"], 99)),
         temperature_max_degc=float(np.nanmax(s["temp_degc"])),
         opposed_share=opposed_share(s["f_des"], s["xd"]),
+        outside_share=outside_shares(s["outside"])["outside_share"],
     )
 
 
@@ -99,6 +108,16 @@ def failures(criteria: Criteria, numbers: Numbers, faults: list[str]) -> list[st
         elif value > limit:
             out.append(
                 f"{field}: {what} {value:.4g}{unit} > {limit:g}{unit}" + _why(field, numbers)
+            )
+    limit = criteria.coverage_outside_max
+    if limit is not None:
+        share = numbers.outside_share
+        if math.isnan(share):
+            out.append("coverage_outside_max: the model keeps no training envelope to judge by")
+        elif share > limit:
+            out.append(
+                f"coverage_outside_max: {share:.1%} of the samples outside the model's training"
+                f" envelope > {limit:.1%}"
             )
     return out
 

@@ -86,10 +86,11 @@ FIELD_ENTITIES: dict[str, str] = {
     "adapt_offset_n": "adaptation/offset_n",
     "temp_degc": "temperature/temp_degc",
     "state": "state/state",
+    "outside": "coverage/outside",
 }
 
 # fields that recordings made before them lack: `mrrig review` reads those as NaN
-LATER_FIELDS = ("adapt_gain", "adapt_offset_n", "temp_degc")
+LATER_FIELDS = ("adapt_gain", "adapt_offset_n", "temp_degc", "outside")
 
 # legend names: what each series is, not only its field name
 _SERIES_NAMES: dict[str, str] = {
