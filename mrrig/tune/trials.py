@@ -110,9 +110,12 @@ def _step(c: Candidate, profile: TuningProfile, model: str | None) -> Step:
     )
 
 
-def _trial(c: Candidate, r: StepResult, attempts: int) -> Trial:
+def _trial(c: Candidate, r: StepResult, attempts: int, before: str = "") -> Trial:
+    """The trial from its (last) step; `before`: why the attempt before it was run again."""
     et = r.numbers.et if r.numbers is not None else math.nan
-    note = "; ".join(r.reasons) if r.verdict != "passed" else ""
+    reasons = [before] if before else []
+    reasons += r.reasons if r.verdict != "passed" else []
+    note = "; ".join(reasons)
     extra = {}
     if r.numbers is not None:
         extra = {
@@ -168,15 +171,15 @@ def _run_one(
         name=f"tune trial {k}/{n}", path=Path("<mrrig tune>"), steps=(_step(c, profile, model),)
     )
     progress(f"trial {k}/{n}: {c.label()}")
+    before = ""
     for attempt in (1, 2):
         (result,), interrupted = run_plan(plan, rig, progress)
-        trial = _trial(c, result, attempt)
+        trial = _trial(c, result, attempt, before)
         transport = result.faults and all(f in TRANSPORT_FAULTS for f in result.faults)
         if interrupted or not transport or attempt == 2:
             break
-        progress(
-            f"trial {k}/{n}: transport fault {', '.join(result.faults)}: once more after reset"
-        )
+        before = f"attempt 1: transport fault {', '.join(result.faults)}, run again"
+        progress(f"trial {k}/{n}: {before} after a reset")
     progress(f"trial {k}/{n}: " + trial_line(trial))
     return trial, interrupted
 
@@ -202,7 +205,7 @@ def table(trials: Sequence[Trial], chosen: Trial | None) -> str:
         mark = "  <- chosen" if t is chosen else ""
         rows.append(
             f"{k:>2}  {c.continuity:>10g} {tau:>9} {et:>8} {peak_text:>8} {t.attempts:>5}"
-            f"  {','.join(t.faults) or '-'}{mark}"
+            f"  {','.join(t.faults) or '-'}{mark}" + (f"  ({t.note})" if t.note else "")
         )
     return "\n".join(rows)
 
