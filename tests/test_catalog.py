@@ -517,12 +517,77 @@ def test_runs_show_says_whether_the_recording_is_unchanged(tmp_path, capsys):
 def test_runs_compare_puts_two_runs_side_by_side(url, capsys):
     register_runs(url, [run(0), run(1, controller="heaviside")])
     a, b = str(run(0).run_id), str(run(1).run_id)
-    code, out, _ = _cli(capsys, "compare", a[:6], b[:6], "--catalog", url)
+    code, out, _ = _cli(capsys, "compare", a[:6], b[:6], "--catalog", url, "--no-plot")
     rows = {line[2:].split()[0]: line for line in out.splitlines()[1:]}
     assert code == 0
     assert rows["controller"].startswith("* controller") and "heaviside" in rows["controller"]
     assert rows["rig"].startswith("  rig")
     assert rows["et"].split()[-3:] == ["0.01", "0.02", "+0.01"]
+
+
+def _recorded_run(folder: Path, n: int, amplitude_n: float, **fields) -> RunRecord:
+    """A 2 s run at 500 Hz (1 s idle, 1 s armed tracking a sine of `amplitude_n`) written by
+    the sidecar's recorder, with its identity, and registered through the API."""
+    from mrrig.api import register_run as api_register
+    from mrrig.rigio.recording import Recorder
+
+    t = np.arange(1000) / 500.0
+    s = np.zeros(t.size, SAMPLE_DTYPE)
+    s["t"], s["x"], s["xd"] = t, 0.01 * np.sin(2 * np.pi * t), 0.02 * np.pi * np.cos(2 * np.pi * t)
+    s["f_des"] = amplitude_n * np.sin(2 * np.pi * 2.0 * t)
+    s["f_meas"] = 0.9 * s["f_des"]
+    s["i_cmd"], s["latency_us"] = amplitude_n / 600.0, 300.0
+    s["state"] = np.where(t >= 1.0, RigState.ARMED, RigState.IDLE)
+    run_id = uuid.uuid5(uuid.NAMESPACE_URL, f"mrrig-test-recorded-{n}")
+    started = T0 + timedelta(hours=n)
+    path = folder / f"run{n}.rrd"
+    rec = Recorder(
+        path, "rig1", identity={"run_id": str(run_id), "started_utc": started.isoformat()}
+    )
+    rec.add_samples(s)
+    rec.add_summary(summarize(s, []))
+    rec.close()
+    return api_register(
+        "rig1", started, run_id=run_id, catalog=folder / "catalog.sqlite", recording=path,
+        ended_utc=started + timedelta(seconds=2), summary=summarize(s, []), **fields,
+    )  # fmt: skip
+
+
+def test_runs_compare_writes_one_figure_with_both_runs(tmp_path, capsys):
+    from PIL import Image
+
+    a = _recorded_run(tmp_path, 0, 300.0, controller="constant")
+    b = _recorded_run(tmp_path, 1, 500.0, controller="heaviside")
+    png = tmp_path / "ab.png"
+    catalog = str(tmp_path / "catalog.sqlite")
+    code, out, err = _cli(capsys, "compare", str(a.run_id)[:8], str(b.run_id)[:8],
+                          "--catalog", catalog, "--plot", str(png))  # fmt: skip
+    assert code == 0, err
+    assert out.splitlines()[-1] == f"figure: {png}"
+    image = Image.open(png)
+    title = image.text["Title"]
+    print(title)
+    assert f"A {str(a.run_id)[:8]} rig1, Et " in title and f"B {str(b.run_id)[:8]} rig1" in title
+    assert title.count(": 500 armed frames") == 2
+    # both runs' lines are drawn: matplotlib's first two colours (C0 A, C1 B)
+    pixels = np.asarray(image.convert("RGB")).reshape(-1, 3)
+    for rgb in ((0x1F, 0x77, 0xB4), (0xFF, 0x7F, 0x0E)):
+        assert (np.abs(pixels.astype(int) - rgb).sum(axis=1) < 30).sum() > 1000, rgb
+    # a run without its recording: the numbers, then one line saying why no figure
+    Path(b.recording_path).unlink()
+    code, out, err = _cli(capsys, "compare", str(a.run_id), str(b.run_id), "--catalog", catalog)
+    assert code == 2 and "controller" in out
+    assert f"run B {str(b.run_id)[:8]}: no recording to plot (missing: " in err
+
+
+def test_api_runs_is_a_dataframe_of_utc_times_whole_seconds_or_not(tmp_path):
+    from mrrig.api import runs as api_runs
+
+    catalog = tmp_path / "catalog.sqlite"
+    register_runs(catalog, [run(0), run(1, started_utc=T0 + timedelta(hours=1, microseconds=5))])
+    df = api_runs(catalog)
+    assert list(df["started_utc"]) == [T0, T0 + timedelta(hours=1, microseconds=5)]
+    assert str(df["started_utc"].dt.tz) == "UTC" and df["et"].tolist() == [0.01, 0.02]
 
 
 def test_runs_sync_prints_its_counts(tmp_path, capsys):

@@ -3,7 +3,9 @@
 - `Recording(path)`: a run's `.rrd` (or its `.parquet`/`.mf4` export): `samples` (numpy
   structured array, SI units: `t` s, `x` m, `xd` m/s, `f_meas` N, `i_cmd` A, ...), `events`,
   `summary`, `identity`, `to_pandas()` (columns named with their units, and `utc`).
-- `runs(**filters)`: the run catalog (`mrrig runs`) as a pandas DataFrame.
+- `runs(**filters)`: the run catalog (`mrrig runs`) as a pandas DataFrame (`run_records`:
+  the same as `RunRecord`s); `get_run(id)`, `check_recording(run)`, `compare_figure(a, b,
+  png)`, `sync_runs(src, dst)`, `unregistered_recordings()` (`mrrig.api.catalog`).
 - `register_run(rig, started_utc, ...)`: one run into the catalog (what a plan step,
   characterize and validate call; the daemon's sidecar registers its own runs).
 - `Rig(name)`: a running daemon over Zenoh: `status()`, `arm()`, `disarm()`, `reset()`,
@@ -11,400 +13,52 @@
   rig:`) or call `close()`: it holds one Zenoh session, and an open session keeps the
   interpreter from exiting (a finalizer closes it at exit as a last resort).
 
-Built on the CLI's own functions (`mrrig.rigio.client`, `mrrig.rigio.force_stream`,
-`mrrig.catalog.find_runs`, `mrrig.export`): no second client.
+The CLI (`mrrig status`, `arm`, ..., `send-force`, `runs`) is built on these; they are built
+on `mrrig.rigio.client`, `mrrig.rigio.force_stream`, `mrrig.catalog` and `mrrig.export`: no
+second client.
 """
 
 from __future__ import annotations
 
-import json
-import math
-import os
-import uuid
-import weakref
-from collections.abc import Iterable, Iterator, Mapping
-from datetime import datetime
-from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-import numpy as np
-
-from mrrig.errors import MrrigError
-from mrrig.export import COLUMNS, UTC_COLUMN, read_any, utc_ns, utc_start
+from mrrig.api.catalog import (
+    check_recording,
+    compare_figure,
+    default_catalog,
+    get_run,
+    register_run,
+    run_records,
+    runs,
+    sync_runs,
+    unregistered_recordings,
+)
 
 if TYPE_CHECKING:
-    import pandas as pd
-    import zenoh
-
-    from mrrig.catalog import RunRecord
-    from mrrig.rigio.force_stream import SendResult
-
-__all__ = ["Recording", "Rig", "RigError", "Telemetry", "register_run", "runs"]
-
-ENV_CATALOG = "MRRIG_CATALOG"  # as `mrrig runs`
-_NAMES = {c.field: c.name for c in COLUMNS}
-# stream_force's profile length: the forces' own end stops it (`_Feed` gives None there)
-_UNTIL_THE_END_S = 1e9
-
-
-class RigError(MrrigError, RuntimeError):
-    """The daemon refused a request (its reply's `error`), or the Rig is closed."""
-
-
-def _frame(samples: np.ndarray, utc0: datetime | None = None) -> pd.DataFrame:
-    """Samples as a DataFrame with unit-named columns (`t_s`, `x_m`, `force_n`, ...) and, with
-    a UTC start, `utc` (`utc0` + `t_s`)."""
-    import pandas as pd
-
-    frame = pd.DataFrame({_NAMES.get(n, n): samples[n] for n in samples.dtype.names})
-    if utc0 is not None:
-        frame.insert(0, UTC_COLUMN, pd.to_datetime(utc_ns(samples["t"], utc0), utc=True))
-    return frame
-
-
-class Recording:
-    """A recorded run, read once: the daemon's `.rrd`, or a Parquet or MDF4 export of it."""
-
-    def __init__(self, path: str | Path) -> None:
-        rec = read_any(path)
-        self._rec = rec
-        self.path: Path = rec.path
-        #: every sample, sorted by `t`: SAMPLE_DTYPE fields `t` (s since the daemon started),
-        #: `x`, `x_est` (m), `xd` (m/s), `xdd` (m/s^2), `f_meas`, `f_des`, `f_model` (N),
-        #: `i_cmd`, `i_meas` (A), `latency_us` (us), `temp_degc` (degC), `state` (RigState)
-        self.samples: np.ndarray = rec.samples
-        #: the run's events: `t` (s), `level`, `text`, plus their fields (`kind`, `reason`, ...)
-        self.events: list[dict[str, Any]] = rec.events
-        #: the daemon's end-of-run summary (Et, faults, latency percentiles, ...); None when
-        #: the run was cut short
-        self.summary: dict[str, Any] | None = rec.summary
-        #: who ran what, where, when (run id, rig, specimen, model sha256, ...); None in a
-        #: recording made before runs had one
-        self.identity: dict[str, Any] | None = rec.identity
-
-    @property
-    def utc_start(self) -> datetime | None:
-        """The UTC time of `t = 0` (the run identity's start, else as `mrrig.export` says)."""
-        return utc_start(self._rec)[0]
-
-    def to_pandas(self) -> pd.DataFrame:
-        """The samples as a DataFrame: `utc` (UTC timestamps), then unit-named columns
-        (`t_s`, `x_m`, `xd_m_s`, `force_n`, `i_cmd_a`, `latency_us`, `state`, ...)."""
-        return _frame(self.samples, self.utc_start)
-
-    def __len__(self) -> int:
-        return int(self.samples.size)
-
-    def __repr__(self) -> str:
-        et = (self.summary or {}).get("et")
-        return f"Recording({str(self.path)!r}: {len(self)} samples, Et {et})"
-
-
-def runs(
-    catalog: str | Path | None = None,
-    *,
-    rig: str | None = None,
-    specimen: str | None = None,
-    plan: str | None = None,
-    controller: str | None = None,
-    since: str | datetime | None = None,
-    until: datetime | None = None,
-    where: str | None = None,
-    limit: int | None = None,
-) -> pd.DataFrame:
-    """The catalog's runs matching every filter, oldest first, one row each: run id, rig,
-    specimen, start/end (UTC), controller, `et`, `faults_count`, `latency_p50_us`/
-    `latency_p99_us` (us), `peak_current_a` (A), `temp_max_degc` (degC), verdict, recording
-    path and sha256, ... (the columns of `mrrig runs --json`).
-
-    `catalog`: an SQLite file or a `postgresql://` URL (default: $MRRIG_CATALOG, else
-    `recordings/catalog.sqlite`); `since`: a datetime or a span as `mrrig runs --since`
-    (`"7d"`, `"12h"`) or a date; `where`: `"et < 0.01 and faults_count == 0"`.
-    """
-    import pandas as pd
-
-    from mrrig.catalog import find_runs
-    from mrrig.catalog.query import parse_since
-
-    found = find_runs(
-        catalog or default_catalog(),
-        rig=rig,
-        specimen=specimen,
-        plan=plan,
-        controller=controller,
-        since=parse_since(since) if isinstance(since, str) else since,
-        until=until,
-        where=where,
-        limit=limit,
-    )
-    rows = [r.to_json() for r in found]
-    frame = pd.DataFrame(rows)
-    for name in ("started_utc", "ended_utc"):
-        if name in frame:
-            frame[name] = pd.to_datetime(frame[name], utc=True)
-    return frame
-
-
-def default_catalog() -> str:
-    """The catalog `mrrig runs` reads by default: $MRRIG_CATALOG, else
-    `recordings/catalog.sqlite`."""
-    from mrrig.catalog import DEFAULT_PATH
-
-    return os.environ.get(ENV_CATALOG) or str(DEFAULT_PATH)
-
-
-def register_run(
-    rig: str,
-    started_utc: datetime,
-    *,
-    catalog: str | Path | None = None,
-    spool: str | Path | None = None,
-    summary: Mapping[str, Any] | None = None,
-    recording: str | Path | None = None,
-    model: str | Path | None = None,
-    config: str | Path | None = None,
-    **fields: Any,
-) -> RunRecord:
-    """Register one run in the catalog and return its record (a new run id unless `run_id`
-    is given; registering the same id again replaces its row).
-
-    `started_utc` (and `ended_utc` in `fields`): aware datetimes. `catalog`: an SQLite file
-    or a `postgresql://` URL (default: `default_catalog()`); `spool`: where the run goes when
-    that one cannot be reached (`mrrig runs sync` brings it over later). `summary`: a run
-    summary (`mrrig.loop.summary`: Et, faults, latency in us, current in A, temperature in
-    degC) for the numbers; `recording` (a finished one: `recording_path` names one still
-    being written), `model`, `config`: files whose path and sha256 are kept. `fields`: any other `RunRecord` field (`plan`, `step`, `verdict`, `controller`,
-    `controller_params`, `specimen`, `tags`, `operator`, `et`, ...), over the summary's.
-    CatalogError where the catalog (and the spool) cannot take it."""
-    from mrrig.catalog import RunRecord, summary_numbers
-    from mrrig.catalog import register_run as register
-    from mrrig.rigio.run_identity import file_sha256, operator_of
-
-    values: dict[str, Any] = summary_numbers(summary) if summary is not None else {}
-    values |= {"run_id": fields.pop("run_id", None) or uuid.uuid4(), "operator": operator_of(None)}
-    if model is not None:
-        values |= {"model_path": str(model), "model_sha256": file_sha256(model)}
-    if config is not None:
-        values["config_sha256"] = file_sha256(config)
-    if recording is not None:
-        path = Path(recording).resolve()
-        values |= {
-            "recording_path": str(path),
-            "recording_size_bytes": path.stat().st_size,
-            "recording_sha256": file_sha256(path),
-        }
-    record = RunRecord(rig=rig, started_utc=started_utc, **(values | fields))
-    register(catalog or default_catalog(), record, spool_url=spool)
-    return record
-
-
-class Telemetry:
-    """The rig's live telemetry, batch by batch (numpy structured arrays of the sample fields,
-    SI units as `Recording.samples`; a missing value is NaN), for `duration_s` or until no
-    batch came for `quiet_s`. Every batch iterated is kept for `samples` and `to_pandas()`."""
-
-    def __init__(self, session: zenoh.Session, rig: str, duration_s: float | None, quiet_s: float):
-        from mrrig.rigio.sidecar import keys
-
-        self._sub = session.declare_subscriber(keys(rig)["telemetry"])
-        self._duration_s = duration_s
-        self._quiet_s = quiet_s
-        self.batches: list[np.ndarray] = []
-
-    def __iter__(self) -> Iterator[np.ndarray]:
-        import time
-
-        t0 = last = time.monotonic()
-        try:
-            while self._duration_s is None or time.monotonic() - t0 < self._duration_s:
-                sample = self._sub.try_recv()
-                if sample is None:
-                    if time.monotonic() - last > self._quiet_s:
-                        break
-                    time.sleep(0.01)
-                    continue
-                last = time.monotonic()
-                batch = _batch(json.loads(sample.payload.to_bytes())["fields"])
-                self.batches.append(batch)
-                yield batch
-        finally:
-            self._sub.undeclare()
-
-    @property
-    def samples(self) -> np.ndarray:
-        """Every batch iterated so far, in one array."""
-        from mrrig.loop.samples import SAMPLE_DTYPE
-
-        return np.concatenate(self.batches) if self.batches else np.empty(0, SAMPLE_DTYPE)
-
-    def to_pandas(self) -> pd.DataFrame:
-        """The batches iterated so far as a DataFrame with unit-named columns (`t_s`, ...)."""
-        return _frame(self.samples)
-
-
-def _batch(fields: dict[str, list[Any]]) -> np.ndarray:
-    """A telemetry message's columns (null: not finite) as SAMPLE_DTYPE samples."""
-    from mrrig.loop.samples import SAMPLE_DTYPE
-
-    n = len(fields.get("t", []))
-    batch = np.zeros(n, dtype=SAMPLE_DTYPE)
-    for name in SAMPLE_DTYPE.names:
-        values = fields.get(name)
-        if values is None:
-            if SAMPLE_DTYPE[name].kind == "f":
-                batch[name] = np.nan
-            continue
-        batch[name] = [math.nan if v is None else v for v in values]
-    return batch
-
-
-class _Feed:
-    """An iterable of forces as `send_force`'s fn(t) at `rate_hz`: the k-th value for the k-th
-    time, the same value when a time repeats, None once the values end or one is not a finite
-    number (the stream stops there, ramps to 0 N and disarms; `bad` says which)."""
-
-    def __init__(self, forces: Iterable[float], rate_hz: float) -> None:
-        self._it = iter(forces)
-        self._rate_hz = rate_hz
-        self._k = -1
-        self._value: float | None = None
-        self.bad: str | None = None
-
-    def __call__(self, t: float) -> float | None:
-        k = round(t * self._rate_hz)
-        while self._k < k and self.bad is None:
-            self._k += 1
-            v = next(self._it, None)
-            self._value = None if v is None else float(v)
-            if self._value is not None and not math.isfinite(self._value):
-                self.bad = f"force {self._k} is {self._value} N (every force must be finite)"
-                self._value = None
-        return self._value
-
-
-class Rig:
-    """A running daemon (`mrrig run`) of rig `name`, over one Zenoh session.
-
-    `zenoh_config`: a Zenoh config file or `zenoh.Config` (default: `configs/zenoh-client.json5`,
-    127.0.0.1, as the CLI's `--zenoh-config`); `timeout_s`: how long a request waits for the
-    daemon's reply (s).
-    """
-
-    def __init__(
-        self,
-        name: str,
-        zenoh_config: str | Path | zenoh.Config | None = None,
-        timeout_s: float = 2.0,
-    ) -> None:
-        import zenoh
-
-        from mrrig.rigio import audit
-        from mrrig.rigio.client import DEFAULT_CONFIG, open_session
-        from mrrig.rigio.zenoh_config import load_zenoh_config
-
-        self.name = name
-        self.timeout_s = timeout_s
-        conf = zenoh_config if zenoh_config is not None else DEFAULT_CONFIG
-        self._conf = conf if isinstance(conf, zenoh.Config) else load_zenoh_config(conf)
-        self._cm = open_session(self._conf)
-        self._session: zenoh.Session | None = self._cm.__enter__()
-        self._claims = audit.claims(self._session, self._conf)
-        # the last resort at exit: an open session keeps the interpreter from ending
-        self._finalizer = weakref.finalize(self, self._session.close)
-
-    def __enter__(self) -> Rig:
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.close()
-
-    def close(self) -> None:
-        """Close the Zenoh session (again: nothing)."""
-        if self._session is not None:
-            self._session = None
-            self._finalizer.detach()
-            self._cm.__exit__(None, None, None)
-
-    @property
-    def operator(self) -> str:
-        """Who drives the rig (for the runs this client registers): the common name of the
-        Zenoh config's certificate where it authenticates with mutual TLS, else its Zenoh
-        user where it authenticates by user and password, else the local user."""
-        from mrrig.rigio.run_identity import operator_of
-
-        return operator_of(self._conf)
-
-    @property
-    def session(self) -> zenoh.Session:
-        if self._session is None:
-            raise RigError(f"rig {self.name!r}: closed")
-        return self._session
-
-    def request(self, payload: dict[str, Any]) -> dict[str, Any]:
-        """One control request (`{"cmd": ...}`, as `mrrig control`) and the daemon's reply;
-        RigError when the reply is not ok."""
-        from mrrig.rigio.client import query
-
-        reply = query(self.session, self.name, payload, self.timeout_s, self._claims)
-        if not reply.get("ok"):
-            raise RigError(f"rig {self.name!r}: {payload.get('cmd')}: {reply.get('error')}")
-        return reply
-
-    def status(self) -> dict[str, Any]:
-        """The daemon's status: `state` (IDLE/ARMED/FAULT), `fault`, `controller`, `reference`,
-        counters, the recording being written, ... (as `mrrig status --json`'s `status`)."""
-        return self.request({"cmd": "status"})["status"]
-
-    def arm(self) -> dict[str, Any]:
-        """Arm: the daemon's commands become ACTIVE. Returns its reply."""
-        return self.request({"cmd": "arm"})
-
-    def disarm(self) -> dict[str, Any]:
-        """Disarm: commands become SAFE 0 A. Returns the daemon's reply."""
-        return self.request({"cmd": "disarm"})
-
-    def reset(self) -> dict[str, Any]:
-        """Acknowledge a FAULT (back to IDLE), the one way out of FAULT before `arm`."""
-        return self.request({"cmd": "reset"})
-
-    def stream_force(
-        self,
-        forces: Iterable[float],
-        rate_hz: float = 100.0,
-        *,
-        arm: bool = False,
-        disarm: bool = True,
-        ramp_s: float = 0.5,
-    ) -> SendResult:
-        """Stream desired forces (N), one per 1/`rate_hz` s, as `mrrig send-force`: the daemon
-        must take a `zenoh` force reference; with `arm`, armed once it has the first force;
-        then a ramp to 0 N over `ramp_s` (s) and a disarm (unless `disarm=False`). `forces`:
-        a sequence, an array or any iterator (streamed as it yields, until it ends); a force
-        that is not finite stops the stream there (ramp, disarm), then ValueError."""
-        from mrrig.rigio.force_stream import send_force
-
-        feed = _Feed(forces, rate_hz)
-        if feed(0.0) is None:
-            raise ValueError(f"stream_force: {feed.bad or 'no forces to send'}")
-        result = send_force(
-            self.name,
-            self._conf,
-            feed,  # type: ignore[arg-type]  # None ends the stream (force_stream.stream)
-            _UNTIL_THE_END_S,
-            rate_hz,
-            arm=arm,
-            disarm=disarm,
-            ramp_s=ramp_s,
-            timeout_s=self.timeout_s,
-        )
-        if feed.bad:
-            raise ValueError(f"stream_force: {feed.bad}: stopped there, ramped to 0 N")
-        return result
-
-    def telemetry(self, duration_s: float | None = None, quiet_s: float = 2.0) -> Telemetry:
-        """The live telemetry (about 50 batches a second) for `duration_s` (s; None: until
-        no batch for `quiet_s` s); iterate it, then `.samples` or `.to_pandas()`."""
-        return Telemetry(self.session, self.name, duration_s, quiet_s)
-
-    def __repr__(self) -> str:
-        return f"Rig({self.name!r}{'' if self._session else ', closed'})"
+    from mrrig.api.live import Recording, Rig, RigError, Telemetry
+
+__all__ = [
+    "Recording",
+    "Rig",
+    "RigError",
+    "Telemetry",
+    "check_recording",
+    "compare_figure",
+    "default_catalog",
+    "get_run",
+    "register_run",
+    "run_records",
+    "runs",
+    "sync_runs",
+    "unregistered_recordings",
+]
+_LIVE = frozenset({"Recording", "Rig", "RigError", "Telemetry"})
+
+
+def __getattr__(name: str) -> Any:
+    # the live half on first use: `mrrig runs` (the catalog alone) starts without numpy
+    if name in _LIVE:
+        from mrrig.api import live
+
+        return getattr(live, name)
+    raise AttributeError(f"module 'mrrig.api' has no attribute {name!r}")

@@ -3,38 +3,29 @@
     mrrig runs [--rig R] [--specimen S] [--since 7d] [--plan P] [--controller C]
                [--where "et < 0.01"] [--limit N] [--json]
     mrrig runs show ID [--json]       everything about a run; is its recording still unchanged?
-    mrrig runs compare A B            two runs' numbers side by side
+    mrrig runs compare A B [--plot F] two runs' numbers side by side, and one figure of both
     mrrig runs sync --from URL --to URL
 
 The catalog: --catalog URL, else $MRRIG_CATALOG, else recordings/catalog.sqlite (a path is an
 SQLite file; postgresql://user@host/db a lab's server). An ID may be the first 4+ digits.
 `show` exits 1 where the run's recording is missing or no longer what was registered.
+Built on the Python API (`mrrig.api`): the same functions a notebook calls.
 """
 
 from __future__ import annotations
 
 import argparse
-import hashlib
 import json
-import os
 import sys
 from pathlib import Path
 
-from mrrig.catalog import (
-    DEFAULT_PATH,
-    NUMERIC_COLUMNS,
-    RunRecord,
-    find_runs,
-    get_run,
-    parse_since,
-    sync,
-)
-from mrrig.catalog.store import catalog_url, recording_names
+from mrrig import api
+from mrrig.api.catalog import ENV_CATALOG
+from mrrig.catalog import DEFAULT_PATH, NUMERIC_COLUMNS, RunRecord
+from mrrig.catalog.store import catalog_url
 from mrrig.cli_args import HelpFormatter, int_at_least
 
-ENV_CATALOG = "MRRIG_CATALOG"
 ACTIONS = ("show", "compare", "sync")
-_HASH_CHUNK = 1 << 20
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -48,7 +39,7 @@ def _parser(prog: str, description: str | None) -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(formatter_class=HelpFormatter, prog=prog, description=description)
     ap.add_argument(
         "--catalog",
-        default=os.environ.get(ENV_CATALOG) or str(DEFAULT_PATH),
+        default=api.default_catalog(),
         help=f"the catalog: an SQLite file or a postgresql:// URL (default: ${ENV_CATALOG},"
         f" else {DEFAULT_PATH})",
     )
@@ -76,13 +67,13 @@ def _list(argv: list[str]) -> int:
         " SQLite catalog's own folder)",
     )
     args = ap.parse_args(argv)
-    found = find_runs(
+    found = api.run_records(
         args.catalog,
         rig=args.rig,
         specimen=args.specimen,
         plan=args.plan,
         controller=args.controller,
-        since=parse_since(args.since) if args.since else None,
+        since=args.since,
         where=args.where,
         limit=args.limit,
     )
@@ -125,15 +116,7 @@ def _table(found: list[RunRecord]) -> str:
 
 
 def _note_unlisted(catalog: str, folder: Path | None) -> None:
-    url = catalog_url(catalog)
-    if folder is None:
-        if url.get_backend_name() != "sqlite":
-            return
-        folder = Path(url.database or "").parent
-    on_disk = {p.name for p in folder.glob("*.rrd")}
-    if not on_disk:
-        return
-    unlisted = sorted(on_disk - recording_names(catalog))
+    folder, unlisted = api.unregistered_recordings(catalog, folder)
     if unlisted:
         shown = ", ".join(unlisted[:10]) + (", ..." if len(unlisted) > 10 else "")
         print(
@@ -152,8 +135,8 @@ def _show(argv: list[str]) -> int:
     ap.add_argument("run_id", metavar="ID", help="the run id, or its first 4+ digits")
     ap.add_argument("--json", action="store_true", help="print it as one JSON object")
     args = ap.parse_args(argv)
-    run = get_run(args.catalog, args.run_id)
-    check = _check_recording(run)
+    run = api.get_run(args.run_id, args.catalog)
+    check = api.check_recording(run)
     if args.json:
         from mrrig import json_text
 
@@ -166,27 +149,6 @@ def _show(argv: list[str]) -> int:
             print(f"{key.ljust(width)}  {text}")
         print(f"{'recording'.ljust(width)}  {check}")
     return 0 if check in ("unchanged", "no recording registered") else 1
-
-
-def _check_recording(run: RunRecord) -> str:
-    """`unchanged`, `missing`, `changed: ...`, or `no recording registered`."""
-    if not run.recording_path:
-        return "no recording registered"
-    path = Path(run.recording_path)
-    if not path.is_file():
-        return f"missing: {path} is not there"
-    size = path.stat().st_size
-    if run.recording_size_bytes is not None and size != run.recording_size_bytes:
-        return f"changed: {size} bytes, {run.recording_size_bytes} registered"
-    if run.recording_sha256 is None:
-        return "unchecked: no sha256 registered"
-    digest = hashlib.sha256()
-    with path.open("rb") as f:
-        while chunk := f.read(_HASH_CHUNK):
-            digest.update(chunk)
-    if digest.hexdigest() != run.recording_sha256:
-        return f"changed: sha256 {digest.hexdigest()}, {run.recording_sha256} registered"
-    return "unchanged"
 
 
 _COMPARED = (
@@ -212,13 +174,20 @@ _COMPARED = (
 def _compare(argv: list[str]) -> int:
     ap = _parser(
         "mrrig runs compare",
-        "Two runs' identities and numbers side by side (B - A"
-        " for the numbers; * where they differ).",
+        "Two runs' identities and numbers side by side (B - A for the numbers; * where they"
+        " differ), and one figure of both from their recordings (through mrrig review's"
+        " plotting: force, tracking error, current, force-velocity).",
     )
     ap.add_argument("a", metavar="A", help="a run id, or its first 4+ digits")
     ap.add_argument("b", metavar="B", help="another")
+    figure = ap.add_mutually_exclusive_group()
+    figure.add_argument(
+        "--plot", type=Path, help="the figure's PNG (default: compare-<A>-<B>.png, here)"
+    )
+    figure.add_argument("--no-plot", action="store_true", help="the numbers only")
     args = ap.parse_args(argv)
-    a, b = (get_run(args.catalog, x).to_json() for x in (args.a, args.b))
+    runs = [api.get_run(x, args.catalog) for x in (args.a, args.b)]
+    a, b = (r.to_json() for r in runs)
     rows = [("", "A", "B", "B - A")]
     for key in (*_COMPARED, *NUMERIC_COLUMNS):
         va, vb = a.get(key), b.get(key)
@@ -230,6 +199,10 @@ def _compare(argv: list[str]) -> int:
     widths = [max(len(row[k]) for row in rows) for k in range(4)]
     for row in rows:
         print("  ".join(c.ljust(w) for c, w in zip(row, widths, strict=True)).rstrip())
+    if args.no_plot:
+        return 0
+    png = args.plot or Path(f"compare-{a['run_id'][:8]}-{b['run_id'][:8]}.png")
+    print(f"figure: {api.compare_figure(runs[0], runs[1], png)}")
     return 0
 
 
@@ -256,7 +229,7 @@ def _sync(argv: list[str]) -> int:
         "--batch", type=int_at_least(1), default=500, help="runs to a transaction at the target"
     )
     args = ap.parse_args(argv)
-    report = sync(args.src, args.dst, batch_rows=args.batch)
+    report = api.sync_runs(args.src, args.dst, batch_rows=args.batch)
     src, dst = (catalog_url(x).render_as_string(hide_password=True) for x in (args.src, args.dst))
     print(
         f"sync: {report.copied} copied, {report.updated} updated, {report.unchanged} already"
