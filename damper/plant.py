@@ -115,8 +115,12 @@ def params_at_temperature(
     return replace(params, **factors)
 
 
-def _rates(z: Num, y: Num, u: Num, x: Num, xd: Num, v: Num, k: tuple) -> tuple[Num, Num, Num]:
-    """(z', y', u') for the state (z, y, u), displacement x, velocity xd and command v."""
+def bouc_wen_rates(
+    z: Num, y: Num, u: Num, x: Num, xd: Num, v: Num, k: tuple
+) -> tuple[Num, Num, Num]:
+    """(z', y', u') for the state (z, y, u), displacement x, velocity xd and command v; the
+    parameters `k` (`astuple(BoucWenParams)`) may be arrays too (a batch of parameter sets:
+    `mrrig identify`'s Jacobian)."""
     c0a, c0b, k0, c1a, c1b, _k1, _x0, aa, ab, gamma, beta, a_, n, eta = k
     alpha = aa + ab * u  # eq. 33
     c1 = c1a + c1b * u  # eq. 34
@@ -130,7 +134,7 @@ def _rates(z: Num, y: Num, u: Num, x: Num, xd: Num, v: Num, k: tuple) -> tuple[N
     return zd, yd, ud
 
 
-def _force(z: Num, y: Num, u: Num, x: Num, xd: Num, k: tuple) -> Num:
+def bouc_wen_force(z: Num, y: Num, u: Num, x: Num, xd: Num, k: tuple) -> Num:
     """Damper force for the state and the kinematics (eq. 30)."""
     c0a, c0b, k0, c1a, c1b, k1, x0, aa, ab, _gamma, _beta, _a, _n, _eta = k
     c1 = c1a + c1b * u  # eq. 34
@@ -142,13 +146,13 @@ def _force(z: Num, y: Num, u: Num, x: Num, xd: Num, k: tuple) -> Num:
 def state_derivative(state: np.ndarray, x: Num, xd: Num, command: Num, params: BoucWenParams):
     """d(z, y, u)/dt as an array, for `scipy.integrate.solve_ivp` (state = [z, y, u])."""
     z, y, u = state
-    return np.array(_rates(z, y, u, x, xd, command, astuple(params)))
+    return np.array(bouc_wen_rates(z, y, u, x, xd, command, astuple(params)))
 
 
 def damper_force(state: np.ndarray, x: Num, xd: Num, params: BoucWenParams) -> Num:
     """Force (eq. 30) for state = [z, y, u] and the current displacement and velocity."""
     z, y, u = state
-    return _force(z, y, u, x, xd, astuple(params))
+    return bouc_wen_force(z, y, u, x, xd, astuple(params))
 
 
 def _speed_bound(x0: Num, v0: Num, x1: Num, v1: Num, dt_s: float) -> float:
@@ -224,7 +228,7 @@ class BoucWenDamper:
         self._u = command + x_m * 0.0  # broadcast to the batch shape
         self._x = x_m + 0.0
         self._xd = xd_m_s + x_m * 0.0
-        return _force(self._z, self._y, self._u, self._x, self._xd, self._k)
+        return bouc_wen_force(self._z, self._y, self._u, self._x, self._xd, self._k)
 
     def step(self, x_m: Num, xd_m_s: Num, command: Num, dt_s: float) -> Num:
         """Advance dt_s to the displacement x_m and velocity xd_m_s, the command held.
@@ -261,16 +265,16 @@ class BoucWenDamper:
             c = nodes[2 * j + 2]
             xc = c[0] * x0 + c[1] * v0 + c[2] * x1 + c[3] * v1
             vc = c[4] * x0 + c[5] * v0 + c[6] * x1 + c[7] * v1
-            z1, y1, u1 = _rates(z, y, u, xa, va, command, k)
-            z2, y2, u2 = _rates(z + h2 * z1, y + h2 * y1, u + h2 * u1, xb, vb, command, k)
-            z3, y3, u3 = _rates(z + h2 * z2, y + h2 * y2, u + h2 * u2, xb, vb, command, k)
-            z4, y4, u4 = _rates(z + h * z3, y + h * y3, u + h * u3, xc, vc, command, k)
+            z1, y1, u1 = bouc_wen_rates(z, y, u, xa, va, command, k)
+            z2, y2, u2 = bouc_wen_rates(z + h2 * z1, y + h2 * y1, u + h2 * u1, xb, vb, command, k)
+            z3, y3, u3 = bouc_wen_rates(z + h2 * z2, y + h2 * y2, u + h2 * u2, xb, vb, command, k)
+            z4, y4, u4 = bouc_wen_rates(z + h * z3, y + h * y3, u + h * u3, xc, vc, command, k)
             z = z + h6 * (z1 + 2.0 * (z2 + z3) + z4)
             y = y + h6 * (y1 + 2.0 * (y2 + y3) + y4)
             u = u + h6 * (u1 + 2.0 * (u2 + u3) + u4)
         self._z, self._y, self._u = z, y, u
         self._x, self._xd = x1, v1
-        return _force(z, y, u, x1, v1, k)
+        return bouc_wen_force(z, y, u, x1, v1, k)
 
 
 def simulate(

@@ -11,6 +11,7 @@ from pathlib import Path
 from typing import Literal
 
 from mrrig.resources import resolve
+from damper.plant_file import load_plant
 from mrrig.typed_config import ConfigError, load_toml, parse
 
 FaultKind = Literal[
@@ -75,6 +76,25 @@ class DamperConfig:
             raise ValueError(f"current_limit_a: must be in (0, {_MAX_CURRENT_A}]")
         if not 0.0 < self.substep_s <= 2e-4:
             raise ValueError("substep_s: must be in (0, 2e-4] (the plant is stiff)")
+
+
+@dataclass(frozen=True)
+class PlantConfig:
+    """The damper: the preset rig-current (no file), or a plant file (`mrrig identify`: the
+    twin of a measured damper). A twin whose command is in V takes `command_per_a` V per A of
+    the rig's setpoint (its driver's input for a current: the lab's mapping, an assumption)."""
+
+    file: Path | None = None
+    command_per_a: float = 1.0
+
+    def check(self) -> None:
+        if not 0.0 < self.command_per_a <= 100.0:
+            raise ValueError("command_per_a: must be in (0, 100]")
+        if self.file is not None:
+            try:
+                load_plant(self.file)
+            except ValueError as exc:
+                raise ValueError(f"file: {exc}") from None
 
 
 @dataclass(frozen=True)
@@ -204,6 +224,7 @@ class SimConfig:
     bus: BusConfig = field(default_factory=BusConfig)
     timing: TimingConfig = field(default_factory=TimingConfig)
     damper: DamperConfig = field(default_factory=DamperConfig)
+    plant: PlantConfig = field(default_factory=PlantConfig)
     sensors: SensorConfig = field(default_factory=SensorConfig)
     thermal: ThermalConfig = field(default_factory=ThermalConfig)
     actuator: ActuatorConfig = field(default_factory=ActuatorConfig)
@@ -226,6 +247,7 @@ __all__ = [
     "DamperConfig",
     "FaultKind",
     "FaultSpec",
+    "PlantConfig",
     "SensorConfig",
     "SimConfig",
     "ThermalConfig",

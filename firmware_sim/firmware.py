@@ -47,6 +47,7 @@ from typing import NamedTuple
 import numpy as np
 
 from damper.plant import BoucWenDamper, BoucWenParams, params_at_temperature
+from damper.plant_file import load_plant
 from damper.signals import bandlimited_noise
 from firmware_sim.config import ActuatorConfig, FaultSpec, SimConfig
 from mrrig.rigio.canbus.codec import Codec, MessageLayout, Parsed
@@ -281,6 +282,12 @@ class Firmware:
                 act.autostart, act.autostart_amplitude_m, act.autostart_frequency_hz
             )
         self._params = BoucWenParams.preset(PLANT_PRESET)  # at ambient temperature
+        # a twin (plant file): its parameters, its force offset and its command per A
+        self._offset_n, self._command_per_a = 0.0, 1.0
+        if config.plant.file is not None:
+            twin = load_plant(config.plant.file)
+            self._params, self._offset_n = twin.params, twin.offset_n
+            self._command_per_a = config.plant.command_per_a if twin.command_unit == "V" else 1.0
         self._plant = BoucWenDamper(self._params, config.damper.substep_s)
         self._params_degc = config.thermal.ambient_degc  # the plant's parameters are for this
         self._limit_a = config.damper.current_limit_a
@@ -565,10 +572,11 @@ class Firmware:
         halted = self._tripped or self._halted_by_injection()
         self.coil_command_a = self._setpoint_a if self._active and not halted else 0.0
         if dt_s > 0.0:
-            force = self._plant.step(x, xd, self.coil_command_a, dt_s)
+            force = self._plant.step(x, xd, self.coil_command_a * self._command_per_a, dt_s)
         else:
             force = self._plant.reset(x, xd, 0.0)
-        current_a = self._plant.state[2]
+        force += self._offset_n
+        current_a = self._plant.state[2] / self._command_per_a
         self.force_n = force
         th = self._cfg.thermal
         # the damper dissipates the coil's power and the work the actuator does on it

@@ -33,6 +33,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "review": ("mrrig.cli.review", "print the metrics of a Rerun recording (.rrd)"),
     "export": ("mrrig.cli.export", "a recording as Parquet, CSV or MDF4, columns with units"),
     "characterize": ("mrrig.offline.characterize", "run the characterization matrix on the rig"),
+    "identify": ("mrrig.cli.identify", "a twin of a measured damper (Bouc-Wen fit): plant file"),
     "train": ("mrrig.cli.train", "train the forward network from recorded data"),
     "evaluate": ("mrrig.offline.evaluate", "a forward model's Et and inverse RMSE on data, --plot"),
     "validate": ("mrrig.offline.validate", "force-tracking validation of a model on the rig"),

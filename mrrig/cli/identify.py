@@ -1,0 +1,111 @@
+"""`mrrig identify DATA...`: a twin of a measured damper, the modified Bouc-Wen model (eqs
+30-36, the command's first-order filter, a force offset) fitted to DATA by least squares.
+
+DATA are CSVs whose headers name field and unit (`t_s`, `x_cm`, `xd_cm_s`, `command_v`,
+`force_n`), tidy characterization CSVs or daemon recordings (.rrd); bad stretches are
+excluded as `mrrig train` does. The fit starts from the paper's parameters (`--from paper`,
+Table 3) or a plant file's (`--from FILE`). Et is printed per test: on `--holdout FILES`
+(tests the fit never saw), else on the last `--holdout-fraction` of each test (the block
+hold-out: optimistic, its neighbours were fitted). Writes the plant file that `firmware_sim`
+runs (`[plant] file = ...`).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+from pathlib import Path
+
+from damper.plant_file import PARAM_NAMES, save_plant
+from mrrig.cli_args import COUNT, HelpFormatter, non_negative, output_file
+from mrrig.offline.identify.identify import HOLDOUT_FRACTION, identify
+
+
+def _fraction(text: str) -> float:
+    value = non_negative(text)
+    if not value < 0.5:
+        raise argparse.ArgumentTypeError(f"must be < 0.5, got {text}")
+    return value
+
+
+def _parser() -> argparse.ArgumentParser:
+    ap = argparse.ArgumentParser(
+        prog="mrrig identify", description=__doc__, formatter_class=HelpFormatter
+    )
+    ap.add_argument("data", nargs="+", type=Path, help="measured tests to fit (CSV, .rrd)")
+    ap.add_argument(
+        "--out", type=output_file, default="models/plant.json", help="plant file to write"
+    )
+    ap.add_argument(
+        "--from",
+        dest="start",
+        default="paper",
+        metavar="paper|FILE",
+        help="start parameters: the paper's Table 3 or a plant file (default %(default)s)",
+    )
+    ap.add_argument(
+        "--holdout", nargs="+", type=Path, default=[], metavar="FILE", help="tests kept out"
+    )
+    ap.add_argument(
+        "--holdout-fraction",
+        type=_fraction,
+        default=HOLDOUT_FRACTION,
+        help="without --holdout: the end of each test kept out (default %(default)s)",
+    )
+    ap.add_argument(
+        "--max-evaluations", type=COUNT, default=60, help="least-squares evaluations, at most"
+    )
+    ap.add_argument("--report", type=output_file, help="also write the report as JSON")
+    return ap
+
+
+def _fmt(value: float | None) -> str:
+    return "-" if value is None or not math.isfinite(value) else f"{value:.4f}"
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = _parser().parse_args(argv)
+    progress = lambda line: print(line, flush=True)  # noqa: E731 - the CLI's progress lines
+    plant, report = identify(
+        args.data,
+        args.holdout,
+        args.start,
+        args.holdout_fraction,
+        args.max_evaluations,
+        progress,
+    )
+    print(
+        f"fitted in {report['seconds']:.0f} s, {report['evaluations']} evaluations "
+        f"({report['status']}): Et on the fitted rows {_fmt(report['et_start_fitted_rows'])}"
+        f" -> {_fmt(report['et_fitted_rows_objective'])}"
+    )
+    print("Et per test (the twin run open loop from the measured motion and command):")
+    for t in report["tests"]:
+        if "et_holdout_test" in t:
+            print(f"  {t['file']}: held-out test {_fmt(t['et_holdout_test'])}")
+            continue
+        line = f"  {t['file']}: fitted rows {_fmt(t['et_fitted_rows'])}"
+        if "et_block_holdout" in t:
+            pct = round(100 * report["holdout_fraction"])
+            line += (
+                f", block hold-out (last {pct} %) {_fmt(t['et_block_holdout'])}"
+                " (optimistic: the same test's neighbours were fitted)"
+            )
+        print(line)
+    p = plant.params
+    print(
+        "parameters: "
+        + ", ".join(f"{k} {getattr(p, k):.5g}" for k in PARAM_NAMES)
+        + f", offset_n {plant.offset_n:.5g}, command in {plant.command_unit}"
+    )
+    save_plant(plant, args.out)
+    print(f'wrote {args.out} (firmware_sim: [plant] file = "{args.out}")')
+    if args.report:
+        args.report.write_text(json.dumps(plant.identified, indent=1) + "\n", encoding="utf-8")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
