@@ -172,11 +172,14 @@ def test_a_run_beyond_the_models_velocity_range_shows_its_share_outside(
     print(f"daemon: {c}; faults {s['faults']}")
     samples = read_recording(rrd).samples
     armed = samples[samples["state"] == RigState.ARMED]
-    assert armed.size > 500 and c["armed_frames_marked"] == armed.size
-    # the velocity share, from the recorded velocities and the model's range alone
+    assert armed.size > 500
+    # each recorded frame's mark says what its velocity and the model's range say
     beyond = (armed["xd"] < env.lo[1]) | (armed["xd"] > env.hi[1])
-    assert c["outside_share_by_input"]["xd"] == pytest.approx(beyond.mean(), abs=1e-12)
+    assert np.array_equal((armed["outside"].astype(int) & OUTSIDE_BITS["xd"]) != 0, beyond)
     assert 0.15 < beyond.mean() < 0.6  # a sine of 0.90 m/s peak beyond 0.75 m/s: ~37 %
+    # the daemon's count is the recording's (to the frames the recording might have lost)
+    assert c["armed_frames_marked"] == pytest.approx(armed.size, rel=0.01)
+    assert c["outside_share_by_input"]["xd"] == pytest.approx(beyond.mean(), abs=0.01)
     review = subprocess.run(
         [sys.executable, "-m", "mrrig", "review", str(rrd)],
         cwd=REPO, capture_output=True, text=True, timeout=120, check=False,
@@ -184,8 +187,9 @@ def test_a_run_beyond_the_models_velocity_range_shows_its_share_outside(
     assert review.returncode == 0, review.stdout + review.stderr
     print(review.stdout)
     line = next(ln for ln in review.stdout.splitlines() if ln.startswith("coverage"))
-    assert f"{c['outside_share']:.1%} of {armed.size} armed frames outside" in line
-    assert f"xd {c['outside_share_by_input']['xd']:.1%}" in line
+    outside = (armed["outside"] != 0).mean()
+    assert f"{outside:.1%} of {armed.size} armed frames outside" in line
+    assert f"xd {beyond.mean():.1%}" in line
 
 
 def test_a_plan_step_can_fail_on_the_share_outside_the_envelope():
