@@ -183,7 +183,7 @@ def test_mrrig_train_writes_the_model_with_options_and_fingerprint(tmp_path, sma
     # LM's rows (fit + early stopping) are training rows: the hold-out is not among them
     assert model.meta["n_train"] + model.meta["n_val"] == report["split"]["n_train"]
     assert report["current_input"] == "lagged"
-    assert "inverse-current RMSE" in capsys.readouterr().out
+    assert "inverse-command RMSE" in capsys.readouterr().out
 
 
 def test_lagged_features_differ_from_commanded_only_where_the_current_changes(small_truth):

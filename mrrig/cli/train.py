@@ -213,10 +213,10 @@ def format_report(r: dict[str, Any]) -> str:
         *(
             [
                 f"  kept start {st['kept'] + 1} of {len(st['init_seeds'])} (initial weights"
-                f" seeds {', '.join(map(str, st['init_seeds']))}): on-line inverse current RMSE"
+                f" seeds {', '.join(map(str, st['init_seeds']))}): on-line inverse command RMSE"
                 " on the training rows "
                 + " / ".join(f"{e:.4f}" for e in st["training_rmse_a"])
-                + " A"
+                + f" {unit}"
             ]
             if (st := r.get("starts"))
             else []
@@ -231,8 +231,8 @@ def format_report(r: dict[str, Any]) -> str:
         ),
         *format_other_tests(r.get("other_tests")),
         *format_validate(r.get("validate")),
-        f"network inversion: inverse-current RMSE {ni['current_rmse_a']:.4f} A (paper 0.09 A),"
-        f" i_max {r['i_max_a']:g} A",
+        f"network inversion: inverse-command RMSE {ni['current_rmse_a']:.4f} {unit}"
+        f" (paper 0.09 A), i_max {r['i_max_a']:g} {unit}",
         "  tracking error, forward model at the inverted current (N): "
         + _pct(ni["tracking_model_n"]),
     ]
@@ -240,7 +240,8 @@ def format_report(r: dict[str, Any]) -> str:
     if on is not None:
         lines += [
             f"network inversion on-line (runs in time order, continuity {on['continuity']:g}"
-            f" chosen on the training rows): inverse-current RMSE {on['current_rmse_a']:.4f} A",
+            f" chosen on the training rows): inverse-command RMSE {on['current_rmse_a']:.4f}"
+            f" {unit}",
             "  tracking error, forward model at the inverted current (N): "
             + _pct(on["tracking_model_n"]),
             f"  (the model file keeps continuity {on['continuity']:g}: the daemon inverts this"
@@ -249,7 +250,8 @@ def format_report(r: dict[str, Any]) -> str:
     sup = r.get("supervised")
     if sup is not None:
         lines += [
-            f"supervised inverse MLP: current RMSE {sup['current_rmse_a']:.4f} A (paper 0.20 A)",
+            f"supervised inverse MLP: command RMSE {sup['current_rmse_a']:.4f} {unit}"
+            " (paper 0.20 A)",
             f"  tracking error, forward model at its current (N): {_pct(sup['tracking_model_n'])}",
         ]
     lines.append(f"(tracking: desired force = {r['definitions']['desired force']})")

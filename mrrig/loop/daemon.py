@@ -46,7 +46,7 @@ from mrrig.loop.detectors import Detectors
 from mrrig.loop.estimation import RealtimeKalman
 from mrrig.loop.inversion import DEFAULT_CONTINUITY
 from mrrig.loop.mlp import MLP, ModelError
-from mrrig.loop.model_fit import RigUnits, check_cost, check_units
+from mrrig.loop.model_fit import RigUnits, check_cost, check_period, check_units
 from mrrig.loop.realtime import keep_off_cpu, leave_realtime, make_realtime
 from mrrig.loop.safety import Fault, Limits, Supervisor
 from mrrig.loop.samples import SAMPLE_DTYPE, RigState
@@ -170,6 +170,7 @@ def build_controller(cfg: DaemonConfig, section=None, model: MLP | None = None) 
         model = load_model(c.model, cfg.source)
     if model is not None:
         check_units(model, c.model, rig_units())
+        check_period(model, c.model, dt)
     settings = ControllerSettings(i_max, dt_s=dt, model=model, current_a=c.current_a)
     if c.name == "network_inversion":
         continuity = c.continuity

@@ -1,6 +1,7 @@
 """Whether a model fits the rig, checked where it is prepared (the daemon's start-up, the
 control worker for `set_controller` / `set_model`), off the loop: its units against the rig's
-(the DBC's signals, which the config's limits share), and its controller's work per frame
+(the DBC's signals, which the config's limits share), the sample period of its history inputs
+against the rig's, and its controller's work per frame
 against the loop's budget. A model that does not fit is refused with one line.
 
 Pure: the rig's units come in as a table (the daemon reads them from the DBC).
@@ -49,6 +50,28 @@ def check_units(model: MLP, path: Path | str | None, units: RigUnits) -> None:
         if signal in units and unit != units[signal][0]:
             want, where = units[signal]
             raise ModelError(f"{path}: {field}: expected {want} ({where}), found {unit!r}")
+
+
+# a model's history taps may sit this far (relative) from the rig's period: they count samples
+PERIOD_TOLERANCE = 0.01
+
+
+def check_period(model: MLP, path: Path | str | None, period_s: float) -> None:
+    """ModelError where a model with history inputs (earlier samples: `x_3` is 3 samples back)
+    was trained at another sample period than the rig's: its taps would look at other times.
+    A model of the present state alone (and the lag's tau, in seconds) fits any rate; one
+    that does not record its period (the RNN, trained on the simulator's 500 Hz) is taken."""
+    trained = model.meta.get("sample_period_s")
+    if trained is None or not any(_signal(n) != n for n in model.input_names):
+        return
+    if isinstance(trained, bool) or not isinstance(trained, int | float) or not trained > 0:
+        raise ModelError(f"{path}: meta.sample_period_s: expected a number > 0, got {trained!r}")
+    if abs(trained - period_s) > PERIOD_TOLERANCE * period_s:
+        raise ModelError(
+            f"{path}: meta.sample_period_s: history inputs trained at {trained:.6g} s"
+            f" ({1.0 / trained:g} Hz), the rig runs at {period_s:g} s ({1.0 / period_s:g} Hz,"
+            " loop.period_s): retrain on data at the rig's rate"
+        )
 
 
 def frame_cost_s(controller: Controller, dt_s: float) -> tuple[float, int]:
