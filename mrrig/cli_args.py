@@ -112,3 +112,17 @@ def non_negative(text: str) -> float:
 
 SEED = int_at_least(0)
 COUNT = int_at_least(1)
+
+
+def controllers_epilog() -> str:
+    """The controllers by name (a `controller.name`, a `set_controller` request's `name`), each
+    with its docstring's first line and whether it needs a model file: for `--help`."""
+    from mrrig.loop.controllers import CONTROLLERS
+
+    width = max(map(len, CONTROLLERS))
+    lines = [
+        f"  {name:<{width}}  {(cls.__doc__ or '').strip().splitlines()[0]}"
+        + ("  [needs a model file]" if cls.needs_model else "")
+        for name, cls in CONTROLLERS.items()
+    ]
+    return "controllers (controller.name):\n" + "\n".join(lines)

@@ -187,3 +187,17 @@ def test_before_arming_what_is_not_known_ahead_is_unknown(tmp_path, fields, why)
     p = before_arming(step_of(tmp_path, "unknown", fields))
     assert p.low is None and p.high is None
     assert p.text().startswith("force against the motion: unknown (") and why in p.text()
+
+
+def test_a_paper_case_reference_is_judged_before_arming(tmp_path):
+    step = step_of(
+        tmp_path,
+        "case 1, k=2",
+        """
+        actuator = { waveform = "sine", amplitude_m = 0.01, frequency_hz = 2.0 }
+        reference = { kind = "paper_case", case = 2 }
+        """,
+    )
+    p = before_arming(step)
+    assert p.low is not None and p.high < 0.05  # the reference damper's own force
+    assert "paper_case on 10 mm 2 Hz sine stroke" in p.text()

@@ -4,12 +4,14 @@ JUnit and HTML reports read back, and plans run against firmware_sim and a daemo
 from __future__ import annotations
 
 import math
+import os
 import re
 import signal
 import subprocess
 import sys
 import textwrap
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -124,6 +126,44 @@ def test_only_the_given_fields_are_sent_and_a_model_is_kept(tmp_path):
         {"cmd": "set_controller", "name": "network_inversion", "continuity": 0.03},
         {"cmd": "set_profile", "kind": "sine", "amplitude_n": 100.0},
     ]
+
+
+def test_every_shipped_plan_parses():
+    plans = sorted((REPO / "configs/plans").glob("*.toml"))
+    names = {load_plan(p).name for p in plans}  # a PlanError names the file, step and field
+    assert {"smoke", "heating"} <= names
+
+
+def test_a_steps_adaptation_resets_it_then_frees_or_freezes_it(tmp_path):
+    step = """
+        [[step]]
+        name = "{name}"
+        duration_s = 1
+        controller = {{ name = "network_inversion" }}
+        adaptation = {value}
+        """
+    text = "[plan]\nname = 'p'\n" + "".join(
+        textwrap.dedent(step.format(name=n, value=v)) for n, v in (("on", '"on"'), ("off", '"off"'))
+    )
+    on, off = load_plan(write(tmp_path, text)).steps
+    ni = {"cmd": "set_controller", "name": "network_inversion"}
+    assert on.requests() == [
+        ni,
+        {"cmd": "reset_adaptation"},
+        {"cmd": "freeze_adaptation", "frozen": False},
+    ]
+    assert off.requests()[1:] == [
+        {"cmd": "reset_adaptation"},
+        {"cmd": "freeze_adaptation", "frozen": True},
+    ]
+    with pytest.raises(PlanError, match=r"step 2 \(off\)\.adaptation: expected one of 'on', 'off'"):
+        load_plan(write(tmp_path, text.replace('adaptation = "off"', "adaptation = true")))
+
+
+def test_adaptation_is_an_option_of_the_simulated_rig_only(tmp_path):
+    out = mrrig("test", "configs/plans/smoke.toml", "--rig", "nobody", "--adaptation", "on")
+    assert out.returncode == 2
+    assert "--adaptation: only with --sim" in out.stderr
 
 
 def test_a_plan_error_exits_2_with_one_line(tmp_path):
@@ -591,3 +631,77 @@ def test_review_of_a_recording_gives_the_daemons_latency_budget_verdict(recorded
     print(f"daemon: {budget(daemon_printed)}\nreview: {budget(reviewed.stdout)}")
     assert budget(reviewed.stdout) == budget(daemon_printed)
     assert budget(daemon_printed).endswith("(its work)")
+
+
+@pytest.mark.parametrize("command", ["test", "control"])
+def test_help_lists_the_controllers_by_name(command):
+    from mrrig.loop.controllers import CONTROLLERS
+
+    out = mrrig(command, "--help")
+    assert out.returncode == 0, out.stderr
+    listed = re.findall(r"^  ([a-z_]+)  +\S", out.stdout.split("controllers (")[1], re.M)
+    assert listed == list(CONTROLLERS)
+    assert "network_inversion  The paper's inverse model" in out.stdout
+
+
+def _sidecar_of(config: str) -> int:
+    """The pid of the telemetry process of the daemon started with `config`."""
+    procs = {}
+    for d in Path("/proc").iterdir():
+        if not d.name.isdigit():
+            continue
+        try:
+            cmd = (d / "cmdline").read_bytes().split(b"\0")
+            ppid = int((d / "stat").read_text().rsplit(")", 1)[1].split()[1])
+        except (OSError, ValueError, IndexError):
+            continue
+        procs[int(d.name)] = (cmd, ppid)
+    daemons = {pid for pid, (cmd, _) in procs.items() if config.encode() in cmd}
+    (sidecar,) = [
+        pid
+        for pid, (cmd, ppid) in procs.items()
+        if ppid in daemons and b"mrrig.rigio.sidecar" in cmd
+    ]
+    return sidecar
+
+
+@pytest.mark.process
+def test_a_stalled_control_plane_is_waited_for_not_fatal_to_the_plan(rig, tmp_path):
+    """The machine stalls the rig's telemetry process for 3 s in the middle of a step: its
+    telemetry and its answers pause, the daemon runs on; the step waits for them (up to
+    runner.CONTROL_PATIENCE_S) and passes, where 2 s without telemetry had aborted it (and a
+    status query's timeout ended the whole plan without a report: the heating plan's first
+    run)."""
+    plan = write(tmp_path, PLAN.format(d1=8))
+    junit = tmp_path / "r.xml"
+    args = ["--rig", RIG, "--zenoh-config", str(rig), "--junit", str(junit)]
+    sidecar = _sidecar_of(str(rig.parent / "rig.toml"))
+    proc = start(["-m", "mrrig", "test", str(plan), *args], stdout=subprocess.PIPE, text=True)
+    try:
+        from mrrig.api import Rig
+
+        with Rig(RIG, zenoh_config=rig) as r:
+            deadline = time.monotonic() + 20
+            while r.status()["state"] != "ARMED":
+                assert time.monotonic() < deadline, "the plan never armed the rig"
+                time.sleep(0.05)
+        time.sleep(2.0)
+        os.kill(sidecar, signal.SIGSTOP)
+        time.sleep(3.0)
+        os.kill(sidecar, signal.SIGCONT)
+        stdout, _ = proc.communicate(timeout=60)
+    finally:
+        os.kill(sidecar, signal.SIGCONT)
+        stop(proc)
+    assert proc.returncode == 1, stdout  # step 2's impossible Et, as always
+    cases = junit_cases(junit)
+    assert cases["constant current"].is_passed, stdout
+    assert cases["impossible Et"].is_failure, stdout
+
+
+def test_the_readme_lists_the_controllers_by_name():
+    from mrrig.loop.controllers import CONTROLLERS
+
+    text = (REPO / "README.md").read_text()
+    listed = text.split("A step's `controller.name` is one of the registry's: ")[1].split(" (")[0]
+    assert re.findall(r"`([a-z_]+)`", listed) == list(CONTROLLERS)

@@ -23,7 +23,7 @@ import time
 from collections.abc import Iterator
 from pathlib import Path
 
-from mrrig.cli_args import HelpFormatter
+from mrrig.cli_args import HelpFormatter, controllers_epilog
 from mrrig.errors import MrrigError
 from mrrig.plans.plan import load_plan
 from mrrig.rigio import client
@@ -38,9 +38,12 @@ class SimError(MrrigError, RuntimeError):
 
 
 @contextlib.contextmanager
-def simulated_rig(config: Path, sim_config: Path, zenoh_config: Path) -> Iterator[str]:
+def simulated_rig(
+    config: Path, sim_config: Path, zenoh_config: Path, adaptation: str | None = None
+) -> Iterator[str]:
     """The CAN bridge, firmware_sim and a daemon (`config`, on the bridge's channel, no
-    recording), as `mrrig demo` starts them; yields the rig's name once it answers."""
+    recording, `adaptation` "on"/"off" over the config's), as `mrrig demo` starts them; yields
+    the rig's name once it answers."""
     from mrrig.cli.demo import _stop, ensure_sim_model
     from mrrig.config import load_config
     from mrrig.rigio.canbus.bus import find_free_port, start_bridge, stop_bridge
@@ -66,6 +69,8 @@ def simulated_rig(config: Path, sim_config: Path, zenoh_config: Path) -> Iterato
         if sim.poll() is not None:
             raise SimError(f"firmware_sim exited at start (code {sim.returncode})")
         cmd = [sys.executable, "-m", "mrrig", "run", "--config", str(config)]
+        if adaptation is not None:
+            cmd += ["--adaptation", adaptation]
         daemon = subprocess.Popen(
             [*cmd, "--bus-channel", channel, "--no-record"], start_new_session=True
         )
@@ -92,7 +97,10 @@ def main(argv: list[str] | None = None) -> int:
     from mrrig.cli.main import version
 
     ap = argparse.ArgumentParser(
-        formatter_class=HelpFormatter, prog="mrrig test", description=__doc__
+        formatter_class=HelpFormatter,
+        prog="mrrig test",
+        description=__doc__,
+        epilog=controllers_epilog(),
     )
     ap.add_argument("plan", type=Path, help="the plan (TOML: [plan], [[step]]s)")
     ap.add_argument("--rig", help="the rig's name (default: the plan's [plan] rig)")
@@ -117,13 +125,21 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument(
         "--sim-config", type=Path, default=Path("configs/sim.toml"), help="--sim: the simulator's"
     )
+    ap.add_argument(
+        "--adaptation",
+        choices=("on", "off"),
+        help="--sim: the daemon's on-line adaptation (adaptation.enabled); a plan whose steps"
+        " set `adaptation` needs it on",
+    )
     args = ap.parse_args(argv)
 
+    if args.adaptation is not None and not args.sim:
+        ap.error("--adaptation: only with --sim (a live rig's daemon keeps its own config)")
     plan = load_plan(args.plan)  # a PlanError: one line, exit 2 (mrrig.cli.main)
     with contextlib.ExitStack() as stack:
         if args.sim:
             rig_name = stack.enter_context(
-                simulated_rig(args.config, args.sim_config, args.zenoh_config)
+                simulated_rig(args.config, args.sim_config, args.zenoh_config, args.adaptation)
             )
             if args.rig and args.rig != rig_name:
                 raise SimError(f"--rig {args.rig}: the simulated rig ({args.config}) is {rig_name}")

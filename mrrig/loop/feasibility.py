@@ -28,7 +28,8 @@ F_DEADBAND_N = 50.0  # the load cell's noise and the static force about rest are
 V_DEADBAND_M_S = 0.005  # the velocity estimate's noise and the reversals are below it
 # before arming: the phase between a reference and the stroke, tried at this many points
 PHASES = 8
-PREDICT_S = 20.0  # at most this much of a step is evaluated before arming
+PREDICT_S = 5.0  # at most this much of a step is evaluated before arming (a Bouc-Wen
+# reference: 8 phases of it in about 1 s)
 
 
 def opposed(f_des: np.ndarray, xd: np.ndarray) -> np.ndarray:

@@ -321,9 +321,9 @@ def _step_line(d: Mapping[str, Any]) -> str:
 
 
 def _against_line(d: Mapping[str, Any]) -> list[str]:
-    """A summary from before the count has none."""
+    """None for a summary from before the count, or of a run never armed."""
     a = d.get("force_against_motion")
-    if not a:
+    if not a or not a["share"] >= 0:  # NaN: no frame answers an armed command
         return []
     return [
         f"against motion {_fmt(a['share'] * 100.0, ' %', 3)} of those frames ({a['frames']}) ask"

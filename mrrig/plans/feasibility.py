@@ -2,10 +2,10 @@
 semi-active damper for force against the motion (`mrrig.loop.feasibility`), from the step's
 reference and the actuator's stroke, where both are known ahead.
 
-Known: a constant, sine, noise, CSV or Bouc-Wen reference on a sine stroke (the range over the
-phase between the two, which the rig sets when it arms), or on no stroke. Unknown: an external
-(Zenoh) reference, a RANDOM stroke (the firmware's own record), a reference or stroke the step
-leaves as the daemon has it, a CSV file not readable here.
+Known: a constant, sine, noise, CSV, Bouc-Wen or paper-case reference on a sine stroke (the
+range over the phase between the two, which the rig sets when it arms), or on no stroke.
+Unknown: an external (Zenoh) reference, a RANDOM stroke (the firmware's own record), a
+reference or stroke the step leaves as the daemon has it, a CSV file not readable here.
 """
 
 from __future__ import annotations
@@ -53,6 +53,8 @@ def _maker(section: ReferenceSection, dt_s: float) -> Callable[[], ref.ForceRefe
         return lambda: ref.BoucWenReference(
             s.preset, s.current_a, s.current_amp_a, s.current_freq_hz, dt_s
         )
+    if s.kind == "paper_case":
+        return lambda: ref.PaperCase(s.case, s.current_scale, s.preset, dt_s)
     raise ref.ForceReferenceError(f"a {s.kind} reference is known only as it comes")
 
 

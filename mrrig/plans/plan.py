@@ -2,15 +2,16 @@
 
 A plan is `[plan]` (name, the rig it is meant for) and an ordered list of `[[step]]`s, each
 with what the daemon's control requests take (`actuator`, `controller` = `set_controller`,
-`reference` = `set_profile`), its duration and settling time, and its `criteria`. An error is
-one line naming the file, the step (index and name) and the field.
+`reference` = `set_profile`, `adaptation` = `reset_adaptation` + `freeze_adaptation`), its
+duration and settling time, and its `criteria`. An error is one line naming the file, the step
+(index and name) and the field.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 from mrrig.config import ActuatorSection, ControllerSection, ReferenceSection
 from mrrig.loop.controllers import CONTROLLERS
@@ -35,6 +36,10 @@ class Step:
     controller: ControllerSection | None = None
     reference: ReferenceSection | None = None
     criteria: Criteria = field(default_factory=Criteria)
+    # on-line adaptation of the model's force, on a daemon with [adaptation] enabled: "on"
+    # from the model as trained (reset, updating), "off" the model as trained (reset,
+    # frozen); absent: as the daemon has it
+    adaptation: Literal["on", "off"] | None = None
     # the request fields the plan gave (the daemon keeps the others as they are)
     given: dict[str, tuple[str, ...]] = field(default_factory=dict)
     # figures printed beside the step's Et, by source (e.g. the paper's for the same case)
@@ -64,6 +69,9 @@ class Step:
             out.append(
                 {"cmd": cmd, **{k: str(v) if isinstance(v, Path) else v for k, v in req.items()}}
             )
+        if self.adaptation is not None:  # after set_controller, which builds a new one
+            frozen = self.adaptation == "off"
+            out += [{"cmd": "reset_adaptation"}, {"cmd": "freeze_adaptation", "frozen": frozen}]
         return out
 
 

@@ -27,11 +27,15 @@ from mrrig.loop.samples import SAMPLE_DTYPE
 from mrrig.plans.criteria import Numbers, failures, measure
 from mrrig.plans.feasibility import Prediction, before_arming
 from mrrig.plans.plan import Plan, Step
+from mrrig.rigio.client import ClientError
 from mrrig.rigio.control import MAX_MARK_CHARS, MAX_MARK_DATA_CHARS
 
 log = logging.getLogger(__name__)
 
 STATUS_PERIOD_S = 0.25  # how often a running step asks for the status (faults)
+# a running step goes on while the rig's control plane or telemetry is silent for up to this
+# long (a stall of the machine: the daemon keeps its own safety); longer, it is aborted
+CONTROL_PATIENCE_S = 10.0
 PROGRESS_PERIOD_S = 1.0
 
 
@@ -132,7 +136,7 @@ def _mark(rig: Rig, text: str, data: dict) -> None:
         data["note"] = "settings too long for a mark: see the plan"
     try:
         rig.request({"cmd": "mark", "text": text[:MAX_MARK_CHARS], "data": data})
-    except RigError as exc:
+    except (RigError, ClientError) as exc:
         log.warning("no marker in the recording (%s): %s", text, exc)
 
 
@@ -168,20 +172,29 @@ def _disarm(rig: Rig) -> None:
 
 
 def _request(rig: Rig, req: dict) -> None:
+    """A request the step needs: refused, or not answered (ClientError), the step is aborted
+    (and the rig disarmed after it), never the plan."""
     try:
         rig.request(req)
-    except RigError as exc:
+    except (RigError, ClientError) as exc:
         raise StepAborted(str(exc)) from None
 
 
+def _status(rig: Rig) -> dict:
+    try:
+        return rig.status()
+    except (RigError, ClientError) as exc:
+        raise StepAborted(f"no status from the rig: {exc}") from None
+
+
 def _out_of_fault(rig: Rig) -> None:
-    status = rig.status()
+    status = _status(rig)
     if status["state"] != "FAULT":
         return
     log.info("rig in FAULT (%s): reset before the step", status.get("fault"))
     try:
         rig.reset()
-    except RigError as exc:
+    except (RigError, ClientError) as exc:
         if "unknown command" in str(exc):  # a daemon from before `reset`
             raise StepAborted(
                 f"the rig is in FAULT ({status.get('fault')}) and its daemon has no `reset` "
@@ -195,7 +208,7 @@ def _wait_state(rig: Rig, state: str, timeout_s: float = 3.0) -> dict:
     """The status once in `state`: the sidecar answers with the daemon's last published one,
     which may lag a request by a status period."""
     deadline = time.monotonic() + timeout_s
-    while (status := rig.status())["state"] != state:
+    while (status := _status(rig))["state"] != state:
         if time.monotonic() > deadline:
             raise StepAborted(f"the rig is {status['state']}, not {state}, after {timeout_s:g} s")
         time.sleep(0.05)
@@ -209,21 +222,30 @@ def _run_step(
     _request(rig, {"cmd": "disarm"})
     for req in step.requests():
         _request(rig, req)
-    status = rig.status()
+    status = _status(rig)
     result.controller = status.get("controller")
     recording = status.get("recording")  # the sidecar's file, or the loop's "failed: ..."
     result.recording = recording.get("path") if isinstance(recording, dict) else None
     result.predicted = before_arming(step)
     progress(f"  step {index}/{count} {step.name}: {result.predicted.text()}")
-    tele = rig.telemetry(duration_s=step.settle_s + step.duration_s, quiet_s=2.0)
+    tele = rig.telemetry(duration_s=step.settle_s + step.duration_s, quiet_s=CONTROL_PATIENCE_S)
     _request(rig, {"cmd": "arm"})
-    t0 = last_status = last_progress = time.monotonic()
+    t0 = last_status = last_progress = answered = time.monotonic()
     total = step.settle_s + step.duration_s
     for _batch in tele:
         now = time.monotonic()
         if now - last_status >= STATUS_PERIOD_S:
             last_status = now
-            _check_faults(step, rig, result)
+            try:
+                _check_faults(step, rig, result)
+                answered = time.monotonic()
+            except ClientError as exc:
+                if time.monotonic() - answered > CONTROL_PATIENCE_S:
+                    raise StepAborted(
+                        f"the rig's control plane did not answer for {CONTROL_PATIENCE_S:g} s:"
+                        f" {exc}"
+                    ) from None
+                log.warning("no status from the rig (going on): %s", exc)
         if now - last_progress >= PROGRESS_PERIOD_S:
             last_progress = now
             numbers = measure(tele.samples, step.settle_s)
@@ -232,7 +254,10 @@ def _run_step(
                 f"  step {index}/{count} {step.name}: {now - t0:4.0f}/{total:g} s {phase}, "
                 f"Et {numbers.et:.4f}, faults {len(result.faults)}"
             )
-    _check_faults(step, rig, result)
+    try:
+        _check_faults(step, rig, result)
+    except ClientError as exc:
+        raise StepAborted(f"no status from the rig at the step's end: {exc}") from None
     result.samples = tele.samples
     if time.monotonic() - t0 < total - 1.0:
         raise StepAborted(f"telemetry stopped after {time.monotonic() - t0:.1f} s")
