@@ -235,3 +235,38 @@ def test_the_operator_without_mtls_is_the_zenoh_user_else_the_local_user():
     # TLS that does not authenticate the client names nobody
     tls = zenoh.Config.from_json5('{transport: {link: {tls: {root_ca_certificate: "ca.pem"}}}}')
     assert operator_of(tls) == operator_of(None) == getpass.getuser()
+
+
+def test_each_tune_trial_is_a_run_in_the_catalog(tmp_path, bridge, procs, sim_model):
+    """`mrrig tune`'s trials (mrrig.tune.trials.run_trials, as the CLI calls it with the
+    default catalog): each one a run, plan `tune trial k/n`, step the candidate, its Et."""
+    from dataclasses import replace
+
+    from mrrig.api import Rig, runs
+    from mrrig.tune import Candidate
+    from mrrig.tune.trials import DEFAULT_PROFILE, run_trials
+    from tests.test_plans import wait_status
+
+    procs(
+        ["-m", "firmware_sim", "--config", "configs/sim.toml", "--bus-channel", bridge],
+        stdout=subprocess.DEVNULL,
+    )
+    daemon_z, client_z, _ = zenoh_configs(tmp_path)
+    cfg = rig_config(
+        tmp_path, bridge, sim_model, rig={"name": "tune-cat"},
+        telemetry={"enabled": True, "zenoh_config": str(daemon_z)},
+    )  # fmt: skip
+    procs(["-m", "mrrig", "run", "--config", str(cfg), "--no-record"])
+    wait_status(client_z, rig="tune-cat")
+    catalog = str(tmp_path / "catalog.sqlite")
+    profile = replace(DEFAULT_PROFILE, settle_s=0.5, duration_s=2.0)
+    candidates = [Candidate(0.03, None), Candidate(0.0, 0.02)]
+    with Rig("tune-cat", zenoh_config=client_z) as rig:
+        result = run_trials(rig, candidates, profile, print, catalog=catalog)
+    found = runs(catalog)
+    print(found[["plan", "step", "verdict", "et"]])
+    assert list(found["plan"]) == ["tune trial 1/2", "tune trial 2/2"]
+    for (_, row), trial in zip(found.iterrows(), result.trials, strict=True):
+        assert row["step"] == trial.candidate.label()
+        assert row["controller"] == "network_inversion" and row["rig"] == "tune-cat"
+        assert row["et"] == pytest.approx(trial.et, rel=1e-12)

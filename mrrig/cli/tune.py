@@ -110,7 +110,7 @@ def main(argv: list[str] | None = None) -> int:
 def _tune(rig_name: str, candidates, args: argparse.Namespace) -> int:
     from dataclasses import replace
 
-    from mrrig.api import Rig
+    from mrrig.api import Rig, default_catalog
     from mrrig.tune import trials as tr
     from mrrig.tune.rule import TuneError
 
@@ -122,7 +122,12 @@ def _tune(rig_name: str, candidates, args: argparse.Namespace) -> int:
         old = {sig: signal.signal(sig, signal.default_int_handler) for sig in stops}
         try:
             result = tr.run_trials(
-                rig, candidates, profile, lambda line: print(line, flush=True), args.model
+                rig,
+                candidates,
+                profile,
+                lambda line: print(line, flush=True),
+                args.model,
+                default_catalog(),
             )
         except TuneError as exc:  # every trial faulted: the table, then the one line
             print(f"no choice: {exc}")

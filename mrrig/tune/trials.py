@@ -144,6 +144,7 @@ def run_trials(
     profile: TuningProfile,
     progress: Progress,
     model: str | None = None,
+    catalog: str | None = None,
 ) -> TuneResult:
     """Every candidate as one closed-loop trial; a trial aborted by a transport fault once
     more. Ctrl-C ends the trials (the rig disarmed by the runner) without a choice."""
@@ -151,7 +152,7 @@ def run_trials(
     progress(f"tuning {CONTROLLER} with {model}: {len(candidates)} trials; {profile.describe()}")
     trials: list[Trial] = []
     for k, c in enumerate(candidates, start=1):
-        trial, interrupted = _run_one(rig, k, len(candidates), c, profile, model, progress)
+        trial, interrupted = _run_one(rig, k, len(candidates), c, profile, model, progress, catalog)
         trials.append(trial)
         if interrupted:
             return TuneResult(trials, None, model, interrupted=True)
@@ -166,6 +167,7 @@ def _run_one(
     profile: TuningProfile,
     model: str,
     progress: Progress,
+    catalog: str | None = None,
 ) -> tuple[Trial, bool]:
     plan = Plan(
         name=f"tune trial {k}/{n}", path=Path("<mrrig tune>"), steps=(_step(c, profile, model),)
@@ -173,7 +175,8 @@ def _run_one(
     progress(f"trial {k}/{n}: {c.label()}")
     before = ""
     for attempt in (1, 2):
-        (result,), interrupted = run_plan(plan, rig, progress)
+        # each attempt a run in the catalog (plan "tune trial k/n", step the candidate)
+        (result,), interrupted = run_plan(plan, rig, progress, catalog)
         trial = _trial(c, result, attempt, before)
         transport = result.faults and all(f in TRANSPORT_FAULTS for f in result.faults)
         if interrupted or not transport or attempt == 2:
