@@ -11,6 +11,9 @@ import re
 import shutil
 import subprocess
 import sys
+import threading
+import time
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -151,3 +154,71 @@ def test_tune_sim_runs_the_trials_prints_the_table_and_writes_the_choice(tmp_pat
     assert f"in force on rig tune-sim now: continuity {float(written)}" in out.stdout
     snippet = model.with_suffix(".tune.toml").read_text()
     assert "[controller]" in snippet and "feedback_tau_s = 0.0" in snippet
+
+
+def _booted(sim: subprocess.Popen) -> float:
+    """When firmware_sim's clock started (its fault injections count from there): its line
+    before the first frame; its stderr drained after."""
+    for line in sim.stderr:
+        if "rig firmware on" in line:
+            t_boot = time.monotonic()
+            threading.Thread(target=sim.stderr.read, daemon=True).start()
+            return t_boot
+    raise AssertionError(f"firmware_sim exited at start (code {sim.wait()})")
+
+
+@pytest.mark.process
+def test_a_trial_aborted_by_a_transport_fault_runs_again_and_a_faulted_trial_is_never_chosen(
+    tmp_path,
+):
+    """firmware_sim goes silent for 0.1 s in the middle of the trial's first attempt (the
+    daemon's sensor_timeout, a transport fault): the trial runs once more after a reset and
+    says why. Should the second attempt fault too (a stall of the loaded machine), the trial
+    is not chosen; else it is."""
+    from mrrig.api import Rig
+    from mrrig.rigio.canbus.bus import find_free_port, start_bridge, stop_bridge
+    from mrrig.tune.trials import DEFAULT_PROFILE, run_trials
+    from tests.conftest import start, stop
+    from tests.test_plans import wait_status
+
+    silent_s = 25.0  # since the simulator's clock started: after the daemon is up
+    model = tmp_path / "model.json"
+    shutil.copy(REPO / "models/sim-forward.json", model)
+    port = find_free_port()
+    bridge = start_bridge(port)
+    channel = f"ws://127.0.0.1:{port}/"
+    daemon_z, client_z, _ = zenoh_configs(tmp_path)
+    cfg = rig_config(
+        tmp_path,
+        channel,
+        model,
+        rig={"name": "tune-fault"},
+        telemetry={"enabled": True, "zenoh_config": str(daemon_z)},
+    )
+    fault = f"silent@{silent_s:g}:0.1"
+    args = ["-m", "firmware_sim", "--config", "configs/sim.toml", "-c", channel, "--fault", fault]
+    sim = start(args, stderr=subprocess.PIPE, text=True)
+    daemon = None
+    try:
+        t_boot = _booted(sim)
+        daemon = start(["-m", "mrrig", "run", "--config", str(cfg), "--no-record"])
+        wait_status(client_z, timeout_s=silent_s - 8.0, rig="tune-fault")
+        profile = replace(DEFAULT_PROFILE, settle_s=1.0, duration_s=5.0)
+        # the first attempt arms about 2 s before the silence and runs 4 s past it
+        time.sleep(max(0.0, t_boot + silent_s - 2.0 - time.monotonic()))
+        lines: list[str] = []
+        with Rig("tune-fault", zenoh_config=client_z) as rig:
+            result = run_trials(rig, [Candidate(0.03, 0.0)], profile, lines.append)
+    finally:
+        if daemon is not None:
+            stop(daemon)
+        stop(sim)
+        stop_bridge(bridge)
+    (trial,) = result.trials
+    text = "\n".join(lines)
+    assert trial.attempts == 2, text
+    assert "attempt 1: transport fault sensor_timeout" in trial.note, text
+    if trial.faults:  # the second attempt stalled too: marked, never chosen
+        assert result.chosen is None and "no usable trial" in result.why
+    else:
+        assert result.chosen is trial and math.isfinite(trial.et)

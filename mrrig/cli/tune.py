@@ -112,7 +112,6 @@ def _tune(rig_name: str, candidates, args: argparse.Namespace) -> int:
 
     from mrrig.api import Rig, default_catalog
     from mrrig.tune import trials as tr
-    from mrrig.tune.rule import TuneError
 
     profile = replace(tr.DEFAULT_PROFILE, duration_s=args.duration, settle_s=args.settle)
     with Rig(rig_name, zenoh_config=args.zenoh_config) as rig:
@@ -129,9 +128,6 @@ def _tune(rig_name: str, candidates, args: argparse.Namespace) -> int:
                 args.model,
                 default_catalog(),
             )
-        except TuneError as exc:  # every trial faulted: the table, then the one line
-            print(f"no choice: {exc}")
-            return 1
         finally:
             for sig, handler in old.items():
                 signal.signal(sig, handler)
@@ -139,8 +135,8 @@ def _tune(rig_name: str, candidates, args: argparse.Namespace) -> int:
         out = args.out or model_path.with_suffix(".tune.json")
         tr.write_trials(result, out, profile, rig_name)
         print(f"trial table: {result.files['trials']} and {result.files['trials_csv']}")
-        if result.interrupted or result.chosen is None:
-            print("interrupted: nothing chosen, nothing written (the rig is disarmed)")
+        if result.chosen is None:
+            print(f"{result.why}: nothing chosen, nothing written (the rig is disarmed)")
             return 1
         c = result.chosen.candidate
         print(f"chosen: {tr.trial_line(result.chosen)}")

@@ -74,9 +74,10 @@ _REFERENCE_FIELDS = ("kind", "preset", "current_a", "current_amp_a", "current_fr
 @dataclass
 class TuneResult:
     trials: list[Trial]
-    chosen: Trial | None  # None: interrupted before a choice
+    chosen: Trial | None  # None: interrupted, or no usable trial (`why`)
     model: str  # the daemon's model file (its path as the daemon names it)
     interrupted: bool = False
+    why: str = ""  # why nothing was chosen
     files: dict[str, str] = field(default_factory=dict)  # what was written, by role
 
 
@@ -147,7 +148,8 @@ def run_trials(
     catalog: str | None = None,
 ) -> TuneResult:
     """Every candidate as one closed-loop trial; a trial aborted by a transport fault once
-    more. Ctrl-C ends the trials (the rig disarmed by the runner) without a choice."""
+    more. Ctrl-C ends the trials (the rig disarmed by the runner) without a choice, and so
+    does a grid whose every trial faulted."""
     model = daemons_model(rig, model)
     progress(f"tuning {CONTROLLER} with {model}: {len(candidates)} trials; {profile.describe()}")
     trials: list[Trial] = []
@@ -155,8 +157,11 @@ def run_trials(
         trial, interrupted = _run_one(rig, k, len(candidates), c, profile, model, progress, catalog)
         trials.append(trial)
         if interrupted:
-            return TuneResult(trials, None, model, interrupted=True)
-    return TuneResult(trials, choose(trials), model)
+            return TuneResult(trials, None, model, interrupted=True, why="interrupted")
+    try:
+        return TuneResult(trials, choose(trials), model)
+    except TuneError as exc:
+        return TuneResult(trials, None, model, why=str(exc))
 
 
 def _run_one(
