@@ -1,7 +1,8 @@
 """`mrrig status | arm | disarm | reset | control | watch | send-force`: a person at a terminal.
 
 Each opens a Zenoh session (client mode, 127.0.0.1, multicast off: configs/zenoh-client.json5
-by default), talks to the daemon's keys `mrrig/<rig>/...` and closes the session.
+by default), talks to the daemon's keys `mrrig/<rig>/...` and closes the session: through the
+Python API's `mrrig.api.Rig` (what a script calls), `watch` through its terminal printer.
 """
 
 from __future__ import annotations
@@ -105,24 +106,6 @@ def main(argv: list[str]) -> int:
         )
     args = ap.parse_args(rest)
     zc = args.zenoh_config
-    if command == "status":
-        reply = client.status(args.rig, zc, args.timeout)
-        if args.json or not reply.get("ok"):
-            return _print_reply(reply)
-        print(format_status(reply["status"]))
-        return 0
-    if command == "arm":
-        return _print_reply(client.arm(args.rig, zc, args.timeout))
-    if command == "disarm":
-        return _print_reply(client.disarm(args.rig, zc, args.timeout))
-    if command == "reset":
-        return _print_reply(client.reset(args.rig, zc, args.timeout))
-    if command == "control":
-        try:
-            payload = json.loads(args.request)
-        except json.JSONDecodeError as exc:
-            raise ValueError(f"request: not valid JSON: {exc}") from None
-        return _print_reply(client.request(args.rig, payload, zc, args.timeout))
     if command == "watch":
         if args.all:
             from mrrig.rigio.fleet import watch_all
@@ -130,10 +113,28 @@ def main(argv: list[str]) -> int:
             return 0 if watch_all(zc, args.duration, out=sys.stdout) else 1
         n = client.watch(args.rig, zc, args.duration, out=sys.stdout)
         return 0 if n else 1
-    return _send_force(args)
+    if command == "send-force":
+        return _send_force(args)
+    from mrrig.api import Rig
+
+    with Rig(args.rig, zc, args.timeout) as rig:
+        if command == "control":
+            try:
+                payload = json.loads(args.request)
+            except json.JSONDecodeError as exc:
+                raise ValueError(f"request: not valid JSON: {exc}") from None
+        else:
+            payload = {"cmd": command}  # status, arm, disarm, reset
+        reply = rig.ask(payload)
+    if command == "status" and not args.json and reply.get("ok"):
+        print(format_status(reply["status"]))
+        return 0
+    return _print_reply(reply)
 
 
 def _send_force(args: argparse.Namespace) -> int:
+    """The profile (a bad one refused before any session opens), then `Rig.stream_force`."""
+    from mrrig.api import Rig
     from mrrig.rigio import force_stream
 
     if args.csv is not None:
@@ -148,18 +149,17 @@ def _send_force(args: argparse.Namespace) -> int:
             return offset + amp * math.sin(2 * math.pi * freq * t)
 
         duration_s = args.duration
-    result = force_stream.send_force(
-        args.rig,
-        args.zenoh_config,
-        fn,
-        duration_s,
-        args.rate,
-        arm=args.arm,
-        disarm=not args.no_disarm,
-        ramp_s=args.ramp,
-        timeout_s=args.timeout,
-        out=sys.stdout,
-    )
+    n_profile = math.floor(duration_s * args.rate) + 1  # t = 0, 1/rate, ..., duration_s
+    with Rig(args.rig, args.zenoh_config, args.timeout) as rig:
+        result = rig.stream_force(
+            (fn(k / args.rate) for k in range(n_profile)),
+            args.rate,
+            arm=args.arm,
+            disarm=not args.no_disarm,
+            ramp_s=args.ramp,
+            duration_s=duration_s,
+            out=sys.stdout,
+        )
     end = "disarmed" if result.disarmed else "left armed" if args.no_disarm else "not armed"
     held = f"{result.hold_samples} while arming, " if result.hold_samples else ""
     print(
