@@ -26,7 +26,8 @@ from mrrig import json_text
 from mrrig.cli_args import HelpFormatter, add_bus_options, output_file, positive
 from mrrig.loop.realtime import leave_realtime
 from mrrig.pycan import can
-from mrrig.rigio.canbus import DEFAULT_DBC_PATH, BusError, Codec, open_bus
+from mrrig.rigio.canbus import BusError, open_bus
+from mrrig.rigio.canbus.profile import ProfileError, load_profile
 
 logger = logging.getLogger("firmware_sim")
 
@@ -74,8 +75,15 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     interface = args.bus_interface or config.bus.interface
     channel = args.bus_channel or config.bus.channel
-    codec = Codec(config.bus.dbc_path or DEFAULT_DBC_PATH)
-    firmware = Firmware(config, codec, (*config.faults, *args.fault))
+    try:
+        # the sensor period is the DBC's: the simulator has no other
+        profile = load_profile(config.can.dbc, config.can.signals, None, str(args.config))
+    except ProfileError as exc:
+        logger.error("%s", exc)
+        return 2
+    if profile.protections_off:
+        logger.info("%s", profile.startup_line())
+    firmware = Firmware(config, profile, (*config.faults, *args.fault))
 
     stopping = False
 

@@ -10,6 +10,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
 
+from mrrig.config import CanSection
 from mrrig.resources import resolve
 from damper.plant_file import load_plant
 from mrrig.typed_config import ConfigError, load_toml, parse
@@ -32,11 +33,10 @@ _MAX_CURRENT_A = 6.5535
 
 @dataclass(frozen=True)
 class BusConfig:
-    """python-can bus (`mrrig.rigio.canbus.open_bus`) and the DBC that defines the frames."""
+    """python-can bus (`mrrig.rigio.canbus.open_bus`); the frames are `[can]`'s."""
 
     interface: str = "remote"
     channel: str = "ws://127.0.0.1:54701/"
-    dbc_path: Path | None = None  # None: the project's configs/mrrig.dbc
     send_timeout_s: float = 0.001
 
     def check(self) -> None:
@@ -222,6 +222,8 @@ class SimConfig:
 
     seed: int = 1
     bus: BusConfig = field(default_factory=BusConfig)
+    # the rig profile, the same table as the daemon's: a lab's layout on the simulated rig
+    can: CanSection = field(default_factory=CanSection)
     timing: TimingConfig = field(default_factory=TimingConfig)
     damper: DamperConfig = field(default_factory=DamperConfig)
     plant: PlantConfig = field(default_factory=PlantConfig)

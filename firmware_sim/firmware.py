@@ -50,7 +50,8 @@ from damper.plant import BoucWenDamper, BoucWenParams, params_at_temperature
 from damper.plant_file import load_plant
 from damper.signals import bandlimited_noise
 from firmware_sim.config import ActuatorConfig, FaultSpec, SimConfig
-from mrrig.rigio.canbus.codec import Codec, MessageLayout, Parsed
+from mrrig.rigio.canbus.codec import MessageLayout, Packer, Parsed, frame_key
+from mrrig.rigio.canbus.profile import RigProfile
 
 logger = logging.getLogger(__name__)
 
@@ -63,12 +64,16 @@ HEATING_STEP_K = 0.01  # the plant's parameters are updated when the temperature
 
 
 class Frame(NamedTuple):
-    """One frame to send; `expect_answer` marks a clean RigSensors frame (one command due)."""
+    """One frame to send; `expect_answer` marks a clean RigSensors frame (one command due).
+    `counter`: its E2E counter; in a layout without E2E, this firmware's own count of its
+    sensor frames (never on the bus: the simulator's bookkeeping of answers)."""
 
     frame_id: int
     data: bytes
     counter: int
     expect_answer: bool
+    is_extended: bool = False
+    is_fd: bool = False
 
 
 def _counter(layout: MessageLayout, data: bytes) -> int:
@@ -248,27 +253,48 @@ class Firmware:
     """The rig firmware: command handling, watchdog, actuator, damper plant, sensors, faults."""
 
     def __init__(
-        self, config: SimConfig, codec: Codec, faults: Sequence[FaultSpec] | None = None
+        self, config: SimConfig, profile: RigProfile, faults: Sequence[FaultSpec] | None = None
     ) -> None:
+        """`profile`: the rig profile (`[can]`, the same table as the daemon's): which
+        messages carry which roles, in which units."""
         self._cfg = config
-        self._packer = codec.packer("RIG")
+        self._profile = profile
+        codec = profile.codec
+        sensors = profile.sensor_layout
+        status = codec.layout(profile.status_message) if profile.status_message else None
+        # the status roles ride in the sensor frame, in a message of their own, or nowhere
+        self._status_in_sensors = status is sensors
+        sends = (sensors.name,) + ((status.name,) if status and status is not sensors else ())
+        self._packer = Packer(codec, None, sends)
         self._parser = codec.parser()
-        sensors = codec.layout("RigSensors")
-        status = codec.layout("RigStatus")
-        if sensors.period_s is None or status.period_s is None:
-            raise ValueError(f"{codec.dbc_path}: RigSensors/RigStatus need GenMsgCycleTime")
+        if sensors.period_s is None:
+            raise ValueError(f"{codec.dbc_path}: {sensors.name} needs GenMsgCycleTime")
         self.period_s: float = sensors.period_s
-        self._status_every = round(status.period_s / sensors.period_s)
+        self._status_every = 0
+        if status is not None and not self._status_in_sensors:
+            if status.period_s is None:
+                raise ValueError(f"{codec.dbc_path}: {status.name} needs GenMsgCycleTime")
+            self._status_every = round(status.period_s / sensors.period_s)
         self._sensors = sensors
         self._status = status
         self.sensors_id = sensors.frame_id
-        self.status_id = status.frame_id
-        coil = next(f for f in status.fields if f.name == "CoilCurrent")
-        self._coil_current_max_a = coil.raw_max * coil.scale + coil.offset
-        self.damper_command_id = codec.layout("DamperCommand").frame_id
-        self._actuator_id = codec.layout("ActuatorCommand").frame_id
-        self._mode_labels = codec.choices("DamperCommand", "Mode")
-        self._waveform_labels = codec.choices("ActuatorCommand", "Waveform")
+        self.sensors_key = sensors.key
+        coil = next((f for f in (status.fields if status else ()) if f.name == "CoilCurrent"), None)
+        self._coil_current_max_a = (
+            math.inf if coil is None else coil.raw_max * coil.scale + coil.offset
+        )
+        command = codec.layout(profile.command_message)
+        self.damper_command_id = command.frame_id
+        self.damper_command_key = command.key
+        actuator = profile.actuator_message
+        self._actuator_key = codec.layout(actuator).key if actuator is not None else None
+        self._mode_labels = self._labels("command_mode")
+        self._waveform_labels = self._labels("actuator_waveform")
+        self._fault_labels = {v: k for k, v in self._labels("firmware_fault").items()}
+        self._sent_sensor_frames = 0
+        # without E2E: the latest sensor payloads and this firmware's count of each (the
+        # measured echo of a frame is found by its bytes)
+        self._recent_payloads: deque[tuple[bytes, int]] = deque(maxlen=64)
 
         self._faults = tuple(config.faults if faults is None else faults)
         self._fault_on = [False] * len(self._faults)
@@ -329,28 +355,51 @@ class Firmware:
 
     # ---- received frames ------------------------------------------------------------------
 
-    def sensor_counter(self, data: bytes) -> int:
-        """The counter of a RigSensors frame's payload (this firmware's own, echoed back)."""
-        return _counter(self._sensors, data)
+    def _labels(self, role: str) -> dict[int, str]:
+        m = self._profile.mapped.get(role)
+        return {} if m is None else self._profile.codec.choices(m.message, m.signal)
 
-    def on_frame(self, frame_id: int, data: bytes, t_s: float) -> Parsed | None:
+    def sensor_counter(self, data: bytes) -> int | None:
+        """The counter of a sensor frame's payload (this firmware's own, echoed back); in a
+        layout without E2E the count it was sent with, None for a payload not sent lately."""
+        if self._sensors.e2e:
+            return _counter(self._sensors, data)
+        return next((n for sent, n in reversed(self._recent_payloads) if sent == data), None)
+
+    def command_of(self, v: dict[str, float]) -> tuple[str, float, int]:
+        """(mode, setpoint A, echoed sensor counter) of a valid command's values. A layout
+        without a mode signal is ACTIVE at any setpoint above 0 A; one without the echo
+        answers the latest sensor frame sent (so no command of it is ever seen late by its
+        echo, only by its time)."""
+        setpoint = v["CurrentSetpoint"]
+        if "command_mode" not in self._profile.mapped:
+            mode = "ACTIVE" if setpoint > 0.0 else "SAFE"
+        elif self._mode_labels:
+            mode = self._mode_labels[int(v["Mode"])]
+        else:
+            mode = "ACTIVE" if v["Mode"] else "SAFE"
+        if "counter_echo" in self._profile.mapped:
+            echo = int(v["SensorCounterEcho"])
+        else:
+            echo = self._sent_counter if self._sent_counter is not None else 0
+        return mode, setpoint, echo
+
+    def on_frame(
+        self, frame_id: int, data: bytes, t_s: float, is_extended: bool = False, is_fd: bool = False
+    ) -> Parsed | None:
         """Check and apply one received frame; None for frames that are not commands."""
-        if frame_id != self.damper_command_id and frame_id != self._actuator_id:
+        key = frame_key(frame_id, is_extended)
+        if key != self.damper_command_key and key != self._actuator_key:
             return None
-        parsed = self._parser.parse(frame_id, data, t_s)
+        parsed = self._parser.parse(frame_id, data, t_s, is_extended, is_fd)
         if not parsed.ok:
             self._bad_times.append(t_s)
             logger.debug("dropped command frame: %s", parsed.reason)
             return parsed
         v = parsed.values
         assert v is not None
-        if frame_id == self.damper_command_id:
-            self.on_damper_command(
-                self._mode_labels[int(v["Mode"])],
-                v["CurrentSetpoint"],
-                int(v["SensorCounterEcho"]),
-                t_s,
-            )
+        if key == self.damper_command_key:
+            self.on_damper_command(*self.command_of(v), t_s)
         else:
             self.on_actuator_command(
                 self._waveform_labels[int(v["Waveform"])], v["Amplitude"], v["Frequency"], t_s
@@ -359,7 +408,7 @@ class Firmware:
 
     def sent(self, frame: Frame, t_s: float) -> None:
         """`frame` (from `tick`) left at t_s: a RigSensors frame is the one commands answer."""
-        if frame.frame_id == self.sensors_id:
+        if frame.frame_id == self.sensors_id and frame.is_extended == self._sensors.is_extended:
             self._sent_counter = frame.counter
             self._sent_s = t_s
 
@@ -490,7 +539,13 @@ class Firmware:
             "repeated_counter": 0,
             "other_rejected": 0,
         }
-        for name, key in (("DamperCommand", "damper_valid"), ("ActuatorCommand", "actuator_valid")):
+        p = self._profile
+        for name, key in (
+            (p.command_message, "damper_valid"),
+            (p.actuator_message, "actuator_valid"),
+        ):
+            if name is None:
+                continue
             st = self._parser.stats[name]
             out[key] = st.frames_ok
             out["bad_crc"] += st.bad_crc
@@ -611,14 +666,15 @@ class Firmware:
         if "silent" not in on:
             if "drop_frames" not in on:
                 frames.append(self._sensor_frame(displacement, force_meas, on))
-            if self._ticks % self._status_every == 0:
+            if self._status_every and self._ticks % self._status_every == 0:
                 frames.append(self._status_frame())
         self._ticks += 1
         self._boot = False
         return frames
 
     def _sensor_frame(self, displacement_m: float, force_n: float, on: frozenset[str]) -> Frame:
-        values = {
+        values = self._status_values() if self._status_in_sensors else {}
+        values |= {
             "ActuatorEnabled": int(not self.actuator.at_rest and not self._halted_by_injection()),
             "LimitTripped": int("stroke_limit" in on),
             "EStop": int("estop" in on),
@@ -629,22 +685,37 @@ class Firmware:
         frozen = "freeze_counter" in on
         lay = self._sensors
         data = self._packer.encode(
-            "RigSensors", values, counter=self._last_sensor_counter if frozen else None
+            lay.name, values, counter=self._last_sensor_counter if frozen else None
         )
         corrupt = "corrupt_crc" in on
         if corrupt:
             data = bytes((data[0] ^ 0xFF,)) + data[1:]
-        counter = _counter(lay, data)
+        if lay.e2e:
+            counter = _counter(lay, data)
+        else:
+            counter = self._sent_sensor_frames & 0xF
+            self._recent_payloads.append((data, counter))
+        self._sent_sensor_frames += 1
         self._last_sensor_counter = counter
-        return Frame(lay.frame_id, data, counter, not (frozen or corrupt))
+        return Frame(lay.frame_id, data, counter, not (frozen or corrupt), *self._format(lay))
 
-    def _status_frame(self) -> Frame:
-        values = {
+    @staticmethod
+    def _format(lay: MessageLayout) -> tuple[bool, bool]:
+        return lay.is_extended, lay.is_fd
+
+    def _status_values(self) -> dict[str, float | str]:
+        fault = self.fault_code
+        if not self._fault_labels:  # a fault flag, not the contract's code
+            fault = 0 if fault == "NONE" else 1
+        return {
             "State": self.state,
             "CoilCurrent": min(self.coil_current_a, self._coil_current_max_a),
             "DamperTemperature": self.temperature_degc,
-            "FaultCode": self.fault_code,
+            "FaultCode": fault,
             "CommandTimeouts": self.watchdog_trips % 256,
         }
-        data = self._packer.encode("RigStatus", values)
-        return Frame(self.status_id, data, _counter(self._status, data), False)
+
+    def _status_frame(self) -> Frame:
+        lay = self._status
+        data = self._packer.encode(lay.name, self._status_values())
+        return Frame(lay.frame_id, data, _counter(lay, data), False, *self._format(lay))

@@ -25,6 +25,7 @@ import numpy as np
 from firmware_sim.firmware import Firmware, Frame
 from mrrig.loop.realtime import make_realtime
 from mrrig.pycan import can
+from mrrig.rigio.canbus.codec import frame_key
 
 logger = logging.getLogger(__name__)
 
@@ -332,20 +333,20 @@ def run(
     measured until then.
     """
     period_s = firmware.period_s
-    sensors_id = firmware.sensors_id
+    sensors_key = firmware.sensors_key
     if time_scale != 1.0:
         wall_clock = clock
 
         def clock() -> float:
             return wall_clock() / time_scale
 
-    damper_id = firmware.damper_command_id
+    damper_key = firmware.damper_command_key
 
     def receive_until(until: float) -> None:
         while (now := clock()) < until:
             msg = bus.recv((until - now) * time_scale)
             if msg is not None:
-                _receive(firmware, stats, msg, clock() - t0, damper_id)
+                _receive(firmware, stats, msg, clock() - t0, damper_key)
 
     gc.collect()
     gc.freeze()
@@ -365,20 +366,21 @@ def run(
                 if deadline - now > _POLL_MARGIN_S:
                     msg = bus.recv(0.0)
                     if msg is not None:
-                        _receive(firmware, stats, msg, clock() - t0, damper_id)
+                        _receive(firmware, stats, msg, clock() - t0, damper_key)
             for frame in frames:
                 sent_s, sent_wall_s = clock() - t0, time.time()
                 bus.send(
                     can.Message(
                         arbitration_id=frame.frame_id,
-                        is_extended_id=False,
+                        is_extended_id=frame.is_extended,
+                        is_fd=frame.is_fd,
                         dlc=len(frame.data),
                         data=frame.data,
                     ),
                     timeout=send_timeout_s,
                 )
                 firmware.sent(frame, sent_s)
-                if frame.frame_id == sensors_id:
+                if frame_key(frame.frame_id, frame.is_extended) == sensors_key:
                     stats.on_sensor_sent(frame, ideal_s, sent_s, sent_wall_s)
                 else:
                     stats.status_frames_sent += 1
@@ -398,18 +400,23 @@ def run(
 
 
 def _receive(
-    firmware: Firmware, stats: RunStats, msg: can.Message, t_s: float, damper_id: int
+    firmware: Firmware, stats: RunStats, msg: can.Message, t_s: float, damper_key: int
 ) -> None:
-    if msg.is_extended_id or msg.is_remote_frame or msg.is_error_frame:
+    if msg.is_remote_frame or msg.is_error_frame:
         return
-    if msg.arbitration_id == firmware.sensors_id:  # our own, echoed back
-        if stats.measure_echo:
-            stats.on_echo(firmware.sensor_counter(bytes(msg.data)), t_s, msg.timestamp or None)
+    key = frame_key(msg.arbitration_id, msg.is_extended_id)
+    if key == firmware.sensors_key:  # our own, echoed back
+        counter = firmware.sensor_counter(bytes(msg.data))
+        if stats.measure_echo and counter is not None:
+            stats.on_echo(counter, t_s, msg.timestamp or None)
         return
     late_before = firmware.late_commands
-    parsed = firmware.on_frame(msg.arbitration_id, bytes(msg.data), t_s)
-    if parsed is not None and parsed.ok and msg.arbitration_id == damper_id:
+    parsed = firmware.on_frame(
+        msg.arbitration_id, bytes(msg.data), t_s, msg.is_extended_id, msg.is_fd
+    )
+    if parsed is not None and parsed.ok and key == damper_key:
         assert parsed.values is not None
-        echo, safe = int(parsed.values["SensorCounterEcho"]), int(parsed.values["Mode"]) == 0
+        mode, _, echo = firmware.command_of(parsed.values)
+        safe = mode == "SAFE"
         applied = not safe and firmware.late_commands == late_before
         stats.on_command(echo, t_s, safe, msg.timestamp or None, applied)

@@ -65,9 +65,10 @@ class BusSection:
 
 @dataclass(frozen=True)
 class CanSection:
-    """The rig profile (mrrig/rigio/canbus/profile.py): the lab's DBC (found beside this
-    file) and `[can.signals]`, role = "MESSAGE.SIGNAL" or "absent". Without `dbc`: the CAN
-    contract's configs/mrrig.dbc, whose roles `signals` may remap."""
+    """`[can]` of the daemon's and the simulator's configs: the rig profile
+    (mrrig/rigio/canbus/profile.py), the lab's DBC (found beside the config file) and
+    `signals`, role = "MESSAGE.SIGNAL" or "absent". Without `dbc`: the CAN contract's
+    configs/mrrig.dbc, whose roles `signals` may remap."""
 
     dbc: Path | None = None
     signals: dict[str, str] = field(default_factory=dict)
@@ -75,7 +76,7 @@ class CanSection:
     def check(self) -> None:
         for role, text in self.signals.items():
             if not isinstance(text, str):
-                raise ValueError(f"signals.{role}: expected \"MESSAGE.SIGNAL\" or \"absent\"")
+                raise ValueError(f'signals.{role}: expected "MESSAGE.SIGNAL" or "absent"')
 
 
 @dataclass(frozen=True)

@@ -22,6 +22,7 @@ from firmware_sim.runner import run as run_firmware
 from mrrig.config import load_config
 from mrrig.loop.daemon import Daemon
 from mrrig.rigio.canbus.codec import Codec
+from mrrig.rigio.canbus.profile import contract_profile
 from mrrig.rigio.control import Pending
 from mrrig.rigio.rig_session import RigSession, rig_overrides
 from tests.conftest import REPO, rig_config
@@ -221,7 +222,7 @@ class ThreadRig:
     def __init__(self) -> None:
         self.channel = f"thread-rig-{next(_channels)}"
         cfg = load_sim_config(REPO / "configs/sim.toml")
-        self.firmware = Firmware(cfg, Codec(), ())
+        self.firmware = Firmware(cfg, contract_profile(), ())
         self.bus = can.Bus(interface="virtual", channel=self.channel, receive_own_messages=False)
         self.stats = RunStats()
         self._stop = False

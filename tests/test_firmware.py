@@ -28,6 +28,7 @@ from firmware_sim.firmware import (
     Frame,
 )
 from mrrig.rigio.canbus import Codec, Parsed
+from mrrig.rigio.canbus.profile import contract_profile
 
 CODEC = Codec()
 SENSORS_ID = CODEC.layout("RigSensors").frame_id
@@ -47,7 +48,7 @@ class Rig:
     """Firmware plus a daemon-side packer/parser and an ideal clock."""
 
     def __init__(self, config: SimConfig = QUIET, faults: tuple[FaultSpec, ...] = ()) -> None:
-        self.fw = Firmware(config, CODEC, faults)
+        self.fw = Firmware(config, contract_profile(), faults)
         self.daemon = CODEC.packer("DAEMON")
         self.parser = CODEC.parser()
         self.k = 0

@@ -117,7 +117,7 @@ def test_finding14_process_the_simulator_on_another_dbc_ends_the_armed_run_in_fa
     other = re.sub(r"\b272\b", "1296", re.sub(r"\b273\b", "1297", dbc))  # 0x510, 0x511
     (tmp_path / "other.dbc").write_text(other)
     sim_cfg = (REPO / "configs/sim.toml").read_text()
-    sim_cfg = sim_cfg.replace("[bus]\n", f'[bus]\ndbc_path = "{tmp_path / "other.dbc"}"\n', 1)
+    sim_cfg += f'\n[can]\ndbc = "{tmp_path / "other.dbc"}"\n'
     (tmp_path / "sim.toml").write_text(sim_cfg)
     sim = procs(
         ["-m", "firmware_sim", "--config", str(tmp_path / "sim.toml"), "--bus-channel", bridge],

@@ -182,3 +182,87 @@ def test_the_shipped_dbc_files_are_copies_of_nothing_else(tmp_path):
     assert shipped("profiles/lab-1khz.dbc").is_file()
     shutil.copy(shipped("profiles/lab-1khz.dbc"), tmp_path / "x.dbc")
     assert cantools.database.load_file(str(tmp_path / "x.dbc"), strict=True).messages
+
+
+# ---- the simulator speaks the same profile -------------------------------------------------
+def _lab_firmware():
+    import dataclasses
+
+    from firmware_sim.config import SensorConfig, SimConfig, load_config
+    from firmware_sim.firmware import Firmware
+
+    sim = load_config(PROFILES / "lab-1khz-sim.toml")
+    quiet = dataclasses.replace(sim, sensors=SensorConfig(0.0, 0.0, 0.0, 0.02, 5000.0))
+    assert isinstance(quiet, SimConfig)
+    profile = load_profile(sim.can.dbc, sim.can.signals, None, "lab-1khz-sim.toml")
+    return Firmware(quiet, profile), profile
+
+
+def test_the_simulator_sends_the_lab_layout_at_its_period():
+    fw, _ = _lab_firmware()
+    db = cantools.database.load_file(str(PROFILES / "lab-1khz.dbc"))
+    assert fw.period_s == pytest.approx(0.001)
+    frames = [f for k in range(5) for f in fw.tick(k * fw.period_s)]
+    # one frame a period, the status roles in it: no RigStatus-like frame of its own
+    assert [f.frame_id for f in frames] == [0x301] * 5
+    decoded = db.get_message_by_name("LabSensors").decode(frames[-1].data)
+    assert decoded["Load"] == pytest.approx(fw.force_n / 1e3, abs=1e-4)  # kN on the wire
+    assert decoded["Fault"] == 0
+    assert {f.counter for f in frames} == {0, 1, 2, 3, 4}  # its own count: no E2E counter
+
+
+def test_the_simulator_applies_the_lab_command_in_its_units():
+    fw, profile = _lab_firmware()
+    for k in range(3):
+        for frame in fw.tick(k * fw.period_s):
+            fw.sent(frame, k * fw.period_s)
+    command = profile.packer().encode(
+        "HostCommand", {"Mode": 1, "CurrentSetpoint": 0.75, "DesiredForce": 100.0}
+    )
+    t_s = 2 * fw.period_s + 0.0003  # on time: the latest frame's answer
+    parsed = fw.on_frame(0x302, command, t_s)
+    assert parsed is not None and parsed.ok
+    assert fw.command_of(parsed.values) == ("ACTIVE", pytest.approx(0.75), 2)
+    assert fw.late_commands == 0
+    frames = fw.tick(3 * fw.period_s)
+    assert fw.coil_command_a == pytest.approx(0.75)
+    # a command that comes after the next frame was due is late, by its time alone
+    fw.sent(frames[0], 3 * fw.period_s)
+    fw.on_frame(0x302, command, 3 * fw.period_s + 0.0015)
+    assert fw.late_commands == 1
+
+
+@pytest.mark.process
+@pytest.mark.long
+def test_the_demo_on_the_lab_profile_passes_and_names_the_protections_off(tmp_path, sim_model):
+    """The daemon and firmware_sim as processes on the lab layout (1 kHz, no E2E, mm and kN)
+    through the bridge: the demo's verdict, and the start-up line of each."""
+    import subprocess
+    import sys
+
+    from tests.conftest import zenoh_configs
+
+    zdaemon, zclient, _ = zenoh_configs(tmp_path)
+    text = (PROFILES / "lab-1khz.toml").read_text()
+    text = text.replace('"configs/zenoh-daemon.json5"', f'"{zdaemon}"')
+    text = text.replace('dbc = "lab-1khz.dbc"', f'dbc = "{PROFILES / "lab-1khz.dbc"}"')
+    config = tmp_path / "lab.toml"
+    config.write_text(text.replace('rig]\nname = "lab"', 'rig]\nname = "lab-test"'))
+    proc = subprocess.run(
+        [sys.executable, "-m", "mrrig", "demo", "--config", str(config), "--model", str(sim_model)]
+        + ["--sim-config", str(PROFILES / "lab-1khz-sim.toml"), "--zenoh-config", str(zclient)]
+        + ["--duration", "8", "--record", str(tmp_path / "lab.rrd")],
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    out = proc.stdout + proc.stderr
+    print(out[-4000:])
+    assert proc.returncode == 0, out[-3000:]
+    assert "demo: PASS" in out
+    starts = [
+        line for line in out.splitlines() if "CAN profile lab-1khz.dbc: protections off" in line
+    ]
+    assert len(starts) == 2, starts  # the simulator's and the daemon's
+    assert "E2E on LabSensors" in starts[-1] and "the counter echo" in starts[-1]

@@ -21,6 +21,7 @@ from firmware_sim.config import SimConfig
 from firmware_sim.firmware import Firmware, Frame
 from firmware_sim.runner import RunStats, _receive
 from mrrig.rigio.canbus import Codec, find_free_port, open_bus, start_bridge, stop_bridge
+from mrrig.rigio.canbus.profile import contract_profile
 
 REPO = Path(__file__).resolve().parents[1]
 CODEC = Codec()
@@ -146,7 +147,7 @@ def test_run_stats_count_active_commands_applied_to_a_stale_or_invalid_frame():
 def test_the_loop_counts_as_applied_only_the_active_commands_the_firmware_did_not_drop():
     """The runner's receive path: the firmware is told when each frame left; an ACTIVE answer
     to the frame before the latest is late (dropped, counted by the firmware, not applied)."""
-    fw = Firmware(SimConfig(), CODEC)
+    fw = Firmware(SimConfig(), contract_profile())
     stats = RunStats(stale_answer_age_s=0.01)
     packer = CODEC.packer("DAEMON")
     damper_id = CODEC.layout("DamperCommand").frame_id

@@ -269,10 +269,8 @@ class Daemon:
         self.period_s = cfg.loop.period_s
         # the rig profile: the DBC and its roles ([can]); the start-up line names what is off
         self.profile = load_profile(cfg.can.dbc, cfg.can.signals, cfg.loop.period_s, cfg.source)
-        log.log(
-            logging.WARNING if self.profile.protections_off else logging.INFO,
-            self.profile.startup_line(),
-        )
+        if self.profile.protections_off:
+            log.warning("%s", self.profile.startup_line())
         self.codec = self.profile.codec
         # who runs what, where and when: into the recording and the run catalog (the sidecar)
         self.identity = run_identity(cfg, self.codec.dbc_path)

@@ -1,8 +1,9 @@
 """A rig profile: the lab's DBC and the mapping of mrrig's roles to its messages and signals.
 
 `[can] dbc = "FILE"` (found beside the config file) and `[can.signals]` map each role to
-"MESSAGE.SIGNAL", or declare it "absent". Without `dbc` the profile is the CAN contract's
-(`configs/mrrig.dbc`, `DEFAULT_SIGNALS`; `[can.signals]` may still rename some). The codec
+"MESSAGE.SIGNAL", or declare it "absent"; a role left out keeps the contract's name
+(`DEFAULT_SIGNALS`) where the DBC has that signal. Without `dbc` the profile is the CAN
+contract's (`configs/mrrig.dbc`). The codec
 decodes a mapped signal under the role's key (the contract's signal name) in SI units, so the
 loop reads `values["Displacement"]` in metres whatever the layout; a sensor role the layout
 lacks reads as the value that keeps its check quiet, and the start-up line names every
@@ -229,7 +230,12 @@ def check_profile(
     except (OSError, cantools.database.UnsupportedDatabaseFormatError, ValueError) as exc:
         return None, [f"{path}: cannot read the DBC: {' '.join(str(exc).split())}"]
     problems = layout_problems(db, dbc)
-    table = dict(DEFAULT_SIGNALS, **signals) if contract else dict(signals)
+    # a role the table leaves out keeps the contract's name where the DBC has it (a DBC that
+    # is the contract's with other IDs needs no table); else it is unmapped
+    table = dict(signals)
+    for name, default in DEFAULT_SIGNALS.items():
+        if name not in table and (contract or not isinstance(_message_of(db, default), str)):
+            table[name] = default
     for name in sorted(set(table) - set(ROLES)):
         problems.append(f"{source}: can.signals.{name}: unknown role (known: {', '.join(ROLES)})")
     mapped: dict[str, Mapped] = {}
@@ -366,6 +372,11 @@ def _protections_off(p: RigProfile) -> list[str]:
         if role.protection and name not in p.mapped:
             off.append(role.protection)
     return off
+
+
+def contract_profile() -> RigProfile:
+    """The CAN contract's profile (configs/mrrig.dbc, every role in its place)."""
+    return load_profile(None, {}, None, "the CAN contract")
 
 
 def load_profile(
