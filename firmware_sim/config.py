@@ -10,9 +10,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
 
+from damper.plant_file import load_plant
 from mrrig.config import CanSection
 from mrrig.resources import resolve
-from damper.plant_file import load_plant
 from mrrig.typed_config import ConfigError, load_toml, parse
 
 FaultKind = Literal[
