@@ -212,7 +212,7 @@ class ReferenceSection:
     seed: int = 0
     path: Path | None = None  # csv
     timeout_s: float = 0.1  # zenoh: stale after this long
-    preset: str = "rig-current"  # bouc_wen
+    preset: str = "rig-current"  # bouc_wen: a preset, or a plant file (mrrig identify, .json)
     current_a: float = 0.5  # bouc_wen: the reference damper's current, A
     current_amp_a: float = 0.0
     current_freq_hz: float = 1.0

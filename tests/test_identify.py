@@ -16,6 +16,8 @@ import pytest
 from damper.plant import BoucWenParams, simulate
 from damper.plant_file import Plant, load_plant, save_plant
 from firmware_sim.config import ActuatorConfig, ConfigError, PlantConfig, load_config
+from mrrig.loop.mlp import MLP, ModelError
+from mrrig.offline.identify.command_map import model_in_amperes
 from mrrig.offline.identify.fit import Run, fit, run_force
 from tests.test_firmware import QUIET, Rig
 
@@ -118,3 +120,23 @@ def test_identify_on_the_dyke_file_block_holdout_et_at_most_0_14(tmp_path):
     cfg = tmp_path / "sim.toml"
     cfg.write_text(f'[plant]\nfile = "{out}"\n')
     assert load_config(cfg).plant.file == out
+
+
+def test_a_model_in_volts_mapped_to_amperes_gives_the_same_force_at_v_equal_k_i():
+    rng = np.random.default_rng(3)
+    names, units = ["x", "xd", "xdd", "current"], ["m", "m/s", "m/s^2", "V"]
+    meta = {"command_unit": "V", "i_max_a": 2.4, "current_range_a": [-0.4, 2.4]}
+    volts = MLP(
+        *(names, units, "force", "N", rng.normal(size=4), rng.uniform(0.5, 2, 4), 10.0, 300.0),
+        *(rng.normal(size=(5, 4)), np.zeros(5), rng.normal(size=5), 0.0),
+    )
+    volts.meta.update(meta)
+    amps = model_in_amperes(volts, 2.0)
+    X = rng.normal(size=(50, 4))
+    Xv = X.copy()
+    Xv[:, 3] *= 2.0
+    np.testing.assert_allclose(amps.predict(X), volts.predict(Xv), rtol=1e-12)
+    assert amps.input_units[3] == "A" and amps.meta["command_unit"] == "A"
+    assert amps.meta["i_max_a"] == 1.2 and volts.meta["command_unit"] == "V"
+    with pytest.raises(ModelError, match=r"meta.command_unit: expected V to map to A, found 'A'"):
+        model_in_amperes(amps, 2.0)

@@ -8,6 +8,10 @@ Table 3) or a plant file's (`--from FILE`). Et is printed per test: on `--holdou
 (tests the fit never saw), else on the last `--holdout-fraction` of each test (the block
 hold-out: optimistic, its neighbours were fitted). Writes the plant file that `firmware_sim`
 runs (`[plant] file = ...`).
+
+`mrrig identify --map-model MODEL --command-per-a K --out OUT` instead takes a forward model
+trained on such data with its command in V to the rig's amperes (v = K i, the twin's
+`[plant] command_per_a`), so that the daemon, which commands amperes, can invert it.
 """
 
 from __future__ import annotations
@@ -19,7 +23,9 @@ import sys
 from pathlib import Path
 
 from damper.plant_file import PARAM_NAMES, save_plant
-from mrrig.cli_args import COUNT, HelpFormatter, non_negative, output_file
+from mrrig.cli_args import COUNT, HelpFormatter, non_negative, output_file, positive
+from mrrig.loop.mlp import MLP
+from mrrig.offline.identify.command_map import model_in_amperes
 from mrrig.offline.identify.identify import HOLDOUT_FRACTION, identify
 
 
@@ -34,7 +40,7 @@ def _parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(
         prog="mrrig identify", description=__doc__, formatter_class=HelpFormatter
     )
-    ap.add_argument("data", nargs="+", type=Path, help="measured tests to fit (CSV, .rrd)")
+    ap.add_argument("data", nargs="*", type=Path, help="measured tests to fit (CSV, .rrd)")
     ap.add_argument(
         "--out", type=output_file, default="models/plant.json", help="plant file to write"
     )
@@ -58,6 +64,15 @@ def _parser() -> argparse.ArgumentParser:
         "--max-evaluations", type=COUNT, default=60, help="least-squares evaluations, at most"
     )
     ap.add_argument("--report", type=output_file, help="also write the report as JSON")
+    ap.add_argument(
+        "--map-model", type=Path, metavar="MODEL", help="map MODEL's command from V to A instead"
+    )
+    ap.add_argument(
+        "--command-per-a",
+        type=positive,
+        default=1.0,
+        help="with --map-model: V of the command per A of the rig (default %(default)s)",
+    )
     return ap
 
 
@@ -66,7 +81,17 @@ def _fmt(value: float | None) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    args = _parser().parse_args(argv)
+    ap = _parser()
+    args = ap.parse_args(argv)
+    if args.map_model is not None:
+        if args.data:
+            ap.error("--map-model takes no DATA")
+        mapped = model_in_amperes(MLP.load(args.map_model), args.command_per_a, str(args.map_model))
+        mapped.save(args.out)
+        print(f"wrote {args.out}: {args.map_model}'s command in A ({args.command_per_a:g} V per A)")
+        return 0
+    if not args.data:
+        ap.error("DATA: at least one file")
     progress = lambda line: print(line, flush=True)  # noqa: E731 - the CLI's progress lines
     plant, report = identify(
         args.data,

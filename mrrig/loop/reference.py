@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from damper.plant import BoucWenDamper, BoucWenParams
+from damper.plant_file import load_plant
 from damper.signals import bandlimited_noise
 from mrrig.errors import MrrigError
 from mrrig.loop import profile_csv
@@ -148,8 +149,15 @@ class BoucWenReference(ForceReference):
         current_freq_hz: float,
         dt_s: float,
     ) -> None:
+        # a preset, or a plant file (`mrrig identify`'s twin; a twin in V takes 1 V per A, as
+        # firmware_sim's [plant] command_per_a default): its force offset added
+        self._offset_n = 0.0
         try:
-            params = BoucWenParams.preset(preset)
+            if preset.endswith(".json"):
+                twin = load_plant(preset)
+                params, self._offset_n = twin.params, twin.offset_n
+            else:
+                params = BoucWenParams.preset(preset)
         except ValueError as exc:
             raise ForceReferenceError(str(exc)) from None
         self._damper = BoucWenDamper(params, substep_s=2.5e-4)
@@ -168,7 +176,7 @@ class BoucWenReference(ForceReference):
         return max(0.0, self.current_a + self.current_amp_a * math.sin(self.w * t_s))
 
     def _step(self, t_s: float, x_m: float, xd_m_s: float) -> float:
-        return self._damper.step(x_m, xd_m_s, self._current(t_s), self.dt_s)
+        return self._damper.step(x_m, xd_m_s, self._current(t_s), self.dt_s) + self._offset_n
 
     def prepare(self, t_s: float, x_m: float, xd_m_s: float) -> None:
         self._prepared_f = self._step(t_s, x_m, xd_m_s)
