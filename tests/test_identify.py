@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
 import re
 import subprocess
 import sys
@@ -18,10 +19,12 @@ from damper.plant_file import Plant, load_plant, save_plant
 from firmware_sim.config import ActuatorConfig, ConfigError, PlantConfig, load_config
 from mrrig.loop.mlp import MLP, ModelError
 from mrrig.offline.identify.command_map import model_in_amperes
-from mrrig.offline.identify.fit import Run, fit, run_force
+from mrrig.offline.identify.fit import ETA_MAX, Run, fit, run_force
+from mrrig.offline.identify.identify import identify
 from tests.test_firmware import QUIET, Rig
 
 DYKE = Path(__file__).resolve().parents[2] / "shared" / "data" / "dyke-mr-damper-ransim-u.csv"
+LAB = DYKE.parent / "labcontrol-shaking-table"
 PAPER = BoucWenParams.preset("paper-volt")
 
 
@@ -50,6 +53,19 @@ def test_the_fit_recovers_a_known_damper_from_a_perturbed_start():
     # the static force: the offset and eq. 30's k1 (x - x0) at x = 0 trade one for the other
     static = r.offset_n - r.params.k1 * r.params.x0
     assert static == pytest.approx(80.0 - PAPER.k1 * PAPER.x0, abs=5.0)
+
+
+@pytest.mark.long
+def test_constant_command_tests_leave_the_filter_within_what_the_simulator_integrates():
+    """Eq. 36's eta is not seen in constant-voltage tests (Labcontrol): without a bound the fit
+    took it to 9e7 1/s (4 min, and a twin the simulator's sub-steps cannot integrate); it stays
+    <= ETA_MAX, and Et on a held-out test is printed."""
+    tests = [LAB / f"{n}.csv" for n in ("ensaio.A.1", "ensaio1.1", "ensaio.B.1", "ensaio1.2.2")]
+    plant, report = identify(tests, [LAB / "ensaio.A.5.csv"], max_evaluations=60)
+    assert plant.params.eta <= ETA_MAX
+    held = report["tests"][-1]
+    print(f"held-out {held['file']}: Et {held['et_holdout_test']:.4f}")
+    assert math.isfinite(held["et_holdout_test"])
 
 
 def test_a_plant_file_round_trips_and_a_bad_field_is_one_line_naming_it(tmp_path):

@@ -36,6 +36,10 @@ _RK4_STABLE_H_LAMBDA = 2.0
 # parameters may move this factor from where the fit starts, at most
 SPAN = 1e6
 JAC_STEP = 1e-4  # forward difference in log space (and in the offset's scaled unit)
+MAX_SUBSTEPS = 400  # damper.plant's bound per step
+# the command's filter at most this fast (1/s): the simulator's RK4 sub-steps (1e-4 s) hold
+# h eta <= 2; a constant-command test cannot tell eta, and the fit would take it anywhere
+ETA_MAX = 2e4
 
 
 @dataclass(frozen=True)
@@ -145,7 +149,9 @@ def simulate_windows(k: tuple, w: _Windows) -> np.ndarray:
     eta_max = float(np.max(k[13]))
     speed = np.maximum(np.abs(w.xd[:, 1:]), np.abs(w.xd[:, :-1])) * w.dt[:, None]
     need = np.maximum(np.max(speed, axis=0) / travel, float(np.max(w.dt)) * eta_max / 2.0)
-    m_steps = np.maximum(1, np.ceil(need)).astype(int)
+    # at most the plant's sub-steps: a trial parameter set stiffer than that blows up (a large
+    # residual) instead of holding the fit up
+    m_steps = np.clip(np.ceil(need), 1, MAX_SUBSTEPS).astype(int)
     dt = w.dt
     with np.errstate(all="ignore"):
         for j in range(1, n_steps):
@@ -239,6 +245,8 @@ def fit(
     span = math.log(SPAN)
     lower = np.append(theta0[:-1] - span, -np.inf)
     upper = np.append(theta0[:-1] + span, np.inf)
+    upper[FREE.index("eta")] = min(upper[FREE.index("eta")], math.log(ETA_MAX))
+    theta0 = np.minimum(theta0, upper - 1e-9)
     sol = least_squares(
         obj.residuals,
         theta0,
