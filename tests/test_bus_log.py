@@ -6,6 +6,7 @@ recording (frame counts, the sensor frames' counters); `mrrig review --can-log` 
 from __future__ import annotations
 
 import base64
+import json
 import re
 import subprocess
 import sys
@@ -16,6 +17,7 @@ import pytest
 from mrrig.offline.review import read_recording
 from mrrig.rigio.canlog import check_bus_log, read_bus_log
 from tests.conftest import REPO, rig_config, start, stop
+from tests.stall_proof import explain
 from tests.test_lifecycle_errors import NO_MODEL, mrrig, one_error_line
 
 pytestmark = pytest.mark.process
@@ -40,6 +42,8 @@ def _run(tmp_path, bridge, log_name: str):
             str(rrd),
             "--can-log",
             str(log),
+            "--summary-json",
+            str(tmp_path / f"{log_name}.json"),
         ],
         cwd=REPO,
         capture_output=True,
@@ -47,26 +51,38 @@ def _run(tmp_path, bridge, log_name: str):
         timeout=120,
         check=False,
     )
-    assert proc.returncode == 0, proc.stdout + proc.stderr
+    # 1: ended in FAULT; the fixture proves each fault a stall of the machine's (the bus log
+    # holds every frame either way)
+    assert proc.returncode in (0, 1), proc.stdout + proc.stderr
     assert f"bus log: {log}" in proc.stdout
-    return rrd, log
+    return rrd, log, json.loads((tmp_path / f"{log_name}.json").read_text())
 
 
 @pytest.fixture(scope="module")
 def runs(tmp_path_factory):
-    """Two 3 s runs against firmware_sim: one with a .blf, one with a candump .log."""
+    """Two 3 s runs against firmware_sim: one with a .blf, one with a candump .log. A fault
+    of a run (a stall of this machine: no sensor frame within the timeout) must lie in a stall
+    the simulator measured (tests/stall_proof.py); any other fails the module."""
     from mrrig.rigio.canbus.bus import find_free_port, start_bridge, stop_bridge
 
     tmp = tmp_path_factory.mktemp("buslog")
     port = find_free_port()
     bridge_proc = start_bridge(port)
     channel = f"ws://127.0.0.1:{port}/"
-    sim = start(["-m", "firmware_sim", "--config", "configs/sim.toml", "-c", channel])
+    stats = tmp / "sim.json"
+    sim = start(
+        ["-m", "firmware_sim", "--config", "configs/sim.toml", "-c", channel, "--measure-echo",
+         "--stats", str(stats)]
+    )  # fmt: skip
     try:
-        yield {name: _run(tmp, channel, name) for name in ("run.blf", "run.log")}
+        runs = {name: _run(tmp, channel, name) for name in ("run.blf", "run.log")}
     finally:
         stop(sim)
         stop_bridge(bridge_proc)
+    sim_stats = json.loads(stats.read_text())
+    for _, _, summary in runs.values():
+        explain(sim_stats, summary["faults"], summary["clock_t0_s"])
+    return {name: (rrd, log) for name, (rrd, log, _) in runs.items()}
 
 
 @pytest.mark.parametrize("name", ["run.blf", "run.log"])
