@@ -230,6 +230,12 @@ class BoucWenDamper:
         self._xd = xd_m_s + x_m * 0.0
         return bouc_wen_force(self._z, self._y, self._u, self._x, self._xd, self._k)
 
+    def set_state(self, state: tuple[Num, Num, Num], x_m: Num, xd_m_s: Num) -> None:
+        """Put the damper back in the state (z, y, u) at displacement x_m and velocity xd_m_s
+        (a forward model steps ahead from its state and returns to it: mrrig.loop.twin_model)."""
+        self._z, self._y, self._u = state
+        self._x, self._xd = x_m, xd_m_s
+
     def step(self, x_m: Num, xd_m_s: Num, command: Num, dt_s: float) -> Num:
         """Advance dt_s to the displacement x_m and velocity xd_m_s, the command held.
 

@@ -54,11 +54,11 @@ def ensure_sim_model(path: Path, seed: int = 0) -> Path:
     """Train the forward network on the simulated characterization matrix if `path` is absent,
     or if it is a model of the commanded current (an older demo's): the daemon's default
     inversion wants a model of the lagged current."""
-    from mrrig.loop.mlp import MLP
+    from mrrig.loop.twin_model import load_forward_model
     from mrrig.offline.training import simulated_matrix_model
 
-    if path.is_file():
-        if MLP.load(path).meta.get("current_input") == "lagged":
+    if path.is_file():  # a network, or a twin (a plant file: eq. 36 is its lag)
+        if load_forward_model(path).meta.get("current_input") == "lagged":
             log.info("using the forward model %s", path)
             return path
         log.info("%s is a model of the commanded current: training one of the lagged current", path)

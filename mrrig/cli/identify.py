@@ -10,8 +10,9 @@ hold-out: optimistic, its neighbours were fitted). Writes the plant file that `f
 runs (`[plant] file = ...`).
 
 `mrrig identify --map-model MODEL --command-per-a K --out OUT` instead takes a forward model
-trained on such data with its command in V to the rig's amperes (v = K i, the twin's
-`[plant] command_per_a`), so that the daemon, which commands amperes, can invert it.
+trained on such data with its command in V, a network or a twin (a plant file), to the rig's
+amperes (v = K i, the twin's `[plant] command_per_a`), so that the daemon, which commands
+amperes, can invert it.
 """
 
 from __future__ import annotations
@@ -24,8 +25,8 @@ from pathlib import Path
 
 from damper.plant_file import PARAM_NAMES, save_plant
 from mrrig.cli_args import COUNT, HelpFormatter, non_negative, output_file, positive
-from mrrig.loop.mlp import MLP
-from mrrig.offline.identify.command_map import model_in_amperes
+from mrrig.loop.twin_model import TwinModel, load_forward_model
+from mrrig.offline.identify.command_map import model_in_amperes, plant_in_amperes
 from mrrig.offline.identify.identify import HOLDOUT_FRACTION, identify
 
 
@@ -86,8 +87,12 @@ def main(argv: list[str] | None = None) -> int:
     if args.map_model is not None:
         if args.data:
             ap.error("--map-model takes no DATA")
-        mapped = model_in_amperes(MLP.load(args.map_model), args.command_per_a, str(args.map_model))
-        mapped.save(args.out)
+        source = str(args.map_model)
+        model = load_forward_model(args.map_model)
+        if isinstance(model, TwinModel):
+            save_plant(plant_in_amperes(model.plant, args.command_per_a, source), args.out)
+        else:
+            model_in_amperes(model, args.command_per_a, source).save(args.out)
         print(f"wrote {args.out}: {args.map_model}'s command in A ({args.command_per_a:g} V per A)")
         return 0
     if not args.data:

@@ -24,6 +24,7 @@ from mrrig.loop.inversion import (
     gradient_inversion,
 )
 from mrrig.loop.mlp import MLP
+from mrrig.loop.twin_model import TwinModel, TwinTracker
 
 FORWARD_INPUTS = ("x", "xd", "xdd", "current")
 INVERSION_METHODS = ("exact", "gradient", "flow")  # NetworkInversion's (mrrig/loop/inversion.py)
@@ -352,6 +353,8 @@ class NetworkInversion(Controller):
 
     @classmethod
     def build(cls, s: ControllerSettings) -> Controller:
+        if isinstance(s.model, TwinModel):  # a plant file: the Bouc-Wen twin is the model
+            return TwinInversion.build(s)
         return cls(
             s.i_max,
             s.model,
@@ -633,6 +636,119 @@ class NetworkInversion(Controller):
         if self.adapt is not None:
             target = (target - self.adapt.offset0_n) / self.adapt.gain0
         self._scalar.prepare(feat, target, now)
+
+
+class TwinInversion(Controller):
+    """Network inversion with a Bouc-Wen twin (a plant file of `mrrig identify`) as the
+    forward model: the twin's state carried frame to frame on the estimated motion and the
+    commands sent, eq. 30 solved for the command through eq. 36's lag
+    (mrrig/loop/twin_model.py). The load-cell feedback and the one-step-ahead solve as
+    `NetworkInversion`'s; the solve is exact, without adaptation. Built by network_inversion
+    for a twin model."""
+
+    name = "network_inversion"
+    controller_id = 1
+    needs_model = True
+
+    @classmethod
+    def build(cls, s: ControllerSettings) -> Controller:
+        if s.method != "exact":
+            raise ValueError(f"method {s.method!r}: a twin forward model is solved exactly")
+        if s.adaptation is not None:
+            raise ValueError("adaptation: not with a twin forward model (its force is eq. 30)")
+        assert isinstance(s.model, TwinModel)
+        return cls(s.i_max, s.model, s.dt_s, s.feedback_tau_s, s.ahead)
+
+    def __init__(
+        self,
+        i_max: float,
+        model: TwinModel,
+        dt_s: float = 0.002,
+        feedback_tau_s: float | None = None,
+        ahead: bool = False,
+    ) -> None:
+        super().__init__(i_max)
+        if feedback_tau_s is not None and not feedback_tau_s >= 0:
+            raise ValueError(f"feedback_tau_s must be >= 0, got {feedback_tau_s}")
+        self.model = model
+        self.dt_s = dt_s
+        self.feedback_tau_s = feedback_tau_s
+        self.ahead = ahead
+        self.wants_next_target = ahead
+        self.reset(1)
+
+    def reset(self, batch: int = 1) -> None:
+        super().reset(batch)
+        self.lanes = [TwinTracker(self.model, self.dt_s, self.i_max) for _ in range(batch)]
+        self._residual = [0.0] * batch
+
+    def command_one(
+        self,
+        x: float,
+        xd: float,
+        xdd: float,
+        f_meas: float,
+        f_des: float,
+        f_des_next: float | None = None,
+    ) -> float:
+        # plain floats: the integrator's arithmetic on numpy scalars takes 3-4 times as long
+        nxt = None if f_des_next is None else float(f_des_next)
+        return self._lane(0, float(x), float(xd), float(xdd), float(f_meas), float(f_des), nxt)
+
+    def _lane(
+        self,
+        j: int,
+        x: float,
+        xd: float,
+        xdd: float,
+        f_meas: float,
+        f_des: float,
+        f_des_next: float | None,
+    ) -> float:
+        twin = self.lanes[j]
+        first = not twin.started
+        f_twin = twin.advance(x, xd)
+        ahead = self.ahead and f_des_next is not None
+        r = 0.0
+        if self.feedback_tau_s is not None:
+            a = self.dt_s / (self.feedback_tau_s + self.dt_s)
+            last = r = self._residual[j]
+            r += a * (f_meas - f_twin - r)
+            self._residual[j] = r
+            if ahead and not first:
+                r = 2.0 * r - last  # at the solved instant, at its last rate of change
+        if not ahead or f_des_next is None:
+            return twin.solve(f_des - r)
+        T = self.dt_s
+        # the instant the command first acts on: one period on at constant acceleration (eq. 21)
+        return twin.solve(f_des_next - r, x + xd * T + 0.5 * xdd * T * T, xd + xdd * T)
+
+    def command(self, s: ControlInput) -> np.ndarray:
+        nxt = s.f_des_next
+        return np.array(
+            [
+                self._lane(
+                    j,
+                    float(s.x[j]),
+                    float(s.xd[j]),
+                    float(s.xdd[j]),
+                    float(s.f_meas[j]),
+                    float(s.f_des[j]),
+                    None if nxt is None else float(nxt[j]),
+                )
+                for j in range(self.batch)
+            ]
+        )
+
+    def model_force(self, s: ControlInput, current: np.ndarray) -> np.ndarray:
+        """Eq. 30 at the twin's present state and the motion of `s`, with u = `current`."""
+        cur = np.asarray(current, dtype=float)
+        return np.array(
+            [
+                self.lanes[j].force(float(s.x[j]), float(s.xd[j]), float(cur[j]))
+                for j in range(cur.size)
+            ]
+        )
 
 
 @register

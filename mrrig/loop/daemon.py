@@ -58,6 +58,7 @@ from mrrig.loop.summary import (
     SummaryAccumulator,
     format_summary,
 )
+from mrrig.loop.twin_model import TwinModel, load_forward_model
 from mrrig.rigio import sdnotify
 from mrrig.rigio.canbus.bus import open_bus
 from mrrig.rigio.canbus.codec import Codec
@@ -219,14 +220,14 @@ def model_continuity(model: MLP, path: Path | None) -> float:
     return float(mu)
 
 
-def load_model(path: Path | None, source: str) -> MLP:
+def load_model(path: Path | None, source: str) -> MLP | TwinModel:
     if path is None:
         raise ModelError(f"{source}: controller.model: no model file given")
     if not Path(path).is_file():
         raise ModelError(
             f"{source}: controller.model: {path} not found (train one: mrrig train ...)"
         )
-    return MLP.load(path)
+    return load_forward_model(path)  # a network, or a twin (a plant file)
 
 
 def build_reference(r: ReferenceSection, dt_s: float) -> ref.ForceReference:

@@ -342,7 +342,7 @@ class Preparer:
         return Change("freeze_adaptation", frozen=frozen)
 
     def _set_controller(self, req: dict) -> Change:
-        from mrrig.loop.mlp import MLP
+        from mrrig.loop.twin_model import forward_model_from_text
 
         _require_not_armed(self._d.supervisor.state, "set_controller")
         name = req.get("name")
@@ -370,7 +370,7 @@ class Preparer:
         if CONTROLLERS[section.name].needs_model:
             text = self._read_model(section.model)
             try:
-                model = MLP.from_text(text, section.model)
+                model = forward_model_from_text(text, section.model)
             except ValueError as exc:
                 raise RequestError(str(exc)) from None
         try:

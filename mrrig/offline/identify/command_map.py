@@ -12,7 +12,9 @@ command range, i_max, current_range_a are mapped with it).
 from __future__ import annotations
 
 import copy
+from dataclasses import replace
 
+from damper.plant_file import Plant
 from mrrig.loop.mlp import MLP, ModelError
 
 COMMAND_COLUMN = 3  # the forward network's inputs: x, xd, xdd, command, then history
@@ -45,3 +47,18 @@ def model_in_amperes(model: MLP, command_per_a: float, source: str = "model") ->
         env["lo"][3] /= k
         env["hi"][3] /= k
     return out
+
+
+def plant_in_amperes(plant: Plant, command_per_a: float, source: str = "plant") -> Plant:
+    """A copy of a twin of a command in V whose command is in A (v = k i)."""
+    if not command_per_a > 0.0:
+        raise ValueError(f"command_per_a: must be > 0, got {command_per_a}")
+    if plant.command_unit != "V":
+        raise ModelError(
+            f"{source}: command_unit: expected V to map to A, found {plant.command_unit!r}"
+        )
+    k = command_per_a
+    p = plant.params
+    params = replace(p, c0b=p.c0b * k, c1b=p.c1b * k, alpha_b=p.alpha_b * k)  # eqs 33-35
+    identified = {**plant.identified, "command_map": {"from": "V", "command_per_a": k}}
+    return replace(plant, params=params, command_unit="A", identified=identified)
