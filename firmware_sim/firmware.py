@@ -167,13 +167,14 @@ class Actuator:
         )
 
     def motion_in_force(self) -> tuple[float, float]:
-        """`motion()` or where the ramps head, the larger of each."""
+        """`motion()` or where the ramps head, the larger of each (a sine stopping, its
+        amplitude ramping to 0, still moves at the frequency its ramp heads for)."""
         sine, rand = self._amp_sine, self._amp_rand
         peak, band = self._pending or (rand.target, self._band_hz)
         amplitude_m, frequency_hz = self.motion()
         return max(amplitude_m, sine.target + peak), max(
             frequency_hz,
-            self._freq.target if sine.target else 0.0,
+            self._freq.target if sine.target or sine.value else 0.0,
             band if peak else 0.0,
         )
 

@@ -11,8 +11,9 @@ import subprocess
 import sys
 import threading
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
+from typing import Any
 
 import can
 import pytest
@@ -167,6 +168,22 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
     if left_out:
         config.hook.pytest_deselected(items=left_out)
         items[:] = kept
+
+
+def write_json(path: Path, conf: dict) -> Path:
+    path.write_text(json.dumps(conf))
+    return path
+
+
+def wait_until(pred: Callable[[], Any], timeout_s: float = 10.0, step_s: float = 0.05) -> Any:
+    """pred()'s first true value, asked every `step_s` until `timeout_s`; else its last one."""
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        value = pred()
+        if value:
+            return value
+        time.sleep(step_s)
+    return pred()
 
 
 def zenoh_configs(tmp_path: Path) -> tuple[Path, Path, int]:

@@ -19,12 +19,12 @@ from mrrig.catalog import RunRecord, register_run
 from mrrig.loop.samples import SAMPLE_DTYPE
 from mrrig.loop.summary import summarize
 from mrrig.offline.review import read_recording
-from tests.conftest import REPO, rig_config, start, stop, zenoh_configs
-from tests.test_lifecycle_errors import NO_MODEL
+from tests.conftest import REPO
+from tests.live_rig import live_rig
 from tests.test_recording import run_events, synthetic_run, write_recording
-from tests.test_send_force import _transport_only, wait_status
+from tests.test_send_force import _transport_only
 
-RIG = "sf"  # tests.test_send_force.wait_status asks for this rig
+RIG = "api"
 
 
 def test_recording_gives_samples_events_summary_and_a_unit_named_frame(tmp_path):
@@ -74,31 +74,11 @@ def test_runs_gives_the_catalogs_runs_filtered_as_a_frame(tmp_path):
 def rig(tmp_path_factory):
     """firmware_sim and a daemon (force reference `zenoh`, telemetry at 20 Hz); yields the
     client's Zenoh config."""
-    from mrrig.rigio.canbus.bus import find_free_port, start_bridge, stop_bridge
-
     tmp = tmp_path_factory.mktemp("api")
-    port = find_free_port()
-    bridge = start_bridge(port)
-    channel = f"ws://127.0.0.1:{port}/"
-    daemon_z, client_z, _ = zenoh_configs(tmp)
-    cfg = rig_config(
-        tmp,
-        channel,
-        None,
-        rig={"name": RIG},
-        telemetry={"enabled": True, "zenoh_config": str(daemon_z), "rate_hz": 20.0},
-        reference={"kind": "zenoh", "timeout_s": 0.1},
-        **NO_MODEL,
-    )
-    sim = start(["-m", "firmware_sim", "--config", "configs/sim.toml", "-c", channel])
-    daemon = start(["-m", "mrrig", "run", "--config", str(cfg), "--record", str(tmp / "r.rrd")])
-    try:
-        wait_status(client_z)
-        yield client_z
-    finally:
-        stop(daemon)
-        stop(sim)
-        stop_bridge(bridge)
+    reference = {"kind": "zenoh", "timeout_s": 0.1}
+    record = ("--record", str(tmp / "r.rrd"))
+    with live_rig(tmp, RIG, reference=reference, daemon_args=record) as live:
+        yield live.client_z
 
 
 def settled(r: Rig, state: str, timeout_s: float = 5.0) -> dict:

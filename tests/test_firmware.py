@@ -334,6 +334,29 @@ def test_armed_motion_lists_each_active_stretch_with_the_motion_at_its_start_and
     assert rig.fw.actuator.motion()[0] < 0.040  # still on its way there
 
 
+def test_armed_motion_at_start_holds_a_frequency_ramp_still_under_way_while_stopping():
+    """Armed while the actuator stops (amplitude ramping to 0) and its frequency still ramps
+    up from an earlier command: that frequency's target is in force at arming (the ten-minute
+    bench fuzz counted such a stretch, 1.44 Hz at its start rising to 2.0 Hz, as motion
+    beyond the limits)."""
+    rig = Rig()
+    rig.actuator("SINE", 0.015, 2.0)
+    ramp_ticks = round(QUIET.actuator.ramp_s / T) + 1
+    rig.run(ramp_ticks, answer="SAFE")
+    rig.actuator("HOLD", 0.015, 2.0)  # the frequency ramps to 0
+    rig.run(ramp_ticks, answer="SAFE")
+    rig.actuator("SINE", 0.015, 2.0)  # and back up to 2 Hz
+    rig.run(ramp_ticks // 2, answer="SAFE")
+    rig.actuator("STOP", 0.0, 0.0)
+    rig.run(ramp_ticks // 4, answer="SAFE")
+    amplitude_m, frequency_hz = rig.fw.actuator.motion()
+    assert amplitude_m > 0.0 and frequency_hz < 1.9  # mid-ramp when armed
+    rig.run(ramp_ticks, answer="ACTIVE")
+    (stretch,) = rig.fw.armed_motion
+    assert stretch.frequency_max_hz == pytest.approx(2.0, abs=0.05)  # the ramp went on
+    assert stretch.frequency_at_start_hz == pytest.approx(2.0)
+
+
 def test_armed_motion_goes_on_through_a_watchdog_trip():
     """A stretch is the daemon's ARMED: a watchdog trip sends no SAFE command."""
     rig = Rig()

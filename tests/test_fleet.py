@@ -9,7 +9,6 @@ import json
 import os
 import signal
 import subprocess
-import sys
 import threading
 import time
 from pathlib import Path
@@ -20,36 +19,12 @@ import zenoh
 from mrrig.rigio import fleet
 from mrrig.rigio.canbus.bus import find_free_port, start_bridge, stop_bridge
 from mrrig.rigio.sidecar import alive_token
-from tests.conftest import REPO, rig_config, stop
+from tests.conftest import rig_config, stop, wait_until, write_json
 from tests.stall_proof import check_answers, windows
+from tests.test_lifecycle_errors import mrrig
 
 pytestmark = pytest.mark.process
 SCOUT_OFF = {"multicast": {"enabled": False}}
-
-
-def _write(path: Path, conf: dict) -> Path:
-    path.write_text(json.dumps(conf))
-    return path
-
-
-def _cli(*args: str) -> subprocess.CompletedProcess[str]:
-    return subprocess.run(
-        [sys.executable, "-m", "mrrig", *args],
-        cwd=REPO,
-        capture_output=True,
-        text=True,
-        timeout=60,
-    )
-
-
-def _wait(pred, timeout_s: float, step_s: float = 0.1):
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        value = pred()
-        if value:
-            return value
-        time.sleep(step_s)
-    return pred()
 
 
 def _try_open(conf: Path) -> zenoh.Session | None:
@@ -72,7 +47,7 @@ def test_watch_all_prints_one_line_per_rig_and_nothing_without_rigs(tmp_path: Pa
             )
         )
     )
-    conf = _write(
+    conf = write_json(
         tmp_path / "c.json5",
         {
             "mode": "client",
@@ -116,17 +91,17 @@ def test_watch_all_prints_one_line_per_rig_and_nothing_without_rigs(tmp_path: Pa
 def test_a_router_three_rigs_and_the_cli(tmp_path: Path, procs):
     port = find_free_port()
     endpoint = [f"tcp/127.0.0.1:{port}"]
-    router_conf = _write(
+    router_conf = write_json(
         tmp_path / "router.json5",
         {"mode": "router", "listen": {"endpoints": endpoint}, "scouting": SCOUT_OFF},
     )
-    client_conf = _write(
+    client_conf = write_json(
         tmp_path / "client.json5",
         {"mode": "client", "connect": {"endpoints": endpoint}, "scouting": SCOUT_OFF},
     )
     # as configs/zenoh/rig-fleet.json5: a peer listening nowhere, so that a rig may start
     # before the router (here they do)
-    rig_conf = _write(
+    rig_conf = write_json(
         tmp_path / "rig.json5",
         {
             "mode": "peer",
@@ -157,7 +132,7 @@ def test_a_router_three_rigs_and_the_cli(tmp_path: Path, procs):
                 stdout=subprocess.DEVNULL,
             )
         procs(["-m", "mrrig", "router", "--config", str(router_conf)])
-        session = _wait(lambda: _try_open(client_conf), 60, step_s=0.5)
+        session = wait_until(lambda: _try_open(client_conf), 60, step_s=0.5)
         assert session is not None, "the router never listened"
         with contextlib.closing(session):
 
@@ -165,7 +140,7 @@ def test_a_router_three_rigs_and_the_cli(tmp_path: Path, procs):
                 return [r.name for r in fleet.live_rigs(session, 0.5)]
 
             # every daemon's loop is up before its simulator starts: no frame goes unanswered
-            assert _wait(lambda: names() == ["rig1", "rig2", "rig3"], 90), names()
+            assert wait_until(lambda: names() == ["rig1", "rig2", "rig3"], 90), names()
             for name in daemons:
                 sims[name] = procs(
                     [
@@ -182,7 +157,7 @@ def test_a_router_three_rigs_and_the_cli(tmp_path: Path, procs):
                 )
             time.sleep(1.0)
 
-            listed = _cli("rigs", "--zenoh-config", str(client_conf), "--json")
+            listed = mrrig("rigs", "--zenoh-config", str(client_conf), "--json")
             assert listed.returncode == 0, listed.stderr
             rows = json.loads(listed.stdout)
             assert [r["rig"] for r in rows] == ["rig1", "rig2", "rig3"]
@@ -192,7 +167,7 @@ def test_a_router_three_rigs_and_the_cli(tmp_path: Path, procs):
             # may end rig2's ARMED state before a status is read; it cannot arm another rig)
             events = session.declare_subscriber("mrrig/*/events")
             time.sleep(0.3)
-            armed = _cli("arm", "--rig", "rig2", "--zenoh-config", str(client_conf))
+            armed = mrrig("arm", "--rig", "rig2", "--zenoh-config", str(client_conf))
             assert armed.returncode == 0, armed.stdout + armed.stderr
             assert json.loads(armed.stdout)["state"] == "ARMED"
             time.sleep(1.0)
@@ -208,12 +183,12 @@ def test_a_router_three_rigs_and_the_cli(tmp_path: Path, procs):
 
             os.kill(daemons["rig3"].pid, signal.SIGKILL)
             t_kill = time.monotonic()
-            assert _wait(lambda: "rig3" not in names(), 2.0, step_s=0.05), names()
+            assert wait_until(lambda: "rig3" not in names(), 2.0, step_s=0.05), names()
             gone_s = time.monotonic() - t_kill
             print(f"rig3 gone from the list {gone_s * 1e3:.0f} ms after SIGKILL of its daemon")
             assert names() == ["rig1", "rig2"]
             time.sleep(2.0)  # rig1 and rig2 keep running past the kill
-            table = _cli("rigs", "--zenoh-config", str(client_conf))
+            table = mrrig("rigs", "--zenoh-config", str(client_conf))
             assert [line.split()[0] for line in table.stdout.splitlines()[1:]] == ["rig1", "rig2"]
         # the simulators stop first, so every frame they sent had a daemon to answer it: each
         # frame a simulator sent on time got exactly one command (tests/stall_proof.py, rule 1)

@@ -16,7 +16,7 @@ from pathlib import Path
 import pytest
 
 from mrrig.rigio.canbus.bus import find_free_port, start_bridge, stop_bridge
-from tests.conftest import REPO, rig_config, stop
+from tests.conftest import REPO, rig_config, stop, write_json
 from tests.test_catalog import _new_pg_database, pg_server  # noqa: F401 - the fixture
 
 pytestmark = pytest.mark.process
@@ -29,11 +29,6 @@ def shared_catalog(request, tmp_path) -> str:
     if request.param == "sqlite":
         return str(tmp_path / "lab" / "catalog.sqlite")
     return _new_pg_database(request.getfixturevalue("pg_server"))
-
-
-def _write(path: Path, conf: dict) -> Path:
-    path.write_text(json.dumps(conf))
-    return path
 
 
 PLAN = """
@@ -81,16 +76,16 @@ def test_three_rigs_run_a_plan_a_fourth_client_finds_every_run_in_one_catalog(
 
     port = find_free_port()
     endpoint = [f"tcp/127.0.0.1:{port}"]
-    router = _write(
+    router = write_json(
         tmp_path / "router.json5",
         {"mode": "router", "listen": {"endpoints": endpoint}, "scouting": SCOUT_OFF},
     )
-    rig_conf = _write(
+    rig_conf = write_json(
         tmp_path / "rig.json5",
         {"mode": "peer", "listen": {"endpoints": []}, "connect": {"endpoints": endpoint},
          "scouting": SCOUT_OFF},
     )  # fmt: skip
-    client_conf = _write(
+    client_conf = write_json(
         tmp_path / "client.json5",
         {"mode": "client", "connect": {"endpoints": endpoint}, "scouting": SCOUT_OFF},
     )

@@ -8,8 +8,6 @@ from __future__ import annotations
 import contextlib
 import json
 import subprocess
-import sys
-import time
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -19,7 +17,8 @@ import zenoh
 
 from mrrig.rigio import client, fleet
 from mrrig.rigio.canbus.bus import find_free_port, start_bridge, stop_bridge
-from tests.conftest import REPO, rig_config, start, stop
+from tests.conftest import rig_config, start, stop, wait_until, write_json
+from tests.test_lifecycle_errors import mrrig
 
 pytestmark = pytest.mark.process
 RIG = "dup"
@@ -28,31 +27,6 @@ SCOUT_OFF = {"multicast": {"enabled": False}}
 
 def _endpoint(port: int) -> list[str]:
     return [f"tcp/127.0.0.1:{port}"]
-
-
-def _write(path: Path, conf: dict) -> Path:
-    path.write_text(json.dumps(conf))
-    return path
-
-
-def _cli(*args: str) -> subprocess.CompletedProcess[str]:
-    return subprocess.run(
-        [sys.executable, "-m", "mrrig", *args],
-        cwd=REPO,
-        capture_output=True,
-        text=True,
-        timeout=120,
-    )
-
-
-def _wait(pred, timeout_s: float, step_s: float = 0.2):
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        value = pred()
-        if value:
-            return value
-        time.sleep(step_s)
-    return pred()
 
 
 @dataclass
@@ -93,8 +67,8 @@ def simulated_rig(tmp_path: Path, label: str, connect: list[str] = ()) -> Iterat
     peer = {"mode": "peer", "listen": {"endpoints": _endpoint(zport)}, "scouting": SCOUT_OFF}
     if connect:
         peer["connect"] = {"endpoints": list(connect)}
-    zenoh_conf = _write(work / "zenoh.json5", peer)
-    client_conf = _write(
+    zenoh_conf = write_json(work / "zenoh.json5", peer)
+    client_conf = write_json(
         work / "client.json5",
         {"mode": "client", "connect": {"endpoints": _endpoint(zport)}, "scouting": SCOUT_OFF},
     )
@@ -122,7 +96,7 @@ def test_a_second_daemon_of_a_live_name_refuses_to_start_before_it_opens_the_bus
     with simulated_rig(tmp_path, "a") as a:
         first = a.daemon()
         try:
-            assert _wait(a.live, 60), "the first daemon never came up"
+            assert wait_until(a.live, 60), "the first daemon never came up"
             with simulated_rig(tmp_path, "b", connect=_endpoint(a.zenoh_port)) as b:
                 record = b.work / "b.rrd"
                 cmd = ["-m", "mrrig", "run", "--config", str(b.config), "--duration", "5"]
@@ -154,7 +128,7 @@ def test_two_live_daemons_of_one_name_fault_safe_and_every_client_says_so(tmp_pa
         daemons = [a.daemon(), b.daemon()]
         router = None
         try:
-            assert _wait(a.live, 60) and _wait(b.live, 60), "a daemon never came up"
+            assert wait_until(a.live, 60) and wait_until(b.live, 60), "a daemon never came up"
             for rig in (a, b):
                 assert client.status(RIG, rig.client_config, 5.0)["status"]["fault"] is None
             rport = find_free_port()
@@ -172,7 +146,7 @@ def test_two_live_daemons_of_one_name_fault_safe_and_every_client_says_so(tmp_pa
                     )
                 )
             )
-            joined = _write(
+            joined = write_json(
                 tmp_path / "joined.json5",
                 {
                     "mode": "client",
@@ -198,7 +172,7 @@ def test_two_live_daemons_of_one_name_fault_safe_and_every_client_says_so(tmp_pa
                         s["fault"] == "duplicate_rig" for s in statuses
                     )
 
-                assert _wait(both_faulted, 20), answers({"cmd": "status"})
+                assert wait_until(both_faulted, 20), answers({"cmd": "status"})
                 for status in [a["status"] for a in answers({"cmd": "status"})]:
                     assert status["state"] == "FAULT" and not status["armed"], status
                     assert "already served" in status["fault_reason"]
@@ -207,15 +181,15 @@ def test_two_live_daemons_of_one_name_fault_safe_and_every_client_says_so(tmp_pa
                     assert reply["ok"] is False and "already served" in reply["error"], reply
                 assert [a["status"]["armed"] for a in answers({"cmd": "status"})] == [False] * 2
 
-            listed = _cli("rigs", "--zenoh-config", str(joined), "--json")
+            listed = mrrig("rigs", "--zenoh-config", str(joined), "--json")
             assert listed.returncode == 1, listed.stdout + listed.stderr
             [row] = json.loads(listed.stdout)
             assert row["rig"] == RIG and row["daemons"] == 2, row
             assert f"error: rig {RIG!r} is served by 2 daemons" in listed.stderr
-            table = _cli("rigs", "--zenoh-config", str(joined))
+            table = mrrig("rigs", "--zenoh-config", str(joined))
             assert "(x2 DUPLICATE)" in table.stdout, table.stdout
             for command in ("status", "arm", "disarm"):
-                got = _cli(command, "--rig", RIG, "--zenoh-config", str(joined))
+                got = mrrig(command, "--rig", RIG, "--zenoh-config", str(joined))
                 assert got.returncode == 2, got.stdout + got.stderr
                 assert f"error: 2 daemons answered as rig {RIG!r}" in got.stderr, got.stderr
         finally:

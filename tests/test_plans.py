@@ -24,6 +24,7 @@ from mrrig.plans.plan import PlanError, load_plan
 from mrrig.plans.report import Identity, write_html, write_junit
 from mrrig.plans.runner import StepResult
 from tests.conftest import REPO, rig_config, start, stop, zenoh_configs
+from tests.live_rig import live_rig
 from tests.test_lifecycle_errors import NO_MODEL
 
 RIG = "plans"
@@ -311,47 +312,13 @@ def test_html_holds_the_identity_the_table_and_one_plot_per_step(tmp_path):
 # --- against the simulated rig -------------------------------------------------------------
 
 
-def wait_status(client_cfg, timeout_s: float = 120.0, rig: str = RIG) -> dict:
-    from mrrig.rigio import client
-
-    deadline = time.monotonic() + timeout_s
-    while True:
-        try:
-            return client.status(rig, client_cfg, 1.0)["status"]
-        except client.ClientError:
-            if time.monotonic() > deadline:
-                raise
-            time.sleep(0.5)
-
-
 @pytest.fixture(scope="module")
 def rig(tmp_path_factory):
     """firmware_sim and a daemon (constant controller, telemetry); yields the client's Zenoh
     config."""
-    from mrrig.rigio.canbus.bus import find_free_port, start_bridge, stop_bridge
-
     tmp = tmp_path_factory.mktemp("plans")
-    port = find_free_port()
-    bridge = start_bridge(port)
-    channel = f"ws://127.0.0.1:{port}/"
-    daemon_z, client_z, _ = zenoh_configs(tmp)
-    cfg = rig_config(
-        tmp,
-        channel,
-        None,
-        rig={"name": RIG},
-        telemetry={"enabled": True, "zenoh_config": str(daemon_z), "rate_hz": 50.0},
-        **NO_MODEL,
-    )
-    sim = start(["-m", "firmware_sim", "--config", "configs/sim.toml", "-c", channel])
-    daemon = start(["-m", "mrrig", "run", "--config", str(cfg), "--no-record"])
-    try:
-        wait_status(client_z)
-        yield client_z
-    finally:
-        stop(daemon)
-        stop(sim)
-        stop_bridge(bridge)
+    with live_rig(tmp, RIG, rate_hz=50.0, daemon_args=("--no-record",)) as live:
+        yield live.client_z
 
 
 @pytest.mark.process
@@ -554,35 +521,15 @@ RECORDED = "plans-rec"
 def recorded(tmp_path_factory):
     """The two-step plan run by `mrrig test` on a daemon that records, then stopped: (the
     recording, what the daemon printed, what `mrrig test` printed)."""
-    from mrrig.rigio.canbus.bus import find_free_port, start_bridge, stop_bridge
-
     tmp = tmp_path_factory.mktemp("recorded")
-    port = find_free_port()
-    bridge = start_bridge(port)
-    channel = f"ws://127.0.0.1:{port}/"
-    daemon_z, client_z, _ = zenoh_configs(tmp)
-    cfg = rig_config(
-        tmp,
-        channel,
-        None,
-        rig={"name": RECORDED},
-        telemetry={"enabled": True, "zenoh_config": str(daemon_z), "rate_hz": 50.0},
-        **NO_MODEL,
-    )
     rrd, printed = tmp / "run.rrd", tmp / "daemon.txt"
-    sim = start(["-m", "firmware_sim", "--config", "configs/sim.toml", "-c", channel])
-    with printed.open("w") as out:
-        daemon = start(
-            ["-m", "mrrig", "run", "--config", str(cfg), "--record", str(rrd)], stdout=out
-        )
-    try:
-        wait_status(client_z, rig=RECORDED)
+    record = ("--record", str(rrd))
+    with (
+        printed.open("w") as out,
+        live_rig(tmp, RECORDED, rate_hz=50.0, daemon_args=record, daemon_stdout=out) as live,
+    ):
         plan = write(tmp, PLAN.format(d1=1))
-        ran = mrrig("test", str(plan), "--rig", RECORDED, "--zenoh-config", str(client_z))
-    finally:
-        stop(daemon)
-        stop(sim)
-        stop_bridge(bridge)
+        ran = mrrig("test", str(plan), "--rig", RECORDED, "--zenoh-config", str(live.client_z))
     assert ran.returncode == 1, ran.stdout + ran.stderr  # step 2's Et criterion
     return rrd, printed.read_text(), ran.stdout
 

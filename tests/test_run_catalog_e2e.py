@@ -245,7 +245,7 @@ def test_each_tune_trial_is_a_run_in_the_catalog(tmp_path, bridge, procs, sim_mo
     from mrrig.api import Rig, runs
     from mrrig.tune import Candidate
     from mrrig.tune.trials import DEFAULT_PROFILE, run_trials
-    from tests.test_plans import wait_status
+    from tests.live_rig import wait_status
 
     procs(
         ["-m", "firmware_sim", "--config", "configs/sim.toml", "--bus-channel", bridge],

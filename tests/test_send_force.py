@@ -20,9 +20,10 @@ from mrrig.loop.safety import TRANSPORT_FAULTS
 from mrrig.loop.samples import RigState
 from mrrig.offline.review import read_recording
 from mrrig.rigio import client
-from tests.conftest import REPO, rig_config, start, stop, zenoh_configs
+from tests.conftest import REPO, stop, zenoh_configs
+from tests.live_rig import live_rig, wait_status
 from tests.stall_proof import explain
-from tests.test_lifecycle_errors import NO_MODEL, one_error_line
+from tests.test_lifecycle_errors import one_error_line
 
 pytestmark = pytest.mark.process
 RIG = "sf"
@@ -50,50 +51,22 @@ def send_force(client_cfg: Path, *args: str) -> subprocess.CompletedProcess:
     )
 
 
-def wait_status(client_cfg: Path, timeout_s: float = 120.0) -> dict:
-    deadline = time.monotonic() + timeout_s
-    while True:
-        try:
-            return client.status(RIG, client_cfg, 1.0)["status"]
-        except client.ClientError:
-            if time.monotonic() > deadline:
-                raise
-            time.sleep(0.5)
-
-
 @pytest.fixture(scope="module")
 def rig(tmp_path_factory):
     """firmware_sim and a daemon whose force reference is `zenoh` (0.1 s stale timeout), with
-    telemetry and a recording; yields (client config, recording path). At the end, every fault
-    but the stale references the tests make lies inside a stall the simulator measured."""
-    from mrrig.rigio.canbus.bus import find_free_port, start_bridge, stop_bridge
-
+    telemetry and a recording; yields (client config, recording path, daemon). At the end,
+    every fault but the stale references the tests make lies inside a stall the simulator
+    measured."""
     tmp = tmp_path_factory.mktemp("sendforce")
-    port = find_free_port()
-    bridge = start_bridge(port)
-    channel = f"ws://127.0.0.1:{port}/"
-    daemon_z, client_z, _ = zenoh_configs(tmp)
-    cfg = rig_config(
-        tmp,
-        channel,
-        None,
-        rig={"name": RIG},
-        telemetry={"enabled": True, "zenoh_config": str(daemon_z), "rate_hz": 20.0},
-        reference={"kind": "zenoh", "timeout_s": 0.1},  # the README's
-        **NO_MODEL,
-    )
     rrd, summary, stats = tmp / "run.rrd", tmp / "summary.json", tmp / "sim.json"
-    sim = start(["-m", "firmware_sim", "--config", "configs/sim.toml", "-c", channel,
-                 "--measure-echo", "--stats", str(stats)])  # fmt: skip
-    daemon = start(["-m", "mrrig", "run", "--config", str(cfg), "--record", str(rrd),
-                    "--summary-json", str(summary)])  # fmt: skip
-    try:
-        wait_status(client_z)
-        yield client_z, rrd, daemon
-    finally:
-        stop(daemon)
-        stop(sim)
-        stop_bridge(bridge)
+    with live_rig(
+        tmp,
+        RIG,
+        reference={"kind": "zenoh", "timeout_s": 0.1},  # the README's
+        sim_args=("--measure-echo", "--stats", str(stats)),
+        daemon_args=("--record", str(rrd), "--summary-json", str(summary)),
+    ) as live:
+        yield live.client_z, rrd, live.daemon
     s = json.loads(summary.read_text())
     faults = [f for f in s["faults"] if not f["reason"].startswith("stale force reference")]
     explain(json.loads(stats.read_text()), faults, s["clock_t0_s"])
@@ -123,7 +96,7 @@ def test_a_daemon_whose_reference_is_not_zenoh_is_refused(rig):
         line = one_error_line(proc)
         assert "force reference is 'constant', not 'zenoh'" in line
         assert puts == []  # nothing was sent
-        assert wait_status(client_z)["state"] != "ARMED"
+        assert wait_status(client_z, rig=RIG)["state"] != "ARMED"
     finally:
         session.close()
         reply = client.request(
@@ -138,13 +111,13 @@ def _transport_only(faults: list[str]) -> bool:
 
 def test_profile_arms_after_delivery_ramps_to_zero_and_disarms(rig, tmp_path):
     client_z, _, _ = rig
-    before = wait_status(client_z)
+    before = wait_status(client_z, rig=RIG)
     assert before["state"] != "ARMED"
     csv = tmp_path / "profile.csv"
     csv.write_text(PROFILE)
     proc = send_force(client_z, "--csv", str(csv), "--arm", "--rate", "100", "--ramp", "0.5")
     out = proc.stdout
-    after = wait_status(client_z)
+    after = wait_status(client_z, rig=RIG)
     if proc.returncode == 1 and "faulted while streaming" in out:
         faults = out.rsplit("faulted while streaming: ", 1)[1].strip().split("; ")
         # a stall's fault: the rig fixture proves it against the simulator's stall windows
@@ -164,7 +137,7 @@ def test_profile_arms_after_delivery_ramps_to_zero_and_disarms(rig, tmp_path):
     deadline = time.monotonic() + 2.0
     while after["force_refs_received"] < expected and time.monotonic() < deadline:
         time.sleep(0.05)
-        after = wait_status(client_z)
+        after = wait_status(client_z, rig=RIG)
     assert after["force_refs_received"] == expected, after
 
 
@@ -180,7 +153,7 @@ def test_arm_after_a_fault_needs_reset_but_a_transport_fault_is_reset_with_a_wor
         pytest.skip("a transport fault during the profile (proved at the end)")
     assert proc.returncode == 0, proc.stdout + proc.stderr
     time.sleep(0.5)
-    assert wait_status(client_z)["fault"] == "stale_reference"
+    assert wait_status(client_z, rig=RIG)["fault"] == "stale_reference"
     line = one_error_line(send_force(client_z, "--sine", "0", "0", "1", "--duration", "0.3",
                                      "--arm"))  # fmt: skip
     assert "arming refused: cannot arm: in FAULT (stale_reference: " in line, line
@@ -209,7 +182,7 @@ def test_no_disarm_leaves_the_daemon_armed(rig, tmp_path):
     # armed, until the reference goes stale (0.1 s after the ramp): nothing else feeds it
     assert status["state"] == "ARMED" or status["fault"] == "stale_reference", status
     time.sleep(1.0)
-    assert wait_status(client_z)["fault"] == "stale_reference"
+    assert wait_status(client_z, rig=RIG)["fault"] == "stale_reference"
     # the recording: the ramp's last armed frames ask for about 0 N
     stop(daemon)
     rec = read_recording(rrd)

@@ -13,7 +13,7 @@ import socket
 import subprocess
 import threading
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -30,7 +30,7 @@ from mrrig.rigio.ipc import LoopEnd, Msg, SidecarEnd, make_channel
 from mrrig.rigio.recording import Recorder
 from mrrig.rigio.sidecar import JSON, Sidecar, keys, start_sidecar
 from mrrig.rigio.zenoh_config import INSECURE_WARNING, load_zenoh_config, local_config
-from tests.conftest import zenoh_configs
+from tests.conftest import wait_until, zenoh_configs
 
 pytestmark = pytest.mark.process
 
@@ -47,18 +47,8 @@ def _collect(sub: zenoh.Subscriber, n: int, timeout_s: float = 10.0) -> list[Any
             got.append(json.loads(sample.payload.to_bytes()))
         return len(got) >= n
 
-    _wait_for(more, timeout_s)
+    wait_until(more, timeout_s)
     return got
-
-
-def _wait_for(pred: Callable[[], Any], timeout_s: float = 10.0, step_s: float = 0.01) -> Any:
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        value = pred()
-        if value:
-            return value
-        time.sleep(step_s)
-    return pred()
 
 
 @dataclass
@@ -76,7 +66,7 @@ class Rig:
         def got() -> Any:
             return next((p for m, p in self.loop.poll() if m == mtype), None)
 
-        return _wait_for(got, timeout_s)
+        return wait_until(got, timeout_s)
 
 
 @contextlib.contextmanager
@@ -89,13 +79,13 @@ def running_sidecar(tmp_path: Path, record: Path | None = None) -> Iterator[Rig]
     assert loop.wait_ready(30.0) is None  # as the daemon waits before its loop starts
     client_config = local_config("client", connect=[f"tcp/127.0.0.1:{port}"])
     # the sidecar may still be opening its listener: retry until it accepts
-    observer = _wait_for(
+    observer = wait_until(
         lambda: _try_open(local_config("client", connect=[f"tcp/127.0.0.1:{port}"]))
     )
     r = Rig(proc, loop, observer, client_config)
     try:
         assert observer, "could not connect to the sidecar"
-        assert _wait_for(r.alive_tokens), "sidecar never declared its liveliness token"
+        assert wait_until(r.alive_tokens), "sidecar never declared its liveliness token"
         yield r
     finally:
         r.loop.send_stop()
@@ -152,7 +142,7 @@ def test_samples_arrive_as_json_telemetry_with_equal_values(rig: Rig):
                 got[name] += msg["fields"][name]
         return len(got["t"]) >= arr.size
 
-    assert _wait_for(collect, step_s=0.001)
+    assert wait_until(collect, step_s=0.001)
     sub.undeclare()
     assert encodings == {"application/json"}
     for name in FIELDS:
@@ -165,7 +155,7 @@ def test_non_finite_telemetry_values_are_sent_as_null(rig: Rig):
     arr = _samples(3)
     arr["f_model"] = [1.5, math.nan, math.inf]
     rig.loop.send_samples(arr)
-    sample = _wait_for(sub.try_recv)
+    sample = wait_until(sub.try_recv)
     sub.undeclare()
     assert json.loads(sample.payload.to_bytes())["fields"]["f_model"] == [1.5, None, None]
 
@@ -182,7 +172,7 @@ def _answer_one_request(loop: LoopEnd, seen: list[dict[str, Any]]) -> None:
                 return True
         return False
 
-    _wait_for(answer, timeout_s=5.0, step_s=0.002)
+    wait_until(answer, timeout_s=5.0, step_s=0.002)
 
 
 def test_control_query_is_forwarded_as_request_and_the_loops_reply_returned(rig: Rig):
@@ -245,7 +235,7 @@ def test_status_is_answered_to_a_query_once_there_is_one(rig: Rig):
 
     assert status() == []
     rig.loop.send_status({"state": "IDLE", "controller": "constant"})
-    assert _wait_for(status) == [{"state": "IDLE", "controller": "constant"}]
+    assert wait_until(status) == [{"state": "IDLE", "controller": "constant"}]
 
 
 def test_an_insecure_sidecar_warns_in_every_status_and_the_recording(tmp_path: Path):
@@ -266,12 +256,12 @@ def test_an_insecure_sidecar_warns_in_every_status_and_the_recording(tmp_path: P
         thread.start()
         time.sleep(0.3)
         loop.send_status({"state": "IDLE"})
-        published = json.loads(_wait_for(sub.try_recv).payload.to_bytes())
+        published = json.loads(wait_until(sub.try_recv).payload.to_bytes())
         assert published.pop("recording")["path"] == str(path)  # what this process writes
         assert published == {"state": "IDLE", "security_warning": [warning]}
         sub.undeclare()
         player = threading.Thread(
-            target=lambda: _wait_for(
+            target=lambda: wait_until(
                 lambda: [
                     loop.send_reply({"id": p["id"], "ok": True, "status": {"state": "IDLE"}})
                     for m, p in loop.poll()
@@ -344,10 +334,10 @@ def test_status_is_published_on_change_and_repeated_every_second(rig: Rig):
     status = {"state": "IDLE", "armed": False}
     rig.loop.send_status(status)
     rig.loop.send_status(status)  # unchanged: not published again at once
-    first = _wait_for(sub.try_recv)
+    first = wait_until(sub.try_recv)
     t_first = time.monotonic()
     assert json.loads(first.payload.to_bytes()) == status
-    repeat = _wait_for(sub.try_recv, timeout_s=3.0)
+    repeat = wait_until(sub.try_recv, timeout_s=3.0)
     sub.undeclare()
     assert json.loads(repeat.payload.to_bytes()) == status
     assert time.monotonic() - t_first > 0.5  # the repeat, not the duplicate
@@ -358,7 +348,7 @@ def test_liveliness_token_is_gone_after_stop(rig: Rig):
     assert token.startswith(f"mrrig/{RIG}/alive/")
     rig.loop.send_stop()
     assert rig.proc.wait(timeout=10) == 0
-    assert _wait_for(lambda: not rig.alive_tokens(), timeout_s=5.0)
+    assert wait_until(lambda: not rig.alive_tokens(), timeout_s=5.0)
 
 
 @pytest.mark.parametrize("signum", [signal.SIGTERM, signal.SIGINT])
@@ -404,7 +394,7 @@ def test_streamed_csv_profile_reaches_the_loop_in_order(rig: Rig, tmp_path: Path
         sent = force_stream.stream(pub, lambda k: fn(k / 50) if k < n else None, 50.0)
         pub.undeclare()
     forces = []
-    _wait_for(
+    wait_until(
         lambda: (
             forces.extend(p[0] for m, p in rig.loop.poll() if m == Msg.FORCE_REF)
             or len(forces) >= sent

@@ -179,7 +179,7 @@ def test_a_trial_aborted_by_a_transport_fault_runs_again_and_a_faulted_trial_is_
     from mrrig.rigio.canbus.bus import find_free_port, start_bridge, stop_bridge
     from mrrig.tune.trials import DEFAULT_PROFILE, run_trials
     from tests.conftest import start, stop
-    from tests.test_plans import wait_status
+    from tests.live_rig import wait_status
 
     silent_s = 25.0  # since the simulator's clock started: after the daemon is up
     model = tmp_path / "model.json"

@@ -37,6 +37,21 @@ class SimError(MrrigError, RuntimeError):
     """--sim: the simulated rig did not start."""
 
 
+def add_sim_arguments(ap: argparse.ArgumentParser) -> None:
+    """--sim and the two configs it starts the simulated rig with (`simulated_rig`)."""
+    ap.add_argument(
+        "--sim",
+        action="store_true",
+        help="start the simulated rig first (bridge, firmware_sim, daemon) and stop it after",
+    )
+    ap.add_argument(
+        "--config", type=Path, default=Path("configs/rig.toml"), help="--sim: the daemon's config"
+    )
+    ap.add_argument(
+        "--sim-config", type=Path, default=Path("configs/sim.toml"), help="--sim: the simulator's"
+    )
+
+
 @contextlib.contextmanager
 def simulated_rig(
     config: Path, sim_config: Path, zenoh_config: Path, adaptation: str | None = None
@@ -114,17 +129,7 @@ def main(argv: list[str] | None = None) -> int:
     )
     ap.add_argument("--junit", type=Path, help="write a JUnit XML report here")
     ap.add_argument("--html", type=Path, help="write a self-contained HTML report here")
-    ap.add_argument(
-        "--sim",
-        action="store_true",
-        help="start the simulated rig first (bridge, firmware_sim, daemon) and stop it after",
-    )
-    ap.add_argument(
-        "--config", type=Path, default=Path("configs/rig.toml"), help="--sim: the daemon's config"
-    )
-    ap.add_argument(
-        "--sim-config", type=Path, default=Path("configs/sim.toml"), help="--sim: the simulator's"
-    )
+    add_sim_arguments(ap)
     ap.add_argument(
         "--adaptation",
         choices=("on", "off"),

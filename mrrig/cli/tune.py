@@ -22,6 +22,7 @@ import contextlib
 import signal
 from pathlib import Path
 
+from mrrig.cli.test import add_sim_arguments
 from mrrig.cli_args import HelpFormatter
 from mrrig.rigio import client
 
@@ -73,17 +74,7 @@ def main(argv: list[str] | None = None) -> int:
         action="store_true",
         help="run the trials and print the choice, but write nothing into the model or config",
     )
-    ap.add_argument(
-        "--sim",
-        action="store_true",
-        help="start the simulated rig first (bridge, firmware_sim, daemon) and stop it after",
-    )
-    ap.add_argument(
-        "--config", type=Path, default=Path("configs/rig.toml"), help="--sim: the daemon's config"
-    )
-    ap.add_argument(
-        "--sim-config", type=Path, default=Path("configs/sim.toml"), help="--sim: the simulator's"
-    )
+    add_sim_arguments(ap)
     args = ap.parse_args(argv)
     if not (0 < args.duration <= 600 and 0 <= args.settle <= 60):
         ap.error("--duration: (0, 600] s; --settle: [0, 60] s")
