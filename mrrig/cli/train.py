@@ -6,9 +6,13 @@ that name field and unit (`x_cm`, `command_v`). Bad stretches (saturation, idle,
 are excluded unless `--keep-all`; the end of each run is held out (`--split blocks`);
 `--features auto` (default where the command changes within runs) chooses the inputs and the
 hidden size by cross-validation on the training blocks: over whole tests where several are
-given (a file is a test), else over time blocks. The block hold-out is optimistic (its
-neighbours were trained on): the report puts the other-test estimate beside it (leave one
-test out, `--cv-folds`) and the Et of tests kept out altogether (`--validate FILES`).
+given (a file is a test), else over time blocks; then the kind of model among the static MLP,
+the history MLP and the Bouc-Wen twin, by leaving whole tests out (the block hold-out of a
+single test, labelled optimistic), within the loop's work per frame. A twin chosen is written
+as a plant file, the forward model network inversion inverts and firmware_sim runs. The
+block hold-out is optimistic (its neighbours were trained on): the report puts the
+other-test estimate beside it (leave one test out, `--cv-folds`) and the Et of tests kept out
+altogether (`--validate FILES`).
 Writes the model file and prints the validation report (spec/modeling.md section 5).
 `--history N` adds N earlier samples of `--history-signals` (default x,xd) to the forward
 network's inputs.
@@ -20,15 +24,17 @@ from __future__ import annotations
 import argparse
 import logging
 import sys
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from damper.plant_file import PARAM_NAMES, save_plant
 from mrrig import json_text
 from mrrig.cli_args import COUNT, SEED, HelpFormatter, output_file, positive
 from mrrig.loop.mlp import MIN_SCALE, ModelError
-from mrrig.offline.datasets import DataError
+from mrrig.offline.datasets import DataError, Series
 from mrrig.offline.evaluate import evaluate, format_coverage
 from mrrig.offline.train_config import TrainConfig, load_train_config
 from mrrig.offline.training import (
@@ -39,6 +45,7 @@ from mrrig.offline.training import (
     train_and_validate,
 )
 from mrrig.offline.training.crossval import MAX_FOLDS, SEGMENTS, cross_validate
+from mrrig.offline.training.kinds import TWIN, ModelKind, choose_kind, model_kinds, twin_result
 from mrrig.offline.training.report import MetricError, check_finite
 from mrrig.offline.training.select import choose_features, command_varies
 from mrrig.offline.training.stream import sample_tests, training_subset
@@ -151,6 +158,23 @@ def format_search(fs: dict[str, Any] | None) -> list[str]:
     return lines
 
 
+def format_kinds(k: dict[str, Any] | None) -> list[str]:
+    """The kind of model chosen (`kinds.choose_kind`): every kind's Et and work per frame."""
+    if k is None:
+        return []
+    lines = [f"kind of model: {k['method']}"]
+    for c in k["kinds"]:
+        budget = "" if c["in_budget"] else f" (over the {k['budget_us']:.0f} us budget)"
+        lines.append(
+            f"  Et {c['et']:.4f}  work per frame {c['frame_cost_us']:5.0f} us"
+            f"  {c['kind']}: {c['label']}{budget} ({c['seconds']:.0f} s)"
+        )
+    lines += [f"  not tried: {name} ({why})" for name, why in k["not_tried"].items()]
+    ch = k["chosen"]
+    lines.append(f"  chosen: {ch['kind']}, {ch['why']}")
+    return lines
+
+
 def format_other_tests(cv: dict[str, Any] | None) -> list[str]:
     """The other-test estimate (`crossval.cross_validate`): Et per left-out test and overall."""
     if cv is None:
@@ -198,6 +222,7 @@ def format_report(r: dict[str, Any]) -> str:
     lines = [
         *format_excluded(r.get("excluded")),
         *format_search(r.get("features_search")),
+        *format_kinds(r.get("kinds")),
         f"split: {r['split']['rule']} (seed {r['split']['seed']})",
         f"command input ({unit}): {r['current_input']}"
         + (f" (lag tau {r['lag_tau_s'] * 1e3:.2f} ms)" if r["lag_tau_s"] else ""),
@@ -297,7 +322,8 @@ def _parser(cfg: TrainConfig) -> argparse.ArgumentParser:
         choices=("auto", "manual"),
         default=f.mode,
         help="auto: choose the command input (lag fitted), history and hidden size by blocked "
-        "cross-validation on the training blocks; manual: the flags below. Default: auto "
+        "cross-validation on the training blocks, then the kind of model (static MLP, history "
+        "MLP, Bouc-Wen twin) by its Et on tests left out; manual: the flags below. Default: auto "
         "where the command changes within runs, manual where it is held per run (the "
         "characterization matrix) or where --current-input or --history is given",
     )
@@ -442,6 +468,59 @@ def _check_files(data: list[Path], validate: list[Path] | None) -> None:
             )
 
 
+def _write_twin(
+    args: argparse.Namespace,
+    kind: ModelKind,
+    series: Series,
+    excluded: dict[str, Any],
+    search: dict[str, Any],
+    kinds_report: dict[str, Any],
+    columns: dict[str, str] | None,
+    units: dict[str, str] | None,
+) -> int:
+    """The chosen twin: fitted to the training rows, written as the plant file the daemon
+    inverts (network inversion with `model` = the file) and firmware_sim runs."""
+    validate = [
+        (str(p), training_subset([p], columns or None, units or None, args.keep_all)[0])
+        for p in args.validate or []
+    ]
+    plant, twin = twin_result(kind, series, args.holdout_fraction, validate)
+    identified = {
+        "kinds": kinds_report,
+        **twin,
+        "data_files": [str(p) for p in args.data],
+        "excluded": excluded,
+        "features_search": search,
+    }
+    save_plant(replace(plant, identified=json_text.plain(identified)), args.out)
+    if args.report:
+        args.report.write_text(json_text.dumps(identified, indent=2), encoding="utf-8")
+    b = twin["block_holdout"]
+    lines = [
+        *format_excluded(excluded),
+        *format_search(search),
+        *format_kinds(kinds_report),
+        f"twin Et on the block hold-out (the last {args.holdout_fraction:.0%} of each run):"
+        f" {b['et']:.4f} (RMSE {b['rmse_n']:.2f} N)  [optimistic: beside the rows fitted]",
+    ]
+    v = twin["validate"]
+    if v is not None:
+        lines.append("validation tests (--validate: never fitted nor chosen by):")
+        lines += [f"  {t['file']}: Et {t['et']:.4f} ({t['n']} rows)" for t in v["per_test"]]
+        lines.append(f"  overall Et {v['forward']['et']:.4f}")
+    p = plant.params
+    lines += [
+        "parameters: "
+        + ", ".join(f"{k} {getattr(p, k):.5g}" for k in PARAM_NAMES)
+        + f", offset_n {plant.offset_n:.5g}, command in {plant.command_unit}",
+        f"wrote {args.out}: a plant file, the forward model network inversion inverts"
+        f' ([controller] model = "{args.out}"; a twin in V: mrrig identify --map-model) and'
+        " firmware_sim runs ([plant] file)",
+    ]
+    print("\n".join(lines))
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
     # the config first: its values become the flags' defaults, so a flag given wins over it
     pre = argparse.ArgumentParser(add_help=False)
@@ -480,9 +559,34 @@ def main(argv: list[str] | None = None) -> int:
                 f" (standard deviation {spread:.3g}): no model can be fitted to it"
             )
     mode = args.features or ("manual" if manual_flags or not command_varies(series) else "auto")
-    search = None
+    search = kinds_report = cv = None
     if mode == "auto":
         cand, search = choose_features(series, args.seed, args.holdout_fraction, tests=tests)
+        i_max = args.i_max or max(float(np.max(series.current)), MIN_SCALE)
+        kinds, cands, left_out = model_kinds(
+            series,
+            search,
+            seed=args.seed,
+            max_epochs=args.epochs,
+            holdout_fraction=args.holdout_fraction,
+            i_max=i_max,
+        )
+        best, kinds_report = choose_kind(
+            series,
+            tests,
+            test_names,
+            kinds,
+            holdout_fraction=args.holdout_fraction,
+            max_folds=args.cv_folds or MAX_FOLDS,
+            seed=args.seed,
+            not_built=left_out,
+        )
+        if best.name == TWIN:
+            kind = next(k for k in kinds if k.name == TWIN)
+            return _write_twin(args, kind, series, excluded, search, kinds_report, columns, units)
+        cand = cands[best.name]
+        if args.cv_folds and args.split == "blocks":
+            cv = best.other_tests  # the other-test estimate of the chosen kind, as computed
         current_input, lag_tau_s = cand.current_input, cand.lag_tau_s
         history_samples, history_signals = cand.history_samples, cand.history_signals
         history_stride, hidden = cand.history_stride, cand.hidden
@@ -519,7 +623,7 @@ def main(argv: list[str] | None = None) -> int:
     except MetricError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 1
-    if args.cv_folds:
+    if args.cv_folds and cv is None:
         options = dict(
             current_input=current_input,
             lag_tau_s=lag_tau_s,
@@ -540,6 +644,7 @@ def main(argv: list[str] | None = None) -> int:
             seed=args.seed,
             max_epochs=args.epochs,
         )
+    if cv is not None:
         report["other_tests"] = cv
         fwd.meta["other_tests"] = {k: v for k, v in cv.items() if k != "per_group"} | {
             "et": {r[cv["kind"]]: r["et"] for r in cv["per_group"]}
@@ -548,10 +653,12 @@ def main(argv: list[str] | None = None) -> int:
     report["excluded"] = excluded
     report["features_mode"] = mode
     report["features_search"] = search
+    report["kinds"] = kinds_report
     fwd.meta["excluded"] = excluded
     fwd.meta["features_mode"] = mode
     if search is not None:
         fwd.meta["features_search"] = search
+        fwd.meta["kinds"] = kinds_report
     fwd.meta["data_files"] = [str(p) for p in args.data]
     if config_path is not None:
         fwd.meta["train_config"] = str(config_path)

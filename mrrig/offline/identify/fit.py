@@ -178,8 +178,15 @@ class _Objective:
     """theta (log of the FREE parameters, then the offset over the force's spread) to the
     scored rows' residuals over the force's spread, for one or a batch of theta."""
 
-    def __init__(self, start: BoucWenParams, w: _Windows, progress: Callable[[str], None]):
+    def __init__(
+        self,
+        start: BoucWenParams,
+        w: _Windows,
+        progress: Callable[[str], None],
+        free: tuple[str, ...] = FREE,
+    ):
         self.start = start
+        self.free = free
         self.w = w
         self.target = w.force[w.scored]
         self.sigma = float(np.std(self.target)) or 1.0
@@ -189,17 +196,17 @@ class _Objective:
         self.t0 = time.monotonic()
 
     def theta0(self, offset_n: float) -> np.ndarray:
-        return np.append(np.log([getattr(self.start, n) for n in FREE]), offset_n / self.sigma)
+        return np.append(np.log([getattr(self.start, n) for n in self.free]), offset_n / self.sigma)
 
     def params(self, theta: np.ndarray) -> tuple[BoucWenParams, float]:
-        values = dict(zip(FREE, np.exp(theta[: len(FREE)]).tolist(), strict=True))
+        values = dict(zip(self.free, np.exp(theta[: len(self.free)]).tolist(), strict=True))
         return replace(self.start, **values), float(theta[-1]) * self.sigma
 
     def batch(self, thetas: np.ndarray) -> np.ndarray:
         """(P, rows) residuals for P parameter vectors."""
         base = np.array(astuple(self.start), dtype=float)
         k = np.tile(base, (thetas.shape[0], 1))
-        for c, name in enumerate(FREE):
+        for c, name in enumerate(self.free):
             k[:, PARAM_NAMES.index(name)] = np.exp(thetas[:, c])
         force = simulate_windows(tuple(k[:, [c]] for c in range(k.shape[1])), self.w)
         r = (force[:, self.w.scored] + thetas[:, [-1]] * self.sigma - self.target) / self.sigma
@@ -233,19 +240,22 @@ def fit(
     burn_in_s: float = 0.2,
     max_evaluations: int = 60,
     progress: Callable[[str], None] = log.info,
+    free: tuple[str, ...] = FREE,
 ) -> FitResult:
-    """Least-squares fit of the FREE parameters and the force offset to the runs' force on
-    `fit_rows` (a bool mask per run), from `start` (and `offset_n`)."""
+    """Least-squares fit of the `free` parameters (of FREE) and the force offset to the runs'
+    force on `fit_rows` (a bool mask per run), from `start` (and `offset_n`); the others stay
+    at `start`'s."""
     t0 = time.monotonic()
     w = windows(runs, fit_rows, window_s, burn_in_s)
-    obj = _Objective(start, w, progress)
+    obj = _Objective(start, w, progress, free)
     theta0 = obj.theta0(offset_n)
     r0 = obj.residuals(theta0)
     start_et = float(np.sqrt(np.mean(r0 * r0)))
     span = math.log(SPAN)
     lower = np.append(theta0[:-1] - span, -np.inf)
     upper = np.append(theta0[:-1] + span, np.inf)
-    upper[FREE.index("eta")] = min(upper[FREE.index("eta")], math.log(ETA_MAX))
+    if "eta" in free:
+        upper[free.index("eta")] = min(upper[free.index("eta")], math.log(ETA_MAX))
     theta0 = np.minimum(theta0, upper - 1e-9)
     sol = least_squares(
         obj.residuals,

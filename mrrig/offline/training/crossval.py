@@ -18,12 +18,13 @@ from __future__ import annotations
 import logging
 import math
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import replace
 from typing import Any
 
 import numpy as np
 
+from mrrig.loop.mlp import MLP
 from mrrig.offline.datasets import Series
 from mrrig.offline.training.data import run_ids, select
 from mrrig.offline.training.features import features
@@ -87,10 +88,6 @@ def cross_validate(
     tests'). `options`: the feature and fit options of `train_forward` (current_input,
     lag_tau_s, history_samples, history_signals, history_stride, hidden, split,
     holdout_fraction)."""
-    t0 = time.perf_counter()
-    group, labels, kind = leave_out_groups(series, tests, names)
-    fold = fold_of_groups(len(labels), max_folds, seed)
-    n_folds = int(fold.max()) + 1 if fold.size else 0
     feat = {
         k: options[k]
         for k in (
@@ -102,15 +99,10 @@ def cross_validate(
         )
     }
     fit = {k: options[k] for k in ("split", "holdout_fraction", "history_stride", "hidden")}
-    per = [EtSum() for _ in labels]
-    overall = EtSum()
-    for k in range(n_folds):
-        out = np.isin(group, np.flatnonzero(fold == k))
-        if out.all() or not out.any():
-            continue
-        train = subset(series, ~out)
+
+    def train(part: Series) -> MLP:
         model, _ = train_forward(
-            train,
+            part,
             seed=seed,
             max_epochs=max_epochs,
             current_input=feat["current_input"],
@@ -119,12 +111,43 @@ def cross_validate(
             history_signals=feat["history_signals"],
             **fit,
         )
+        return model
+
+    def forces(model: MLP, held: Series) -> tuple[np.ndarray, np.ndarray]:
+        X, y = features(held, **feat)
+        return y, predict(model, X)
+
+    return cross_validate_with(series, tests, names, train, forces, max_folds=max_folds, seed=seed)
+
+
+def cross_validate_with(
+    series: Series,
+    tests: np.ndarray,
+    names: Sequence[str],
+    train: Callable[[Series], Any],
+    forces: Callable[[Any, Series], tuple[np.ndarray, np.ndarray]],
+    *,
+    max_folds: int = MAX_FOLDS,
+    seed: int = 0,
+) -> dict[str, Any]:
+    """`cross_validate` of any forward model: `train(series)` fits one on the other tests,
+    `forces(model, held)` gives the (measured, predicted) force of a left-out test's rows."""
+    t0 = time.perf_counter()
+    group, labels, kind = leave_out_groups(series, tests, names)
+    fold = fold_of_groups(len(labels), max_folds, seed)
+    n_folds = int(fold.max()) + 1 if fold.size else 0
+    per = [EtSum() for _ in labels]
+    overall = EtSum()
+    for k in range(n_folds):
+        out = np.isin(group, np.flatnonzero(fold == k))
+        if out.all() or not out.any():
+            continue
+        model = train(subset(series, ~out))
         for j in np.flatnonzero(fold == k).tolist():
             held = subset(series, group == j)
             if len(held) == 0:
                 continue
-            X, y = features(held, **feat)
-            f = predict(model, X)
+            y, f = forces(model, held)
             per[j].add(y, f)
             overall.add(y, f)
         log.info(

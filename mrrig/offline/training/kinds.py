@@ -1,0 +1,476 @@
+"""Choosing the kind of forward model (`mrrig train --features auto`): the static MLP, the
+history MLP, the GRU and the Bouc-Wen twin, by how each holds on tests it never saw.
+
+Where several tests are given (a file is a test), each kind is judged by leaving whole tests
+out (`crossval.cross_validate_with`: leave-one-test-out up to `max_folds` tests, k-fold over
+tests beyond), each fold fitted on the other tests as the final model is (its own time-block
+hold-out kept out). With one test there is no other test: each kind is fitted on the training
+blocks and scored on the block hold-out (the last part of each run), a figure that looks
+better than another test would, and labelled so (it also chooses, so it is no longer a clean
+figure for the chosen kind). The MLP structures come from `select.choose_features`: the
+static MLP is its best candidate without history inputs, the history MLP its best with them.
+The twin is `mrrig identify`'s fit (`offline.identify.fit`) on the training rows, at most
+`TWIN_FIT_WINDOWS` windows of them; eq. 36's eta stays at the start's where the command is
+held per run (such data cannot tell the lag, and the fit would take it anywhere). A kind whose
+daemon controller's work per frame (`model_fit.frame_cost_s`, the check the daemon makes when
+it loads the model) is over the loop's budget is not chosen; among the others the lowest Et
+wins. A kind that cannot be built here, or for which the search time was spent, is listed as
+not tried, with why.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, fields
+from typing import Any
+
+import numpy as np
+
+from damper.plant_file import Plant
+from mrrig.loop.controllers import Controller, ControllerSettings, make_controller
+from mrrig.loop.model_fit import COST_BUDGET_S, frame_cost_s
+from mrrig.loop.twin_model import SUBSTEP_S, TwinModel
+from mrrig.offline.datasets import Series
+from mrrig.offline.identify.fit import FREE, Run, fit, run_force
+from mrrig.offline.identify.identify import start_plant
+from mrrig.offline.training.crossval import MAX_FOLDS, cross_validate_with
+from mrrig.offline.training.data import run_ids, sample_period, stretch_bounds, stretches
+from mrrig.offline.training.features import feature_rows, features
+from mrrig.offline.training.fit import HOLDOUT_FRACTION, block_split, train_forward
+from mrrig.offline.training.report import EtSum, predict
+from mrrig.offline.training.select import Candidate, command_varies
+
+log = logging.getLogger(__name__)
+
+STATIC_MLP, HISTORY_MLP, GRU, TWIN = "static MLP", "history MLP", "GRU", "Bouc-Wen twin"
+KIND_NAMES = (STATIC_MLP, HISTORY_MLP, TWIN)  # what `model_kinds` builds
+KINDS_BUDGET_S = 1800.0  # kinds left when this is spent are not tried (the report says)
+COST_DT_S = 0.002  # the rig's period, at which the work per frame is measured
+# the twin's fit: at most so many windows of its training rows (each 0.5 s scored after 0.2 s
+# from rest: `identify.fit.windows`), spread evenly, and so many least-squares evaluations
+TWIN_FIT_WINDOWS = 64
+TWIN_WINDOW_S, TWIN_BURN_IN_S = 0.5, 0.2
+TWIN_MAX_EVALUATIONS = 60
+
+
+@dataclass(frozen=True)
+class ModelKind:
+    """A kind of forward model: how to fit one to a Series (its own block hold-out kept out),
+    the (rows, measured, predicted) force of a Series' rows, and the daemon's controller."""
+
+    name: str
+    label: str
+    fit: Callable[[Series], Any]
+    forces: Callable[[Any, Series], tuple[np.ndarray, np.ndarray, np.ndarray]]
+    controller: Callable[[Any], Controller]
+
+
+def _network_controller(model: Any, i_max: float, ahead: bool) -> Controller:
+    """The daemon's network inversion of `model` (its default: feedback, one step ahead where
+    the model allows it), for the work per frame."""
+    settings = ControllerSettings(
+        i_max, dt_s=COST_DT_S, model=model, ahead=ahead, feedback_tau_s=0.0
+    )
+    return make_controller("network_inversion", settings)
+
+
+def mlp_kind(
+    name: str,
+    cand: Candidate,
+    label: str,
+    *,
+    seed: int,
+    max_epochs: int,
+    holdout_fraction: float,
+    i_max: float,
+) -> ModelKind:
+    """An MLP of the structure `cand` (`select.Candidate`), trained as `mrrig train` does."""
+    feat = dict(
+        current_input=cand.current_input,
+        lag_tau_s=cand.lag_tau_s,
+        history_samples=cand.history_samples,
+        history_signals=cand.history_signals,
+        history_stride=cand.history_stride,
+    )
+
+    def fit_mlp(series: Series) -> Any:
+        model, _ = train_forward(
+            series,
+            seed=seed,
+            max_epochs=max_epochs,
+            split="blocks",
+            holdout_fraction=holdout_fraction,
+            hidden=cand.hidden,
+            **feat,
+        )
+        return model
+
+    def forces(model: Any, series: Series) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        X, y = features(series, **feat)
+        return feature_rows(series, cand.history_samples, cand.history_stride), y, predict(model, X)
+
+    ahead = cand.history_samples == 0
+    return ModelKind(name, label, fit_mlp, forces, lambda m: _network_controller(m, i_max, ahead))
+
+
+def _stretch_runs(series: Series) -> tuple[list[Run], list[np.ndarray]]:
+    """The Series' contiguous stretches of 3 samples or more as runs, and their rows."""
+    first, length = stretch_bounds(stretches(run_ids(series)))
+    runs, rows = [], []
+    for f, n in zip(first.tolist(), length.tolist(), strict=True):
+        if n >= 3:
+            sl = slice(f, f + n)
+            s = (series.t, series.x, series.xd, series.current, series.force)
+            runs.append(Run(*(a[sl] for a in s)))
+            rows.append(np.arange(f, f + n))
+    if not runs:
+        raise ValueError("no run of 3 samples or more for the twin")
+    return runs, rows
+
+
+def twin_runs(
+    series: Series, fit_rows: np.ndarray, max_windows: int = TWIN_FIT_WINDOWS
+) -> tuple[list[Run], list[np.ndarray]]:
+    """The Series' stretches as runs for `identify.fit`, with the rows it may fit (`fit_rows`,
+    a mask); where these make more than `max_windows` windows, that many slices of burn-in
+    plus window spread evenly over them instead, each scored after its burn-in."""
+    runs, index = _stretch_runs(series)
+    rows = [fit_rows[i] for i in index]
+    period = min(r.period_s for r in runs)
+    n_burn, n_win = round(TWIN_BURN_IN_S / period), max(1, round(TWIN_WINDOW_S / period))
+    if sum(math.ceil(int(m.sum()) / n_win) for m in rows) <= max_windows:
+        return runs, rows
+    width = n_burn + n_win
+    starts = [
+        (j, a)
+        for j, m in enumerate(rows)
+        for a in range(0, m.size - width + 1, width)
+        if m[a + n_burn : a + width].all()
+    ]
+    if not starts:
+        return runs, rows
+    pick = np.unique(np.linspace(0, len(starts) - 1, max_windows).round().astype(int))
+    out_runs, out_rows = [], []
+    for j, a in (starts[k] for k in pick.tolist()):
+        r, sl = runs[j], slice(a, a + width)
+        out_runs.append(Run(r.t[sl], r.x[sl], r.xd[sl], r.command[sl], r.force[sl], r.name))
+        out_rows.append(np.arange(width) >= n_burn)
+    return out_runs, out_rows
+
+
+def block_holdout(series: Series, rows: np.ndarray, fraction: float) -> np.ndarray:
+    """The block hold-out of the Series' `rows` (indices): the last `fraction` of each
+    stretch, as `fit.block_split` holds it out (a bool mask over `rows`)."""
+    val = np.zeros(rows.size, dtype=bool)
+    val[block_split(stretches(run_ids(series))[rows], fraction).val] = True
+    return val
+
+
+def twin_kind(
+    *,
+    holdout_fraction: float,
+    max_evaluations: int = TWIN_MAX_EVALUATIONS,
+    start: str = "paper",
+    i_max: float,
+) -> ModelKind:
+    """The modified Bouc-Wen twin (eqs 30-36 and an offset) fitted by `identify.fit` to the
+    training rows (the block hold-out kept out, as the MLPs keep it)."""
+    first = start_plant(start)
+
+    def fit_twin(series: Series) -> Plant:
+        # a command held per run cannot tell eq. 36's lag: eta stays at the start's
+        free = FREE if command_varies(series) else tuple(n for n in FREE if n != "eta")
+        every = np.arange(len(series))
+        runs, rows = twin_runs(series, ~block_holdout(series, every, holdout_fraction))
+        fitted = [r.force[m] for r, m in zip(runs, rows, strict=True)]
+        offset0 = float(np.mean(np.concatenate(fitted)))
+        res = fit(
+            runs,
+            rows,
+            first.params,
+            offset0,
+            window_s=TWIN_WINDOW_S,
+            burn_in_s=TWIN_BURN_IN_S,
+            max_evaluations=max_evaluations,
+            progress=log.debug,
+            free=free,
+        )
+        log.info(
+            "twin fitted to %d rows%s: Et %.4f on the fitted rows (%d evaluations, %.0f s)",
+            sum(int(m.sum()) for m in rows),
+            "" if "eta" in free else " (eta held: the command is held per run)",
+            res.cost_et,
+            res.evaluations,
+            res.seconds,
+        )
+        identified = {
+            "fitted_rows_et": res.cost_et,
+            "evaluations": res.evaluations,
+            "free_parameters": [*free, "offset_n"],
+        }
+        return Plant(res.params, res.offset_n, series.current_unit, identified)
+
+    def forces(plant: Plant, series: Series) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The twin run open loop over each stretch from rest at its first sample."""
+        runs, index = _stretch_runs(series)
+        f = np.concatenate([run_force(plant.params, plant.offset_n, r, SUBSTEP_S) for r in runs])
+        rows = np.concatenate(index)
+        return rows, series.force[rows], f
+
+    label = f"modified Bouc-Wen (eqs 30-36) and an offset, fitted from {start}"
+    return ModelKind(
+        TWIN,
+        label,
+        fit_twin,
+        forces,
+        lambda p: _network_controller(TwinModel(p), i_max, True),
+    )
+
+
+def best_candidates(search: dict[str, Any]) -> dict[str, Candidate]:
+    """The MLP search's best candidate without history inputs and with them (lowest CV Et in
+    its inversion budget, else lowest), from `select.choose_features`' report."""
+    names = {f.name for f in fields(Candidate)}
+    best: dict[str, tuple[bool, float, Candidate]] = {}
+    for c in search["candidates"]:
+        kind = HISTORY_MLP if c["history_samples"] else STATIC_MLP
+        args = {k: v for k, v in c.items() if k in names}
+        args["history_signals"] = tuple(args["history_signals"])
+        key = (not c["in_budget"], c["cv_et"])
+        if kind not in best or key < best[kind][:2]:
+            best[kind] = (*key, Candidate(**args))
+    return {k: v[2] for k, v in best.items()}
+
+
+@dataclass
+class KindScore:
+    name: str
+    label: str
+    et: float
+    per_group: list[dict[str, Any]]
+    frame_cost_us: float
+    in_budget: bool
+    seconds: float
+    model: Any = None  # the last model fitted (a fold's, or the block fit's)
+    other_tests: dict[str, Any] | None = None  # the cross-validation's own report
+
+
+def _score_kind(
+    kind: ModelKind,
+    series: Series,
+    tests: np.ndarray,
+    names: list[str],
+    *,
+    holdout_fraction: float,
+    max_folds: int,
+    seed: int,
+) -> KindScore:
+    t0 = time.perf_counter()
+    last: list[Any] = []
+    if len(names) >= 2:
+
+        def train(part: Series) -> Any:
+            last[:] = [kind.fit(part)]
+            return last[0]
+
+        def held(model: Any, part: Series) -> tuple[np.ndarray, np.ndarray]:
+            _, y, f = kind.forces(model, part)
+            return y, f
+
+        cv = cross_validate_with(series, tests, names, train, held, max_folds=max_folds, seed=seed)
+        et, per, model = cv["overall"]["et"], cv["per_group"], last[0]
+    else:
+        cv = None
+        model = kind.fit(series)
+        rows, y, f = kind.forces(model, series)
+        val = block_holdout(series, rows, holdout_fraction)
+        s = EtSum()
+        s.add(y[val], f[val])
+        et = s.numbers()["et"]
+        label = names[0] if names else series.name
+        per = [{"test": f"{label} (block hold-out)", **s.numbers()}]
+    cost_s, _ = frame_cost_s(kind.controller(model), COST_DT_S)
+    return KindScore(
+        kind.name,
+        kind.label,
+        float(et),
+        per,
+        cost_s * 1e6,
+        cost_s <= COST_BUDGET_S,
+        time.perf_counter() - t0,
+        model,
+        cv,
+    )
+
+
+def choose_kind(
+    series: Series,
+    tests: np.ndarray,
+    names: list[str],
+    kinds: list[ModelKind],
+    *,
+    holdout_fraction: float = HOLDOUT_FRACTION,
+    max_folds: int = MAX_FOLDS,
+    seed: int = 0,
+    budget_s: float = KINDS_BUDGET_S,
+    not_built: dict[str, str] | None = None,
+) -> tuple[KindScore, dict[str, Any]]:
+    """Each kind's other-test Et (module docstring), and the chosen one with the report: every
+    kind's Et, per test, work per frame and why the winner won. `not_built`: kinds left out
+    and why (listed in the report)."""
+    t_start = time.perf_counter()
+    several = len(names) >= 2
+    scores: list[KindScore] = []
+    not_tried = dict(not_built or {})
+    for kind in kinds:
+        if time.perf_counter() - t_start > budget_s:
+            not_tried[kind.name] = f"the search's {budget_s:.0f} s were spent"
+            log.info("kind %s: not tried (search time spent)", kind.name)
+            continue
+        log.info("kind %s (%s): fitting and scoring", kind.name, kind.label)
+        sc = _score_kind(
+            kind,
+            series,
+            tests,
+            names,
+            holdout_fraction=holdout_fraction,
+            max_folds=max_folds,
+            seed=seed,
+        )
+        log.info(
+            "kind %s: Et %.4f on %s, work per frame %.0f us, %.0f s",
+            sc.name,
+            sc.et,
+            "the tests left out" if several else "the block hold-out",
+            sc.frame_cost_us,
+            sc.seconds,
+        )
+        scores.append(sc)
+    best, why = pick_kind(scores, several)
+    method = (
+        f"{'leave-one-test-out' if len(names) <= max_folds else f'{max_folds}-fold over tests'}"
+        f" over {len(names)} tests: each kind fitted on the other tests, scored on the test"
+        " left out"
+        if several
+        else "one test: each kind fitted on the training blocks, scored on the block hold-out"
+        " (the last part of each run; optimistic: neighbours of the fitted rows, and it chooses)"
+    )
+    report = {
+        "method": method,
+        "optimistic": not several,
+        "budget_us": COST_BUDGET_S * 1e6,
+        "kinds": [
+            {
+                "kind": s.name,
+                "label": s.label,
+                "et": s.et,
+                "per_group": s.per_group,
+                "frame_cost_us": s.frame_cost_us,
+                "in_budget": s.in_budget,
+                "seconds": s.seconds,
+            }
+            for s in scores
+        ],
+        "not_tried": not_tried,
+        "chosen": {"kind": best.name, "label": best.label, "et": best.et, "why": why},
+        "seconds": time.perf_counter() - t_start,
+    }
+    return best, report
+
+
+def pick_kind(scores: list[KindScore], several: bool) -> tuple[KindScore, str]:
+    """The kind of the lowest Et among those within the loop's budget (of all, where none is),
+    and why it won."""
+    scored = [s for s in scores if math.isfinite(s.et)]
+    if not scored:
+        raise ValueError("no kind of model could be scored")
+    pool = [s for s in scored if s.in_budget] or scored
+    best = min(pool, key=lambda s: s.et)
+    return best, _why(best, scored, several)
+
+
+def _why(best: KindScore, scored: list[KindScore], several: bool) -> str:
+    where = "on the tests left out" if several else "on the block hold-out"
+    others = sorted((s for s in scored if s is not best), key=lambda s: s.et)
+    text = f"the lowest Et {where} ({best.et:.4f})"
+    in_budget = [s for s in others if s.in_budget]
+    over = [s for s in others if not s.in_budget and s.et < best.et]
+    if not best.in_budget:
+        return text + " of kinds all over the loop's budget (the daemon refuses it)"
+    text += f" of the kinds within the {COST_BUDGET_S * 1e6:.0f} us work per frame"
+    if in_budget:
+        text += f"; next {in_budget[0].name} {in_budget[0].et:.4f}"
+    if over:
+        text += "; lower but over the budget: " + ", ".join(
+            f"{s.name} {s.et:.4f} ({s.frame_cost_us:.0f} us)" for s in over
+        )
+    return text
+
+
+def model_kinds(
+    series: Series,
+    search: dict[str, Any],
+    *,
+    seed: int,
+    max_epochs: int,
+    holdout_fraction: float,
+    i_max: float,
+) -> tuple[list[ModelKind], dict[str, Candidate], dict[str, str]]:
+    """The kinds to choose among, the MLP structures of the two MLP kinds, and the kinds left
+    out with why: the static and history MLPs of the structure search (`search`), the twin."""
+    cands = best_candidates(search)
+    kinds, left_out = [], {}
+    for name in (STATIC_MLP, HISTORY_MLP):
+        if name in cands:
+            kinds.append(
+                mlp_kind(
+                    name,
+                    cands[name],
+                    cands[name].label(_period(series)),
+                    seed=seed,
+                    max_epochs=max_epochs,
+                    holdout_fraction=holdout_fraction,
+                    i_max=i_max,
+                )
+            )
+        else:
+            left_out[name] = "the structure search tried no such candidate"
+    kinds.append(twin_kind(holdout_fraction=holdout_fraction, i_max=i_max))
+    return kinds, cands, left_out
+
+
+def _period(series: Series) -> float:
+    """The first stretch's sample period (the MLP candidates' labels count taps in time)."""
+    first, length = stretch_bounds(stretches(run_ids(series)))
+    return sample_period(series.t[first[0] : first[0] + length[0]]) if len(series) > 1 else 1.0
+
+
+def twin_result(
+    kind: ModelKind,
+    series: Series,
+    holdout_fraction: float,
+    validate: list[tuple[str, Series]],
+) -> tuple[Plant, dict[str, Any]]:
+    """The chosen twin, fitted to all the training rows (the block hold-out kept out), with
+    its Et on the block hold-out and on each validation test (`validate`: name, Series)."""
+    plant = kind.fit(series)
+    rows, y, f = kind.forces(plant, series)
+    val = block_holdout(series, rows, holdout_fraction)
+    block = EtSum()
+    block.add(y[val], f[val])
+    per, pooled = [], EtSum()
+    for name, s in validate:
+        _, yv, fv = kind.forces(plant, s)
+        one = EtSum()
+        one.add(yv, fv)
+        pooled.add(yv, fv)
+        per.append({"file": name, **one.numbers()})
+    report = {
+        "block_holdout": block.numbers(),
+        "holdout_fraction": holdout_fraction,
+        "validate": {"per_test": per, "forward": pooled.numbers()} if validate else None,
+    }
+    return plant, report
