@@ -30,6 +30,7 @@ from mrrig.loop.mlp import ModelError
 from mrrig.loop.model_fit import COST_BUDGET_S, frame_cost_s
 from mrrig.loop.twin_model import SUBSTEP_S, TwinModel, TwinTracker, load_forward_model
 from tests.conftest import REPO, _toml, rig_config, zenoh_configs
+from tests.rig_harness import ScriptedRig
 from tests.stall_proof import explain
 
 DT_S = 0.002
@@ -158,6 +159,37 @@ def test_a_twin_takes_the_exact_solve_without_adaptation(tmp_path):
             "network_inversion",
             ControllerSettings(I_MAX_A, model=model, adaptation=AdaptationSettings()),
         )
+
+
+def test_set_model_takes_a_twin_in_amperes_and_refuses_one_in_volts_with_one_line(tmp_path):
+    """The control plane's `set_model` (the daemon's loop on a virtual bus) reads a plant file
+    as it reads a network; the twin then answers frames."""
+    (tmp_path / "models").mkdir()
+    overrides = {"control": {"model_dirs": [str(tmp_path / "models")]}}
+    start, volts = tmp_path / "models" / "start.json", tmp_path / "models" / "volts.json"
+    save_plant(PLANT, start)
+    save_plant(replace(PLANT, command_unit="V"), volts)
+    other = tmp_path / "models" / "other.json"
+    save_plant(replace(PLANT, offset_n=-40.0), other)
+    overrides["controller"] = {"model": str(start), "name": "network_inversion"}
+    with ScriptedRig(tmp_path, overrides=overrides) as rig:
+        assert isinstance(rig.daemon.controller, TwinInversion)
+        rig.exchange()  # armed on start: disarmed to change the model
+        assert rig.request({"cmd": "disarm"})["ok"]
+        reply = rig.request({"cmd": "set_model", "path": str(volts)})
+        assert reply == {
+            "ok": False,
+            "error": f"{volts}: input_units[2] (current): expected A (DamperCommand"
+            ".CurrentSetpoint in mrrig.dbc, loop.i_max_a), found 'V'",
+        }
+        reply = rig.request({"cmd": "set_model", "path": str(other)})
+        assert reply["ok"] and reply["settings"]["model"] == str(other), reply
+        twin = rig.daemon.controller
+        assert isinstance(twin, TwinInversion) and twin.lanes[0].offset_n == -40.0
+        assert rig.request({"cmd": "arm"})["ok"]
+        for _ in range(3):
+            cmd = rig.exchange()
+        assert cmd["Mode"] == 1 and 0.0 <= cmd["CurrentSetpoint"] <= I_MAX_A  # ACTIVE
 
 
 @pytest.mark.process

@@ -649,11 +649,18 @@ class TwinInversion(Controller):
     name = "network_inversion"
     controller_id = 1
     needs_model = True
+    # network inversion's settings, as this solve has them: exact, the root itself
+    method = "exact"
+    continuity = 0.0
 
     @classmethod
     def build(cls, s: ControllerSettings) -> Controller:
         if s.method != "exact":
             raise ValueError(f"method {s.method!r}: a twin forward model is solved exactly")
+        if s.continuity != 0.0:
+            raise ValueError(
+                f"continuity {s.continuity:g}: a twin forward model is solved for its root (0)"
+            )
         if s.adaptation is not None:
             raise ValueError("adaptation: not with a twin forward model (its force is eq. 30)")
         assert isinstance(s.model, TwinModel)
