@@ -32,6 +32,7 @@ import numpy as np
 
 from damper.plant_file import PARAM_NAMES, save_plant
 from mrrig import json_text
+from mrrig.cli.train_gru import write_gru
 from mrrig.cli_args import COUNT, SEED, HelpFormatter, output_file, positive
 from mrrig.loop.mlp import MIN_SCALE, ModelError
 from mrrig.offline.datasets import DataError, Series
@@ -45,6 +46,7 @@ from mrrig.offline.training import (
     train_and_validate,
 )
 from mrrig.offline.training.crossval import MAX_FOLDS, SEGMENTS, cross_validate
+from mrrig.offline.training.gru import DEFAULT_HIDDEN as GRU_HIDDEN
 from mrrig.offline.training.kinds import TWIN, ModelKind, choose_kind, model_kinds, twin_result
 from mrrig.offline.training.report import MetricError, check_finite
 from mrrig.offline.training.select import choose_features, command_varies
@@ -319,13 +321,19 @@ def _parser(cfg: TrainConfig) -> argparse.ArgumentParser:
     )
     ap.add_argument(
         "--features",
-        choices=("auto", "manual"),
+        choices=("auto", "manual", "gru"),
         default=f.mode,
         help="auto: choose the command input (lag fitted), history and hidden size by blocked "
         "cross-validation on the training blocks, then the kind of model (static MLP, history "
         "MLP, Bouc-Wen twin) by its Et on tests left out; manual: the flags below. Default: auto "
         "where the command changes within runs, manual where it is held per run (the "
-        "characterization matrix) or where --current-input or --history is given",
+        "characterization matrix) or where --current-input or --history is given; gru: a GRU "
+        "forward model (--gru-hidden units, --current-input, --lag-tau-s)",
+    )
+    ap.add_argument(
+        "--gru-hidden",
+        type=COUNT,
+        help=f"--features gru: hidden units (default {GRU_HIDDEN})",
     )
     ap.add_argument(
         "--current-input",
@@ -559,6 +567,10 @@ def main(argv: list[str] | None = None) -> int:
                 f" (standard deviation {spread:.3g}): no model can be fitted to it"
             )
     mode = args.features or ("manual" if manual_flags or not command_varies(series) else "auto")
+    if mode == "gru":
+        return write_gru(
+            args, series, excluded, tests, test_names, columns, units, format_other_tests
+        )
     search = kinds_report = cv = None
     if mode == "auto":
         cand, search = choose_features(series, args.seed, args.holdout_fraction, tests=tests)

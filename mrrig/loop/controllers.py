@@ -16,6 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from mrrig.loop.adaptation import AdaptationSettings, GainOffsetRLS
+from mrrig.loop.gru import GRUModel, GruTracker
 from mrrig.loop.inversion import (
     DEFAULT_CONTINUITY,
     ScalarInverter,
@@ -355,6 +356,8 @@ class NetworkInversion(Controller):
     def build(cls, s: ControllerSettings) -> Controller:
         if isinstance(s.model, TwinModel):  # a plant file: the Bouc-Wen twin is the model
             return TwinInversion.build(s)
+        if isinstance(s.model, GRUModel):  # a recurrent forward model
+            return GruInversion.build(s)
         return cls(
             s.i_max,
             s.model,
@@ -756,6 +759,57 @@ class TwinInversion(Controller):
                 for j in range(cur.size)
             ]
         )
+
+
+class GruInversion(TwinInversion):
+    """Network inversion with a GRU forward model (mrrig/loop/gru.py): its hidden state
+    carried frame to frame, advanced with the commands actually sent, and its force one sample
+    on solved for the command (a grid bracket and Newton steps through the gates; eq. 36's lag
+    inverted for a model of the lagged current). The command of a frame acts on the next
+    sample, so the solve is always for it, at the motion predicted there (eq. 21); `ahead`
+    with `f_des_next` takes the desired force then as the target, else the present one. The
+    load-cell feedback as `NetworkInversion`'s, the residual against the model's force now.
+    Exact solve only, without adaptation; of several roots the one nearest the present u
+    (the continuity weight does not apply). Built by network_inversion for a GRU model."""
+
+    @classmethod
+    def build(cls, s: ControllerSettings) -> Controller:
+        if s.method != "exact":
+            raise ValueError(f"method {s.method!r}: a GRU forward model is solved exactly")
+        if s.adaptation is not None:
+            raise ValueError("adaptation: not with a GRU forward model")
+        return cls(s.i_max, s.model, s.dt_s, s.feedback_tau_s, s.ahead)
+
+    def reset(self, batch: int = 1) -> None:
+        Controller.reset(self, batch)
+        self.lanes = [GruTracker(self.model, self.dt_s, self.i_max) for _ in range(batch)]
+        self._residual = [0.0] * batch
+
+    def _lane(
+        self,
+        j: int,
+        x: float,
+        xd: float,
+        xdd: float,
+        f_meas: float,
+        f_des: float,
+        f_des_next: float | None,
+    ) -> float:
+        gru = self.lanes[j]
+        first = not gru.started
+        f_now = gru.advance(x, xd, xdd)
+        ahead = self.ahead and f_des_next is not None
+        target = f_des_next if ahead and f_des_next is not None else f_des
+        if self.feedback_tau_s is not None:
+            a = self.dt_s / (self.feedback_tau_s + self.dt_s)
+            last = r = self._residual[j]
+            r += a * (f_meas - f_now - r)
+            self._residual[j] = r
+            if ahead and not first:
+                r = 2.0 * r - last  # at the solved instant, at its last rate of change
+            target -= r
+        T = self.dt_s
+        return gru.solve(target, x + xd * T + 0.5 * xdd * T * T, xd + xdd * T, xdd)
 
 
 @register

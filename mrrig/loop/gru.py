@@ -293,9 +293,13 @@ class GruTracker:
         return float(f)
 
     def force(self, x: float, xd: float, command: float) -> float:
-        """The force one step on from the present state at the motion (x, xd) and the last
-        acceleration, had `command` been held over the period."""
-        gi, gh = self._pre(x, xd, self.xdd)
+        """`force_next` at the last acceleration."""
+        return self.force_next(x, xd, self.xdd, command)
+
+    def force_next(self, x1: float, xd1: float, xdd1: float, command: float) -> float:
+        """The force at the next sample, at the motion (x1, xd1, xdd1) there, had `command`
+        been held until it (eq. 36 for a lagged model); the state is not changed."""
+        gi, gh = self._pre(x1, xd1, xdd1)
         return float(self._force(gi, gh, self.u + self.lag * (command - self.u))[0])
 
     def solve(self, target_n: float, x1: float, xd1: float, xdd1: float) -> float:

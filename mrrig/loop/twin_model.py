@@ -28,6 +28,7 @@ from typing import Any
 from damper.plant import BoucWenDamper, bouc_wen_force
 from damper.plant_file import FORMAT as PLANT_FORMAT
 from damper.plant_file import Plant, parse_plant
+from mrrig.loop.gru import GRUModel, is_gru_doc
 from mrrig.loop.mlp import MLP, ModelError
 
 # the simulator's RK4 sub-step (configs/sim.toml damper.substep_s): the twin integrates as the
@@ -66,13 +67,16 @@ class TwinModel:
         }
 
 
-def forward_model_from_text(text: str, path: str | Path) -> MLP | TwinModel:
+def forward_model_from_text(text: str, path: str | Path) -> MLP | TwinModel | GRUModel:
     """A forward model file's content: a plant file (`format` "mrrig-plant") as a `TwinModel`,
-    anything else as `MLP.from_text` reads it. One-line ModelError for a bad file."""
+    a `mrrig-gru/1` file as a `GRUModel`, anything else as `MLP.from_text` reads it. One-line
+    ModelError for a bad file."""
     try:
         doc = json.loads(text)
     except (ValueError, RecursionError):
         doc = None  # MLP.from_text says what is wrong with it
+    if is_gru_doc(doc):  # a recurrent forward model (mrrig/loop/gru.py)
+        return GRUModel.from_doc(doc, path)
     if not isinstance(doc, dict) or doc.get("format") != PLANT_FORMAT:
         return MLP.from_text(text, path)
     try:
@@ -81,7 +85,7 @@ def forward_model_from_text(text: str, path: str | Path) -> MLP | TwinModel:
         raise ModelError(str(exc)) from None
 
 
-def load_forward_model(path: str | Path) -> MLP | TwinModel:
+def load_forward_model(path: str | Path) -> MLP | TwinModel | GRUModel:
     """Read a forward model file: a network (`mrrig-mlp/1`) or a twin (a plant file)."""
     try:
         text = Path(path).read_text(encoding="utf-8")

@@ -8,6 +8,9 @@ The API (stable; `kinds` and `mrrig train --features gru` call it):
             lag_tau_s=COIL_LAG_TAU_S, window_s=WINDOW_S, burn_in_s=BURN_IN_S)
         -> (GRUModel, report: dict)
     gru_forces(model, series) -> (rows, measured force, predicted force)
+    gru_result(series, *, tests, test_names, validate=(), max_folds=MAX_FOLDS, **fit_gru options)
+        -> (GRUModel, report: dict)   (what `mrrig train --features gru` prints)
+    simulated_matrix_gru(path, seed=0, hidden=DEFAULT_HIDDEN) -> GRUModel   (the demo's data)
 
 The data pipeline is the MLP's: a Series in SI units (`data`), its stretches (a run split by
 excluded samples is one stretch per piece), the time-block split of `fit.block_split` (the last
@@ -25,6 +28,8 @@ from __future__ import annotations
 
 import logging
 import time
+from collections.abc import Sequence
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -32,7 +37,8 @@ import numpy as np
 from mrrig.loop.gru import GRUModel
 from mrrig.offline.datasets import DataError, Series
 from mrrig.offline.metrics import error_norm
-from mrrig.offline.training.data import run_ids, stretch_bounds, stretches
+from mrrig.offline.training.crossval import MAX_FOLDS, cross_validate_with
+from mrrig.offline.training.data import measured_series, run_ids, stretch_bounds, stretches
 from mrrig.offline.training.features import COIL_LAG_TAU_S, INPUT_NAMES, command_input
 from mrrig.offline.training.fit import (
     HOLDOUT_FRACTION,
@@ -41,11 +47,12 @@ from mrrig.offline.training.fit import (
     series_fingerprint,
     training_envelope,
 )
+from mrrig.offline.training.report import EtSum
 
 log = logging.getLogger(__name__)
 
 DEFAULT_HIDDEN = 12  # the daemon's solve costs about H^2 per grid point: 12 keeps it in budget
-DEFAULT_EPOCHS = 300
+DEFAULT_EPOCHS = 1000
 WINDOW_S = 0.3  # the scored part of a training window
 BURN_IN_S = 0.1  # the state warmed before it
 LEARNING_RATE = 1e-2
@@ -197,21 +204,14 @@ def fit_gru(
     with torch.no_grad():
         for p, b in zip(params, best[2], strict=True):
             p.copy_(b)
-    model = GRUModel(
-        input_names=list(INPUT_NAMES),
-        input_units=["m", "m/s", "m/s^2", series.current_unit],
-        output_name="force",
-        output_unit="N",
+    model = export_gru(
+        net,
+        head,
         in_mean=in_mean,
         in_std=in_std,
         out_mean=out_mean,
         out_std=out_std,
-        W_ih=net.weight_ih_l0.detach().double().numpy(),
-        W_hh=net.weight_hh_l0.detach().double().numpy(),
-        b_ih=net.bias_ih_l0.detach().double().numpy(),
-        b_hh=net.bias_hh_l0.detach().double().numpy(),
-        W_out=head.weight.detach().double().numpy()[0],
-        b_out=float(head.bias.detach()[0]),
+        command_unit=series.current_unit,
         meta={
             "kind": "gru",
             "trainer": f"torch {torch.__version__} Adam, windows with burn-in",
@@ -262,6 +262,42 @@ def fit_gru(
     return model, report
 
 
+def export_gru(
+    net: Any,
+    head: Any,
+    *,
+    in_mean: np.ndarray,
+    in_std: np.ndarray,
+    out_mean: float,
+    out_std: float,
+    command_unit: str,
+    meta: dict[str, Any],
+) -> GRUModel:
+    """The numpy model of a torch `nn.GRU` (one layer, batch_first) and its `nn.Linear(H, 1)`
+    read-out, with the standardisation they were trained in (float64 copies of the weights)."""
+
+    def w(p: Any) -> np.ndarray:
+        return p.detach().double().numpy().copy()
+
+    return GRUModel(
+        input_names=list(INPUT_NAMES),
+        input_units=["m", "m/s", "m/s^2", command_unit],
+        output_name="force",
+        output_unit="N",
+        in_mean=in_mean,
+        in_std=in_std,
+        out_mean=out_mean,
+        out_std=out_std,
+        W_ih=w(net.weight_ih_l0),
+        W_hh=w(net.weight_hh_l0),
+        b_ih=w(net.bias_ih_l0),
+        b_hh=w(net.bias_hh_l0),
+        W_out=w(head.weight)[0],
+        b_out=float(w(head.bias)[0]),
+        meta=meta,
+    )
+
+
 def gru_forces(model: GRUModel, series: Series) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(rows, measured, predicted) force over every row of `series`: the model run over each
     stretch from the zero state, as the daemon runs it after `reset`."""
@@ -272,3 +308,53 @@ def gru_forces(model: GRUModel, series: Series) -> tuple[np.ndarray, np.ndarray,
     for f, n in zip(first.tolist(), length.tolist(), strict=True):
         pred[f : f + n] = model.predict(X[f : f + n])
     return np.arange(len(series)), np.asarray(series.force, dtype=float), pred
+
+
+def gru_result(
+    series: Series,
+    *,
+    tests: np.ndarray,
+    test_names: Sequence[str],
+    validate: Sequence[tuple[str, Series]] = (),
+    max_folds: int = MAX_FOLDS,
+    **options: Any,
+) -> tuple[GRUModel, dict[str, Any]]:
+    """`mrrig train --features gru`: the GRU fitted to `series` (`fit_gru` with `options`),
+    its block hold-out Et (the optimistic figure), the other-test estimate where several tests
+    are given (`crossval.cross_validate_with`: each fold a GRU fitted on the other tests, run
+    over the left-out ones) and its Et on each validation test (never trained on)."""
+    model, report = fit_gru(series, **options)
+    if max_folds and np.unique(tests).size > 1:
+        report["other_tests"] = cross_validate_with(
+            series,
+            tests,
+            test_names,
+            lambda s: fit_gru(s, **options)[0],
+            lambda m, s: gru_forces(m, s)[1:],
+            max_folds=max_folds,
+            seed=options.get("seed", 0),
+        )
+        model.metrics["other_test_et"] = report["other_tests"]["overall"]["et"]
+    per, pooled = [], EtSum()
+    for name, s in validate:
+        _, y, f = gru_forces(model, s)
+        one = EtSum()
+        one.add(y, f)
+        pooled.add(y, f)
+        per.append({"file": name, **one.numbers()})
+    report["validate"] = {"per_test": per, "forward": pooled.numbers()} if validate else None
+    if validate:
+        model.metrics["validate_et"] = pooled.numbers()["et"]
+    return model, report
+
+
+def simulated_matrix_gru(path: str | Path, seed: int = 0, hidden: int = DEFAULT_HIDDEN) -> GRUModel:
+    """A GRU trained on the simulated characterization matrix (data set B, the simulator's
+    plant and sensor noise: the data of the demo's network, `fit.simulated_matrix_model`) with
+    its defaults, saved to `path`."""
+    from mrrig.offline.datasets import dataset_b
+
+    model, _ = fit_gru(measured_series(dataset_b()), seed=seed, hidden=hidden)
+    Path(path).parent.mkdir(parents=True, exist_ok=True)
+    model.save(path)
+    return model
