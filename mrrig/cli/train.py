@@ -7,9 +7,9 @@ are excluded unless `--keep-all`; the end of each run is held out (`--split bloc
 `--features auto` (default where the command changes within runs) chooses the inputs and the
 hidden size by cross-validation on the training blocks: over whole tests where several are
 given (a file is a test), else over time blocks; then the kind of model among the static MLP,
-the history MLP and the Bouc-Wen twin, by leaving whole tests out (the block hold-out of a
+the history MLP, the GRU and the Bouc-Wen twin, by leaving whole tests out (the block hold-out of a
 single test, labelled optimistic), within the loop's work per frame. A twin chosen is written
-as a plant file, the forward model network inversion inverts and firmware_sim runs. The
+as a plant file (network inversion inverts it, firmware_sim runs it), a GRU as its file. The
 block hold-out is optimistic (its neighbours were trained on): the report puts the
 other-test estimate beside it (leave one test out, `--cv-folds`) and the Et of tests kept out
 altogether (`--validate FILES`).
@@ -47,7 +47,14 @@ from mrrig.offline.training import (
 )
 from mrrig.offline.training.crossval import MAX_FOLDS, SEGMENTS, cross_validate
 from mrrig.offline.training.gru import DEFAULT_HIDDEN as GRU_HIDDEN
-from mrrig.offline.training.kinds import TWIN, ModelKind, choose_kind, model_kinds, twin_result
+from mrrig.offline.training.kinds import (
+    GRU,
+    TWIN,
+    ModelKind,
+    choose_kind,
+    kind_result,
+    model_kinds,
+)
 from mrrig.offline.training.report import MetricError, check_finite
 from mrrig.offline.training.select import choose_features, command_varies
 from mrrig.offline.training.stream import sample_tests, training_subset
@@ -325,8 +332,8 @@ def _parser(cfg: TrainConfig) -> argparse.ArgumentParser:
         default=f.mode,
         help="auto: choose the command input (lag fitted), history and hidden size by blocked "
         "cross-validation on the training blocks, then the kind of model (static MLP, history "
-        "MLP, Bouc-Wen twin) by its Et on tests left out; manual: the flags below. Default: auto "
-        "where the command changes within runs, manual where it is held per run (the "
+        "MLP, Bouc-Wen twin, GRU) by its Et on tests left out; manual: the flags below. "
+        "Default: auto where the command changes within runs, manual where it is held per run (the "
         "characterization matrix) or where --current-input or --history is given; gru: a GRU "
         "forward model (--gru-hidden units, --current-input, --lag-tau-s)",
     )
@@ -476,7 +483,7 @@ def _check_files(data: list[Path], validate: list[Path] | None) -> None:
             )
 
 
-def _write_twin(
+def _write_kind(
     args: argparse.Namespace,
     kind: ModelKind,
     series: Series,
@@ -486,45 +493,56 @@ def _write_twin(
     columns: dict[str, str] | None,
     units: dict[str, str] | None,
 ) -> int:
-    """The chosen twin: fitted to the training rows, written as the plant file the daemon
-    inverts (network inversion with `model` = the file) and firmware_sim runs."""
+    """The chosen twin or GRU: fitted to the training rows and written as the forward model
+    network inversion inverts (`[controller] model` = the file): a twin as its plant file
+    (which firmware_sim runs too), a GRU as its `mrrig-gru/1` file."""
     validate = [
         (str(p), training_subset([p], columns or None, units or None, args.keep_all)[0])
         for p in args.validate or []
     ]
-    plant, twin = twin_result(kind, series, args.holdout_fraction, validate)
-    identified = {
+    model, result = kind_result(kind, series, args.holdout_fraction, validate)
+    kept = {
         "kinds": kinds_report,
-        **twin,
+        **result,
         "data_files": [str(p) for p in args.data],
         "excluded": excluded,
         "features_search": search,
     }
-    save_plant(replace(plant, identified=json_text.plain(identified)), args.out)
+    if kind.name == TWIN:
+        save_plant(replace(model, identified=json_text.plain(kept)), args.out)
+    else:
+        model.meta.update(json_text.plain(kept))
+        model.save(args.out)
     if args.report:
-        args.report.write_text(json_text.dumps(identified, indent=2), encoding="utf-8")
-    b = twin["block_holdout"]
+        args.report.write_text(json_text.dumps(kept, indent=2), encoding="utf-8")
+    b = result["block_holdout"]
     lines = [
         *format_excluded(excluded),
         *format_search(search),
         *format_kinds(kinds_report),
-        f"twin Et on the block hold-out (the last {args.holdout_fraction:.0%} of each run):"
-        f" {b['et']:.4f} (RMSE {b['rmse_n']:.2f} N)  [optimistic: beside the rows fitted]",
+        f"{kind.name} Et on the block hold-out (the last {args.holdout_fraction:.0%} of each"
+        f" run): {b['et']:.4f} (RMSE {b['rmse_n']:.2f} N)  [optimistic: beside the rows fitted]",
     ]
-    v = twin["validate"]
+    v = result["validate"]
     if v is not None:
         lines.append("validation tests (--validate: never fitted nor chosen by):")
         lines += [f"  {t['file']}: Et {t['et']:.4f} ({t['n']} rows)" for t in v["per_test"]]
         lines.append(f"  overall Et {v['forward']['et']:.4f}")
-    p = plant.params
-    lines += [
-        "parameters: "
-        + ", ".join(f"{k} {getattr(p, k):.5g}" for k in PARAM_NAMES)
-        + f", offset_n {plant.offset_n:.5g}, command in {plant.command_unit}",
-        f"wrote {args.out}: a plant file, the forward model network inversion inverts"
-        f' ([controller] model = "{args.out}"; a twin in V: mrrig identify --map-model) and'
-        " firmware_sim runs ([plant] file)",
-    ]
+    if kind.name == TWIN:
+        p = model.params
+        lines += [
+            "parameters: "
+            + ", ".join(f"{k} {getattr(p, k):.5g}" for k in PARAM_NAMES)
+            + f", offset_n {model.offset_n:.5g}, command in {model.command_unit}",
+            f"wrote {args.out}: a plant file, the forward model network inversion inverts"
+            f' ([controller] model = "{args.out}"; a twin in V: mrrig identify --map-model)'
+            " and firmware_sim runs ([plant] file)",
+        ]
+    else:
+        lines.append(
+            f"wrote {args.out}: a GRU forward model, the model network inversion inverts"
+            f' ([controller] model = "{args.out}")'
+        )
     print("\n".join(lines))
     return 0
 
@@ -593,9 +611,9 @@ def main(argv: list[str] | None = None) -> int:
             seed=args.seed,
             not_built=left_out,
         )
-        if best.name == TWIN:
-            kind = next(k for k in kinds if k.name == TWIN)
-            return _write_twin(args, kind, series, excluded, search, kinds_report, columns, units)
+        if best.name in (TWIN, GRU):
+            kind = next(k for k in kinds if k.name == best.name)
+            return _write_kind(args, kind, series, excluded, search, kinds_report, columns, units)
         cand = cands[best.name]
         if args.cv_folds and args.split == "blocks":
             cv = best.other_tests  # the other-test estimate of the chosen kind, as computed

@@ -9,13 +9,13 @@ blocks and scored on the block hold-out (the last part of each run), a figure th
 better than another test would, and labelled so (it also chooses, so it is no longer a clean
 figure for the chosen kind). The MLP structures come from `select.choose_features`: the
 static MLP is its best candidate without history inputs, the history MLP its best with them.
-The twin is `mrrig identify`'s fit (`offline.identify.fit`) on the training rows, at most
-`TWIN_FIT_WINDOWS` windows of them; eq. 36's eta stays at the start's where the command is
-held per run (such data cannot tell the lag, and the fit would take it anywhere). A kind whose
-daemon controller's work per frame (`model_fit.frame_cost_s`, the check the daemon makes when
-it loads the model) is over the loop's budget is not chosen; among the others the lowest Et
-wins. A kind that cannot be built here, or for which the search time was spent, is listed as
-not tried, with why.
+The GRU is `training.gru.fit_gru` with its defaults. The twin is `mrrig identify`'s fit
+(`offline.identify.fit`) on the training rows, at most `TWIN_FIT_WINDOWS` windows of them;
+eq. 36's eta stays at the start's where the command is held per run (such data cannot tell
+the lag, and the fit would take it anywhere). A kind whose daemon controller's work per frame
+(`model_fit.frame_cost_s`, the check the daemon makes when it loads the model) is over the
+loop's budget is not chosen; among the others the lowest Et wins. A kind that cannot be built
+here, or for which the search time was spent, is listed as not tried, with why.
 """
 
 from __future__ import annotations
@@ -38,15 +38,17 @@ from mrrig.offline.identify.fit import FREE, Run, fit, run_force
 from mrrig.offline.identify.identify import start_plant
 from mrrig.offline.training.crossval import MAX_FOLDS, cross_validate_with
 from mrrig.offline.training.data import run_ids, sample_period, stretch_bounds, stretches
-from mrrig.offline.training.features import feature_rows, features
+from mrrig.offline.training.features import COIL_LAG_TAU_S, feature_rows, features
 from mrrig.offline.training.fit import HOLDOUT_FRACTION, block_split, train_forward
+from mrrig.offline.training.gru import DEFAULT_HIDDEN as GRU_HIDDEN
+from mrrig.offline.training.gru import fit_gru, gru_forces
 from mrrig.offline.training.report import EtSum, predict
 from mrrig.offline.training.select import Candidate, command_varies
 
 log = logging.getLogger(__name__)
 
 STATIC_MLP, HISTORY_MLP, GRU, TWIN = "static MLP", "history MLP", "GRU", "Bouc-Wen twin"
-KIND_NAMES = (STATIC_MLP, HISTORY_MLP, TWIN)  # what `model_kinds` builds
+KIND_NAMES = (STATIC_MLP, HISTORY_MLP, TWIN, GRU)  # what `model_kinds` builds, in this order
 KINDS_BUDGET_S = 1800.0  # kinds left when this is spent are not tried (the report says)
 COST_DT_S = 0.002  # the rig's period, at which the work per frame is measured
 # the twin's fit: at most so many windows of its training rows (each 0.5 s scored after 0.2 s
@@ -228,6 +230,27 @@ def twin_kind(
         forces,
         lambda p: _network_controller(TwinModel(p), i_max, True),
     )
+
+
+def gru_kind(*, seed: int, holdout_fraction: float, lag_tau_s: float, i_max: float) -> ModelKind:
+    """The GRU forward model (`training.gru.fit_gru`, its defaults) of the lagged command
+    (`lag_tau_s`: the structure search's fitted lag where it fitted one), run over each
+    stretch from the zero state (`gru_forces`)."""
+
+    def fit(series: Series) -> Any:
+        model, report = fit_gru(
+            series, seed=seed, holdout_fraction=holdout_fraction, lag_tau_s=lag_tau_s
+        )
+        log.info(
+            "GRU fitted: best epoch %d of %d, %.0f s",
+            report["best_epoch"],
+            report["epochs"],
+            report["seconds"],
+        )
+        return model
+
+    label = f"{GRU_HIDDEN} units, the command lagged {lag_tau_s * 1e3:.2f} ms"
+    return ModelKind(GRU, label, fit, gru_forces, lambda m: _network_controller(m, i_max, True))
 
 
 def best_candidates(search: dict[str, Any]) -> dict[str, Candidate]:
@@ -420,7 +443,8 @@ def model_kinds(
     i_max: float,
 ) -> tuple[list[ModelKind], dict[str, Candidate], dict[str, str]]:
     """The kinds to choose among, the MLP structures of the two MLP kinds, and the kinds left
-    out with why: the static and history MLPs of the structure search (`search`), the twin."""
+    out with why: the static and history MLPs of the structure search (`search`), the twin and
+    the GRU (the slowest to fit: last, so that the search's time cuts it first)."""
     cands = best_candidates(search)
     kinds, left_out = [], {}
     for name in (STATIC_MLP, HISTORY_MLP):
@@ -439,6 +463,10 @@ def model_kinds(
         else:
             left_out[name] = "the structure search tried no such candidate"
     kinds.append(twin_kind(holdout_fraction=holdout_fraction, i_max=i_max))
+    lag = search.get("lag_fit") or {"tau_s": COIL_LAG_TAU_S}
+    kinds.append(
+        gru_kind(seed=seed, holdout_fraction=holdout_fraction, lag_tau_s=lag["tau_s"], i_max=i_max)
+    )
     return kinds, cands, left_out
 
 
@@ -448,22 +476,23 @@ def _period(series: Series) -> float:
     return sample_period(series.t[first[0] : first[0] + length[0]]) if len(series) > 1 else 1.0
 
 
-def twin_result(
+def kind_result(
     kind: ModelKind,
     series: Series,
     holdout_fraction: float,
     validate: list[tuple[str, Series]],
-) -> tuple[Plant, dict[str, Any]]:
-    """The chosen twin, fitted to all the training rows (the block hold-out kept out), with
-    its Et on the block hold-out and on each validation test (`validate`: name, Series)."""
-    plant = kind.fit(series)
-    rows, y, f = kind.forces(plant, series)
+) -> tuple[Any, dict[str, Any]]:
+    """The chosen kind's model (a twin, a GRU), fitted to all the training rows (the block
+    hold-out kept out), with its Et on the block hold-out and on each validation test
+    (`validate`: name, Series)."""
+    model = kind.fit(series)
+    rows, y, f = kind.forces(model, series)
     val = block_holdout(series, rows, holdout_fraction)
     block = EtSum()
     block.add(y[val], f[val])
     per, pooled = [], EtSum()
     for name, s in validate:
-        _, yv, fv = kind.forces(plant, s)
+        _, yv, fv = kind.forces(model, s)
         one = EtSum()
         one.add(yv, fv)
         pooled.add(yv, fv)
@@ -473,4 +502,4 @@ def twin_result(
         "holdout_fraction": holdout_fraction,
         "validate": {"per_test": per, "forward": pooled.numbers()} if validate else None,
     }
-    return plant, report
+    return model, report
