@@ -769,8 +769,10 @@ class GruInversion(TwinInversion):
     sample, so the solve is always for it, at the motion predicted there (eq. 21); `ahead`
     with `f_des_next` takes the desired force then as the target, else the present one. The
     load-cell feedback as `NetworkInversion`'s, the residual against the model's force now.
-    Exact solve only, without adaptation; of several roots the one nearest the present u
-    (the continuity weight does not apply). Built by network_inversion for a GRU model."""
+    Exact solve only, without adaptation; `continuity` as network inversion's (the model's
+    own, `online_continuity`, chosen on its training rows), in closed form where u is the
+    read-out's alone; with u in the cell the root nearest the present u. Built by
+    network_inversion for a GRU model."""
 
     @classmethod
     def build(cls, s: ControllerSettings) -> Controller:
@@ -778,11 +780,27 @@ class GruInversion(TwinInversion):
             raise ValueError(f"method {s.method!r}: a GRU forward model is solved exactly")
         if s.adaptation is not None:
             raise ValueError("adaptation: not with a GRU forward model")
-        return cls(s.i_max, s.model, s.dt_s, s.feedback_tau_s, s.ahead)
+        assert isinstance(s.model, GRUModel)
+        GruTracker(s.model, s.dt_s, s.i_max, s.continuity)  # a setting it refuses, here
+        return cls(s.i_max, s.model, s.dt_s, s.feedback_tau_s, s.ahead, s.continuity)
+
+    def __init__(
+        self,
+        i_max: float,
+        model: GRUModel,
+        dt_s: float = 0.002,
+        feedback_tau_s: float | None = None,
+        ahead: bool = False,
+        continuity: float = 0.0,
+    ) -> None:
+        self.continuity = continuity
+        super().__init__(i_max, model, dt_s, feedback_tau_s, ahead)
 
     def reset(self, batch: int = 1) -> None:
         Controller.reset(self, batch)
-        self.lanes = [GruTracker(self.model, self.dt_s, self.i_max) for _ in range(batch)]
+        self.lanes = [
+            GruTracker(self.model, self.dt_s, self.i_max, self.continuity) for _ in range(batch)
+        ]
         self._residual = [0.0] * batch
 
     def _lane(

@@ -48,8 +48,10 @@ def _sigmoid(a: np.ndarray) -> np.ndarray:
 
 @dataclass
 class GRUModel:
-    """(x, xd, xdd, u) -> force: h' = GRU(z, h) (torch's gates r, z, n), f = out_mean +
-    out_std * (W_out . h' + b_out), z the standardised inputs."""
+    """(x, xd, xdd, u) -> force: h' = GRU(z, h) (torch's gates r, z, n) on the standardised
+    motion (and u where W_ih has a fourth column), f = out_mean + out_std * (W_out . h' + b_out
+    + u_s (V_out . h' + c_out)), u_s the standardised u: the force affine in u at a state, as
+    eq. 30 is in the command's coefficients (eqs 32-35)."""
 
     input_names: list[str]
     input_units: list[str]
@@ -59,12 +61,14 @@ class GRUModel:
     in_std: np.ndarray
     out_mean: float
     out_std: float
-    W_ih: np.ndarray  # (3H, n_in): rows r, z, n
+    W_ih: np.ndarray  # (3H, 3 or 4): rows r, z, n; columns x, xd, xdd (and u)
     W_hh: np.ndarray  # (3H, H)
     b_ih: np.ndarray  # (3H,)
     b_hh: np.ndarray  # (3H,)
     W_out: np.ndarray  # (H,)
     b_out: float
+    V_out: np.ndarray  # (H,): the read-out's gain on u
+    c_out: float
     fingerprint: str = ""
     metrics: dict[str, Any] = field(default_factory=dict)
     meta: dict[str, Any] = field(default_factory=dict)
@@ -75,11 +79,8 @@ class GRUModel:
                 setattr(self, name, np.array(getattr(self, name), dtype=np.float64))
             except ValueError:
                 raise ModelError(f"model: field '{name}': not a rectangular array") from None
-        self.out_mean, self.out_std, self.b_out = (
-            float(self.out_mean),
-            float(self.out_std),
-            float(self.b_out),
-        )
+        self.out_mean, self.out_std = float(self.out_mean), float(self.out_std)
+        self.b_out, self.c_out = float(self.b_out), float(self.c_out)
         problem = self._problem()
         if problem is not None:
             raise ModelError(f"model: field '{problem[0]}': {problem[1]}")
@@ -110,16 +111,17 @@ class GRUModel:
         shapes = {
             "in_mean": (4,),
             "in_std": (4,),
-            "W_ih": (3 * h, 4),
+            "W_ih": (3 * h, 3 if self.W_ih.shape[1:] == (3,) else 4),
             "W_hh": (3 * h, h),
             "b_ih": (3 * h,),
             "b_hh": (3 * h,),
             "W_out": (h,),
+            "V_out": (h,),
         }
         for name, shape in shapes.items():
             if getattr(self, name).shape != shape:
                 return name, f"must have shape {shape}, got {getattr(self, name).shape}"
-        for name in (*_ARRAYS, "out_mean", "out_std", "b_out"):
+        for name in (*_ARRAYS, "out_mean", "out_std", "b_out", "c_out"):
             if not np.all(np.isfinite(getattr(self, name))):
                 return name, "must be finite"
         for name in ("in_std", "out_std"):
@@ -138,18 +140,26 @@ class GRUModel:
             )
         return None
 
+    @property
+    def u_in_cell(self) -> bool:
+        """Whether u is an input of the cell too (else of the read-out alone)."""
+        return self.W_ih.shape[1] == 4
+
     def cell(self, z: np.ndarray, h: np.ndarray) -> np.ndarray:
         """One step of the GRU on standardised inputs z (..., 4) from h (..., H)."""
         H = self.hidden
-        gi = z @ self.W_ih.T + self.b_ih
+        gi = z[..., : self.W_ih.shape[1]] @ self.W_ih.T + self.b_ih
         gh = h @ self.W_hh.T + self.b_hh
         r = _sigmoid(gi[..., :H] + gh[..., :H])
         u = _sigmoid(gi[..., H : 2 * H] + gh[..., H : 2 * H])
         n = np.tanh(gi[..., 2 * H :] + r * gh[..., 2 * H :])
         return (1.0 - u) * n + u * h
 
-    def read_out(self, h: np.ndarray) -> np.ndarray:
-        return self.out_mean + self.out_std * (h @ self.W_out + self.b_out)
+    def read_out(self, h: np.ndarray, u_s: np.ndarray | float) -> np.ndarray:
+        """The force of the state h (..., H) and the standardised u (...)."""
+        return self.out_mean + self.out_std * (
+            h @ self.W_out + self.b_out + u_s * (h @ self.V_out + self.c_out)
+        )
 
     def predict(self, X: np.ndarray, h0: np.ndarray | None = None) -> np.ndarray:
         """The force (N,) along one sequence of inputs X (N, 4) in physical units, from h0
@@ -157,13 +167,17 @@ class GRUModel:
         X = np.asarray(X, dtype=np.float64)
         if X.ndim != 2 or X.shape[1] != 4:
             raise ValueError(f"predict: X must be (N, 4), got {X.shape}")
-        Z = (X - self.in_mean) / self.in_std
+        return self.read_out(self.states(X, h0), (X[:, 3] - self.in_mean[3]) / self.in_std[3])
+
+    def states(self, X: np.ndarray, h0: np.ndarray | None = None) -> np.ndarray:
+        """The hidden states (N, H) along X (N, 4), physical units, from h0 (zeros)."""
+        Z = (np.asarray(X, dtype=np.float64) - self.in_mean) / self.in_std
         h = np.zeros(self.hidden) if h0 is None else np.array(h0, dtype=float)
-        out = np.empty((X.shape[0], self.hidden))
-        for k in range(X.shape[0]):
+        out = np.empty((Z.shape[0], self.hidden))
+        for k in range(Z.shape[0]):
             h = self.cell(Z[k], h)
             out[k] = h
-        return self.read_out(out)
+        return out
 
     def to_dict(self) -> dict[str, Any]:
         return {
@@ -184,6 +198,8 @@ class GRUModel:
             "b_hh": self.b_hh.tolist(),
             "W_out": self.W_out.tolist(),
             "b_out": self.b_out,
+            "V_out": self.V_out.tolist(),
+            "c_out": self.c_out,
             "metrics": _plain(self.metrics),
             "meta": _plain(self.meta),
         }
@@ -207,7 +223,7 @@ class GRUModel:
             raise ModelError(f"{path}: {str(exc).removeprefix('model: ')}") from None
 
 
-_ARRAYS = ("in_mean", "in_std", "W_ih", "W_hh", "b_ih", "b_hh", "W_out")
+_ARRAYS = ("in_mean", "in_std", "W_ih", "W_hh", "b_ih", "b_hh", "W_out", "V_out")
 _FIELDS: dict[str, str] = {
     "input_names": "list of strings",
     "input_units": "list of strings",
@@ -224,15 +240,44 @@ _FIELDS: dict[str, str] = {
     "b_hh": "list of numbers",
     "W_out": "list of numbers",
     "b_out": "number",
+    "V_out": "list of numbers",
+    "c_out": "number",
     "metrics": "object",
     "meta": "object",
 }
 
 
+def affine_solve(
+    f_m: float,
+    gain: float,
+    u_mean: float,
+    target_n: float,
+    u_prev: float,
+    lo: float,
+    hi: float,
+    w_force: float,
+    w_cont: float,
+) -> float:
+    """The u in [lo, hi] minimising w_force (f(u) - target)^2 + w_cont (u - u_prev)^2 for the
+    affine force f(u) = f_m + gain (u - u_mean): network inversion's exact solve with its
+    continuity weight (mrrig/loop/inversion.py), in closed form; the root where w_cont = 0.
+    The objective is convex, so the clamp is its minimum on the range (a target out of reach
+    gets the nearest end); where no u changes the force, u_prev clamped."""
+    den = w_force * gain * gain + w_cont
+    if den == 0.0:
+        return min(max(u_prev, lo), hi)
+    u = (w_force * gain * (target_n - f_m + gain * u_mean) + w_cont * u_prev) / den
+    return min(max(u, lo), hi)
+
+
 class GruTracker:
     """One damper's GRU state, carried frame to frame and inverted (module docstring)."""
 
-    def __init__(self, model: GRUModel, dt_s: float, i_max: float) -> None:
+    def __init__(self, model: GRUModel, dt_s: float, i_max: float, continuity: float = 0.0) -> None:
+        if continuity and model.u_in_cell:
+            raise ValueError(
+                "continuity: a GRU with u in its cell is solved for the root alone (continuity 0)"
+            )
         self.model = model
         self.dt_s = dt_s
         self.i_max = i_max
@@ -243,12 +288,14 @@ class GruTracker:
         m = model
         # the cell's pre-activations are affine in the standardised motion and in u
         self._W_motion = m.W_ih[:, :3] / m.in_std[:3]
-        self._b_motion = (
-            m.b_ih - self._W_motion @ m.in_mean[:3] - m.W_ih[:, 3] * (m.in_mean[3] / m.in_std[3])
-        )
-        self._col = m.W_ih[:, 3] / m.in_std[3]  # d pre-activation / d u
-        self._w = m.out_std * m.W_out
-        self._f0 = m.out_mean + m.out_std * m.b_out
+        # d pre-activation / d u (none where u is the read-out's alone)
+        self._col = m.W_ih[:, 3] / m.in_std[3] if m.u_in_cell else np.zeros(3 * H)
+        self._b_motion = m.b_ih - self._W_motion @ m.in_mean[:3] - self._col * m.in_mean[3]
+        self._w, self._v = m.out_std * m.W_out, m.out_std * m.V_out
+        self._f0, self._cv = m.out_mean + m.out_std * m.b_out, m.out_std * m.c_out
+        self._u_mean, self._u_scale = m.in_mean[3], 1.0 / m.in_std[3]
+        # the exact solve's objective (mrrig/loop/inversion.py): force and continuity weights
+        self._w_force, self._w_cont = 1.0 / m.out_std**2, continuity / m.in_std[3] ** 2
         self._H = H
         self.reset()
 
@@ -266,22 +313,25 @@ class GruTracker:
         return gi, self.model.W_hh @ self.h + self.model.b_hh
 
     def _force(self, gi: np.ndarray, gh: np.ndarray, u: float | np.ndarray, grad: bool = False):
-        """The read-out one step on, for u (a float, or an array for a grid), and with `grad`
-        its derivative in u: the chain through the gates r, z, n."""
+        """The force one step on, for u (a float, or an array for a grid), and with `grad` its
+        derivative in u: the read-out's gain, and the chain through the gates r, z, n."""
         H = self._H
         a = gi + np.multiply.outer(u, self._col)
         r = _sigmoid(a[..., :H] + gh[:H])
         z = _sigmoid(a[..., H : 2 * H] + gh[H : 2 * H])
         n = np.tanh(a[..., 2 * H :] + r * gh[2 * H :])
         h1 = (1.0 - z) * n + z * self.h
-        f = self._f0 + h1 @ self._w
+        u_s = (u - self._u_mean) * self._u_scale
+        gain = h1 @ self._v + self._cv  # the read-out's d force / d u_s at h1
+        f = self._f0 + h1 @ self._w + u_s * gain
         if not grad:
             return f, h1
         c = self._col
         dr = r * (1.0 - r) * c[:H]
         dz = z * (1.0 - z) * c[H : 2 * H]
         dn = (1.0 - n * n) * (c[2 * H :] + dr * gh[2 * H :])
-        return f, h1, (dz * (self.h - n) + (1.0 - z) * dn) @ self._w
+        dh1 = dz * (self.h - n) + (1.0 - z) * dn
+        return f, h1, dh1 @ (self._w + u_s * self._v) + gain * self._u_scale
 
     def advance(self, x: float, xd: float, xdd: float) -> float:
         """Step the state to this sample with the u the held command made; the force now."""
@@ -308,17 +358,34 @@ class GruTracker:
         u, lag = self.u, self.lag
         lo, hi = u - lag * u, u + lag * (self.i_max - u)  # eq. 36: commands 0 and i_max
         gi, gh = self._pre(x1, xd1, xdd1)
+        if not self.model.u_in_cell:
+            u1 = self._exact(gi, gh, target_n, lo, hi)
+        else:
+            u1 = self._bracketed(gi, gh, target_n, lo, hi)
+        v = u + (u1 - u) / lag  # eq. 36 inverted: u reaches u1 one period on
+        self.command = min(max(v, 0.0), self.i_max)
+        return self.command
+
+    def _exact(self, gi: np.ndarray, gh: np.ndarray, target_n: float, lo: float, hi: float):
+        """u in [lo, hi] for the target where u is the read-out's alone: the next state does
+        not depend on it and the force is affine in it (`affine_solve`, from the present u)."""
+        f_m, h1 = self._force(gi, gh, self._u_mean)
+        gain = (float(h1 @ self._v) + self._cv) * self._u_scale  # d force / d u
+        return affine_solve(
+            float(f_m), gain, self._u_mean, target_n, self.u, lo, hi, self._w_force, self._w_cont
+        )
+
+    def _bracketed(self, gi: np.ndarray, gh: np.ndarray, target_n: float, lo: float, hi: float):
+        """u in [lo, hi] for the target where u is an input of the cell: the grid's bracket
+        nearest the present u, refined by Newton; out of reach, the grid's u nearest it."""
+        u = self.u
         grid = np.linspace(lo, hi, GRID)
         e = self._force(gi, gh, grid)[0] - target_n
         flips = np.flatnonzero(np.signbit(e[:-1]) != np.signbit(e[1:]))
         if flips.size == 0:
-            u1 = float(grid[int(np.argmin(np.abs(e)))])  # out of reach: the nearest force
-        else:
-            k = int(flips[np.argmin(np.abs(grid[flips] - u))])  # the bracket nearest u
-            u1 = self._newton(gi, gh, target_n, float(grid[k]), float(grid[k + 1]), float(e[k]))
-        v = u + (u1 - u) / lag  # eq. 36 inverted: u reaches u1 one period on
-        self.command = min(max(v, 0.0), self.i_max)
-        return self.command
+            return float(grid[int(np.argmin(np.abs(e)))])  # out of reach: the nearest force
+        k = int(flips[np.argmin(np.abs(grid[flips] - u))])  # the bracket nearest u
+        return self._newton(gi, gh, target_n, float(grid[k]), float(grid[k + 1]), float(e[k]))
 
     def _newton(self, gi, gh, target_n: float, a: float, b: float, e_a: float) -> float:
         """Newton's root of force(u) = target in [a, b] (a sign change), a step leaving the

@@ -5,9 +5,13 @@ validation) of data set A (volts), B (amperes) or a synthetic smooth force, or t
 model, then inverts it on the validation samples (desired force = the plant's force) and
 prints the per-sample cost (median, p99) of each method on the batch and the scalar path
 (the exact solve also with a continuity weight, as the daemon solves with a model's own),
-their speed ratio, and each method's force and current errors.
+their speed ratio, and each method's force and current errors. With `--gru PATH` (a GRU
+forward model, `mrrig train --features gru`), also its per-frame solve (mrrig/loop/gru.py) run
+frame by frame over runs of data set B, each frame's target the model's own force for the
+command held (reachable): us per solve and the command's error.
 
     python -m mrrig.offline.bench.inversion [--data a|b|synthetic] [--model PATH] [--epochs 1000]
+        [--gru PATH]
 """
 
 from __future__ import annotations
@@ -33,6 +37,7 @@ N_TRAIN = 12771
 N_VAL = 1419
 NAMES = ["x", "xd", "xdd", "current"]
 CHUNK = 64  # samples per timed batch call
+GRU_RUNS = 20  # runs of data set B (450 frames each) the GRU's solve is timed over
 
 
 def synthetic(n: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, float]:
@@ -99,6 +104,37 @@ def _scalar_us(
     return out, cost
 
 
+def gru_solves(path: str, runs: int = GRU_RUNS) -> tuple[np.ndarray, np.ndarray, int]:
+    """(us per solve, |command - the command held|, hidden units) of the GRU's per-frame
+    solve over the first `runs` runs of data set B, frame by frame as the daemon solves."""
+    from mrrig.loop.gru import GRUModel, GruTracker
+    from mrrig.loop.twin_model import load_forward_model
+    from mrrig.offline import datasets
+
+    model = load_forward_model(path)
+    if not isinstance(model, GRUModel):
+        raise SystemExit(f"error: {path}: not a GRU forward model (mrrig-gru/1)")
+    s = datasets.dataset_b()
+    i_max = float(np.max(s.current))
+    g = GruTracker(model, float(np.median(np.diff(s.t[:10]))), i_max)
+    cost, err = [], []
+    per_run = len(s) // int(np.max(s.run_id) + 1)
+    for r in range(runs):
+        sl = slice(r * per_run, (r + 1) * per_run)
+        x, xd, xdd, cur = (a[sl] for a in (s.x, s.xd, s.xdd, s.current))
+        g.reset()
+        for k in range(per_run - 1):
+            g.advance(float(x[k]), float(xd[k]), float(xdd[k]))
+            nxt, held = (float(x[k + 1]), float(xd[k + 1]), float(xdd[k + 1])), float(cur[k])
+            target = g.force_next(*nxt, held)
+            t0 = time.perf_counter_ns()
+            i = g.solve(target, *nxt)
+            cost.append((time.perf_counter_ns() - t0) * 1e-3)
+            err.append(abs(i - held))
+            g.command = held
+    return np.array(cost), np.array(err), model.hidden
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     ap = argparse.ArgumentParser(
         formatter_class=HelpFormatter,
@@ -122,6 +158,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         f" online_continuity, as the daemon solves; {DEMO_CONTINUITY:g} for a model without one)",
     )
     ap.add_argument("--save", type=output_file, help="write the trained model here")
+    ap.add_argument("--gru", help="a GRU forward model: its per-frame solve too")
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.WARNING)
 
@@ -206,6 +243,16 @@ def main(argv: Sequence[str] | None = None) -> int:
     ratio_scalar = np.median(grad_scalar) / np.median(exact_scalar)
     print(f"  speed ratio gradient/exact: batch {ratio_batch:.0f}x, scalar {ratio_scalar:.0f}x")
     print(f"  scalar == batch (exact): max |difference| {np.max(np.abs(i_scalar - i_exact)):.2e}")
+    if args.gru:
+        gc.disable()
+        try:
+            cost, err, hidden = gru_solves(args.gru)
+        finally:
+            gc.enable()
+        print(
+            row(f"GRU ({hidden} units), per frame", cost)
+            + f"   [{cost.size} frames of data set B; command error max {err.max():.2e} A]"
+        )
 
     for name, i in (("gradient (paper)", i_grad), ("exact", i_exact)):
         Xi = np.column_stack([F, i])

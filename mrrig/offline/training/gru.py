@@ -5,7 +5,8 @@ The API (stable; `kinds` and `mrrig train --features gru` call it):
 
     fit_gru(series, *, seed=0, hidden=DEFAULT_HIDDEN, max_epochs=DEFAULT_EPOCHS,
             holdout_fraction=HOLDOUT_FRACTION, current_input="lagged",
-            lag_tau_s=COIL_LAG_TAU_S, window_s=WINDOW_S, burn_in_s=BURN_IN_S)
+            lag_tau_s=COIL_LAG_TAU_S, window_s=WINDOW_S, burn_in_s=BURN_IN_S,
+            u_in_cell=False)
         -> (GRUModel, report: dict)
     gru_forces(model, series) -> (rows, measured force, predicted force)
     gru_result(series, *, tests, test_names, validate=(), max_folds=MAX_FOLDS, **fit_gru options)
@@ -34,9 +35,9 @@ from typing import Any
 
 import numpy as np
 
-from mrrig.loop.gru import GRUModel
+from mrrig.loop.gru import GRUModel, affine_solve
 from mrrig.offline.datasets import DataError, Series
-from mrrig.offline.metrics import error_norm
+from mrrig.offline.metrics import error_norm, rmse
 from mrrig.offline.training.crossval import MAX_FOLDS, cross_validate_with
 from mrrig.offline.training.data import measured_series, run_ids, stretch_bounds, stretches
 from mrrig.offline.training.features import COIL_LAG_TAU_S, INPUT_NAMES, command_input
@@ -47,12 +48,15 @@ from mrrig.offline.training.fit import (
     series_fingerprint,
     training_envelope,
 )
-from mrrig.offline.training.report import EtSum
+from mrrig.offline.training.report import ONLINE_CONTINUITY_CANDIDATES, EtSum
 
 log = logging.getLogger(__name__)
 
-DEFAULT_HIDDEN = 12  # the daemon's solve costs about H^2 per grid point: 12 keeps it in budget
-DEFAULT_EPOCHS = 1000
+# chosen on the simulated matrix's block hold-out Et at 1000 epochs: u in the read-out, 12 units
+# 0.0139, 16 units 0.0101; u in the cell too, 12: 0.0197, 16: 0.0161. The daemon's solve with
+# 16 takes about 30 us a frame
+DEFAULT_HIDDEN = 16
+DEFAULT_EPOCHS = 3000  # at most: the stopping blocks end it (1453 epochs on the simulated matrix)
 WINDOW_S = 0.3  # the scored part of a training window
 BURN_IN_S = 0.1  # the state warmed before it
 LEARNING_RATE = 1e-2
@@ -114,6 +118,7 @@ def fit_gru(
     lag_tau_s: float = COIL_LAG_TAU_S,
     window_s: float = WINDOW_S,
     burn_in_s: float = BURN_IN_S,
+    u_in_cell: bool = False,
 ) -> tuple[GRUModel, dict[str, Any]]:
     """A GRU forward model of `hidden` units fitted to the training blocks of `series` (module
     docstring); the report: epochs, best epoch, seconds, the split's rule, and `holdout_et`,
@@ -168,14 +173,16 @@ def fit_gru(
     mf[:, :burn] = 0.0  # the burn-in warms the state, it is not scored
     torch.manual_seed(seed)
     torch.set_num_threads(TORCH_THREADS)
-    net = torch.nn.GRU(4, hidden, batch_first=True)
-    head = torch.nn.Linear(hidden, 1)
-    params = list(net.parameters()) + list(head.parameters())
+    n_cell = 4 if u_in_cell else 3
+    net = torch.nn.GRU(n_cell, hidden, batch_first=True)
+    head, gain = torch.nn.Linear(hidden, 1), torch.nn.Linear(hidden, 1)
+    params = [*net.parameters(), *head.parameters(), *gain.parameters()]
     opt = torch.optim.Adam(params, lr=LEARNING_RATE)
     sched = torch.optim.lr_scheduler.ReduceLROnPlateau(opt, factor=0.5, patience=10)
 
     def loss_of(xb, yb, mb) -> torch.Tensor:
-        out = head(net(xb)[0])[..., 0]
+        h = net(xb[..., :n_cell])[0]
+        out = (head(h) + xb[..., 3:4] * gain(h))[..., 0]
         return ((out - yb) ** 2 * mb).sum() / mb.sum()
 
     fit_t = tuple(torch.from_numpy(a) for a in (Xf, yf, mf))
@@ -207,6 +214,7 @@ def fit_gru(
     model = export_gru(
         net,
         head,
+        gain,
         in_mean=in_mean,
         in_std=in_std,
         out_mean=out_mean,
@@ -223,6 +231,7 @@ def fit_gru(
             "sample_period_s": dt,
             "window_s": window_s,
             "burn_in_s": burn_in_s,
+            "u_in_cell": u_in_cell,
             "split": sp.kind,
             "split_rule": sp.rule,
             "holdout_fraction": holdout_fraction,
@@ -235,6 +244,10 @@ def fit_gru(
     envelope = training_envelope(series, np.arange(len(y)), sp)
     if envelope is not None:
         model.meta["envelope"] = envelope.to_meta()
+    if not u_in_cell:
+        mu, scores = choose_gru_continuity(model, series, sp.train)
+        model.meta["online_continuity"] = mu
+        model.metrics["online_continuity_rmse"] = scores
     rows, measured, predicted = gru_forces(model, series)
     held = np.zeros(len(y), dtype=bool)
     held[sp.val] = True
@@ -265,6 +278,7 @@ def fit_gru(
 def export_gru(
     net: Any,
     head: Any,
+    gain: Any,
     *,
     in_mean: np.ndarray,
     in_std: np.ndarray,
@@ -273,8 +287,9 @@ def export_gru(
     command_unit: str,
     meta: dict[str, Any],
 ) -> GRUModel:
-    """The numpy model of a torch `nn.GRU` (one layer, batch_first) and its `nn.Linear(H, 1)`
-    read-out, with the standardisation they were trained in (float64 copies of the weights)."""
+    """The numpy model of a torch `nn.GRU` (one layer, batch_first) and its read-out, `head`
+    plus the standardised u times `gain` (each an `nn.Linear(H, 1)`), with the standardisation
+    they were trained in (float64 copies of the weights)."""
 
     def w(p: Any) -> np.ndarray:
         return p.detach().double().numpy().copy()
@@ -294,8 +309,51 @@ def export_gru(
         b_hh=w(net.bias_hh_l0),
         W_out=w(head.weight)[0],
         b_out=float(w(head.bias)[0]),
+        V_out=w(gain.weight)[0],
+        c_out=float(w(gain.bias)[0]),
         meta=meta,
     )
+
+
+def online_gru_inversion(model: GRUModel, series: Series, continuity: float) -> np.ndarray:
+    """The u (N,) the daemon's solve makes for each row's measured force, each stretch from
+    u = 0, each row from the previous row's u with `continuity` (`loop.gru.affine_solve`), over
+    the data's range of commands: `report.online_inversion` for a GRU whose u is the
+    read-out's alone (its states do not depend on u)."""
+    lag = model.lag_tau_s
+    X = model_inputs(series, model.meta["current_input"], lag if lag is not None else 1.0)
+    lo, hi = 0.0, float(np.max(series.current))
+    m, s = float(model.in_mean[3]), float(model.in_std[3])
+    w_force, w_cont = 1.0 / model.out_std**2, continuity / s**2
+    out = np.empty(len(series))
+    first, length = stretch_bounds(stretches(run_ids(series)))
+    for f, n in zip(first.tolist(), length.tolist(), strict=True):
+        H = model.states(X[f : f + n])
+        f_m = model.read_out(H, 0.0).tolist()
+        gain = (model.out_std * (H @ model.V_out + model.c_out) / s).tolist()
+        target = series.force[f : f + n].tolist()
+        u = 0.0
+        for k in range(n):
+            u = affine_solve(f_m[k], gain[k], m, target[k], u, lo, hi, w_force, w_cont)
+            out[f + k] = u
+    return out
+
+
+def choose_gru_continuity(
+    model: GRUModel, series: Series, train_rows: np.ndarray
+) -> tuple[float, dict[str, float]]:
+    """The continuity of the on-line inversion chosen on the training rows alone (the smallest
+    RMSE of u there), as `report.choose_continuity` chooses the network's; and each
+    candidate's RMSE."""
+    lag = model.lag_tau_s
+    u_true = model_inputs(series, model.meta["current_input"], lag if lag is not None else 1.0)
+    scores = {
+        f"{mu:g}": rmse(online_gru_inversion(model, series, mu)[train_rows], u_true[train_rows, 3])
+        for mu in ONLINE_CONTINUITY_CANDIDATES
+    }
+    best = min(scores, key=scores.get)
+    log.info("GRU on-line inversion, training-row u RMSE by continuity: %s", scores)
+    return float(best), scores
 
 
 def gru_forces(model: GRUModel, series: Series) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
