@@ -179,6 +179,12 @@ def test_the_daemon_inverts_a_gru_in_amperes_and_refuses_one_in_volts(model, tmp
     assert re.fullmatch(
         r".*gru-v\.json: input_units\[3\] \(current\): expected A .*'V'", str(err.value)
     )
+    doc["input_units"][3] = "A"
+    doc["meta"]["sample_period_s"] = 1 / 3004.8  # the state steps once a sample: at 3 kHz
+    fast = tmp_path / "gru-3khz.json"
+    fast.write_text(json.dumps(doc))
+    with pytest.raises(ModelError, match=r"gru-3khz\.json: meta.sample_period_s: a recurrent st"):
+        build_controller(load_config(rig_config(tmp_path, "ws://127.0.0.1:1/", fast)))
     doc["meta"]["current_input"] = "sideways"
     volts.write_text(json.dumps(doc))
     with pytest.raises(ModelError, match=r"gru-v\.json: field 'meta.current_input': must be one"):

@@ -62,13 +62,16 @@ def check_period(model: MLP, path: Path | str | None, period_s: float) -> None:
     A model of the present state alone (and the lag's tau, in seconds) fits any rate; one
     that does not record its period (the RNN, trained on the simulator's 500 Hz) is taken."""
     trained = model.meta.get("sample_period_s")
-    if trained is None or not any(_signal(n) != n for n in model.input_names):
+    # a recurrent model's state (mrrig/loop/gru.py) steps once a sample, as taps count them
+    recurrent = model.meta.get("kind") == "gru"
+    if trained is None or not (recurrent or any(_signal(n) != n for n in model.input_names)):
         return
     if isinstance(trained, bool) or not isinstance(trained, int | float) or not trained > 0:
         raise ModelError(f"{path}: meta.sample_period_s: expected a number > 0, got {trained!r}")
     if abs(trained - period_s) > PERIOD_TOLERANCE * period_s:
+        what = "a recurrent state" if recurrent else "history inputs"
         raise ModelError(
-            f"{path}: meta.sample_period_s: history inputs trained at {trained:.6g} s"
+            f"{path}: meta.sample_period_s: {what} trained at {trained:.6g} s"
             f" ({1.0 / trained:g} Hz), the rig runs at {period_s:g} s ({1.0 / period_s:g} Hz,"
             " loop.period_s): retrain on data at the rig's rate"
         )
