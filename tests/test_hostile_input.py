@@ -30,9 +30,9 @@ from mrrig.rigio.client import query
 from mrrig.rigio.ipc import LoopEnd, Msg, make_channel
 from mrrig.rigio.sidecar import keys
 from mrrig.typed_config import ConfigError
-from tests.conftest import REPO, rig_config
+from tests.conftest import REPO, rig_config, wait_until
 from tests.rig_harness import ScriptedRig
-from tests.test_sidecar import RIG, _samples, _wait_for, running_sidecar
+from tests.test_sidecar import RIG, _samples, running_sidecar
 
 ACTIVE, SAFE = 1, 0
 
@@ -307,7 +307,7 @@ def test_finding6_a_killed_sidecar_is_a_fault_restarted_once_then_the_daemon_sto
         record_path=tmp_path / "run.rrd",
     )
     with rig:
-        _wait_for(lambda: rig.exchange() and rig.daemon.link is not None)
+        wait_until(lambda: rig.exchange() and rig.daemon.link is not None)
         first = rig.daemon.sidecar
         first.kill()
         while rig.daemon.supervisor.fault is not Fault.TELEMETRY_LOST:
@@ -315,13 +315,13 @@ def test_finding6_a_killed_sidecar_is_a_fault_restarted_once_then_the_daemon_sto
         assert "telemetry process exited" in rig.daemon.supervisor.reason
         assert rig.exchange()["Mode"] == SAFE
         # restarted once, into a file of its own
-        _wait_for(lambda: rig.exchange() and rig.daemon.sidecar is not first, 30.0)
+        wait_until(lambda: rig.exchange() and rig.daemon.sidecar is not first, 30.0)
         assert rig.daemon.record_paths[-1].name == "run.restart1.rrd"
         assert rig.request({"cmd": "reset"})["ok"]  # the fault acknowledged, then armed
         assert rig.request({"cmd": "arm"})["ok"]
         # a stopped (stuck) one: no heartbeat for 0.5 s is the same fault
         second = rig.daemon.sidecar
-        _wait_for(lambda: rig.exchange() and rig.daemon.link is not None, 30.0)
+        wait_until(lambda: rig.exchange() and rig.daemon.link is not None, 30.0)
         end = time.monotonic() + 2.0  # its first heartbeats come
         while time.monotonic() < end:
             rig.exchange()

@@ -13,8 +13,9 @@ import pytest
 from mrrig.loop.safety import Fault
 from mrrig.rigio.client import query
 from mrrig.rigio.ipc import Msg
+from tests.conftest import wait_until
 from tests.rig_harness import ScriptedRig
-from tests.test_sidecar import RIG, _samples, _wait_for, running_sidecar
+from tests.test_sidecar import RIG, _samples, running_sidecar
 
 pytestmark = pytest.mark.process
 SAFE = 0  # DamperCommand Mode
@@ -62,7 +63,7 @@ def test_the_status_shows_the_recording_and_a_removed_directory_is_a_recording_f
 def test_the_loop_faults_when_its_recordings_directory_is_removed(tmp_path):
     path = tmp_path / "recordings" / "run.rrd"
     with ScriptedRig(tmp_path, timeout_periods=500, record_path=path) as rig:
-        assert _wait_for(path.exists, timeout_s=10.0)
+        assert wait_until(path.exists, timeout_s=10.0)
         shutil.rmtree(path.parent)
         end = time.monotonic() + 30
         while rig.daemon.supervisor.fault is not Fault.RECORDING_FAILED:
