@@ -49,7 +49,7 @@ def run_daemon(tmp_path, text: str) -> subprocess.CompletedProcess:
         ),
         (
             BASE + '[controller]\nname = "supervised"\nmodel = "{forward}"\n',
-            "input_names: the supervised inverse needs a model",
+            "controller supervised: the supervised inverse needs a model",
         ),
         (
             BASE + '[controller]\nmodel = "{forward}"\ncontinuity = -0.5\n',

@@ -205,7 +205,7 @@ def build_controller(cfg: DaemonConfig, section=None, model: MLP | None = None) 
     try:
         controller, spare = (make_controller(c.name, settings) for _ in range(2))
     except ValueError as exc:
-        raise ModelError(f"{c.model}: input_names: {exc}") from None
+        raise ModelError(f"{c.model}: controller {c.name}: {exc}") from None
     check_cost(spare, c.model if model is not None else f"controller {c.name}", dt)
     return controller
 
