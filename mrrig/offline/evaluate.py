@@ -37,7 +37,9 @@ from mrrig.loop.coverage import (
     model_envelope,
     shares,
 )
+from mrrig.loop.gru import GRUModel
 from mrrig.loop.mlp import MLP, ModelError
+from mrrig.loop.twin_model import TwinModel, load_forward_model
 from mrrig.offline.datasets import DataError
 from mrrig.offline.training.data import run_ids, stretches
 from mrrig.offline.training.features import (
@@ -47,6 +49,8 @@ from mrrig.offline.training.features import (
     features,
 )
 from mrrig.offline.training.fit import HOLDOUT_FRACTION, block_split
+from mrrig.offline.training.gru import gru_forces
+from mrrig.offline.training.kinds import twin_kind
 from mrrig.offline.training.report import EtSum, MetricError, Scores
 from mrrig.offline.training.stream import SEGMENT_ROWS, merge_reports, prepare, segments
 
@@ -79,7 +83,7 @@ def _integer(v: Any) -> bool:
     return isinstance(v, int) and not isinstance(v, bool)
 
 
-def _meta(model: MLP, path: Path, name: str, default: Any) -> Any:
+def _meta(model: MLP | GRUModel, path: Path, name: str, default: Any) -> Any:
     """A field of the model's meta (`default` where absent or null); a one-line ModelError
     naming the file and the field when it is not what `_META` says."""
     value = model.meta.get(name)
@@ -174,6 +178,74 @@ def evaluate(
         per_test=[{"file": f, **s.numbers()} for f, s in per_test.items()],
         coverage=coverage.numbers(),
     )
+    return numbers, plot_rows.arrays()
+
+
+def evaluate_stateful(
+    model: GRUModel | TwinModel,
+    model_path: Path,
+    data: list[Path],
+    columns: dict[str, str] | None = None,
+    units: dict[str, str] | None = None,
+    keep_all: bool | None = None,
+    rows: str = "all",
+    window: tuple[float, float] | None = None,
+    max_rows: int = SEGMENT_ROWS,
+) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
+    """`evaluate` for a stateful forward model, a GRU or a Bouc-Wen twin: run over each
+    stretch of each segment from the zero state (the GRU, `training.gru.gru_forces`) or from
+    rest (the twin, `training.kinds.twin_kind`'s forces), as `mrrig train --features auto`
+    scores them. No inverse command RMSE (the MLP's exact inversion); the coverage lines where
+    the model keeps an envelope (a GRU of `mrrig train` does, a twin does not)."""
+    if isinstance(model, TwinModel):
+        kind, unit = "Bouc-Wen twin", model.plant.command_unit
+        fraction, envelope = HOLDOUT_FRACTION, None
+        forces = twin_kind(holdout_fraction=fraction, i_max=1.0).forces
+        model_arg: Any = model.plant
+        keep_all = bool(keep_all)
+    else:
+        kind, unit = "GRU", _meta(model, model_path, "command_unit", "A")
+        fraction = float(_meta(model, model_path, "holdout_fraction", HOLDOUT_FRACTION))
+        envelope = model_envelope(model.meta, str(model_path))
+        forces, model_arg = gru_forces, model
+        if keep_all is None:
+            keep_all = bool(_meta(model, model_path, "excluded", {}).get("keep_all", False))
+    overall, per_test = EtSum(), {}
+    coverage = _Coverage(envelope)
+    plot_rows = _PlotRows(window)
+    reports = []
+    for path, raw in segments(data, columns, units, max_rows):
+        if raw.current_unit != unit:
+            raise DataError(
+                f"{path}: command in {raw.current_unit}, but the model's command input is in {unit}"
+            )
+        series, excluded = prepare(path, raw, keep_all)
+        reports.append(excluded)
+        frows, y, f_all = forces(model_arg, series)
+        stretch = stretches(run_ids(series))[frows]
+        pick = block_split(stretch, fraction).val if rows == "holdout" else np.arange(y.size)
+        f_model = f_all[pick]
+        overall.add(y[pick], f_model)
+        per_test.setdefault(str(path), EtSum()).add(y[pick], f_model)
+        coverage.add(series, frows[pick], stretch[pick], y[pick], f_model)
+        plot_rows.add(
+            series.t[frows][pick], series.xd[frows][pick], y[pick], f_model, stretch[pick]
+        )
+    forward = overall.numbers()
+    if not math.isfinite(forward["et"]):
+        raise MetricError(f"{model_path} on {', '.join(map(str, data))}: forward Et not finite")
+    numbers = {
+        "n": forward["n"],
+        "forward": forward,
+        "kind": kind,
+        "rows": rows,
+        "data": [str(p) for p in data],
+        "model": str(model_path),
+        "command_unit": unit,
+        "excluded": merge_reports(reports),
+        "per_test": [{"file": f, **s.numbers()} for f, s in per_test.items()],
+        "coverage": coverage.numbers(),
+    }
     return numbers, plot_rows.arrays()
 
 
@@ -304,7 +376,6 @@ def format_coverage(c: dict[str, Any] | None, unit: str) -> list[str]:
 
 
 def format_numbers(r: dict[str, Any]) -> str:
-    unit = r["command_unit"]
     ex = r["excluded"]
     excl = (
         "nothing excluded (--keep-all)"
@@ -316,14 +387,32 @@ def format_numbers(r: dict[str, Any]) -> str:
         [
             f"{r['model']} on {', '.join(r['data'])}: {r['n']} rows ({r['rows']}; {excl})",
             f"forward Et {r['forward']['et']:.4f}, RMSE {r['forward']['rmse_n']:.2f} N",
-            f"inverse command RMSE ({unit}): each sample alone {r['inverse_current_rmse']:.4f},"
-            f" on-line {r['inverse_current_rmse_online']:.4f}"
-            f" (continuity {r['continuity']:g}, bound {r['i_max']:g} {unit})",
+            _inverse_line(r),
             f"forward Et per test ({len(tests)}; overall {r['forward']['et']:.4f}, pooled):",
             *tests,
-            *format_coverage(r["coverage"], unit),
+            *_coverage_lines(r),
         ]
     )
+
+
+def _inverse_line(r: dict[str, Any]) -> str:
+    unit = r["command_unit"]
+    if "kind" in r:
+        return (
+            f"inverse command RMSE: does not apply to a {r['kind']} (the MLP's exact inversion;"
+            " the daemon inverts this kind frame by frame)"
+        )
+    return (
+        f"inverse command RMSE ({unit}): each sample alone {r['inverse_current_rmse']:.4f},"
+        f" on-line {r['inverse_current_rmse_online']:.4f}"
+        f" (continuity {r['continuity']:g}, bound {r['i_max']:g} {unit})"
+    )
+
+
+def _coverage_lines(r: dict[str, Any]) -> list[str]:
+    if r["coverage"] is None and r.get("kind") == "Bouc-Wen twin":
+        return ["coverage: does not apply to a Bouc-Wen twin (a plant file keeps no envelope)"]
+    return format_coverage(r["coverage"], r["command_unit"])
 
 
 def plot(arrays: dict[str, np.ndarray], path: Path, window: tuple[float, float] | None) -> None:
@@ -368,7 +457,9 @@ def main(argv: list[str] | None = None) -> int:
     from mrrig.cli.train import _mapping  # noqa: PLC0415 - the same column-map syntax
 
     ap = argparse.ArgumentParser(prog="mrrig evaluate", description=__doc__.splitlines()[0])
-    ap.add_argument("model", type=Path, help="forward model file (mrrig train --out)")
+    ap.add_argument(
+        "model", type=Path, help="forward model file (mrrig train --out: MLP, GRU, or a twin)"
+    )
     ap.add_argument("data", nargs="+", type=Path, help="tidy CSV, .rrd recording or CSV")
     ap.add_argument("--columns", help="CSV column map, as for mrrig train")
     ap.add_argument("--units", help="CSV units, as for mrrig train")
@@ -388,13 +479,14 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--window", type=_window, help="the plot's time window START,END (s)")
     ap.add_argument("--json", type=output_file, help="write the numbers as JSON")
     args = ap.parse_args(argv)
-    model = MLP.load(args.model)
-    if model.current_index is None:
+    model = load_forward_model(args.model)
+    if isinstance(model, MLP) and model.current_index is None:
         raise ModelError(f"{args.model}: no input named 'current': not a forward model")
     columns = _mapping(args.columns, "--columns")
     units = _mapping(args.units, "--units")
+    run = evaluate if isinstance(model, MLP) else evaluate_stateful
     try:
-        numbers, arrays = evaluate(
+        numbers, arrays = run(
             model, args.model, args.data, columns, units, args.keep_all, args.rows, args.window
         )
     except MetricError as exc:
