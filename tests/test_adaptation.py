@@ -264,8 +264,7 @@ def test_the_daemon_evaluates_the_reference_once_per_frame_and_passes_the_next_t
     tmp_path, sim_model
 ):
     """The one-step-ahead default gets each frame's desired force and the next frame's; the
-    reference (a Bouc-Wen damper, stateful) is stepped once per instant, in order, on the
-    estimate of that instant once its frame has come."""
+    reference (a Bouc-Wen damper, stateful) is stepped once per instant, in order."""
 
     def config(channel: str):
         return rig_config(
@@ -302,7 +301,7 @@ def test_the_daemon_evaluates_the_reference_once_per_frame_and_passes_the_next_t
     n = len(targets)
     assert n == 200  # armed from the first frame
     assert all(b > a for a, b in zip(times, times[1:], strict=False))  # each instant once
-    assert len(times) == 200  # moved on once a frame, on its estimate (targets: forecasts)
+    assert len(times) == 202  # one a frame (two at the first), and one ahead at the end
     for (_, nxt), (now, _) in zip(targets, targets[1:], strict=False):
         assert now == nxt
 
