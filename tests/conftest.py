@@ -75,11 +75,15 @@ def sim_model(tmp_path_factory) -> Path:
     return path
 
 
+# the two file locks every test run on this machine shares ($MRRIG_TEST_MACHINE to move them)
+MACHINE_LOCKS = Path(os.environ.get("MRRIG_TEST_MACHINE", "/tmp/mrrig-test-machine"))
+
+
 class _Machine:
-    """The machine, shared by pytest-xdist's workers through two file locks in the run's
-    shared base directory: a process module (its tests start rigs: a simulator, a bridge, a
-    daemon that runs SCHED_FIFO on the loop's CPU) holds it alone; any other module, and the
-    session's training, hold it shared. A rig on this 2-core machine uses both CPUs; a torch
+    """The machine, shared by pytest-xdist's workers and by any other test run on it through
+    two file locks in MACHINE_LOCKS: a process module (its tests start rigs: a simulator, a
+    bridge, a daemon that runs SCHED_FIFO on the loop's CPU) holds it alone; any other module,
+    and the session's training, hold it shared. A rig on this 2-core machine uses both CPUs; a torch
     training or a second rig beside it stalls its processes for tens of ms, and a process test
     cannot tell that from a fault of the daemon. The turnstile keeps a waiting process module
     from being starved by the other worker's stream of shared holders."""
@@ -89,12 +93,15 @@ class _Machine:
     @classmethod
     @contextlib.contextmanager
     def hold(cls, base: Path, alone: bool) -> Iterator[None]:
-        if os.environ.get("PYTEST_XDIST_WORKER") is None or cls.held is not None:
-            yield  # one worker only, or this worker holds it already
+        del base  # the locks are the machine's, not one run's: two runs at once disturb
+        # each other's rigs as two workers do (a developer's runs beside CI's or another's)
+        if cls.held is not None:
+            yield  # this worker holds it already
             return
+        MACHINE_LOCKS.mkdir(mode=0o1777, parents=True, exist_ok=True)
         with (
-            open(base / "machine.turnstile", "a") as turnstile,
-            open(base / "machine.lock", "a") as machine,
+            open(MACHINE_LOCKS / "machine.turnstile", "a") as turnstile,
+            open(MACHINE_LOCKS / "machine.lock", "a") as machine,
         ):
             fcntl.flock(turnstile, fcntl.LOCK_EX)
             try:
