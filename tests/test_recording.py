@@ -179,7 +179,7 @@ def test_read_recording_rejects_missing_and_non_rrd_files(tmp_path: Path, capfd)
 
 _READS = textwrap.dedent(
     """
-    import os, sys
+    import os, sys, time
     from pathlib import Path
     from mrrig.offline.review import read_recording
 
@@ -192,12 +192,24 @@ _READS = textwrap.dedent(
                 continue
         return sockets, len(os.listdir("/proc/self/task"))
 
+    def settled():
+        # the last read's client connection closes on rerun's runtime, not before read_recording
+        # returns: wait up to 2 s for the count to stop changing (a leak stays)
+        last, t_end = counts(), time.monotonic() + 2.0
+        while time.monotonic() < t_end:
+            time.sleep(0.1)
+            now = counts()
+            if now == last:
+                return now
+            last = now
+        return last
+
     for _ in range(5):
         read_recording(sys.argv[1])
-    before = counts()
+    before = settled()
     for _ in range(int(sys.argv[2])):
         read_recording(sys.argv[1])
-    print(*before, *counts())
+    print(*before, *settled())
     """
 )
 
