@@ -496,7 +496,7 @@ class Daemon:
                 if self._pipelined():
                     f_des, f_next = self._targets_now(t, x, xd, xdd)
                 else:
-                    f_des = float(self.reference.force(t, x, xd))
+                    f_des = float(self.reference.forecast(t, x, xd))
             except ref.StaleReference as exc:
                 f_des = 0.0
                 if sup.active:
@@ -542,6 +542,7 @@ class Daemon:
         active = sup.active
         safe_f = f_des if math.isfinite(f_des) else 0.0
         self._send_command(active, i_cmd if active else 0.0, safe_f, counter)
+        f_record = f_des
         if self._stop:
             self._safe_sent_at_stop = True
         work_us = (time.perf_counter() - t_rx) * 1e6
@@ -553,6 +554,10 @@ class Daemon:
         try:
             if active:
                 self.controller.after_send()  # on-line adaptation: armed, no fault this frame
+            if self.reference.follows_motion:
+                # this instant's desired force: the reference moved on along the motion as
+                # estimated now that the frame has come (the targets were its forecasts)
+                f_record = self._clamp_force(float(self.reference.force(t, x, xd)))
             # off the latency path: the next frame's Kalman step, reference and controller
             # work, from the predicted state
             self._prepare_next(t + self.period_s, active)
@@ -570,7 +575,7 @@ class Daemon:
             events += sup.trip(t, Fault.INTERNAL_ERROR, f"{type(exc).__name__}: {exc}")
         row = self._buf[self._n]
         row["t"], row["counter"], row["x"], row["x_est"] = t, counter, x_meas, x
-        row["xd"], row["xdd"], row["f_meas"], row["f_des"] = xd, xdd, f_meas, f_des
+        row["xd"], row["xdd"], row["f_meas"], row["f_des"] = xd, xdd, f_meas, f_record
         row["f_model"], row["i_cmd"] = f_model, i_cmd if active else 0.0
         row["i_meas"], row["latency_us"], row["state"] = self._i_meas, latency_us, sup.state
         row["temp_degc"] = self._temp_degc
@@ -619,17 +624,17 @@ class Daemon:
     def _targets_now(self, t: float, x: float, xd: float, xdd: float) -> tuple[float, float]:
         """This frame's desired force and the next frame's: computed after the previous
         frames' commands (`_prepare_next`) where they were, else now, the next one at the
-        state one period on (eq. 21). The reference is evaluated once per instant, in
-        order (a reference damper steps once per frame), on the frame sequence rather than
-        on receive times, which jitter."""
+        state one period on (eq. 21): the reference's forecasts, each instant's once, on
+        the frame sequence rather than on receive times, which jitter. A reference damper
+        moves on after the command, on the estimate of the instant (`cycle`)."""
         T = self.period_s
         q = self._targets
-        f_des = q[0] if q else float(self.reference.force(t, x, xd))
+        f_des = q[0] if q else float(self.reference.forecast(t, x, xd))
         if len(q) > 1:
             f_next = q[1]
         else:
             xn, xdn = x + xd * T + 0.5 * xdd * T * T, xd + xdd * T
-            f_next = float(self.reference.force(t + T, xn, xdn))
+            f_next = float(self.reference.forecast(t + T, xn, xdn))
         self._targets = [f_next]
         return f_des, f_next
 
@@ -652,18 +657,17 @@ class Daemon:
                 return  # not after a frame's targets: the next frame computes its own
             T = self.period_s
             xn, xdn = xp + xdp * T + 0.5 * xddp * T * T, xdp + xddp * T
-            self._targets.append(float(self.reference.force(t_next + T, xn, xdn)))
+            self._targets.append(float(self.reference.forecast(t_next + T, xn, xdn)))
             if active:
                 f_now, f_after = (self._clamp_force(f) for f in self._targets)
                 self.controller.prepare_one(xp, xdp, xddp, f_now, f_after)
             return
-        self.reference.prepare(t_next, xp, xdp)
-        if not active:
-            return
-        try:
-            f_next = float(self.reference.force(t_next, xp, xdp))
+        try:  # the frame's own desired force, forecast off its latency path
+            f_next = float(self.reference.forecast(t_next, xp, xdp))
         except ref.StaleReference:
             return  # the frame itself will say so
+        if not active:
+            return
         f_next = self._clamp_force(f_next)
         wants = self.controller.wants_next_target
         self.controller.prepare_one(xp, xdp, xddp, f_next, f_next if wants else None)
