@@ -154,9 +154,9 @@ def test_a_stall_of_the_daemon_on_its_run_queue_is_measured_by_the_kernel_and_ex
     assert k["measured"] and k["runq_max_ms"] >= 40.0, k
     proof = prove(st, s["faults"], s["clock_t0_s"], samples, 0.1, k)
     assert any(w.kind == "kernel" for _, w in proof.explained), proof.explained
-    assert re.search(
-        r"at t=[\d.]+ s: daemon waited [4-9]\d\.\d ms on the run queue", capsys.readouterr().out
-    )
+    out = capsys.readouterr().out
+    print(out)
+    assert re.search(r"at t=[\d.]+ s: daemon waited [4-9]\d\.\d ms on the run queue", out), out
     with pytest.raises(AssertionError, match="no measured stall explains"):
         prove(st, s["faults"], s["clock_t0_s"])
 
