@@ -184,6 +184,13 @@ class KernelStalls:
         }
 
 
+def shortened(k: dict[str, Any], n: int) -> dict[str, Any]:
+    """A summary's `kernel_stalls` listing only its `n` largest windows (by time)."""
+    ws = sorted(k["windows"], key=lambda w: w[2] + w[3])[max(len(k["windows"]) - n, 0) :]
+    ws.sort(key=lambda w: w[0])
+    return {**k, "windows": ws, "windows_not_listed": k["windows_count"] - len(ws)}
+
+
 def stall_event(window: list[float]) -> dict[str, Any]:
     """A window as an event of the recording (kind `kernel_stall`)."""
     a, b, runq_ms, steal_ms = window
