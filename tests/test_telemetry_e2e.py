@@ -215,7 +215,8 @@ def test_telemetry_control_recording_and_review(tmp_path, bridge, procs, sim_mod
     made = [f for f in daemon_summary["faults"] if f["reason"].startswith("stale force reference")]
     assert made, daemon_summary["faults"]
     others = [f for f in daemon_summary["faults"] if f not in made]
-    explain(json.loads(sim_stats.read_text()), others, daemon_summary["clock_t0_s"])
+    k = daemon_summary["kernel_stalls"]
+    explain(json.loads(sim_stats.read_text()), others, daemon_summary["clock_t0_s"], k)
 
     verify_rrd(rrd)
     rec = read_recording(rrd)

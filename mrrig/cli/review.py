@@ -73,6 +73,8 @@ def main(argv: list[str] | None = None) -> int:
     # frames hold the latency from the bus's receive only), so the verdict is the daemon's
     if "latency_split_us" in counters:
         keep["latency_split_us"] = counters["latency_split_us"]
+    if "kernel_stalls" in counters:  # the loop's own stalls, which the kernel measured
+        keep["kernel_stalls"] = counters["kernel_stalls"]
     metrics = summarize(rec.samples, rec.events, keep)
     # the files first: output cut short by a closed pipe (`| head`) must not lose them
     if args.plot or args.html:

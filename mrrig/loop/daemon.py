@@ -45,6 +45,7 @@ from mrrig.loop.coverage import controller_envelope
 from mrrig.loop.detectors import Detectors
 from mrrig.loop.estimation import RealtimeKalman
 from mrrig.loop.inversion import DEFAULT_CONTINUITY
+from mrrig.loop.kernel_stalls import KernelStalls, stall_event
 from mrrig.loop.mlp import MLP, ModelError
 from mrrig.loop.model_fit import RigUnits, check_cost, check_period, check_units
 from mrrig.loop.realtime import keep_off_cpu, leave_realtime, make_realtime
@@ -352,6 +353,8 @@ class Daemon:
         self._keep_batches = keep_batches
         self._chunks: list[np.ndarray] = []  # only with keep_batches
         self._summary = SummaryAccumulator()  # the exit summary, built batch by batch
+        # the loop thread's run-queue delay and the VM's steal, pass by pass
+        self.kernel_stalls = KernelStalls(self.period_s)
         # per answered frame, the parts of latency_us: the wait between the bus's receive
         # timestamp and the loop's read, the loop's work from its read to the end of send()
         # (the spec's budget), and the send() call within that work
@@ -1156,6 +1159,7 @@ class Daemon:
         self.notifier.ready(f"rig {cfg.rig.name}: listening on {cfg.bus.channel}")
         log.info("loop running: one command per sensor frame")
         stop_deadline = None
+        self.kernel_stalls.start(self.now())  # this thread's: the loop's
         while not self._safe_sent_at_stop:
             if self._stop and stop_deadline is None:
                 stop_deadline = time.perf_counter() + timeout_s
@@ -1182,8 +1186,16 @@ class Daemon:
             if t - self._last_actuator_sent >= ACTUATOR_PERIOD_S:
                 self._send_actuator()
             self._send_status()
+            self._read_kernel_stalls()
             if end is not None and t_rx >= end:
                 self.request_stop(f"duration {cfg.loop.duration_s:g} s reached")
+
+    def _read_kernel_stalls(self) -> None:
+        """Once a pass, after the frame's command: the run-queue delay and steal since the
+        previous pass; a pass that lost a window's worth is an event of the recording."""
+        window = self.kernel_stalls.read(self.now())
+        if window is not None and self.link is not None:
+            self.link.send_event(stall_event(window))
 
     def _discard_backlog(self) -> None:
         """Drop the frames queued while the daemon started: the rig has moved on. Up to the
@@ -1255,6 +1267,7 @@ class Daemon:
 
     def _shutdown(self) -> None:
         """SAFE first, then the actuator to rest, the summary, the sidecar, the bus."""
+        self.kernel_stalls.stop(self.now())  # the loop's last pass
         self.control.stop()
         while (taken := self.control.take()) is not None:
             if taken[0].cmd == "sidecar" and taken[0].sidecar is not None:
@@ -1302,6 +1315,7 @@ class Daemon:
         self.summary["exit_code"] = self.exit_code
         qs = (50, 99, 99.9)
         self.summary["latency_split_us"] = {k: h.percentiles(qs) for k, h in self._split_us.items()}
+        self.summary["kernel_stalls"] = self.kernel_stalls.result()
         if self.link is not None:
             self.link.send_summary(self.summary)
             self.link.send_stop()
