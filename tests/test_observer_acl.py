@@ -17,10 +17,12 @@ import pytest
 import zenoh
 
 from mrrig.loop.samples import SAMPLE_DTYPE
-from mrrig.rigio import certs
+from mrrig.rigio import audit, certs, client
 from mrrig.rigio.canbus.bus import find_free_port
 from mrrig.rigio.ipc import LoopEnd, Msg, make_channel
 from mrrig.rigio.sidecar import alive_token, keys, start_sidecar
+from mrrig.rigio.zenoh_config import load_zenoh_config
+from tests.conftest import rig_config
 from tests.test_zenoh_security import _lab, _open, _status, _template
 
 PUBLISHED = ("telemetry", "status", "events", "runs")  # what the rig alone publishes
@@ -219,3 +221,110 @@ def test_an_observer_cannot_act_on_the_rig(tmp_path: Path, topology: str):
         loop.close()
         if router is not None:
             router.close()
+
+
+def test_a_token_no_daemon_answers_for_does_not_fault_the_rig(tmp_path: Path):
+    """Where a session may declare tokens (loopback, no access control): a token of the rig's
+    name whose session does not serve the rig's status is logged, not a `duplicate_rig`
+    fault; once that session answers the status (a second daemon, as it starts), it is."""
+    rig = "attr"
+    port = find_free_port()
+    conf = tmp_path / "z.json5"
+    conf.write_text(
+        f'{{mode: "peer", listen: {{endpoints: ["tcp/127.0.0.1:{port}"]}}, '
+        "scouting: {multicast: {enabled: false}}}"
+    )
+    fds = make_channel(pipe_bytes=None)
+    loop = LoopEnd(fds.loop_rx, fds.loop_tx)
+    proc = start_sidecar(rig, conf, fds)
+    other = None
+    try:
+        ready = [p for m, p in _until(loop, Msg.READY, 30.0) if m == Msg.READY]
+        assert ready and not ready[0].get("error"), ready
+        loop.send_status({"state": "ARMED", "armed": True})
+        other = _open(
+            zenoh.Config.from_json5(
+                f'{{mode: "client", connect: {{endpoints: ["tcp/127.0.0.1:{port}"]}}, '
+                "scouting: {multicast: {enabled: false}}}"
+            )
+        )
+        token = other.liveliness().declare_token(alive_token(rig, str(other.zid())))
+        msgs = _until(loop, Msg.NOTICE, 3.0)  # three rounds of asking
+        assert [p for m, p in msgs if m == Msg.NOTICE] == []
+        status = other.declare_queryable(
+            keys(rig)["status"],
+            lambda q: (q.reply(keys(rig)["status"], '{"state": "IDLE"}'), q.drop()),
+        )
+        notices = [p for m, p in _until(loop, Msg.NOTICE, 5.0) if m == Msg.NOTICE]
+        assert [n["kind"] for n in notices] == ["duplicate_rig"], notices
+        assert alive_token(rig, str(other.zid())) in notices[0]["reason"]
+        status.undeclare()
+        token.undeclare()
+    finally:
+        if other is not None:
+            other.close()
+        loop.send_stop()
+        try:
+            proc.wait(timeout=10)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()
+        loop.close()
+
+
+@pytest.mark.process
+def test_an_observers_token_neither_faults_an_armed_rig_nor_locks_the_operator_out(
+    tmp_path: Path, bridge, procs
+):
+    """The daemon on configs/zenoh/rig.json5 (mutual TLS), armed by the operator: an
+    observer's liveliness tokens of the rig's name (as a daemon's and plainly its own) leave it
+    armed, with no `duplicate_rig` event, and the operator's requests are still taken."""
+    rig = "armed"
+    _lab(tmp_path)
+    port = find_free_port()
+    cfg = rig_config(
+        tmp_path,
+        bridge,
+        None,
+        rig={"name": rig},
+        loop={"realtime": False},
+        controller={"name": "constant", "current_a": 0.5},
+        telemetry={
+            "enabled": True,
+            "zenoh_config": str(_template("rig.json5", tmp_path, port)),
+            "rate_hz": 20.0,
+        },
+    )
+    procs(["-m", "firmware_sim", "--config", "configs/sim.toml", "--bus-channel", bridge])
+    procs(["-m", "mrrig", "run", "--config", str(cfg), "--no-record"])
+    op_conf = load_zenoh_config(_template("operator.json5", tmp_path, port))
+    operator = _open(op_conf)
+    observer = _open(_template("observer.json5", tmp_path, port))
+    try:
+        deadline = time.monotonic() + 30
+        while _status(operator, rig) is None and time.monotonic() < deadline:
+            time.sleep(0.2)
+        events = operator.declare_subscriber(keys(rig)["events"])
+        claims = audit.claims(operator, op_conf)
+        reply = client.query(operator, rig, {"cmd": "arm"}, timeout_s=3.0, claims=claims)
+        assert reply["ok"] is True and reply["state"] == "ARMED", reply
+        tokens = [observer.liveliness().declare_token(t) for t in _fakes(rig)]
+        time.sleep(3.0)  # the sidecar would have faulted the rig within one frame of it
+        status = _status(operator, rig)
+        assert status is not None and status["fault"] != "duplicate_rig", status
+        # armed still, unless the VM stalled the rig (a fault of its own, never this one)
+        assert status["state"] == "ARMED" or status["fault"] not in (None, "duplicate_rig")
+        marked = client.query(
+            operator, rig, {"cmd": "mark", "text": "still mine"}, timeout_s=3.0, claims=claims
+        )
+        assert marked["ok"] is True, marked
+        kinds = [json.loads(s.payload.to_bytes()).get("kind") for s in _drain(events)]
+        assert "duplicate_rig" not in kinds, kinds
+        alive = [str(r.ok.key_expr) for r in operator.liveliness().get(keys(rig)["alive"]) if r.ok]
+        assert len(alive) == 1 and alive[0] not in _fakes(rig), alive
+        for t in tokens:
+            t.undeclare()
+        events.undeclare()
+    finally:
+        observer.close()
+        operator.close()
