@@ -114,10 +114,19 @@ def _breaches(
     return out
 
 
-@pytest.mark.parametrize("topology", ["rig", "router"])
+# the rig's Zenoh config and the clients' suffix, by topology
+TOPOLOGIES = {
+    "rig": ("rig.json5", ""),
+    "router": ("rig-fleet.json5", ""),
+    "usrpwd": ("rig-usrpwd.json5", "-usrpwd"),
+}
+
+
+@pytest.mark.parametrize("topology", sorted(TOPOLOGIES))
 def test_an_observer_cannot_act_on_the_rig(tmp_path: Path, topology: str):
-    """On the rig's own listener (configs/zenoh/rig.json5) and through a lab's router
-    (router.json5, the rig on rig-fleet.json5): the observer's put and delete on every key,
+    """On the rig's own listener (configs/zenoh/rig.json5; rig-usrpwd.json5 with user names
+    instead of certificates) and through a lab's router (router.json5, the rig on
+    rig-fleet.json5): the observer's put and delete on every key,
     liveliness tokens of the rig's name, queryables on status and control, subscribers on
     force_ref and control and its control query reach no one; what it may do (subscribe to
     telemetry, status and events, get status, query the liveliness tokens) works, and so do the
@@ -128,7 +137,9 @@ def test_an_observer_cannot_act_on_the_rig(tmp_path: Path, topology: str):
     certs.issue(d, "router", "router")
     port = find_free_port()
     router = _open(_template("router.json5", tmp_path, port)) if topology == "router" else None
-    rig_conf = _template("rig.json5" if topology == "rig" else "rig-fleet.json5", tmp_path, port)
+    rig_file, suffix = TOPOLOGIES[topology]
+    rig_conf = _template(rig_file, tmp_path, port)
+    (d / "users.txt").write_text("observer:change-me\noperator:change-me\n")  # the templates'
     fds = make_channel(pipe_bytes=None)
     loop = LoopEnd(fds.loop_rx, fds.loop_tx)
     proc = start_sidecar(rig, rig_conf, fds)
@@ -139,11 +150,11 @@ def test_an_observer_cannot_act_on_the_rig(tmp_path: Path, topology: str):
         loop.send_status({"state": "IDLE", "armed": False})
         # two observers: one misbehaves, the other reads (a session's own subscribers and
         # queryables hear it inside the session, where no access control is)
-        observer = _open(_template("observer.json5", tmp_path, port))
+        observer = _open(_template(f"observer{suffix}.json5", tmp_path, port))
         sessions.append(observer)
-        reader = _open(_template("observer.json5", tmp_path, port))
+        reader = _open(_template(f"observer{suffix}.json5", tmp_path, port))
         sessions.append(reader)
-        operator = _open(_template("operator.json5", tmp_path, port))
+        operator = _open(_template(f"operator{suffix}.json5", tmp_path, port))
         sessions.append(operator)
         # the others' view: the operator's subscribers on all the rig publishes, its tokens
         witness = {name: operator.declare_subscriber(k[name]) for name in PUBLISHED}
