@@ -25,7 +25,8 @@ ACTIVE commands the firmware applied to a stale frame (older than its stale_answ
 its own clock) or to no valid frame, ACTIVE answers to no genuine frame (the listener's),
 control requests without an answer (but those sent while a signal ended the daemon). The
 late commands the firmware dropped (spec/can-protocol.md) and the ACTIVE answers that
-reached the bus over the age limit are reported.
+reached the bus over the age limit are reported. Then, the rig stopped, an observer's misuse
+of a sidecar on the shipped access control (`mrrig.offline.bench.fuzz_observer`).
 
 Answer latency "as the firmware sees it": from the bridge's receive timestamp of a sensor
 frame to the bridge's receive timestamp of its command (both carried in the frames a bus
@@ -56,6 +57,7 @@ import zenoh
 from mrrig import json_text
 from mrrig.cli_args import HelpFormatter, output_file, positive
 from mrrig.config import load_config
+from mrrig.offline.bench import fuzz_observer
 from mrrig.pycan import can
 from mrrig.rigio.canbus.bus import find_free_port, open_bus, start_bridge, stop_bridge
 from mrrig.rigio.canbus.codec import Codec
@@ -687,7 +689,9 @@ def run(minutes: float, config: Path, sim_config: Path, seed: int, out: Path | N
                 p.kill()
                 p.wait()
         stop_bridge(bridge)
+    result["observer_misuse"] = fuzz_observer.run(work, rng, minutes)
     print(_report(result))
+    print(fuzz_observer.report(result["observer_misuse"]))
     if out is not None:
         out.write_text(json_text.dumps(result, indent=2))
     return 1 if failures(result, cfg.loop.i_max_a) else 0
@@ -703,6 +707,8 @@ def failures(result: dict[str, Any], i_max_a: float) -> list[str]:
     out = [n for n in names if result[n]]
     if result["max_commanded_current_a"] > i_max_a + 1e-4:
         out.append("max_commanded_current_a")
+    if "observer_misuse" in result:
+        out += fuzz_observer.failures(result["observer_misuse"])
     return out
 
 
