@@ -23,7 +23,7 @@ from mrrig.plans.criteria import Criteria, failures, measure
 from mrrig.plans.plan import PlanError, load_plan
 from mrrig.plans.report import Identity, write_html, write_junit
 from mrrig.plans.runner import StepResult
-from tests.conftest import REPO, rig_config, start, stop, zenoh_configs
+from tests.conftest import REPO, OutputWatch, rig_config, start, stop, zenoh_configs
 from tests.live_rig import live_rig
 from tests.test_lifecycle_errors import NO_MODEL
 
@@ -432,6 +432,53 @@ def test_ctrl_c_in_a_step_leaves_the_rig_safe_and_the_step_aborted(rig, tmp_path
     (error,) = cases["constant current"].result
     assert isinstance(error, Error) and "interrupted" in error.message
     assert cases["impossible Et"].result[0].message.startswith("not run")
+
+
+@pytest.mark.process
+def test_a_double_ctrl_c_still_writes_the_reports_and_the_catalog_rows(tmp_path):
+    """Issue 40, finding 8: two SIGINTs 50 ms apart in a step of `mrrig test --sim` left no
+    JUnit, HTML or catalog row (the second one cut the step's ending and the reports)."""
+    from mrrig.catalog import find_runs
+
+    daemon_z, client_z, _ = zenoh_configs(tmp_path)
+    cfg = rig_config(
+        tmp_path,
+        "ws://127.0.0.1:1/",  # --sim gives the daemon its bridge's channel
+        None,
+        rig={"name": "plans-ctrl-c"},
+        telemetry={"enabled": True, "zenoh_config": str(daemon_z)},
+        **NO_MODEL,
+    )
+    plan = write(tmp_path, PLAN.format(d1=30))
+    junit, html, catalog = tmp_path / "r.xml", tmp_path / "r.html", tmp_path / "c.sqlite"
+    args = ["--sim", "--config", str(cfg), "--zenoh-config", str(client_z), "--junit",
+            str(junit), "--html", str(html), "--catalog", str(catalog)]  # fmt: skip
+    proc = start(
+        ["-m", "mrrig", "test", str(plan), *args],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+    )
+    out = OutputWatch(proc, "/30.5 s ")  # the step's progress: it is running
+    try:
+        assert out.seen.wait(120), out.text()
+        proc.send_signal(signal.SIGINT)
+        time.sleep(0.05)
+        proc.send_signal(signal.SIGINT)
+        proc.wait(timeout=60)
+    finally:
+        stop(proc)
+    out.join()
+    text = out.text()
+    assert proc.returncode == 1, text
+    assert "plan two steps: FAILED (interrupted)" in text and "Traceback" not in text, text
+    cases = junit_cases(junit)
+    (error,) = cases["constant current"].result
+    assert isinstance(error, Error) and "interrupted" in error.message
+    assert cases["impossible Et"].result[0].message.startswith("not run")
+    assert "constant current" in html.read_text()
+    (row,) = find_runs(catalog)
+    assert (row.plan, row.step, row.verdict) == ("two steps", "constant current", "aborted")
 
 
 @pytest.mark.process

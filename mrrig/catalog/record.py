@@ -165,6 +165,22 @@ class RunRecord:
         out["duration_s"] = self.duration_s
         return out
 
+    @classmethod
+    def from_json(cls, values: Mapping[str, Any]) -> RunRecord:
+        """The record of `to_json`'s values (checked as a new record is; `duration_s` and
+        unknown keys are left out). RecordError where they are not a run's."""
+        fields = {name: values[name] for name in _FIELDS if name in values}
+        for name in ("started_utc", "ended_utc"):
+            if isinstance(fields.get(name), str):
+                try:
+                    fields[name] = datetime.fromisoformat(fields[name])
+                except ValueError:
+                    raise RecordError(f"{name}: not an ISO time: {fields[name]!r}") from None
+        try:
+            return cls(**fields)
+        except TypeError as exc:  # a required field missing
+            raise RecordError(f"not a run record: {exc}") from None
+
 
 _FIELDS = frozenset(f.name for f in dataclasses.fields(RunRecord))
 

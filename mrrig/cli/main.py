@@ -44,7 +44,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "certs": ("mrrig.rigio.certs", "a lab CA and certificates for Zenoh mutual TLS (init, issue)"),
     "router": ("mrrig.rigio.router", "a Zenoh router where a fleet of rigs and their clients meet"),
     "rigs": ("mrrig.rigio.fleet", "list the live rigs: state, controller, fault (Zenoh)"),
-    "runs": ("mrrig.cli.runs", "the run catalog: find, show, compare and sync runs"),
+    "runs": ("mrrig.cli.runs", "the run catalog: find, show, compare, sync and register runs"),
     "dbc": ("mrrig.cli.dbc", "check a rig profile (DBC + [can.signals]); show its mapping"),
     "test": ("mrrig.cli.test", "run a test plan (TOML steps with criteria) on a live rig"),
     "tune": ("mrrig.cli.tune", "tune the controller's free parameters by closed-loop trials"),

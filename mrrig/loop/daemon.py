@@ -306,6 +306,8 @@ class Daemon:
         self.actuator_at_arm = cfg.actuator
         self.record_path = record_path
         self.exit_code = Exit.OK
+        # why the daemon raised, where it did: the summary says so (the catalog: `crashed`)
+        self.crashed = ""
         self.record_paths = [record_path] if record_path is not None else []
         self._clock_warned = False
         self._sidecar_deadline = math.inf
@@ -1123,7 +1125,8 @@ class Daemon:
             self._sidecar_deadline = time.perf_counter() + SIDECAR_START_S
         try:
             self.bus = open_bus(cfg.bus.interface, cfg.bus.channel, **cfg.bus.options)
-        except BaseException:
+        except BaseException as exc:
+            self.crashed = f"{type(exc).__name__}: {exc}"
             self._shutdown()
             raise
         try:
@@ -1142,6 +1145,9 @@ class Daemon:
             self._cpu0 = time.process_time()
             self._arm_pending = cfg.loop.arm_on_start
             self._loop()
+        except BaseException as exc:
+            self.crashed = f"{type(exc).__name__}: {exc}"
+            raise
         finally:
             self._shutdown()
         return self.summary
@@ -1313,6 +1319,8 @@ class Daemon:
         if self.exit_code == Exit.OK and self.supervisor.state is RigState.FAULT:
             self.exit_code = Exit.FAULT
         self.summary["exit_code"] = self.exit_code
+        if self.crashed:
+            self.summary["crashed"] = self.crashed
         qs = (50, 99, 99.9)
         self.summary["latency_split_us"] = {k: h.percentiles(qs) for k, h in self._split_us.items()}
         self.summary["kernel_stalls"] = self.kernel_stalls.result()

@@ -26,6 +26,7 @@ from mrrig.loop.safety import TRANSPORT_FAULTS
 from mrrig.loop.samples import SAMPLE_DTYPE
 from mrrig.plans.criteria import Numbers, failures, measure
 from mrrig.plans.feasibility import Prediction, before_arming
+from mrrig.plans.interrupts import interruptible
 from mrrig.plans.plan import Plan, Step
 from mrrig.rigio.client import ClientError
 from mrrig.rigio.control import MAX_MARK_CHARS, MAX_MARK_DATA_CHARS
@@ -79,7 +80,8 @@ def run_plan(
         where = f"plan {plan.name}: step {index}/{len(plan.steps)} {step.name}"
         try:
             _mark(rig, f"{where}: start", _start_data(plan, index, step))
-            _run_step(index, len(plan.steps), step, rig, result, progress)
+            with interruptible():  # a stop signal interrupts the step, never its ending
+                _run_step(index, len(plan.steps), step, rig, result, progress)
         except StepAborted as exc:
             result.verdict, result.reasons = "aborted", [str(exc)]
         except KeyboardInterrupt:

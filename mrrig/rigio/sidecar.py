@@ -127,10 +127,6 @@ class SampleSink(Protocol):
     def abandon(self) -> None: ...
 
 
-# a daemon run's verdict in the catalog, from its exit code (mrrig.loop.daemon.Exit)
-RUN_VERDICTS = {0: "ok", 1: "fault", 3: "bus_lost", 4: "telemetry_lost"}
-
-
 def keys(rig: str) -> dict[str, str]:
     """The rig's Zenoh key expressions (spec/system.md); `alive` selects the liveliness tokens
     of every daemon of that name (`alive_token`)."""
@@ -745,13 +741,23 @@ class Sidecar:
 
     def _register_run(self) -> None:
         """The finished run into its catalog (spooled locally where a lab's database cannot
-        be reached) and on `mrrig/<rig>/runs`. After the loop has ended: nothing waits on the
-        database but this process's exit."""
+        be reached; journalled beside its recording where no catalog takes it, replayed at
+        the next registration or `mrrig runs`) and on `mrrig/<rig>/runs`. After the loop has
+        ended: nothing waits on the database but this process's exit. A daemon that sent no
+        summary (killed, crashed) is registered too, as `crashed`."""
         ident = self._identity
-        if ident is None or self._summary is None:
+        if ident is None:
             return
-        record = run_record(ident, self._summary, self._record_path)
-        if record is None:
+        from mrrig.catalog import CatalogError, RecordError
+        from mrrig.catalog.finished import run_record
+        from mrrig.catalog.journal import register_journalled, replay
+
+        if self._summary is None:
+            log.error("run %s: the daemon ended without a summary", ident.get("run_id"))
+        try:
+            record = run_record(ident, self._summary, self._record_path)
+        except RecordError as exc:
+            log.error("run %s: no catalog record: %s", ident.get("run_id"), exc)
             return
         if self._session is not None:
             try:
@@ -762,41 +768,15 @@ class Sidecar:
                 log.warning("publishing the run on %s failed: %s", self._keys["runs"], exc)
         if ident.get("catalog") is None:
             return
-        from mrrig.catalog import CatalogError, register_run
-
         try:
-            where = register_run(ident["catalog"], record, spool_url=ident.get("catalog_spool"))
+            where = register_journalled(record, ident["catalog"], ident.get("catalog_spool"))
         except CatalogError as exc:
             log.error("run %s not registered: %s", record.run_id, exc)
             return
         spooled = " (spooled: the catalog asked for was unreachable)" if where.spooled else ""
         log.info("run %s registered in %s%s", record.run_id, where.url, spooled)
-
-
-def run_record(ident: dict[str, Any], summary: dict[str, Any], recording: Path | None) -> Any:
-    """The catalog's record of a finished run: its identity, the summary's numbers, the
-    recording's path, size and sha256; None (logged) where the identity is not one."""
-    import datetime as dt
-
-    from mrrig.catalog import RecordError, RunRecord, summary_numbers
-    from mrrig.rigio.run_identity import file_sha256
-
-    fields = {k: v for k, v in ident.items() if k not in ("catalog", "catalog_spool")}
-    fields["started_utc"] = dt.datetime.fromisoformat(fields["started_utc"])
-    exists = recording is not None and recording.is_file()
-    try:
-        return RunRecord(
-            **fields,
-            ended_utc=dt.datetime.now(dt.UTC),
-            verdict=RUN_VERDICTS.get(summary.get("exit_code"), "error"),
-            recording_path=str(recording.resolve()) if exists else None,
-            recording_size_bytes=recording.stat().st_size if exists else None,
-            recording_sha256=file_sha256(recording) if exists else None,
-            **summary_numbers(summary),
-        )
-    except (RecordError, TypeError, ValueError) as exc:
-        log.error("run %s: no catalog record: %s", ident.get("run_id"), exc)
-        return None
+        if self._record_path is not None:
+            replay(self._record_path.parent)
 
 
 def lower_priority(nice: int) -> None:
