@@ -549,6 +549,7 @@ class Daemon:
         active = sup.active
         safe_f = f_des if math.isfinite(f_des) else 0.0
         self._send_command(active, i_cmd if active else 0.0, safe_f, counter)
+        active = active and sup.active  # a send that failed faulted it: answered SAFE
         if self._stop:
             self._safe_sent_at_stop = True
         work_us = (time.perf_counter() - t_rx) * 1e6
