@@ -64,6 +64,7 @@ from mrrig.rigio import sdnotify
 from mrrig.rigio.canbus.bus import open_bus
 from mrrig.rigio.canbus.codec import Codec
 from mrrig.rigio.canbus.profile import load_profile
+from mrrig.rigio.canbus.profile_limits import daemon_limits
 from mrrig.rigio.control import (
     Change,
     ControlWorker,
@@ -270,7 +271,9 @@ class Daemon:
         self.cfg = cfg
         self.period_s = cfg.loop.period_s
         # the rig profile: the DBC and its roles ([can]); the start-up line names what is off
-        self.profile = load_profile(cfg.can.dbc, cfg.can.signals, cfg.loop.period_s, cfg.source)
+        self.profile = load_profile(
+            cfg.can.dbc, cfg.can.signals, cfg.loop.period_s, cfg.source, daemon_limits(cfg)
+        )
         if self.profile.protections_off:
             log.warning("%s", self.profile.startup_line())
         self.codec = self.profile.codec
@@ -430,8 +433,10 @@ class Daemon:
 
     # ---- CAN ---------------------------------------------------------------------------
     def _send(self, name: str, values: dict[str, Any]) -> bool:
-        msg = self.packer.message(name, values)
+        """Encode and send; a failure of either (a value the profile cannot carry, the bus) is
+        a BUS_ERROR fault, never the end of the loop."""
         try:
+            msg = self.packer.message(name, values)
             t = time.perf_counter()
             self.bus.send(msg, timeout=self.cfg.bus.send_timeout_s)
             self._send_call_s = time.perf_counter() - t
@@ -457,6 +462,8 @@ class Daemon:
         if ok:
             self.counters["commands_sent"] += 1
             self.counters["commands_active"] += active
+        elif active:  # in FAULT now: the frame is answered SAFE, if that can be sent
+            self._send_command(False, 0.0, 0.0, echo)
 
     def _send_actuator(self) -> None:
         a = self.actuator
@@ -547,6 +554,7 @@ class Daemon:
         active = sup.active
         safe_f = f_des if math.isfinite(f_des) else 0.0
         self._send_command(active, i_cmd if active else 0.0, safe_f, counter)
+        active = active and sup.active  # a send that failed faulted it: answered SAFE
         f_record = f_des
         if self._stop:
             self._safe_sent_at_stop = True
