@@ -59,6 +59,7 @@ from mrrig.config import load_config
 from mrrig.pycan import can
 from mrrig.rigio.canbus.bus import find_free_port, open_bus, start_bridge, stop_bridge
 from mrrig.rigio.canbus.codec import Codec
+from mrrig.rigio.lease import Lease
 from mrrig.rigio.run_identity import CATALOG_ENV
 from mrrig.rigio.sidecar import JSON, keys
 from mrrig.rigio.zenoh_config import local_config
@@ -231,6 +232,33 @@ class Requests:
             if reply.ok is not None:
                 return json.loads(reply.ok.payload.to_bytes())
         return None
+
+
+class Holder:
+    """The lease of the bench's last arm, renewed as a client that holds the rig renews it
+    (`mrrig.rigio.lease`): the campaign's armed stretches last as long as it wants them."""
+
+    def __init__(self, requests: Requests) -> None:
+        self.requests = requests
+        self.lease: Lease | None = None
+
+    def _ask(self, payload: dict, _timeout_s: float) -> dict:
+        reply = self.requests.ask(payload)
+        if reply is None:
+            raise ConnectionError("no answer")
+        return reply
+
+    def arm(self) -> dict | None:
+        reply = self.requests.ask({"cmd": "arm"})
+        if reply is not None and reply.get("lease"):
+            self.release()
+            self.lease = Lease(self._ask, reply, "fuzz")
+        return reply
+
+    def release(self) -> None:
+        if self.lease is not None:
+            self.lease.release()
+            self.lease = None
 
 
 def random_json(rng: random.Random, depth: int = 0) -> Any:
@@ -444,9 +472,10 @@ def run(minutes: float, config: Path, sim_config: Path, seed: int, out: Path | N
     crashes: list[str] = []
     signals: list[dict[str, str]] = []
     excused: list[tuple[float, float]] = []  # requests sent here may go unanswered
-    listener = fuzz_bus = None
+    listener = fuzz_bus = holder = None
     try:
         requests = Requests(daemon.start(), cfg.rig.name)
+        holder = Holder(requests)
         daemon.wait_ready(requests)
         sim_stats = work / "sim.json"
         sim = subprocess.Popen(
@@ -505,7 +534,7 @@ def run(minutes: float, config: Path, sim_config: Path, seed: int, out: Path | N
             requests.ask({"cmd": "set_profile", "kind": "bouc_wen", "current_a": 0.8,
                           "current_amp_a": 0.5})  # fmt: skip
             requests.ask({"cmd": "reset"})  # re-arming after a fault: acknowledged
-            return bool((requests.ask({"cmd": "arm"}) or {}).get("ok"))
+            return bool((holder.arm() or {}).get("ok"))
 
         def sequence(kind: str) -> None:
             """One chain of small changes 5 ms apart: disarmed, the motion or the reference
@@ -521,7 +550,7 @@ def run(minutes: float, config: Path, sim_config: Path, seed: int, out: Path | N
             steps = chain(kind, rng)
             if kind != "set_profile":
                 requests.ask({"cmd": "reset"})
-                requests.ask({"cmd": "arm"})
+                holder.arm()
             for step in steps:
                 if kind == "force_ref":
                     daemon.session.put(force_ref_key, json.dumps(step))
@@ -530,7 +559,7 @@ def run(minutes: float, config: Path, sim_config: Path, seed: int, out: Path | N
                 time.sleep(CHAIN_GAP_S)
             if kind == "set_profile":
                 requests.ask({"cmd": "reset"})
-                requests.ask({"cmd": "arm"})
+                holder.arm()
             time.sleep(SHOW_S)
             if kind == "force_ref":  # back to the reference the campaign runs on
                 requests.ask({"cmd": "disarm"})
@@ -679,6 +708,8 @@ def run(minutes: float, config: Path, sim_config: Path, seed: int, out: Path | N
             ),
         }
     finally:
+        if holder is not None:
+            holder.release()
         if fuzz_bus is not None:
             fuzz_bus.shutdown()
         daemon.close_session()
