@@ -9,7 +9,10 @@ waited; its invalid RigSensors frames stay inside the bad-frame budget so that t
 armed), random JSON requests (any depth, size, type, unicode, NaN) and, while armed, request
 sequences: chains of individually valid changes 5 ms apart (six actuator amplitude steps of
 4 mm, six frequency steps, set_profile forces rising past `loop.f_range_n` then arming,
-force_ref values rising to 1e300), and re-arms the daemon after every fault. It sends the
+force_ref values rising to 1e300), and re-arms the daemon after every fault (renewing the
+lease of its arms). Every 15 s a client that holds the rig armed (`mrrig arm --hold`) is
+SIGKILLed at a random moment: the rig must leave ARMED within the lease's timeout
+(`armed_without_lease`, mrrig.offline.bench.fuzz_lease). It sends the
 daemon SIGHUP, SIGUSR1, SIGUSR2, SIGQUIT and SIGPIPE in turn: each must end the run SAFE (the
 last DamperCommand SAFE, the actuator stopped, a summary written, exit code 0 or 1) or be
 ignored (the daemon answers on); a daemon that ended is started again. A listener on the bus
@@ -56,6 +59,7 @@ import zenoh
 from mrrig import json_text
 from mrrig.cli_args import HelpFormatter, output_file, positive
 from mrrig.config import load_config
+from mrrig.offline.bench import fuzz_lease
 from mrrig.pycan import can
 from mrrig.rigio.canbus.bus import find_free_port, open_bus, start_bridge, stop_bridge
 from mrrig.rigio.canbus.codec import Codec
@@ -592,6 +596,10 @@ def run(minutes: float, config: Path, sim_config: Path, seed: int, out: Path | N
         pending: tuple[signal.Signals, float] | None = None  # (signal, sent at)
         next_req = next_arm = next_bad = next_seq = time.monotonic()
         next_signal = time.monotonic() + signal_every_s / 2
+        # clients that hold the rig, killed at random (issue 40): their lease must lapse
+        killed = fuzz_lease.KilledClients()
+        client_z = fuzz_lease.client_config(endpoints, work)
+        next_kill = time.monotonic() + fuzz_lease.KILL_EVERY_S / 2
         t_next = time.monotonic()
         armed = False
         while (now := time.monotonic()) < end or len(unsent) > 1 or pending is not None:
@@ -634,6 +642,12 @@ def run(minutes: float, config: Path, sim_config: Path, seed: int, out: Path | N
                 excused.append((now - REQUEST_TIMEOUT_S, float("inf")))
                 daemon.proc.send_signal(sig)
                 pending = (sig, now)
+            elif now >= next_kill and now < end:
+                holder.release()  # the killed client's lease is the only one
+                lease_s = cfg.control.lease_timeout_s
+                fuzz_lease.kill_a_client(requests.ask, cfg.rig.name, client_z, lease_s, rng, killed)
+                next_kill = time.monotonic() + fuzz_lease.KILL_EVERY_S
+                next_arm = time.monotonic()
             elif now >= next_arm:
                 next_arm += 1.0
                 alive()
@@ -697,6 +711,7 @@ def run(minutes: float, config: Path, sim_config: Path, seed: int, out: Path | N
             "active_answers_stale_at_bus": st["answers"]["active_to_stale"],
             "active_answers_invalid": listener.active_unmatched,
             "rearms": rearms,
+            **killed.counts(),
             "answer_latency_p99_us": {"quiet": q99, "burst": b99, "ratio": b99 / q99},
             "answer_latency_frames": {"quiet": nq, "burst": nb},
             "daemon": {
@@ -732,6 +747,7 @@ def failures(result: dict[str, Any], i_max_a: float) -> list[str]:
         "requests_unanswered",
     ]  # fmt: skip
     out = [n for n in names if result[n]]
+    out += [n for n in ("armed_without_lease",) if result.get(n)]
     if result["max_commanded_current_a"] > i_max_a + 1e-4:
         out.append("max_commanded_current_a")
     return out
@@ -786,6 +802,10 @@ def _report(r: dict) -> str:
             f"limit {r['active_answers_stale_at_bus']}, to no genuine frame "
             f"{r['active_answers_invalid']}",
             f"  control requests unanswered {r['requests_unanswered']}",
+            f"  clients killed while armed {r['clients_killed']} (never armed"
+            f" {r['clients_never_armed']}): armed without a live lease beyond its timeout"
+            f" {r['armed_without_lease']}, left ARMED after a kill max"
+            f" {r['left_armed_after_kill_s_max']} s",
             f"  answer latency p99 as the firmware sees it: quiet {lat['quiet']:.0f} us, "
             f"burst {lat['burst']:.0f} us, ratio {lat['ratio']:.2f} (target <= 1.5)",
             f"  daemon: {r['daemon']}",
