@@ -45,7 +45,7 @@ from mrrig.loop.coverage import controller_envelope
 from mrrig.loop.detectors import Detectors
 from mrrig.loop.estimation import RealtimeKalman
 from mrrig.loop.inversion import DEFAULT_CONTINUITY
-from mrrig.loop.lease import ArmLease
+from mrrig.loop.lease import PATH_QUIET_S, ArmLease
 from mrrig.loop.mlp import MLP, ModelError
 from mrrig.loop.model_fit import RigUnits, check_cost, check_period, check_units
 from mrrig.loop.realtime import keep_off_cpu, leave_realtime, make_realtime
@@ -992,7 +992,13 @@ class Daemon:
 
     def _lease_lapsed(self, t_rx: float) -> None:
         """No renewal of the arm's lease within its timeout (its client killed or cut off):
-        FAULT (SAFE from the next frame) and the actuator stopped, as a detector's stop."""
+        FAULT (SAFE from the next frame) and the actuator stopped, as a detector's stop. The
+        lease's clock stops while the telemetry process, which carries the renewals, is
+        silent (a stall of it is no client's end; `telemetry_lost` guards that)."""
+        heard = self._sidecar_deadline - self.cfg.telemetry.heartbeat_timeout_s
+        if self.link is not None and t_rx - heard > PATH_QUIET_S:
+            self.lease.deadline = t_rx + self.lease.timeout_s
+            return
         timeout_s, unrenewed_s = self.lease.timeout_s, t_rx - self.lease.deadline
         self.lease.end()
         if not self.supervisor.active:

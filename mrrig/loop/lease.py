@@ -10,6 +10,10 @@ from __future__ import annotations
 import math
 import secrets
 
+# the telemetry process carries the renewals: silent longer than this (its heartbeat comes
+# every 0.2 s), a lapse waits for it
+PATH_QUIET_S = 0.5
+
 
 class ArmLease:
     """At most one lease: granted by a remote `arm`, renewed by `renew` with its id, ended by
