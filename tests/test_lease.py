@@ -9,6 +9,7 @@ import math
 import os
 import signal
 import subprocess
+import sys
 import textwrap
 import threading
 import time
@@ -21,7 +22,7 @@ from mrrig.loop.lease import ArmLease
 from mrrig.loop.samples import RigState
 from mrrig.rigio.rearm import RearmLimit
 from mrrig.typed_config import ConfigError, parse
-from tests.conftest import stall, start, stop
+from tests.conftest import REPO, stall, start, stop
 from tests.live_rig import live_rig
 from tests.rig_harness import ScriptedRig
 
@@ -314,3 +315,34 @@ def test_a_faulty_bus_aborts_the_step_an_isolated_fault_is_rearmed(live, tmp_pat
     else:
         assert props["verdict"] == "passed", out
         assert props["faults"], "the stall caused no transport fault"
+
+
+@pytest.mark.process
+def test_mrrig_arm_says_it_arms_for_one_lease_and_hold_keeps_the_rig_until_ctrl_c(live):
+    from mrrig.api import Rig
+
+    z = ["--rig", RIG, "--zenoh-config", str(live.client_z)]
+    with Rig(RIG, zenoh_config=live.client_z) as r:
+        r.reset()  # whatever an earlier test left
+        once = subprocess.run(
+            [sys.executable, "-m", "mrrig", "arm", *z], capture_output=True, text=True,
+            timeout=60, cwd=REPO,
+        )  # fmt: skip
+        assert once.returncode == 0, once.stderr
+        assert "armed for the lease only" in once.stderr and "--hold" in once.stderr
+        status = _wait_state(r, "FAULT", 30.0)
+        assert status["fault"] == "lease_lapsed", status
+        r.reset()
+        watch = ActuatorWatch(live.channel)
+        held = start(["-m", "mrrig", "arm", "--hold", *z], stderr=subprocess.PIPE, text=True)
+        try:
+            _wait_state(r, "ARMED", 60.0)
+            time.sleep(3.0)  # past the lease's timeout: renewed
+            assert r.status()["state"] == "ARMED"
+            held.send_signal(signal.SIGINT)
+            assert held.wait(timeout=30) == 0, held.stderr.read()
+            _wait_state(r, "IDLE", 10.0)
+            assert watch.wait_for("STOP", 5.0) is not None, watch.seen[-5:]
+        finally:
+            stop(held)
+            watch.close()
