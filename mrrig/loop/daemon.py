@@ -992,7 +992,7 @@ class Daemon:
 
     def _lease_lapsed(self, t_rx: float) -> None:
         """No renewal of the arm's lease within its timeout (its client killed or cut off):
-        FAULT (SAFE from the next frame) and the actuator stopped, as a detector's stop. The
+        FAULT (this frame on answered SAFE) and the actuator stopped, as a detector's stop. The
         lease's clock stops while the telemetry process, which carries the renewals, is
         silent (a stall of it is no client's end; `telemetry_lost` guards that)."""
         heard = self._sidecar_deadline - self.cfg.telemetry.heartbeat_timeout_s
