@@ -805,13 +805,17 @@ def _report(r: dict) -> str:
             f"  clients killed while armed {r['clients_killed']} (never armed"
             f" {r['clients_never_armed']}): armed without a live lease beyond its timeout"
             f" {r['armed_without_lease']}, left ARMED after a kill max"
-            f" {r['left_armed_after_kill_s_max']} s",
+            f" {_seconds(r['left_armed_after_kill_s_max'])}",
             f"  answer latency p99 as the firmware sees it: quiet {lat['quiet']:.0f} us, "
             f"burst {lat['burst']:.0f} us, ratio {lat['ratio']:.2f} (target <= 1.5)",
             f"  daemon: {r['daemon']}",
             f"  faults: {dict(r['faults'])}",
         ]
     )
+
+
+def _seconds(value: float | None) -> str:
+    return "n/a" if value is None else f"{value:.2f} s"
 
 
 def main(argv: list[str] | None = None) -> int:
