@@ -285,6 +285,9 @@ class ControlSection:
     max_file_bytes: int = 4_000_000
     read_timeout_s: float = 1.0
     armed_amplitude_step_m: float = 0.005  # the largest actuator amplitude step while ARMED
+    # an arm over the control plane holds a lease its client renews (`renew`); unrenewed this
+    # long, the daemon disarms and stops the actuator (a client killed while armed)
+    lease_timeout_s: float = 2.0
 
     def check(self) -> None:
         if not 0 < self.max_file_bytes <= 100_000_000:
@@ -293,6 +296,8 @@ class ControlSection:
             raise ValueError("read_timeout_s: must be in (0, 10] s")
         if not 0 <= self.armed_amplitude_step_m <= 0.04:
             raise ValueError("armed_amplitude_step_m: must be in [0, 0.04] m")
+        if not 0.2 <= self.lease_timeout_s <= 60:
+            raise ValueError("lease_timeout_s: must be in [0.2, 60] s")
 
 
 @dataclass(frozen=True)

@@ -24,7 +24,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "sim": ("firmware_sim.__main__", "run the simulated rig firmware"),
     "bridge": ("mrrig.rigio.canbus.bridge", "serve a virtual CAN channel on 127.0.0.1"),
     "status": ("mrrig.cli.client", "print the daemon's status (Zenoh)"),
-    "arm": ("mrrig.cli.client", "arm the daemon: commands become ACTIVE"),
+    "arm": ("mrrig.cli.client", "arm the daemon for one lease (--hold: until Ctrl-C)"),
     "disarm": ("mrrig.cli.client", "disarm the daemon: commands become SAFE 0 A"),
     "reset": ("mrrig.cli.client", "acknowledge the daemon's FAULT (to IDLE), before arm"),
     "watch": ("mrrig.cli.client", "live numbers from the daemon's telemetry"),

@@ -46,6 +46,7 @@ from mrrig.loop.detectors import Detectors
 from mrrig.loop.estimation import RealtimeKalman
 from mrrig.loop.inversion import DEFAULT_CONTINUITY
 from mrrig.loop.kernel_stalls import KernelStalls, stall_event
+from mrrig.loop.lease import PATH_QUIET_S, ArmLease
 from mrrig.loop.mlp import MLP, ModelError
 from mrrig.loop.model_fit import RigUnits, check_cost, check_period, check_units
 from mrrig.loop.realtime import keep_off_cpu, leave_realtime, make_realtime
@@ -307,6 +308,7 @@ class Daemon:
         self.actuator = cfg.actuator
         # the motion the rig was armed with: armed changes are bounded from it, not per request
         self.actuator_at_arm = cfg.actuator
+        self.lease = ArmLease(cfg.control.lease_timeout_s)  # a remote arm's, while held
         self.record_path = record_path
         self.exit_code = Exit.OK
         # why the daemon raised, where it did: the summary says so (the catalog: `crashed`)
@@ -353,6 +355,7 @@ class Daemon:
             "force_refs_received": 0,  # on force_ref, with the zenoh reference
             "force_refs_clamped": 0,  # of those, outside loop.f_range_n (clamped into it)
             "can_log_dropped": 0,  # frames the pipe to the bus log's writer could not take
+            "leases_lapsed": 0,  # armed by a client that stopped renewing its lease
         }
         self.events: list[dict] = []
         self._keep_batches = keep_batches
@@ -937,19 +940,26 @@ class Daemon:
             if not ok:
                 raise RequestError(msg)
             if events:
+                self.lease.end()  # armed anew: a lease of its own
                 self.actuator_at_arm = self.actuator
                 self.controller.reset(1)
                 self.detectors.reset()
                 self.reset_reference(self.now(), self.last_x)
                 self._listen_since = time.perf_counter()  # frames must come while armed
             self._emit(events)
-            return {"state": sup.state.name, "message": msg}
+            if not c.remote:  # in process: the daemon ends with its client
+                return {"state": sup.state.name, "message": msg}
+            self.lease.grant(time.perf_counter())
+            return {"state": sup.state.name, "message": msg, **self.lease.reply()}
+        if c.cmd == "renew":
+            return self._renew(c.lease)
         if c.cmd == "reset":
             msg, events = sup.reset(self.now())
             self._emit(events)
             return {"state": sup.state.name, "message": msg}
         if c.cmd == "disarm":
             self._emit(sup.disarm(self.now(), "disarmed by request"))
+            self.lease.end()
             return {"state": sup.state.name}
         if c.cmd == "status":
             return {"status": self.status()}
@@ -987,6 +997,37 @@ class Daemon:
             "amplitude_m": a.amplitude_m,
             "frequency_hz": a.frequency_hz,
         }
+
+    def _renew(self, lease_id: str) -> dict[str, Any]:
+        """Keep an arm's lease; refused when it is not the one held or the rig left ARMED."""
+        if self.supervisor.state is not RigState.ARMED:
+            self.lease.end()
+            raise RequestError(f"lease {lease_id}: ended, the rig is {self.supervisor.state.name}")
+        if not self.lease.renew(lease_id, time.perf_counter()):
+            raise RequestError(f"lease {lease_id}: not held (lapsed, or another arm's)")
+        return self.lease.reply()
+
+    def _lease_lapsed(self, t_rx: float) -> None:
+        """No renewal of the arm's lease within its timeout (its client killed or cut off):
+        FAULT (this frame on answered SAFE) and the actuator stopped, as a detector's stop. The
+        lease's clock stops while the telemetry process, which carries the renewals, is
+        silent (a stall of it is no client's end; `telemetry_lost` guards that)."""
+        heard = self._sidecar_deadline - self.cfg.telemetry.heartbeat_timeout_s
+        if self.link is not None and t_rx - heard > PATH_QUIET_S:
+            self.lease.deadline = t_rx + self.lease.timeout_s
+            return
+        timeout_s, unrenewed_s = self.lease.timeout_s, t_rx - self.lease.deadline
+        self.lease.end()
+        if not self.supervisor.active:
+            return
+        self.counters["leases_lapsed"] += 1
+        reason = (
+            f"lease lapsed: no renewal for {unrenewed_s + timeout_s:.2f} s"
+            f" (limit control.lease_timeout_s = {timeout_s:g} s): the client that armed is gone"
+        )
+        self.actuator = replace(self.actuator, waveform="stop")
+        self._last_actuator_sent = -math.inf
+        self._emit(self.supervisor.trip(t_rx - self.t0, Fault.LEASE_LAPSED, reason))
 
     def _adaptation_change(self, c: Change) -> dict[str, Any]:
         adapt = getattr(self.controller, "adapt", None)
@@ -1190,6 +1231,8 @@ class Daemon:
             self.notifier.pet(t_rx)
             # a change prepared before this frame came applies to it
             self._apply_change()
+            if t_rx > self.lease.deadline:
+                self._lease_lapsed(t_rx)
             if msg is not None:
                 self.on_frame(msg, t_rx, self._queued_s(msg))
             self.check_timeout(t_rx)
