@@ -3,6 +3,8 @@ JUnit and HTML reports read back, and plans run against firmware_sim and a daemo
 
 from __future__ import annotations
 
+import dataclasses
+import html
 import math
 import os
 import re
@@ -11,6 +13,7 @@ import subprocess
 import sys
 import textwrap
 import time
+import xml.etree.ElementTree as ET
 from pathlib import Path
 
 import numpy as np
@@ -307,6 +310,46 @@ def test_html_holds_the_identity_the_table_and_one_plot_per_step(tmp_path):
     assert text.count("src='data:image/png;base64,") == 2
     assert ident.plan_sha256 in text and "rig1" in text and ident.operator in text
     assert "<h1>mrrig test: two steps: failed</h1>" in text
+
+
+def _renamed(results: list[StepResult], names: list[str]) -> list[StepResult]:
+    return [
+        dataclasses.replace(r, step=dataclasses.replace(r.step, name=n))
+        for r, n in zip(results, names, strict=True)
+    ]
+
+
+def test_junit_with_control_characters_in_names_and_messages_is_well_formed(tmp_path):
+    """Issue 40, finding 14: control characters in a step's name or a reason made the JUnit
+    file ill-formed XML; each is escaped as visible text, the file parses."""
+    plan, results = results_of(tmp_path)
+    results = _renamed(results, ["bell\x07 step\nsecond line", "esc\x1b[31m\x00nul"])
+    results[1].reasons = ["fault \x0c form feed", "claimed host pc\x01"]
+    path = tmp_path / "report.xml"
+    write_junit(path, "plan\x02", Identity.of(plan.path, "r\x03", "v", "t"), results)
+    ET.parse(path)  # well-formed
+    cases = junit_cases(path)
+    assert list(cases) == ["bell\\x07 step\\x0asecond line", "esc\\x1b[31m\\x00nul"]
+    (failure,) = cases["esc\\x1b[31m\\x00nul"].result
+    assert failure.message == "fault \\x0c form feed; claimed host pc\\x01"
+
+
+def test_a_dollar_in_a_step_name_is_text_in_the_html_report(tmp_path):
+    """Issue 40, finding 12: matplotlib read a `$` in a step's name as mathtext: `$x^$` broke
+    the report, `$x$` was typeset. The names are in the report and its figures as written."""
+    import matplotlib.cbook
+
+    from mrrig.safe_text import plot_literal
+
+    plan, results = results_of(tmp_path)
+    names = ["$x$ and a$b", "$x^$ $\\frac$"]
+    results = _renamed(results, names)
+    path = tmp_path / "report.html"
+    write_html(path, plan.name, Identity.of(plan.path, "rig1", "v", "t"), results)
+    text = path.read_text()
+    assert text.count("src='data:image/png;base64,") == 2
+    assert all(f"<td>{html.escape(n)}</td>" in text for n in names)
+    assert not any(matplotlib.cbook.is_math_text(plot_literal(n)) for n in names)
 
 
 # --- against the simulated rig -------------------------------------------------------------
