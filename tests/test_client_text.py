@@ -2,9 +2,12 @@
 
 from __future__ import annotations
 
+import datetime as dt
 import json
 import logging
+import uuid
 
+from mrrig.catalog.record import RunRecord
 from mrrig.cli.client import format_status
 from mrrig.rigio import audit
 from mrrig.rigio.audit import parse_claims
@@ -84,3 +87,18 @@ def test_forged_claims_give_one_audit_line_without_escapes_and_a_bounded_host(ca
     host = big["requester"]["claimed"]["host"]
     assert len(host) < 400 and host.endswith(f"...[{3_000_000 - MAX_CHARS} more characters]")
     assert len(big["text"]) < 1000
+
+
+def test_a_run_records_given_and_claimed_text_is_one_bounded_line():
+    record = RunRecord(
+        run_id=uuid.uuid4(),
+        rig="rig1",
+        started_utc=dt.datetime(2026, 12, 5, tzinfo=dt.UTC),
+        host="pc\nforged row",
+        operator="eve\x1b[2J",
+        step="s" * 3_000_000,
+        tags=["a\rb"],
+    )
+    assert record.host == "pc\\x0aforged row" and record.operator == "eve\\x1b[2J"
+    assert record.tags == ["a\\x0db"]
+    assert record.step.endswith(f"...[{3_000_000 - MAX_CHARS} more characters]")
