@@ -23,7 +23,7 @@ from junitparser import Error, Failure, JUnitXml, Properties, Property
 from mrrig.loop.samples import SAMPLE_DTYPE, RigState
 from mrrig.offline.metrics import error_norm
 from mrrig.plans.criteria import Criteria, failures, measure
-from mrrig.plans.plan import PlanError, load_plan
+from mrrig.plans.plan import MAX_PLAN_BYTES, MAX_STEPS, PlanError, load_plan
 from mrrig.plans.report import Identity, write_html, write_junit
 from mrrig.plans.runner import StepResult
 from tests.conftest import REPO, rig_config, start, stop, zenoh_configs
@@ -86,6 +86,13 @@ def mrrig(*args: str, timeout_s: float = 120.0, **kw) -> subprocess.CompletedPro
         ('faults = "all"', "step 2 (impossible Et).criteria.faults: expected one of"),
         ("et_max = -1.0", "step 2 (impossible Et).criteria.et_max: must be > 0"),
         ("etmax = 0.1", "step 2 (impossible Et).criteria.etmax: unknown field"),
+        # issue 40, finding 15: finite and in a physical range
+        (
+            "temperature_max_degc = -1e300",
+            "step 2 (impossible Et).criteria.temperature_max_degc: -1e+300 is outside"
+            " [-40, 250] degC",
+        ),
+        ("peak_current_a_max = 1e300", "criteria.peak_current_a_max: 1e+300 is outside [0, 5] A"),
     ],
 )
 def test_a_plan_error_names_the_step_and_the_field(tmp_path, change, where):
@@ -177,6 +184,54 @@ def test_a_plan_error_exits_2_with_one_line(tmp_path):
     assert out.stderr.strip().splitlines() == [
         f"error: {path}: step 1 (constant current).settle_s: expected a number, got True"
     ]
+
+
+def test_a_compare_et_that_is_not_an_et_is_a_plan_error(tmp_path):
+    """Issue 40, finding 15: `compare_et = nan` was accepted."""
+    for value, shown in (("nan", "nan"), ("-1e300", "-1e+300"), ("inf", "inf")):
+        text = PLAN.format(d1=1).replace(
+            CRITERIA, CRITERIA + f" }}\ncompare_et = {{ paper = {value}"
+        )
+        path = write(tmp_path, text)
+        with pytest.raises(PlanError) as err:
+            load_plan(path)
+        assert f"step 2 (impossible Et).compare_et.paper: {shown} is not an Et" in str(err.value)
+
+
+def _many_steps(tmp_path, n: int, padding: int = 0):
+    step = '[[step]]\nname = "s{k}"\nduration_s = 1\nreference = {{ kind = "constant" }}\n'
+    text = (
+        '[plan]\nname = "big"\n'
+        + "#" * padding
+        + "\n"
+        + "".join(step.format(k=k) for k in range(n))
+    )
+    return write(tmp_path, text, f"big{n}.toml")
+
+
+def test_a_plan_is_bounded_in_steps_and_bytes_with_one_line(tmp_path):
+    """Issue 40, finding 15: a 1,000,000-step plan took 2 min and 916 MB before it found that
+    no daemon answered: the plan's size is bounded before anything else."""
+    assert len(load_plan(_many_steps(tmp_path, MAX_STEPS)).steps) == MAX_STEPS
+    with pytest.raises(PlanError, match=f"step: {MAX_STEPS + 1} steps, over the limit of"):
+        load_plan(_many_steps(tmp_path, MAX_STEPS + 1))
+    huge = _many_steps(tmp_path, 1, padding=MAX_PLAN_BYTES)
+    with pytest.raises(PlanError, match=f"bytes, over the limit of {MAX_PLAN_BYTES}"):
+        load_plan(huge)
+    out = mrrig("test", str(_many_steps(tmp_path, MAX_STEPS + 1)), "--rig", "nobody")
+    assert out.returncode == 2
+    (line,) = out.stderr.strip().splitlines()
+    assert f"{MAX_STEPS + 1} steps, over the limit of {MAX_STEPS}" in line
+
+
+def test_a_name_that_is_not_one_printable_line_is_a_plan_error(tmp_path):
+    """Issue 40, finding 14: a step's name goes to the terminal, the JUnit and the catalog."""
+    for bad in ("two\\nlines", "red\\u001b[31m"):
+        path = write(tmp_path, PLAN.format(d1=1).replace('"impossible Et"', f'"{bad}"'))
+        with pytest.raises(PlanError, match=r"step 2 \(.*\)\.name: .*one printable line"):
+            load_plan(path)
+    path = write(tmp_path, PLAN.format(d1=1).replace('"impossible Et"', '"$x$ and a$b"'))
+    assert load_plan(path).steps[1].name == "$x$ and a$b"
 
 
 # --- criteria on synthetic telemetry -------------------------------------------------------
