@@ -16,7 +16,6 @@ import argparse
 import contextlib
 import datetime as dt
 import logging
-import signal
 import subprocess
 import sys
 import time
@@ -25,6 +24,7 @@ from pathlib import Path
 
 from mrrig.cli_args import HelpFormatter, controllers_epilog
 from mrrig.errors import MrrigError
+from mrrig.interruption import stops_interrupt
 from mrrig.plans.plan import load_plan
 from mrrig.rigio import client
 
@@ -167,17 +167,12 @@ def _run(plan, rig_name: str, args: argparse.Namespace, mrrig_version: str) -> i
             f"plan {plan.name} ({len(plan.steps)} steps) on rig {rig_name}, {started}", flush=True
         )
         # Ctrl-C, a kill or a dropped ssh session ends the step it comes in (the rig
-        # disarmed, the step aborted, the reports written), even where this process was
-        # started with SIGINT ignored (a background job; pytest-xdist's workers)
-        stops = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
-        old = {sig: signal.signal(sig, signal.default_int_handler) for sig in stops}
-        try:
+        # disarmed, the step aborted with the signal named, the reports written), even where
+        # this process was started with SIGINT ignored (a background job; pytest-xdist's workers)
+        with stops_interrupt():
             results, interrupted = run_plan(
                 plan, rig, lambda line: print(line, flush=True), args.catalog or default_catalog()
             )
-        finally:
-            for sig, handler in old.items():
-                signal.signal(sig, handler)
     print(table(results))
     verdict = overall(results)
     print(f"plan {plan.name}: {verdict.upper()}" + (" (interrupted)" if interrupted else ""))
