@@ -533,6 +533,36 @@ def test_ctrl_c_in_a_step_leaves_the_rig_safe_and_the_step_aborted(rig, tmp_path
 
 
 @pytest.mark.process
+def test_sigterm_in_a_step_is_named_as_sigterm(rig, tmp_path):
+    """Issue 40, finding 15: a SIGTERM was reported as "interrupted (Ctrl-C)"."""
+    from mrrig.api import Rig
+
+    plan = write(tmp_path, PLAN.format(d1=30))
+    junit = tmp_path / "r.xml"
+    args = ["--rig", RIG, "--zenoh-config", str(rig), "--junit", str(junit)]
+    proc = start(
+        ["-m", "mrrig", "test", str(plan), *args],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+    )
+    try:
+        with Rig(RIG, zenoh_config=rig) as r:
+            deadline = time.monotonic() + 20
+            while r.status()["state"] != "ARMED":
+                assert time.monotonic() < deadline, "the plan never armed the rig"
+                time.sleep(0.05)
+        proc.send_signal(signal.SIGTERM)
+        stdout, _ = proc.communicate(timeout=30)
+    finally:
+        stop(proc)
+    assert proc.returncode == 1, stdout
+    (error,) = junit_cases(junit)["constant current"].result
+    assert error.message == "interrupted (SIGTERM): the rig disarmed", stdout
+    assert "Ctrl-C" not in stdout
+
+
+@pytest.mark.process
 def test_force_against_the_motion_is_judged_before_arming_and_measured(rig, tmp_path):
     """A force that stays in tension on a sine stroke asks the damper to push back on every
     return (about 45 % of the samples): said before arming, measured from the frames, and
