@@ -71,7 +71,9 @@ def ensure_sim_model(path: Path, seed: int = 0) -> Path:
 
 
 def _interrupt(signum: int, frame) -> None:
-    raise KeyboardInterrupt(f"signal {signum}")
+    from mrrig.interruption import Interrupted
+
+    raise Interrupted(signum)  # a KeyboardInterrupt that names its signal
 
 
 def _stop(proc: subprocess.Popen, name: str, timeout_s: float = 10.0) -> int:

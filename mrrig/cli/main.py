@@ -117,8 +117,10 @@ def main(argv: list[str] | None = None) -> int:
         if module_name == "mrrig.cli.client":
             return int(module.main([args.command, *argv]) or 0)
         return int(module.main(argv) or 0)
-    except KeyboardInterrupt:
-        logging.getLogger("mrrig").warning("interrupted")
+    except KeyboardInterrupt as exc:
+        from mrrig.interruption import what
+
+        logging.getLogger("mrrig").warning("interrupted (%s)", what(exc))
         return 130
     except BrokenPipeError:
         return _quiet_broken_pipe()

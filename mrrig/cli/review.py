@@ -2,7 +2,8 @@
 optionally a figure, a one-file HTML report and the check of a bus log of the same run.
 
 A recording without the summary the daemon writes at its end is truncated (the recording
-failed, or the run was killed): review says so and exits 1, unless `--partial`.
+failed, or the run was killed): review says so and exits 1, unless `--partial`. A recording
+without a single sensor frame has nothing to review: one line, exit 1.
 """
 
 from __future__ import annotations
@@ -46,6 +47,13 @@ def main(argv: list[str] | None = None) -> int:
     if args.verify:
         verify_rrd(args.file)
     rec = read_any(args.file)  # .rrd, or its Parquet or MDF4 export
+    if rec.samples.size == 0:
+        logging.getLogger("mrrig.offline.review").error(
+            "%s: no frames: the recording holds no sensor frame (the rig sent none, or the run"
+            " ended before its first); nothing to review",
+            args.file,
+        )
+        return 1
     if rec.summary is None:
         logging.getLogger("mrrig.offline.review").error(
             "%s: truncated: no end-of-run summary (the recording failed or the run was killed); %s",

@@ -167,9 +167,10 @@ def _run(plan, rig_name: str, args: argparse.Namespace, mrrig_version: str) -> i
             f"plan {plan.name} ({len(plan.steps)} steps) on rig {rig_name}, {started}", flush=True
         )
         # Ctrl-C, a kill or a dropped ssh session ends the step it comes in (the rig
-        # disarmed, the step aborted, the reports written), even where this process was
-        # started with SIGINT ignored (a background job; pytest-xdist's workers); a second
-        # one (a double Ctrl-C) does not cut the step's end, the catalog rows or the reports
+        # disarmed, the step aborted with the signal named, the reports written), even where
+        # this process was started with SIGINT ignored (a background job; pytest-xdist's
+        # workers); a second one (a double Ctrl-C) does not cut the step's end, the catalog
+        # rows or the reports
         with PlanSignals().installed() as stops:
             results, interrupted = run_plan(
                 plan, rig, lambda line: print(line, flush=True), args.catalog or default_catalog()

@@ -1262,7 +1262,7 @@ class Daemon:
         stale = 0
         while (msg := self.bus.recv(timeout=0)) is not None:
             stale += 1
-            if self._queued_s(msg) <= self.cfg.loop.max_frame_age_s:
+            if self._queued_s(msg) <= self.cfg.loop.frame_age_limit_s:
                 break
         if stale:
             log.info("discarded %d frames queued before the loop started", stale)

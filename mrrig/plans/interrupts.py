@@ -25,7 +25,9 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from typing import Any
 
-STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
+from mrrig.interruption import STOPS, Interrupted
+
+STOP_SIGNALS = STOPS
 _installed: list[PlanSignals] = []  # the one whose handlers are on, if any
 _NOTE = b"\nstopping: the step's end, the catalog rows and the reports are still written\n"
 
@@ -35,16 +37,16 @@ class PlanSignals:
 
     def __init__(self) -> None:
         self.received = 0
-        self.first: str | None = None
+        self.first: int | None = None  # the first signal's number
         self._interruptible = False
 
     def _handle(self, signum: int, _frame: Any) -> None:
         self.received += 1
         if self.first is None:
-            self.first = signal.Signals(signum).name
+            self.first = signum
         if self.received == 1 and self._interruptible:
-            self._interruptible = False  # one KeyboardInterrupt, and only in the step
-            raise KeyboardInterrupt
+            self._interruptible = False  # one interruption, and only in the step
+            raise Interrupted(signum)  # a KeyboardInterrupt that names its signal
         if self.received == 2:
             os.write(2, _NOTE)  # not print(): this may run inside another write to stderr
 
@@ -65,8 +67,8 @@ class PlanSignals:
     def interruptible(self) -> Iterator[None]:
         """The block that the first signal interrupts (KeyboardInterrupt), at once where one
         came before it."""
-        if self.received:
-            raise KeyboardInterrupt
+        if self.first is not None:
+            raise Interrupted(self.first)
         self._interruptible = True
         try:
             yield

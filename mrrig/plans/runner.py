@@ -25,6 +25,7 @@ import numpy as np
 
 from mrrig.api import Rig, RigError, register_run
 from mrrig.errors import MrrigError
+from mrrig.interruption import what
 from mrrig.loop.safety import TRANSPORT_FAULTS
 from mrrig.loop.samples import SAMPLE_DTYPE
 from mrrig.plans.criteria import Numbers, failures, measure
@@ -88,9 +89,10 @@ def run_plan(
                 _run_step(index, len(plan.steps), step, rig, result, progress)
         except StepAborted as exc:
             result.verdict, result.reasons = "aborted", [str(exc)]
-        except KeyboardInterrupt:
+        except KeyboardInterrupt as exc:
             interrupted = True
-            result.verdict, result.reasons = "aborted", ["interrupted (Ctrl-C): the rig disarmed"]
+            reason = f"interrupted ({what(exc)}): the rig disarmed"
+            result.verdict, result.reasons = "aborted", [reason]
         finally:
             _disarm(rig)
             result.wall_s = time.monotonic() - t0
