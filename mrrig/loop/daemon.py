@@ -47,6 +47,7 @@ from mrrig.loop.estimation import RealtimeKalman
 from mrrig.loop.inversion import DEFAULT_CONTINUITY
 from mrrig.loop.mlp import MLP, ModelError
 from mrrig.loop.model_fit import RigUnits, check_cost, check_period, check_units
+from mrrig.loop.model_plausibility import self_check
 from mrrig.loop.realtime import keep_off_cpu, leave_realtime, make_realtime
 from mrrig.loop.safety import Fault, Limits, Supervisor
 from mrrig.loop.samples import SAMPLE_DTYPE, RigState
@@ -207,6 +208,10 @@ def build_controller(cfg: DaemonConfig, section=None, model: MLP | None = None) 
     except ValueError as exc:
         raise ModelError(f"{c.model}: controller {c.name}: {exc}") from None
     check_cost(spare, c.model if model is not None else f"controller {c.name}", dt)
+    if model is not None:  # a short closed loop on the model's own envelope (the spare's)
+        x_half = 0.5 * (cfg.loop.x_range_m[1] - cfg.loop.x_range_m[0])
+        checked = self_check(spare, model, c.model, dt, i_max, x_half)
+        log.info("%s: self-check passed in %.0f ms", c.model, checked.seconds * 1e3)
     return controller
 
 
