@@ -51,6 +51,7 @@ from mrrig.loop.model_plausibility import self_check
 from mrrig.loop.realtime import keep_off_cpu, leave_realtime, make_realtime
 from mrrig.loop.safety import Fault, Limits, Supervisor
 from mrrig.loop.samples import SAMPLE_DTYPE, RigState
+from mrrig.loop.slew import SlewLimit
 from mrrig.loop.summary import (
     LATENCY_BIN_US,
     LATENCY_PARTS,
@@ -352,7 +353,9 @@ class Daemon:
             "force_refs_received": 0,  # on force_ref, with the zenoh reference
             "force_refs_clamped": 0,  # of those, outside loop.f_range_n (clamped into it)
             "can_log_dropped": 0,  # frames the pipe to the bus log's writer could not take
+            "commands_slew_limited": 0,  # moved by loop.max_current_slew_a_per_s
         }
+        self.slew = SlewLimit(cfg.loop.max_current_slew_a_per_s, cfg.loop.period_s)
         self.events: list[dict] = []
         self._keep_batches = keep_batches
         self._chunks: list[np.ndarray] = []  # only with keep_batches
@@ -444,6 +447,7 @@ class Daemon:
             return False
 
     def _send_command(self, active: bool, current_a: float, f_des: float, echo: int) -> None:
+        self.slew.sent(current_a if active else 0.0)
         ok = self._send(
             self.profile.command_message,
             {
@@ -525,7 +529,7 @@ class Daemon:
                 i = self.controller.command_one(x, xd, xdd, f_meas, f_des, f_next)
                 events += sup.finite(t, f"the {self.controller.name} controller's command", i)
                 if sup.active:
-                    i_cmd = min(max(i, 0.0), self.cfg.loop.i_max_a)
+                    i_cmd = self._slew_limit(min(max(i, 0.0), self.cfg.loop.i_max_a))
         except Exception as exc:  # noqa: BLE001 - a bug must not leave a frame unanswered
             log.exception("cycle failed")
             events += sup.trip(t, Fault.INTERNAL_ERROR, f"{type(exc).__name__}: {exc}")
@@ -637,6 +641,17 @@ class Daemon:
             f_next = float(self.reference.force(t + T, xn, xdn))
         self._targets = [f_next]
         return f_des, f_next
+
+    def _slew_limit(self, i_a: float) -> float:
+        """A model's command within loop.max_current_slew_a_per_s of the last one sent; a
+        command moved is counted, and the controller told what is sent (`command_sent`)."""
+        if not CONTROLLERS[self.controller.name].needs_model:
+            return i_a  # the operator's own current (constant), not a model's
+        sent = self.slew.limit(i_a)
+        if sent != i_a:
+            self.counters["commands_slew_limited"] += 1
+            self.controller.command_sent(sent)
+        return sent
 
     def _clamp_force(self, f_n: float) -> float:
         """A desired force inside `loop.f_range_n`, whatever its source (NaN passes, for the
