@@ -279,3 +279,24 @@ def test_a_slew_limit_below_one_ampere_a_second_is_a_config_error(tmp_path):
     with pytest.raises(ConfigError) as err:
         load_config(path)
     _one_line(err, "loop.max_current_slew_a_per_s", "at least 1 A/s")
+
+
+def test_set_model_refuses_an_implausible_model_and_keeps_the_one_it_has(tmp_path, sim_model):
+    """`set_model` reads the file under the daemon's limits and builds the controller as the
+    start does: the random GRU and an absurd lag are refused in one line, the model kept."""
+    from tests.test_hostile_input import _disarm
+    from tests.test_model_requests import _rig, _variant
+
+    models = tmp_path / "models"
+    models.mkdir()
+    gru = models / "random-gru.json"
+    random_gru().save(gru)
+    lag = _variant(sim_model, models / "lag.json", meta_lag_tau_s=1e-12)
+    with _rig(tmp_path, sim_model, name="network_inversion") as rig:
+        _disarm(rig)
+        for path, part in ((gru, "self-check"), (lag, "meta.lag_tau_s: 1e-12 outside")):
+            reply = rig.request({"cmd": "set_model", "path": str(path)})
+            assert reply["ok"] is False, reply
+            assert reply["error"].startswith(f"{path}: ") and part in reply["error"], reply
+            assert "\n" not in reply["error"]
+        assert rig.daemon.cfg.controller.model == models / "start.json"
