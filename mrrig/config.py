@@ -21,7 +21,8 @@ __all__ = ["ConfigError", "DaemonConfig", "load_config", "reference_from_table"]
 # sane bounds of a damper test rig, well inside the DBC's ranges (+-8.3 m, +-83 kN)
 X_RANGE_LIMIT_M = 0.5
 F_RANGE_LIMIT_N = 80000.0
-MIN_SLEW_A_PER_S = 1.0  # loop.max_current_slew_a_per_s: a slower coil command is no control
+# loop.max_current_slew_a_per_s: slower is no control; the most, 2000 A a frame at 500 Hz
+MIN_SLEW_A_PER_S, MAX_SLEW_A_PER_S = 1.0, 1e6
 # every setting that scales a wait is bounded at load: a sensor timeout of 1e8 periods made the
 # daemon deaf to a stop once the frames stopped
 MAX_SENSOR_TIMEOUT_S = 1.0
@@ -84,7 +85,8 @@ class CanSection:
 class LoopSection:
     period_s: float = 0.002  # the firmware's RigSensors period
     i_max_a: float = 2.0  # commands are clamped to [0, i_max_a]
-    # each command within this slew of the last one sent (mrrig/loop/slew.py; inf: no limit):
+    # a model's command within this slew of the last one sent (mrrig/loop/slew.py; 1e6: no
+    # limit in effect):
     # 0 to 2 A in 4 frames at 500 Hz, faster than the coil follows (tau about 5 ms)
     max_current_slew_a_per_s: float = 250.0
     timeout_periods: int = 3  # no sensor frame for this many periods -> FAULT + SAFE
@@ -115,10 +117,11 @@ class LoopSection:
             raise ValueError("period_s: must be in [0.0005, 0.1] s")
         if not 0 < self.i_max_a <= 5.0:
             raise ValueError("i_max_a: must be in (0, 5] A")
-        if not self.max_current_slew_a_per_s >= MIN_SLEW_A_PER_S:
+        if not MIN_SLEW_A_PER_S <= self.max_current_slew_a_per_s <= MAX_SLEW_A_PER_S:
             raise ValueError(
-                f"max_current_slew_a_per_s: must be at least {MIN_SLEW_A_PER_S:g} A/s (inf: no"
-                f" limit), got {self.max_current_slew_a_per_s!r}"
+                f"max_current_slew_a_per_s: must be in [{MIN_SLEW_A_PER_S:g}, "
+                f"{MAX_SLEW_A_PER_S:g}] A/s ({MAX_SLEW_A_PER_S:g}: no limit in effect), got "
+                f"{self.max_current_slew_a_per_s!r}"
             )
         if self.timeout_periods < 1:
             raise ValueError("timeout_periods: must be at least 1")

@@ -239,12 +239,13 @@ def test_the_slew_limit_bounds_a_forced_random_gru_and_it_carries_what_was_sent(
         sent.append(out)
         assert ctrl.lanes[0].command == out  # held until the next frame, as the coil has it
     assert np.max(np.abs(np.diff(asked))) > 1.5  # it jumps rail to rail when let
-    assert np.max(np.abs(np.diff([0.0, *sent]))) <= 250.0 * DT_S + 1e-12
+    assert np.max(np.abs(np.diff(sent))) <= 250.0 * DT_S + 1e-12
 
 
 def test_the_daemon_slew_limits_a_models_command(sim_model, tmp_path):
-    """The daemon's loop: from 0 A at arming, each command of network inversion at most
-    loop.max_current_slew_a_per_s * period_s from the last one sent, and counted."""
+    """The daemon's loop: after the first command since arming, each command of network
+    inversion at most loop.max_current_slew_a_per_s * period_s from the last one sent, and
+    counted."""
 
     def config(channel: str) -> Path:
         return rig_config(
@@ -267,18 +268,19 @@ def test_the_daemon_slew_limits_a_models_command(sim_model, tmp_path):
         commands = [rig.exchange(x=0.001 * k, force=0.0) for k in range(30)]
         limited = rig.daemon.counters["commands_slew_limited"]
     currents = [c["CurrentSetpoint"] for c in commands if c["Mode"] == 1]
-    steps = np.abs(np.diff([0.0, *currents]))
+    steps = np.abs(np.diff(currents))
     print(f"currents {currents[:12]}, {limited} limited")
     assert len(currents) >= 20 and limited >= 5
     assert np.max(steps) <= 20.0 * DT_S + 1e-3  # the DBC's resolution
-    assert currents[-1] > currents[0]  # it does move, at the limit
+    assert currents[-1] != currents[0]  # it does move, at the limit
 
 
-def test_a_slew_limit_below_one_ampere_a_second_is_a_config_error(tmp_path):
-    path = rig_config(tmp_path, CHANNEL, None, loop={"max_current_slew_a_per_s": 0.0})
+@pytest.mark.parametrize("slew", [0.0, -5.0, 1e7])
+def test_a_slew_limit_out_of_its_range_is_a_config_error(tmp_path, slew):
+    path = rig_config(tmp_path, CHANNEL, None, loop={"max_current_slew_a_per_s": slew})
     with pytest.raises(ConfigError) as err:
         load_config(path)
-    _one_line(err, "loop.max_current_slew_a_per_s", "at least 1 A/s")
+    _one_line(err, "loop.max_current_slew_a_per_s: must be in [1, 1e+06] A/s", f"got {slew!r}")
 
 
 def test_set_model_refuses_an_implausible_model_and_keeps_the_one_it_has(tmp_path, sim_model):

@@ -447,7 +447,7 @@ class Daemon:
             return False
 
     def _send_command(self, active: bool, current_a: float, f_des: float, echo: int) -> None:
-        self.slew.sent(current_a if active else 0.0)
+        self.slew.sent(current_a if active else None)
         ok = self._send(
             self.profile.command_message,
             {
