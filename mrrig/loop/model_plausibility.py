@@ -7,12 +7,16 @@ Two checks, both one-line `ModelError`s naming the file, the field and the value
 - `check_plausible`: sizes within bounds and every meta field, scaler and twin parameter
   within a physical range (`forward_model_from_text` runs it on every model it reads);
 - `self_check`: a short closed loop on the model's own training envelope (the daemon runs it
-  at start and for `set_controller` / `set_model`, with the controller it built): a sine of
-  the motion inside the envelope, a desired force the model itself makes there with a smooth
-  current, and the model itself as the damper, `SELF_CHECK_FRAMES` frames. A model whose
-  command jumps across most of the current's range between frames, or which cannot track a
-  force it makes itself, is refused. An inverse model (its output a current) has no force of
-  its own: its commands alone are checked.
+  at start and for `set_controller` / `set_model`, with a spare of the controller it built):
+  `SELF_CHECK_FRAMES` frames of a sine of the motion inside the envelope, twice: with the
+  model itself as the damper, asked for the force it makes there with a smooth current, and
+  with the reference damper (the simulator's), asked for its own force so. A model whose
+  command chatters (moves more than `MAX_CHATTER` of [0, i_max] a frame on average: an
+  untrained GRU steps it rail to rail on the reference damper though it tracks itself), that
+  cannot track its own force, or whose force does not grow with the current along the motion
+  (an MR damper's does, eqs 33-35) is refused. An inverse model (its output a current) has
+  no force of its own: its commands on the reference damper alone are checked. About 0.1 s
+  of CPU for a network or a GRU, 0.2 s for a twin.
 
 Pure numerics.
 """
@@ -71,15 +75,23 @@ ENVELOPE_BOUNDS = (1.0, 100.0, 1e5, 1e3)
 SELF_CHECK_FRAMES = 200
 SELF_CHECK_WARMUP = 40
 MOTION_HZ, CURRENT_HZ = 2.0, 1.3
-# the command's mean step per frame, a share of [0, i_max], at most: a model of a damper
-# measured 0.005 (0.13 A at most), untrained GRUs 0.09-0.58 (steps of 0 to 1.8 A)
+# the command's mean step per frame, a share of [0, i_max], at most. With the model itself as
+# the damper: trained networks, GRUs and twins measured 0.0025-0.004, untrained GRUs too
+# (0.004-0.02: they track themselves). With the reference damper: the trained network and
+# GRU 0.005, models of other dampers or fitted briefly up to 0.18 (a history network of the
+# Dyke damper 0.136, an 8-unit GRU of 120 epochs 0.184), untrained 78-unit GRUs 0.06-0.59:
+# those under this bound but one fail the damping share
 MAX_CHATTER = 0.05
+MAX_CHATTER_REFERENCE = 0.25
 # the reference damper: the simulator's (configs/sim.toml), in A
 REFERENCE_PRESET = "rig-current"
 # an MR damper's force grows with the current along the motion (eqs 33-35): on the frames
-# faster than FAST of the sine's peak velocity, at least this share of them
+# faster than FAST of the sine's peak velocity, at least this share of them. Trained networks,
+# GRUs and twins of the simulator's damper measured 1.0, a history network of the Dyke damper
+# 0.66; untrained 78-unit GRUs 0.29-0.86 (7 of 8 refused by one check or another; the eighth,
+# 0.68 and 5.5 % a frame on the reference damper, passes: the loop's slew limit bounds it)
 FAST = 0.5
-MIN_DAMPING_SHARE = 0.8
+MIN_DAMPING_SHARE = 0.6
 # its own force: refused where the RMS error is over this share of the force's RMS variation
 MAX_TRACKING_ERROR = 0.5
 
@@ -92,7 +104,10 @@ def _in(path: Any, field: str, value: Any, lo: float, hi: float, unit: str = "")
     """`value` as a float where it is a number in [lo, hi]; else the one-line error."""
     ok = isinstance(value, int | float) and not isinstance(value, bool) and lo <= value <= hi
     if not ok:
-        raise _bad(path, field, value, f"outside [{lo:g}, {hi:g}]{' ' + unit if unit else ''}")
+        unit = f" {unit}" if unit else ""
+        raise ModelError(
+            f"{path}: {field}: expected a number in [{lo:g}, {hi:g}]{unit}, got {value!r}"
+        )
     return float(value)
 
 
@@ -281,6 +296,7 @@ def _closed_loop(
         controller.after_send()
         controller.prepare_one(m.x[k + 1], m.xd[k + 1], m.xdd[k + 1], f_des[k + 1], f_des[k + 2])
         damper.command = i[k]
+        time.sleep(0)  # the GIL to the daemon's loop and bus threads between frames
     steps = np.abs(np.diff(i[SELF_CHECK_WARMUP - 1 :]))
     chatter = float(np.mean(steps)) / i_max  # NaN where a command was not finite
     want = f_des[SELF_CHECK_WARMUP:n]
@@ -315,12 +331,16 @@ def self_check(
         f" model's envelope)"
     )
     untrained = "not a model of a damper (untrained?)"
-    for damper, chatter in (("the model itself", chatter_own), ("the reference", chatter_ref)):
-        if not chatter <= MAX_CHATTER and not (math.isnan(chatter) and _inverse(model)):
+    checks = (
+        ("the model itself", chatter_own, MAX_CHATTER),
+        ("the reference", chatter_ref, MAX_CHATTER_REFERENCE),
+    )
+    for damper, chatter, most in checks:
+        if not chatter <= most and not (math.isnan(chatter) and _inverse(model)):
             raise ModelError(
                 f"{what}: with {damper} as the damper, the {controller.name} controller's "
                 f"command moved {chatter:.1%} of [0, {i_max:g}] A per frame on average (at most"
-                f" {MAX_CHATTER:.0%}: it jumps between the rails): {untrained}"
+                f" {most:.0%}: it jumps between the rails): {untrained}"
             )
     if not _inverse(model) and not err <= MAX_TRACKING_ERROR:
         raise ModelError(
