@@ -23,6 +23,8 @@ X_RANGE_LIMIT_M = 0.5
 F_RANGE_LIMIT_N = 80000.0
 ACTUATOR_AMPLITUDE_MAX_M = 0.04  # [actuator] and set_profile: what a rig profile must carry
 ACTUATOR_FREQUENCY_MAX_HZ = 20.0
+# loop.max_current_slew_a_per_s: slower is no control; the most, 2000 A a frame at 500 Hz
+MIN_SLEW_A_PER_S, MAX_SLEW_A_PER_S = 1.0, 1e6
 # every setting that scales a wait is bounded at load: a sensor timeout of 1e8 periods made the
 # daemon deaf to a stop once the frames stopped
 MAX_SENSOR_TIMEOUT_S = 1.0
@@ -85,6 +87,10 @@ class CanSection:
 class LoopSection:
     period_s: float = 0.002  # the firmware's RigSensors period
     i_max_a: float = 2.0  # commands are clamped to [0, i_max_a]
+    # a model's command within this slew of the last one sent (mrrig/loop/slew.py; 1e6: no
+    # limit in effect):
+    # 0 to 2 A in 4 frames at 500 Hz, faster than the coil follows (tau about 5 ms)
+    max_current_slew_a_per_s: float = 250.0
     timeout_periods: int = 3  # no sensor frame for this many periods -> FAULT + SAFE
     bad_frame_budget: int = 3  # bad CRC / repeated counter frames tolerated per window
     lost_frame_budget: int = 5  # lost frames (counter jumps) tolerated per window
@@ -113,6 +119,12 @@ class LoopSection:
             raise ValueError("period_s: must be in [0.0005, 0.1] s")
         if not 0 < self.i_max_a <= 5.0:
             raise ValueError("i_max_a: must be in (0, 5] A")
+        if not MIN_SLEW_A_PER_S <= self.max_current_slew_a_per_s <= MAX_SLEW_A_PER_S:
+            raise ValueError(
+                f"max_current_slew_a_per_s: must be in [{MIN_SLEW_A_PER_S:g}, "
+                f"{MAX_SLEW_A_PER_S:g}] A/s ({MAX_SLEW_A_PER_S:g}: no limit in effect), got "
+                f"{self.max_current_slew_a_per_s!r}"
+            )
         if self.timeout_periods < 1:
             raise ValueError("timeout_periods: must be at least 1")
         if self.timeout_periods * self.period_s > MAX_SENSOR_TIMEOUT_S:

@@ -15,6 +15,7 @@ import pytest
 from damper.plant import BoucWenParams
 from mrrig.loop.adaptation import AdaptationSettings, GainOffsetRLS
 from mrrig.loop.controllers import ControlInput, NetworkInversion
+from mrrig.loop.mlp import MLP
 from mrrig.loop.samples import RigState
 from mrrig.offline.simulation import closed_loop
 from tests.conftest import rig_config
@@ -307,12 +308,19 @@ def test_the_daemon_evaluates_the_reference_once_per_frame_and_passes_the_next_t
         assert now == nxt
 
 
-def test_an_old_model_of_the_commanded_current_loads_and_says_what_it_lacks(tmp_path, caplog):
+def test_an_old_model_of_the_commanded_current_loads_and_says_what_it_lacks(
+    tmp_path, caplog, sim_model
+):
     from mrrig.config import load_config
     from mrrig.loop.daemon import build_controller
 
+    # the trained network without current_input and lag_tau_s, as files were before them (a
+    # random network is no model of a damper: the self-check refuses it, issue 40)
+    old = MLP.load(sim_model)
+    for key in ("current_input", "lag_tau_s"):
+        old.meta.pop(key)
     path = tmp_path / "old.json"
-    random_model(np.random.default_rng(5), monotone=True).save(path)
+    old.save(path)
     cfg = load_config(rig_config(tmp_path, "ws://127.0.0.1:1/", path))
     with caplog.at_level("WARNING", logger="mrrig.loop.daemon"):
         ctrl = build_controller(cfg)

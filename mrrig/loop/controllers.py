@@ -163,6 +163,11 @@ class Controller(abc.ABC):
         """The on-line adaptation's state (None: the controller has none)."""
         return None
 
+    def command_sent(self, current_a: float) -> None:  # noqa: B027 - most carry no command
+        """The command sent for this instant was `current_a`, not the one `command_one`
+        returned (the loop's slew limit moved it): a controller that carries the command
+        held (the coil's lag, a twin's or a GRU's state) carries this one."""
+
     def prepare_one(  # noqa: B027
         self, x: float, xd: float, xdd: float, f_des: float, f_des_next: float | None = None
     ) -> None:
@@ -468,6 +473,9 @@ class NetworkInversion(Controller):
     def adaptation_state(self) -> dict | None:
         return None if self.adapt is None else self.adapt.state()
 
+    def command_sent(self, current_a: float) -> None:
+        self._prev[0] = current_a
+
     def _net_target(self, target: np.ndarray) -> np.ndarray:
         """The network's force that makes the adapted force `target`."""
         if self.adapt is None:
@@ -691,6 +699,9 @@ class TwinInversion(Controller):
         super().reset(batch)
         self.lanes = [TwinTracker(self.model, self.dt_s, self.i_max) for _ in range(batch)]
         self._residual = [0.0] * batch
+
+    def command_sent(self, current_a: float) -> None:
+        self.lanes[0].command = current_a  # the command held until the next frame
 
     def command_one(
         self,

@@ -49,9 +49,11 @@ from mrrig.loop.kernel_stalls import KernelStalls, stall_event
 from mrrig.loop.lease import PATH_QUIET_S, ArmLease
 from mrrig.loop.mlp import MLP, ModelError
 from mrrig.loop.model_fit import RigUnits, check_cost, check_period, check_units
+from mrrig.loop.model_plausibility import self_check
 from mrrig.loop.realtime import keep_off_cpu, leave_realtime, make_realtime
 from mrrig.loop.safety import Fault, Limits, Supervisor
 from mrrig.loop.samples import SAMPLE_DTYPE, RigState
+from mrrig.loop.slew import SlewLimit
 from mrrig.loop.summary import (
     LATENCY_BIN_US,
     LATENCY_PARTS,
@@ -210,6 +212,10 @@ def build_controller(cfg: DaemonConfig, section=None, model: MLP | None = None) 
     except ValueError as exc:
         raise ModelError(f"{c.model}: controller {c.name}: {exc}") from None
     check_cost(spare, c.model if model is not None else f"controller {c.name}", dt)
+    if model is not None:  # a short closed loop on the model's own envelope (the spare's)
+        x_half = 0.5 * (cfg.loop.x_range_m[1] - cfg.loop.x_range_m[0])
+        checked = self_check(spare, model, c.model, dt, i_max, x_half)
+        log.info("%s: self-check passed in %.0f ms", c.model, checked.seconds * 1e3)
     return controller
 
 
@@ -356,7 +362,9 @@ class Daemon:
             "force_refs_clamped": 0,  # of those, outside loop.f_range_n (clamped into it)
             "can_log_dropped": 0,  # frames the pipe to the bus log's writer could not take
             "leases_lapsed": 0,  # armed by a client that stopped renewing its lease
+            "commands_slew_limited": 0,  # moved by loop.max_current_slew_a_per_s
         }
+        self.slew = SlewLimit(cfg.loop.max_current_slew_a_per_s, cfg.loop.period_s)
         self.events: list[dict] = []
         self._keep_batches = keep_batches
         self._chunks: list[np.ndarray] = []  # only with keep_batches
@@ -452,6 +460,7 @@ class Daemon:
             return False
 
     def _send_command(self, active: bool, current_a: float, f_des: float, echo: int) -> None:
+        self.slew.sent(current_a if active else None)
         ok = self._send(
             self.profile.command_message,
             {
@@ -535,7 +544,7 @@ class Daemon:
                 i = self.controller.command_one(x, xd, xdd, f_meas, f_des, f_next)
                 events += sup.finite(t, f"the {self.controller.name} controller's command", i)
                 if sup.active:
-                    i_cmd = min(max(i, 0.0), self.cfg.loop.i_max_a)
+                    i_cmd = self._slew_limit(min(max(i, 0.0), self.cfg.loop.i_max_a))
         except Exception as exc:  # noqa: BLE001 - a bug must not leave a frame unanswered
             log.exception("cycle failed")
             events += sup.trip(t, Fault.INTERNAL_ERROR, f"{type(exc).__name__}: {exc}")
@@ -653,6 +662,17 @@ class Daemon:
             f_next = float(self.reference.forecast(t + T, xn, xdn))
         self._targets = [f_next]
         return f_des, f_next
+
+    def _slew_limit(self, i_a: float) -> float:
+        """A model's command within loop.max_current_slew_a_per_s of the last one sent; a
+        command moved is counted, and the controller told what is sent (`command_sent`)."""
+        if not CONTROLLERS[self.controller.name].needs_model:
+            return i_a  # the operator's own current (constant), not a model's
+        sent = self.slew.limit(i_a)
+        if sent != i_a:
+            self.counters["commands_slew_limited"] += 1
+            self.controller.command_sent(sent)
+        return sent
 
     def _clamp_force(self, f_n: float) -> float:
         """A desired force inside `loop.f_range_n`, whatever its source (NaN passes, for the

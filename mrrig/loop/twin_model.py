@@ -70,7 +70,16 @@ class TwinModel:
 def forward_model_from_text(text: str, path: str | Path) -> MLP | TwinModel | GRUModel:
     """A forward model file's content: a plant file (`format` "mrrig-plant") as a `TwinModel`,
     a `mrrig-gru/1` file as a `GRUModel`, anything else as `MLP.from_text` reads it. One-line
-    ModelError for a bad file."""
+    ModelError for a bad file, or one outside a physical range
+    (`model_plausibility.check_plausible`)."""
+    from mrrig.loop.model_plausibility import check_plausible
+
+    model = _forward_model(text, path)
+    check_plausible(model, path)
+    return model
+
+
+def _forward_model(text: str, path: str | Path) -> MLP | TwinModel | GRUModel:
     try:
         doc = json.loads(text)
     except (ValueError, RecursionError):
