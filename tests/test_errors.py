@@ -16,7 +16,7 @@ import mrrig
 from mrrig.errors import MrrigError
 
 # Exceptions that are signals between parts of one tool, not errors shown to anyone.
-SIGNALS = {"mrrig.rigio.rig_session.Interrupted"}
+SIGNALS = {"mrrig.rigio.rig_session.Interrupted", "mrrig.interruption.Interrupted"}
 
 
 def _exception_classes() -> list[type[BaseException]]:

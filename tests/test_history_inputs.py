@@ -15,6 +15,7 @@ from mrrig.loop.controllers import ControlInput, NetworkInversion, SupervisedInv
 from mrrig.loop.daemon import build_controller
 from mrrig.loop.mlp import MLP
 from mrrig.loop.samples import RigState
+from mrrig.loop.slew import SlewLimit
 from mrrig.offline.datasets import Series
 from mrrig.offline.training import (
     COIL_LAG_TAU_S,
@@ -348,10 +349,17 @@ def test_daemon_loop_runs_a_history_model_like_the_controller_offline(tmp_path, 
         rig.cfg.loop.i_max_a, history_model, feedback_tau_s=section.feedback_tau_s
     )
     offline.reset(1)
+    # the loop's slew limit (loop.max_current_slew_a_per_s) on the replay's commands too, the
+    # controller told the command sent where it moved one
+    slew = SlewLimit(rig.cfg.loop.max_current_slew_a_per_s, rig.cfg.loop.period_s)
     for row in s:
         inst = ControlInput(
             *(np.array([row[f]]) for f in ("x_est", "xd", "xdd", "f_meas", "f_des"))
         )
         i = offline.command(inst)
-        assert i[0] == row["i_cmd"]
-        assert offline.model_force(inst, i)[0] == row["f_model"]
+        sent = slew.limit(float(i[0]))
+        if sent != i[0]:
+            offline.command_sent(sent)
+        slew.sent(sent)
+        assert sent == row["i_cmd"]
+        assert offline.model_force(inst, np.array([sent]))[0] == row["f_model"]
