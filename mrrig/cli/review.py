@@ -3,6 +3,10 @@ optionally a figure, a one-file HTML report and the check of a bus log of the sa
 
 A recording without the summary the daemon writes at its end is truncated (the recording
 failed, or the run was killed): review says so and exits 1, unless `--partial`.
+
+An .rrd is read in one streaming pass, its metrics accumulated as it goes: memory does not
+grow with the run's length, except for the samples a figure (`--plot`, `--html`) draws, and
+the whole run's samples that `--can-log` checks.
 """
 
 from __future__ import annotations
@@ -15,7 +19,9 @@ from mrrig import json_text
 from mrrig.cli_args import HelpFormatter, finite, output_file
 from mrrig.export import read_any
 from mrrig.loop.summary import format_summary, summarize
-from mrrig.offline.review import verify_rrd
+from mrrig.offline.review import review_recording, verify_rrd
+
+_EXPORTS = (".parquet", ".mf4")  # read whole by `read_any`; an .rrd is streamed
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -45,7 +51,18 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     if args.verify:
         verify_rrd(args.file)
-    rec = read_any(args.file)  # .rrd, or its Parquet or MDF4 export
+    windowed = args.t_from is not None or args.t_to is not None
+    window_text = None
+    if windowed:
+        window_text = f"{_bound(args.t_from)} to {_bound(args.t_to)} s of sensor time"
+    streamed = args.can_log is None and args.file.suffix.lower() not in _EXPORTS
+    acc = None
+    if streamed:  # one pass in bounded memory: the samples kept only for a figure
+        rec, acc = review_recording(
+            args.file, args.t_from, args.t_to, keep_samples=bool(args.plot or args.html)
+        )
+    else:
+        rec = read_any(args.file)  # a Parquet or MDF4 export, or for the bus log's check
     if rec.summary is None:
         logging.getLogger("mrrig.offline.review").error(
             "%s: truncated: no end-of-run summary (the recording failed or the run was killed); %s",
@@ -59,13 +76,10 @@ def main(argv: list[str] | None = None) -> int:
         from mrrig.rigio.canlog import check_bus_log
 
         bus_log = check_bus_log(args.can_log, rec.samples, rec.summary)
-    windowed = args.t_from is not None or args.t_to is not None
-    window_text = None
-    if windowed:
+    if windowed and not streamed:
         from mrrig.offline.review_report import window
 
         rec = window(rec, args.t_from, args.t_to)
-        window_text = f"{_bound(args.t_from)} to {_bound(args.t_to)} s of sensor time"
     # the run's counters describe the whole run, not a window of it
     counters = {} if windowed else rec.summary or {}
     keep = {k: v for k, v in counters.items() if not isinstance(v, dict | list)}
@@ -73,7 +87,10 @@ def main(argv: list[str] | None = None) -> int:
     # frames hold the latency from the bus's receive only), so the verdict is the daemon's
     if "latency_split_us" in counters:
         keep["latency_split_us"] = counters["latency_split_us"]
-    metrics = summarize(rec.samples, rec.events, keep)
+    if acc is not None:
+        metrics = acc.result(rec.events, keep)
+    else:
+        metrics = summarize(rec.samples, rec.events, keep)
     # the files first: output cut short by a closed pipe (`| head`) must not lose them
     if args.plot or args.html:
         from mrrig.offline import review_report
