@@ -18,8 +18,8 @@ from pathlib import Path
 from mrrig import json_text
 from mrrig.cli_args import HelpFormatter, finite, output_file
 from mrrig.export import read_any
-from mrrig.loop.summary import format_summary, summarize
-from mrrig.offline.review import review_recording, verify_rrd
+from mrrig.loop.summary import format_summary
+from mrrig.offline.review import BlockSummary, review_recording, verify_rrd
 
 _EXPORTS = (".parquet", ".mf4")  # read whole by `read_any`; an .rrd is streamed
 
@@ -87,10 +87,10 @@ def main(argv: list[str] | None = None) -> int:
     # frames hold the latency from the bus's receive only), so the verdict is the daemon's
     if "latency_split_us" in counters:
         keep["latency_split_us"] = counters["latency_split_us"]
-    if acc is not None:
-        metrics = acc.result(rec.events, keep)
-    else:
-        metrics = summarize(rec.samples, rec.events, keep)
+    if acc is None:  # in the blocks a streamed .rrd adds up in: the same numbers, bit for bit
+        acc = BlockSummary()
+        acc.add(rec.samples)
+    metrics = acc.result(rec.events, keep)
     # the files first: output cut short by a closed pipe (`| head`) must not lose them
     if args.plot or args.html:
         from mrrig.offline import review_report

@@ -63,12 +63,79 @@ def read_recording(path: str | Path) -> Recording:
     )
 
 
+SUMMARY_BLOCK = 1 << 16  # samples per addition to the summary's accumulator
+
+
+class BlockSummary:
+    """`SummaryAccumulator` fed in blocks of exactly `SUMMARY_BLOCK` samples, however the
+    samples come: a run read in streamed batches and the same run read whole (an export) sum
+    in the same order, so their metrics are equal to the last bit; a run shorter than a
+    block gives `summarize`'s numbers exactly."""
+
+    def __init__(self) -> None:
+        self.acc = SummaryAccumulator()
+        self._held: list[np.ndarray] = []
+        self._n = 0
+        self.frames = 0
+
+    def add(self, samples: np.ndarray) -> None:
+        self.frames += samples.size
+        while samples.size:
+            take = samples[: SUMMARY_BLOCK - self._n]
+            samples = samples[take.size :]
+            self._held.append(take)
+            self._n += take.size
+            if self._n == SUMMARY_BLOCK:
+                self._add_held()
+
+    def result(
+        self, events: list[dict[str, Any]], counters: dict[str, Any] | None = None
+    ) -> dict[str, Any]:
+        self._add_held()
+        return self.acc.result(events, counters)
+
+    def _add_held(self) -> None:
+        if self._held:
+            self.acc.add(np.concatenate(self._held))
+        self._held, self._n = [], 0
+
+
+FIGURE_MAX_SAMPLES = 1 << 21  # 256 MB of samples: a figure of a longer window thins them
+
+
+class FigureSamples:
+    """The samples a figure draws, in bounded memory: all of them up to `max_samples`; past
+    that, every `stride`-th (the stride doubling each time the held samples reach the cap)."""
+
+    def __init__(self, max_samples: int = FIGURE_MAX_SAMPLES) -> None:
+        self.max_samples = max_samples
+        self.stride = 1
+        self.seen = 0
+        self._held: list[np.ndarray] = []
+        self._n = 0
+
+    def add(self, samples: np.ndarray) -> None:
+        index = self.seen + np.arange(samples.size)
+        kept = samples[index % self.stride == 0]
+        self.seen += samples.size
+        if kept.size:
+            self._held.append(kept)
+            self._n += kept.size
+        if self._n > self.max_samples:  # those held are every stride-th: keep every other
+            thinned = np.concatenate(self._held)[::2]
+            self._held, self._n = [thinned], thinned.size
+            self.stride *= 2
+
+    def samples(self) -> np.ndarray:
+        return np.concatenate(self._held) if self._held else np.empty(0, dtype=SAMPLE_DTYPE)
+
+
 def review_recording(
     path: str | Path,
     t_from: float | None = None,
     t_to: float | None = None,
     keep_samples: bool = False,
-) -> tuple[Recording, SummaryAccumulator]:
+) -> tuple[Recording, BlockSummary]:
     """The metrics of a recording's window [t_from, t_to] of sensor time (None: no bound),
     accumulated in one streaming pass: memory bounded whatever the run's length. The
     Recording returned has the window's events, the run's summary and identity, and its
@@ -77,8 +144,8 @@ def review_recording(
     hi = np.inf if t_to is None else t_to
     if lo >= hi:
         raise ValueError(f"--from {t_from:g} must be before --to {t_to:g}")
-    acc = SummaryAccumulator()
-    kept: list[np.ndarray] = []
+    acc = BlockSummary()
+    figure = FigureSamples()
     span = [np.inf, -np.inf]  # the recording's first and last sensor time
 
     def take(batch: np.ndarray) -> None:
@@ -86,8 +153,8 @@ def review_recording(
         span[0], span[1] = min(span[0], float(t.min())), max(span[1], float(t.max()))
         inside = batch[(t >= lo) & (t <= hi)]
         acc.add(inside)
-        if keep_samples and inside.size:
-            kept.append(inside)
+        if keep_samples:
+            figure.add(inside)
 
     scan = scan_checked(path, take)
     if scan.frames and not acc.frames:
@@ -98,8 +165,15 @@ def review_recording(
     events = [e for e in scan.events if e.get("t") is not None and lo <= e["t"] <= hi]
     if t_from is None and t_to is None:
         events = scan.events
-    samples = np.concatenate(kept) if kept else np.empty(0, dtype=SAMPLE_DTYPE)
-    rec = Recording(Path(path), samples, events, scan.summary, scan.identity)
+    if figure.stride > 1:
+        log.warning(
+            "%s: the figure draws every %d-th of the window's %d frames (its memory); the"
+            " metrics count them all",
+            path,
+            figure.stride,
+            figure.seen,
+        )
+    rec = Recording(Path(path), figure.samples(), events, scan.summary, scan.identity)
     return rec, acc
 
 
