@@ -47,8 +47,12 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import rerun as rr
-import rerun.blueprint as rrb
+
+# rerun warns of every file written without a footer (which it is, on purpose: see above);
+# its other warnings stay, and a RUST_LOG of the user's own is theirs
+os.environ.setdefault("RUST_LOG", "warn,re_log_encoding::rrd::file_sink=error")
+import rerun as rr  # noqa: E402 - after its log filter
+import rerun.blueprint as rrb  # noqa: E402
 
 from mrrig import json_text
 from mrrig.errors import MrrigError
@@ -404,7 +408,7 @@ class Recorder:
                 self._flush_locked()
 
     def close(self) -> None:
-        """Flush and write the footer (disconnect). Idempotent; later calls drop data."""
+        """Flush, write the end marker and disconnect. Idempotent; later calls drop data."""
         with self._guard():
             if self._closed:
                 return
@@ -426,7 +430,7 @@ class Recorder:
                 )
 
     def abandon(self) -> None:
-        """After a failed write: stop taking data without flushing or writing the footer (a
+        """After a failed write: stop taking data without flushing or writing the end marker (a
         stream whose file writer failed may hang in either). The file stays truncated."""
         with self._guard():
             self._closed = True
