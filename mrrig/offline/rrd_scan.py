@@ -153,6 +153,16 @@ def _scalars(batch: pa.RecordBatch) -> tuple[np.ndarray, np.ndarray]:
     return frames.astype(np.int64), lists.flatten().to_numpy(zero_copy_only=False)
 
 
+def open_rrd(path: str | Path) -> Any:
+    """`rerun.chunk.RrdReader` of `path`, without its warning that the file has no footer (a
+    recording has none: `mrrig.rigio.recording`) and will be scanned whole."""
+    from rerun.chunk import RrdReader
+
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message="RRD file has no footer")
+        return RrdReader(str(path))
+
+
 def whole_length(path: str | Path) -> int:
     """The bytes of `path` up to the end of its last whole message: the file's size unless a
     writer killed mid-write cut its last message short (rerun's reader refuses such a file).
@@ -204,8 +214,6 @@ def _copy(src: BinaryIO, dst: BinaryIO, n: int) -> None:
 
 
 def _scan(path: Path, on_samples: Callable[[np.ndarray], None], window: int, cut: str) -> Scan:
-    from rerun.chunk import RrdReader
-
     by_entity = {f"/{e}": f for f, e in FIELD_ENTITIES.items()}
     static = {f"/{e}": name for e, name in _STATIC.items()}
     events_path = f"/{EVENTS_ENTITY}"
@@ -213,10 +221,7 @@ def _scan(path: Path, on_samples: Callable[[np.ndarray], None], window: int, cut
     events: list[tuple[int, dict[str, Any]]] = []
     entities: set[str] = set()
     asm = _Assembler(on_samples, window)
-    with warnings.catch_warnings():
-        # "no footer/manifest: ... a whole-file scan": the scan is what this reads it for
-        warnings.simplefilter("ignore")
-        stream = RrdReader(path).stream()
+    stream = open_rrd(path).stream()
     for chunk in stream:
         entity = chunk.entity_path
         entities.add(entity)

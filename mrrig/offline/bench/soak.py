@@ -199,8 +199,8 @@ def run(args: argparse.Namespace) -> int:
     rearms = _REARMS_RE.search(demo_text)
     start, end, growth = trace.growth(warmup_s)
     print(
-        f"  sidecar RSS {start:.1f} MB after the {warmup_s / 60:g} min warm-up,"
-        f" {end:.1f} MB at {trace.t_s[-1] / 60:.1f} min: growth {growth:+.2f} %"
+        f"  sidecar RSS {start:.2f} MB after the {warmup_s / 60:.3g} min warm-up,"
+        f" {end:.2f} MB at {trace.t_s[-1] / 60:.1f} min: growth {growth:+.2f} %"
         f" (limit {GROWTH_LIMIT_PCT:g} %); max {max(trace.rss_mb):.1f} MB,"
         f" slope {trace.slope_mb_per_min(warmup_s):+.3f} MB/min, {len(trace.t_s)} samples",
         flush=True,
