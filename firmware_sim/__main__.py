@@ -28,6 +28,7 @@ from mrrig.loop.realtime import leave_realtime
 from mrrig.pycan import can
 from mrrig.rigio.canbus import BusError, open_bus
 from mrrig.rigio.canbus.profile import ProfileError, load_profile
+from mrrig.rigio.canbus.profile_limits import firmware_limits
 
 logger = logging.getLogger("firmware_sim")
 
@@ -77,13 +78,14 @@ def main(argv: list[str] | None = None) -> int:
     channel = args.bus_channel or config.bus.channel
     try:
         # the sensor period is the DBC's: the simulator has no other
-        profile = load_profile(config.can.dbc, config.can.signals, None, str(args.config))
-    except ProfileError as exc:
+        limits = firmware_limits(config.actuator.stroke_m)
+        profile = load_profile(config.can.dbc, config.can.signals, None, str(args.config), limits)
+        firmware = Firmware(config, profile, (*config.faults, *args.fault))
+    except (ProfileError, ValueError) as exc:  # the profile, a plant file, a sensor period
         logger.error("%s", exc)
         return 2
     if profile.protections_off:
         logger.info("%s", profile.startup_line())
-    firmware = Firmware(config, profile, (*config.faults, *args.fault))
 
     stopping = False
 

@@ -17,6 +17,10 @@ Choices the contract leaves open, made here:
   motion runs until a daemon takes over.
 - FaultCode shows the most important active condition: e-stop 5, stroke limit 3, watchdog 1,
   sensor fault 4, actuator timeout 1, bad command frames 6, setpoint over limit 2.
+- A frame the profile cannot encode (a value beyond its signal's range) is not sent: the
+  firmware faults as for a sensor fault (coil to 0 A, State FAULT, FaultCode and SensorFault
+  set in the next frame it can send) and goes on; 5 consecutive valid SAFE commands clear it
+  once its frames encode again.
 - corrupt_crc, freeze_counter and drop_frames act on RigSensors; silent stops every frame.
   During an e-stop or stroke-limit injection the actuator ramps to rest (ActuatorEnabled 0)
   and ActuatorCommands are ignored; the next one after the injection ends moves it again.
@@ -50,7 +54,7 @@ from damper.plant import BoucWenDamper, BoucWenParams, params_at_temperature
 from damper.plant_file import load_plant
 from damper.signals import bandlimited_noise
 from firmware_sim.config import ActuatorConfig, FaultSpec, SimConfig
-from mrrig.rigio.canbus.codec import MessageLayout, Packer, Parsed, frame_key
+from mrrig.rigio.canbus.codec import EncodeError, MessageLayout, Packer, Parsed, frame_key
 from mrrig.rigio.canbus.profile import RigProfile
 
 logger = logging.getLogger(__name__)
@@ -332,6 +336,7 @@ class Firmware:
         self._over_limit = False
         self.max_commanded_current_a = 0.0
         self._tripped = False
+        self.unsendable: str | None = None  # why the last frame could not be encoded
         self.watchdog_trips = 0
         self._n_active = 0
         self._n_safe = 0
@@ -448,6 +453,9 @@ class Firmware:
             self._active = False
             self._n_safe += 1
             self._n_active = 0
+        if self.unsendable is not None and self._n_safe >= RECOVERY_COMMANDS:
+            self.unsendable = None
+            self._event(t_s, f"send fault cleared after {RECOVERY_COMMANDS} valid SAFE commands")
         if self._tripped and max(self._n_active, self._n_safe) >= RECOVERY_COMMANDS:
             self._tripped = False
             self._event(t_s, f"watchdog cleared after {RECOVERY_COMMANDS} valid {mode} commands")
@@ -499,6 +507,13 @@ class Firmware:
 
     # ---- derived state ----------------------------------------------------------------------
 
+    def _cannot_send(self, t_s: float, exc: EncodeError) -> None:
+        """A frame the profile cannot encode: not sent, and the firmware faults (coil off)."""
+        if self.unsendable is None:
+            self._event(t_s, f"cannot send {exc}: FAULT, coil to 0 A", logging.WARNING)
+        self.unsendable = str(exc)
+        self._n_active = self._n_safe = 0
+
     def _halted_by_injection(self) -> bool:
         return "estop" in self.active_faults or "stroke_limit" in self.active_faults
 
@@ -507,7 +522,7 @@ class Firmware:
         """RigStatus State label."""
         if self._boot:
             return "BOOT"
-        if self._tripped or self._halted_by_injection():
+        if self._tripped or self.unsendable is not None or self._halted_by_injection():
             return "FAULT"
         return "RUNNING" if self._active else "IDLE"
 
@@ -521,7 +536,7 @@ class Firmware:
             return "STROKE_LIMIT"
         if self._tripped:
             return "COMMAND_TIMEOUT"
-        if "sensor_fault" in active:
+        if "sensor_fault" in active or self.unsendable is not None:
             return "SENSOR_FAULT"
         if self._act_timed_out:
             return "COMMAND_TIMEOUT"
@@ -625,7 +640,7 @@ class Firmware:
         )
         self._watch_motion()
         on = self.active_faults
-        halted = self._tripped or self._halted_by_injection()
+        halted = self._tripped or self.unsendable is not None or self._halted_by_injection()
         self.coil_command_a = self._setpoint_a if self._active and not halted else 0.0
         if dt_s > 0.0:
             force = self._plant.step(x, xd, self.coil_command_a * self._command_per_a, dt_s)
@@ -665,10 +680,13 @@ class Firmware:
 
         frames: list[Frame] = []
         if "silent" not in on:
-            if "drop_frames" not in on:
-                frames.append(self._sensor_frame(displacement, force_meas, on))
-            if self._status_every and self._ticks % self._status_every == 0:
-                frames.append(self._status_frame())
+            try:
+                if "drop_frames" not in on:
+                    frames.append(self._sensor_frame(displacement, force_meas, on))
+                if self._status_every and self._ticks % self._status_every == 0:
+                    frames.append(self._status_frame())
+            except EncodeError as exc:
+                self._cannot_send(t_s, exc)
         self._ticks += 1
         self._boot = False
         return frames
@@ -679,7 +697,7 @@ class Firmware:
             "ActuatorEnabled": int(not self.actuator.at_rest and not self._halted_by_injection()),
             "LimitTripped": int("stroke_limit" in on),
             "EStop": int("estop" in on),
-            "SensorFault": int("sensor_fault" in on),
+            "SensorFault": int("sensor_fault" in on or self.unsendable is not None),
             "Displacement": displacement_m,  # quantised to the DBC's scale by the packer
             "Force": force_n,
         }

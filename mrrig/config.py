@@ -21,6 +21,8 @@ __all__ = ["ConfigError", "DaemonConfig", "load_config", "reference_from_table"]
 # sane bounds of a damper test rig, well inside the DBC's ranges (+-8.3 m, +-83 kN)
 X_RANGE_LIMIT_M = 0.5
 F_RANGE_LIMIT_N = 80000.0
+ACTUATOR_AMPLITUDE_MAX_M = 0.04  # [actuator] and set_profile: what a rig profile must carry
+ACTUATOR_FREQUENCY_MAX_HZ = 20.0
 # every setting that scales a wait is bounded at load: a sensor timeout of 1e8 periods made the
 # daemon deaf to a stop once the frames stopped
 MAX_SENSOR_TIMEOUT_S = 1.0
@@ -247,10 +249,10 @@ class ActuatorSection:
     frequency_hz: float = 0.0
 
     def check(self) -> None:
-        if not 0 <= self.amplitude_m <= 0.04:
-            raise ValueError("amplitude_m: must be in [0, 0.04] m")
-        if not 0 <= self.frequency_hz <= 20:
-            raise ValueError("frequency_hz: must be in [0, 20] Hz")
+        if not 0 <= self.amplitude_m <= ACTUATOR_AMPLITUDE_MAX_M:
+            raise ValueError(f"amplitude_m: must be in [0, {ACTUATOR_AMPLITUDE_MAX_M:g}] m")
+        if not 0 <= self.frequency_hz <= ACTUATOR_FREQUENCY_MAX_HZ:
+            raise ValueError(f"frequency_hz: must be in [0, {ACTUATOR_FREQUENCY_MAX_HZ:g}] Hz")
 
 
 @dataclass(frozen=True)
@@ -283,6 +285,9 @@ class ControlSection:
     max_file_bytes: int = 4_000_000
     read_timeout_s: float = 1.0
     armed_amplitude_step_m: float = 0.005  # the largest actuator amplitude step while ARMED
+    # an arm over the control plane holds a lease its client renews (`renew`); unrenewed this
+    # long, the daemon disarms and stops the actuator (a client killed while armed)
+    lease_timeout_s: float = 2.0
 
     def check(self) -> None:
         if not 0 < self.max_file_bytes <= 100_000_000:
@@ -291,6 +296,8 @@ class ControlSection:
             raise ValueError("read_timeout_s: must be in (0, 10] s")
         if not 0 <= self.armed_amplitude_step_m <= 0.04:
             raise ValueError("armed_amplitude_step_m: must be in [0, 0.04] m")
+        if not 0.2 <= self.lease_timeout_s <= 60:
+            raise ValueError("lease_timeout_s: must be in [0.2, 60] s")
 
 
 @dataclass(frozen=True)

@@ -11,6 +11,12 @@ transport's (its own frame echoed back late by the bridge). `prove` checks a run
    gap) lies inside one stall; any other fault (a controller's, the rig's e-stop) fails;
 3. tracking (Et, eqs 41-43) over the armed frames outside the windows meets the bound.
 
+A stall of the daemon itself the simulator cannot see: the kernel measures it, and the
+daemon's summary keeps it (`kernel_stalls`, mrrig/loop/kernel_stalls.py: the passes of its
+loop that waited on a run queue or lost time to the VM's steal). A fault a stall causes is
+explained by those too, where the passes next to its silent interval lost that interval's
+length (less DETECT_S) or more: the figure is printed. Any other fault still fails.
+
 Both processes read CLOCK_MONOTONIC (`clock_t0_s` in the simulator's stats and in the daemon's
 summary), so their times are comparable on one machine.
 """
@@ -18,12 +24,13 @@ summary), so their times are comparable on one machine.
 from __future__ import annotations
 
 import re
-from collections.abc import Iterable, Mapping
+from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
+from mrrig.loop.kernel_stalls import format_stalls
 from mrrig.loop.samples import RigState
 from mrrig.offline.metrics import error_norm
 
@@ -38,14 +45,24 @@ SETTLE_S = 0.1
 
 @dataclass(frozen=True)
 class Window:
-    kind: str  # "simulator" or "transport"
+    kind: str  # "simulator", "transport" or "kernel" (the daemon's, from its summary)
     start_s: float  # CLOCK_MONOTONIC, s
     end_s: float
+    runq_ms: float = 0.0  # kernel: the daemon's loop waited this long on a run queue
+    steal_ms: float = 0.0  # kernel: the VM lost this much to the hypervisor
 
     def __str__(self) -> str:
         return (
             f"{self.kind} stall {1e3 * (self.end_s - self.start_s):.1f} ms "
             f"[{self.start_s:.3f}, {self.end_s:.3f}] s"
+        )
+
+    def measured(self, clock_t0_s: float) -> str:
+        """A kernel window's figures, its times on the daemon's clock."""
+        steal = f" and lost {self.steal_ms:.0f} ms to the VM's steal" if self.steal_ms else ""
+        return (
+            f"daemon waited {self.runq_ms:.1f} ms on the run queue{steal} in "
+            f"[{self.start_s - clock_t0_s:.3f}, {self.end_s - clock_t0_s:.3f}] s"
         )
 
 
@@ -63,6 +80,27 @@ def windows(sim_stats: Mapping[str, Any]) -> list[Window]:
     return [
         Window(w["kind"], t0 + w["start_s"], t0 + w["end_s"]) for w in sim_stats["stall_windows"]
     ]
+
+
+def kernel_windows(kernel: Mapping[str, Any] | None, clock_t0_s: float) -> list[Window]:
+    """The daemon's stalls that the kernel measured (its summary's `kernel_stalls`, times
+    on the daemon's clock whose zero is `clock_t0_s`) on CLOCK_MONOTONIC."""
+    rows = (kernel or {}).get("windows") or []
+    return [Window("kernel", clock_t0_s + a, clock_t0_s + b, r, st) for a, b, r, st in rows]
+
+
+def kernel_explains(silent: tuple[float, float], ks: Iterable[Window]) -> Window | None:
+    """The kernel's windows next to the silent interval (within DETECT_S) merged into one,
+    where the daemon lost that long, less DETECT_S, in them; None otherwise, and for lost
+    frames (no interval: the daemon's stall delays frames, it does not lose them)."""
+    if silent[1] <= silent[0]:
+        return None
+    near = [w for w in ks if w.start_s <= silent[1] + DETECT_S and silent[0] - DETECT_S <= w.end_s]
+    runq = sum(w.runq_ms for w in near)
+    steal = sum(w.steal_ms for w in near)
+    if not near or (runq + steal) * 1e-3 < silent[1] - silent[0] - DETECT_S:
+        return None
+    return Window("kernel", min(w.start_s for w in near), max(w.end_s for w in near), runq, steal)
 
 
 def spans(ws: Iterable[Window]) -> list[Window]:
@@ -116,16 +154,21 @@ def silent_interval(
 
 
 def explaining_window(
-    fault: Mapping[str, Any], t_s: float, ws: Iterable[Window], trips: list[tuple[float, float]]
+    fault: Mapping[str, Any],
+    t_s: float,
+    ws: Iterable[Window],
+    trips: list[tuple[float, float]],
+    ks: Iterable[Window] = (),
 ) -> Window | None:
-    """The stall that covers the fault's silent interval (fault at `t_s` on CLOCK_MONOTONIC)."""
+    """The stall that covers the fault's silent interval (fault at `t_s` on CLOCK_MONOTONIC):
+    one the simulator measured (`ws`), else the daemon's own that the kernel measured (`ks`)."""
     silent = silent_interval(fault, t_s, trips)
     if silent is None:
         return None
     for w in spans(ws):
         if w.start_s <= silent[0] + DETECT_S and silent[1] <= w.end_s + DETECT_S:
             return w
-    return None
+    return kernel_explains(silent, ks)
 
 
 def check_answers(sim_stats: Mapping[str, Any]) -> None:
@@ -142,17 +185,27 @@ def check_faults(
     clock_t0_s: float,
     ws: list[Window],
     trips: list[tuple[float, float]],
+    ks: Sequence[Window] = (),
 ) -> list[tuple[dict, Window]]:
-    """Rule 2: every fault (daemon time `t`) inside a stall; AssertionError names the others."""
+    """Rule 2: every fault (daemon time `t`) inside a stall; AssertionError names the others
+    (with the kernel's windows within 0.1 s of them)."""
     explained, unexplained = [], []
     for f in faults:
-        w = explaining_window(f, clock_t0_s + f["t"], ws, trips)
+        w = explaining_window(f, clock_t0_s + f["t"], ws, trips, ks)
         if w is None:
             unexplained.append(dict(f))
         else:
             explained.append((dict(f), w))
-    assert not unexplained, f"faults that no measured stall explains: {unexplained}; windows: " + (
-        "; ".join(str(w) for w in ws) or "none"
+    near = [
+        k.measured(clock_t0_s)
+        for k in ks
+        if any(k.start_s - 0.1 <= clock_t0_s + f["t"] <= k.end_s + 0.1 for f in unexplained)
+    ]
+    assert not unexplained, (
+        f"faults that no measured stall explains: {unexplained}; windows: "
+        + ("; ".join(str(w) for w in ws) or "none")
+        + "; the kernel's near them: "
+        + ("; ".join(near) or "none")
     )
     return explained
 
@@ -167,27 +220,38 @@ def set_aside(
     out = np.zeros(t_s.shape, dtype=bool)
     t_abs = clock_t0_s + t_s
     ends = {w: w.end_s for w in spans(ws)}
-    for f, w in explained:
-        ends[w] = max(ends[w], clock_t0_s + f["t"])
+    for f, w in explained:  # a kernel window is set aside where it explains a fault
+        ends[w] = max(ends.get(w, w.end_s), clock_t0_s + f["t"])
     for w, end_s in ends.items():
         out |= (t_abs >= w.start_s) & (t_abs <= end_s + SETTLE_S)
     return out
 
 
 def explain(
-    sim_stats: Mapping[str, Any], faults: Iterable[Mapping[str, Any]], clock_t0_s: float
+    sim_stats: Mapping[str, Any],
+    faults: Iterable[Mapping[str, Any]],
+    clock_t0_s: float,
+    kernel: Mapping[str, Any] | None = None,
 ) -> list[tuple[dict, Window]]:
     """Rule 2 alone, the windows printed: `faults` with `t` on the daemon's clock, whose time
-    zero on CLOCK_MONOTONIC is `clock_t0_s` (0 for faults timed on CLOCK_MONOTONIC itself)."""
+    zero on CLOCK_MONOTONIC is `clock_t0_s` (0 for faults timed on CLOCK_MONOTONIC itself);
+    `kernel`: the daemon summary's `kernel_stalls`, its own stalls."""
     ws = windows(sim_stats)
+    ks = kernel_windows(kernel, clock_t0_s)
     print(
         f"simulator: {len(ws)} stall windows"
         + "".join(f"\n  {w}" for w in ws)
         + f"\n  echo through the transport: {sim_stats['echo_us']} us"
     )
-    explained = check_faults(faults, clock_t0_s, ws, watchdog_trips(sim_stats))
+    if kernel is not None:
+        print(f"daemon (the kernel): {format_stalls(kernel)}")
+    explained = check_faults(faults, clock_t0_s, ws, watchdog_trips(sim_stats), ks)
     for f, w in explained:
-        print(f"  fault at t={f['t']:.3f} s ({f['reason']}): inside the {w}")
+        if w.kind == "kernel":
+            what = f.get("fault") or f["reason"]
+            print(f"  {what} at t={f['t']:.3f} s: {w.measured(clock_t0_s)} ({f['reason']})")
+        else:
+            print(f"  fault at t={f['t']:.3f} s ({f['reason']}): inside the {w}")
     return explained
 
 
@@ -197,11 +261,13 @@ def prove(
     clock_t0_s: float,
     samples: np.ndarray | None = None,
     et_bound: float | None = None,
+    kernel: Mapping[str, Any] | None = None,
 ) -> Proof:
     """Rules 1-3 on one run; prints the windows. `faults`: the daemon's, with `t` on its clock
-    (`clock_t0_s`); `samples`: its SAMPLE_DTYPE records (the recording) for rule 3."""
+    (`clock_t0_s`); `samples`: its SAMPLE_DTYPE records (the recording) for rule 3; `kernel`:
+    its summary's `kernel_stalls`."""
     check_answers(sim_stats)
-    explained = explain(sim_stats, faults, clock_t0_s)
+    explained = explain(sim_stats, faults, clock_t0_s, kernel)
     ws = windows(sim_stats)
     et, n = None, 0
     if samples is not None:

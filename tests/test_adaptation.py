@@ -264,7 +264,8 @@ def test_the_daemon_evaluates_the_reference_once_per_frame_and_passes_the_next_t
     tmp_path, sim_model
 ):
     """The one-step-ahead default gets each frame's desired force and the next frame's; the
-    reference (a Bouc-Wen damper, stateful) is stepped once per instant, in order."""
+    reference (a Bouc-Wen damper, stateful) is stepped once per instant, in order, on the
+    estimate of that instant once its frame has come."""
 
     def config(channel: str):
         return rig_config(
@@ -301,7 +302,7 @@ def test_the_daemon_evaluates_the_reference_once_per_frame_and_passes_the_next_t
     n = len(targets)
     assert n == 200  # armed from the first frame
     assert all(b > a for a, b in zip(times, times[1:], strict=False))  # each instant once
-    assert len(times) == 202  # one a frame (two at the first), and one ahead at the end
+    assert len(times) == 200  # moved on once a frame, on its estimate (targets: forecasts)
     for (_, nxt), (now, _) in zip(targets, targets[1:], strict=False):
         assert now == nxt
 

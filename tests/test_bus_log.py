@@ -81,7 +81,7 @@ def runs(tmp_path_factory):
         stop_bridge(bridge_proc)
     sim_stats = json.loads(stats.read_text())
     for _, _, summary in runs.values():
-        explain(sim_stats, summary["faults"], summary["clock_t0_s"])
+        explain(sim_stats, summary["faults"], summary["clock_t0_s"], summary["kernel_stalls"])
     return {name: (rrd, log) for name, (rrd, log, _) in runs.items()}
 
 

@@ -637,4 +637,70 @@ def test_bench_catalog_prints_its_medians():
     assert lines[1].startswith("runs --since 7d: ") and lines[1].endswith(" of 300 runs")
     assert lines[2].startswith("API find_runs: median ")
     assert lines[3].startswith("CLI `mrrig runs --since 7d` (own process, table printed: ")
-    assert lines[4] == "target: CLI under 1 s: met" and proc.returncode == 0
+    # the target's verdict is the benchmark's to print, not this test's to time on a loaded
+    # machine: the line is there and the exit code follows it
+    verdict = {"target: CLI under 1 s: met": 0, "target: CLI under 1 s: MISSED": 1}
+    assert lines[4] in verdict and proc.returncode == verdict[lines[4]], (lines[4], proc.stderr)
+
+
+# issue 40, finding 10: no match, --where nested too deep, --since beyond the calendar
+
+
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (["--rig", "nosuch"], "no run in the catalog {catalog} matches --rig 'nosuch'"),
+        (["--specimen", "X"], "no run in the catalog {catalog} matches --specimen 'X'"),
+        (["--specimen", "X", "--json"], "no run in the catalog {catalog} matches --specimen 'X'"),
+        ([], "no run in the catalog {empty} at all: the catalog is empty"),
+    ],
+)
+def test_runs_with_no_matching_run_say_so_in_one_line_and_exit_1(tmp_path, args, message):
+    catalog, empty = tmp_path / "catalog.sqlite", tmp_path / "empty" / "catalog.sqlite"
+    register_run(catalog, run(0, specimen="SN1"))
+    open_catalog(empty)  # a catalog without runs
+    which = empty if not args else catalog
+    proc = subprocess.run(
+        [*MRRIG, "runs", "--catalog", str(which), *args], capture_output=True, text=True
+    )
+    assert proc.returncode == 1, proc.stdout + proc.stderr
+    assert proc.stderr == message.format(catalog=catalog, empty=empty) + "\n"
+    assert proc.stdout == ("[]\n" if "--json" in args else "")
+
+
+@pytest.mark.parametrize(
+    ("where", "message"),
+    [
+        ("(" * 400 + "et < 1" + ")" * 400, "error: --where: nested deeper than 32 levels"),
+        ("not " * 400 + "et < 1", "error: --where: nested deeper than 32 levels"),
+    ],
+)
+def test_runs_where_nested_beyond_its_limit_is_one_line_and_exit_2(tmp_path, where, message):
+    catalog = tmp_path / "catalog.sqlite"
+    register_run(catalog, run(0))
+    proc = subprocess.run(
+        [*MRRIG, "runs", "--catalog", str(catalog), "--where", where],
+        capture_output=True,
+        text=True,
+    )
+    assert proc.returncode == 2 and "Traceback" not in proc.stderr, proc.stderr
+    assert proc.stderr.count("\n") == 1 and proc.stderr.startswith(message), proc.stderr
+    # as deep as the limit still works
+    deep = "(" * 32 + "et < 1" + ")" * 32
+    assert [r.run_id for r in find_runs(catalog, where=deep)] == [run(0).run_id]
+
+
+@pytest.mark.parametrize("since", ["99999999999d", "99999999d", "9999999999999w"])
+def test_runs_since_beyond_the_calendar_is_one_line_and_exit_2(tmp_path, since):
+    catalog = tmp_path / "catalog.sqlite"
+    register_run(catalog, run(0))
+    proc = subprocess.run(
+        [*MRRIG, "runs", "--catalog", str(catalog), "--since", since],
+        capture_output=True,
+        text=True,
+    )
+    assert proc.returncode == 2 and "Traceback" not in proc.stderr, proc.stderr
+    assert (
+        proc.stderr == f"error: --since: {since!r} reaches back before the year 1; give a"
+        " shorter span\n"
+    )

@@ -129,6 +129,8 @@ def test_a_writer_killed_mid_insert_leaves_an_intact_catalog_missing_at_most_its
     print(f"daemon: exit {rc}, frame gaps {summary['frame_gap_ms']}, faults {summary['faults']}")
     assert daemon_runs == 1
     st = json.loads(stats.read_text())
-    explain(st, summary["faults"], summary["clock_t0_s"])  # only a measured stall's faults
-    # no gap between frames past 10 ms that the machine, not the loop, does not explain
-    assert summary["frame_gap_ms"]["over_10_ms"] == 0 or windows(st), summary["frame_gap_ms"]
+    explain(st, summary["faults"], summary["clock_t0_s"], summary["kernel_stalls"])  # measured
+    # no gap between frames past 10 ms that the machine, not the loop, does not explain (the
+    # simulator's stalls, or the daemon's own that the kernel measured)
+    machine = windows(st) or summary["kernel_stalls"]["windows"]
+    assert summary["frame_gap_ms"]["over_10_ms"] == 0 or machine, summary["frame_gap_ms"]

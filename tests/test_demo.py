@@ -102,7 +102,7 @@ def _explain_faults(out: str) -> None:
     assert m, out
     summary = json.loads(Path(m[1]).read_text())
     stats = json.loads((Path(m[1]).parent / "sim-stats.json").read_text())
-    assert explain(stats, summary["faults"], summary["clock_t0_s"])
+    assert explain(stats, summary["faults"], summary["clock_t0_s"], summary["kernel_stalls"])
 
 
 def _armed_share(out: str) -> float:

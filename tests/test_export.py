@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import datetime as dt
 import json
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -54,7 +55,7 @@ def mrrig(*args: str) -> subprocess.CompletedProcess:
 
 def export(rrd: Path, fmt: str) -> Path:
     out = rrd.with_suffix(f".{fmt}")
-    proc = mrrig("export", str(rrd), "--to", fmt, "--out", str(out))
+    proc = mrrig("export", str(rrd), "--to", fmt, "--out", str(out), "--force")
     assert proc.returncode == 0, proc.stdout + proc.stderr
     assert f"{out}: " in proc.stdout
     return out
@@ -224,3 +225,62 @@ def test_export_onto_the_recording_itself_is_refused(synthetic, tmp_path):
     proc = mrrig("export", str(parquet), "--to", "parquet")
     assert proc.returncode == 2 and "is the recording itself" in proc.stderr
     assert parquet.read_bytes() == before
+
+
+# issue 40, finding 7: `--out` overwrote the catalog and followed a symbolic link
+
+
+def test_an_existing_out_is_refused_without_force_and_replaced_with_it(synthetic, tmp_path):
+    rrd, rec = synthetic
+    out = tmp_path / "mine.csv"
+    out.write_text("someone's notes\n")
+    proc = mrrig("export", str(rrd), "--to", "parquet", "--out", str(out))
+    assert one_error_line(proc) == f"error: {out} is there already: --force to replace it"
+    assert out.read_text() == "someone's notes\n"
+    proc = mrrig("export", str(rrd), "--to", "parquet", "--out", str(out), "--force")
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    assert read_any(out.rename(tmp_path / "mine.parquet")).samples.size == rec.samples.size
+    assert [p.name for p in tmp_path.iterdir()] == ["mine.parquet"]  # no temporary left
+
+
+@pytest.mark.parametrize("force", [False, True])
+def test_out_never_follows_a_symbolic_link(synthetic, tmp_path, force):
+    rrd, _ = synthetic
+    victim, link = tmp_path / "victim.txt", tmp_path / "out.parquet"
+    victim.write_text("not yours\n")
+    link.symlink_to(victim)
+    dangling = tmp_path / "dangling.parquet"
+    dangling.symlink_to(tmp_path / "nowhere.txt")
+    for out in (link, dangling):
+        proc = mrrig("export", str(rrd), "--to", "parquet", "--out", str(out),
+                     *(["--force"] if force else []))  # fmt: skip
+        assert "is a symbolic link" in one_error_line(proc)
+        assert out.is_symlink()
+    assert victim.read_text() == "not yours\n"
+    assert not (tmp_path / "nowhere.txt").exists()
+
+
+def test_out_never_writes_over_a_catalog_or_a_recording_even_with_force(synthetic, tmp_path):
+    from mrrig.api import register_run, run_records
+
+    rrd, _ = synthetic
+    catalog = tmp_path / "catalog.sqlite"
+    register_run("rig1", dt.datetime.now(dt.UTC), catalog=catalog)
+    other = tmp_path / "other.rrd"
+    other.write_bytes(rrd.read_bytes())
+    for out in (catalog, other):
+        before = out.read_bytes()
+        proc = mrrig("export", str(rrd), "--to", "csv", "--out", str(out), "--force")
+        assert "an export never writes over one, --force or not" in one_error_line(proc)
+        assert out.read_bytes() == before
+    assert len(run_records(catalog)) == 1
+    # the catalog `mrrig runs` reads ($MRRIG_CATALOG), not there yet, is refused as well
+    env_catalog = tmp_path / "lab.sqlite"
+    proc = subprocess.run(
+        [sys.executable, "-m", "mrrig", "export", str(rrd), "--to", "csv", "--out",
+         str(env_catalog)],
+        cwd=REPO, capture_output=True, text=True, timeout=120,
+        env={**os.environ, "MRRIG_CATALOG": str(env_catalog)},
+    )  # fmt: skip
+    assert "which holds runs" in one_error_line(proc)
+    assert not env_catalog.exists()

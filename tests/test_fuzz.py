@@ -279,7 +279,7 @@ def test_bench_fuzz_fails_on_each_count_that_is_not_0():
         "crashes": [], "commands_above_limit": 0, "desired_force_out_of_range": 0,
         "motion_beyond_limits": 0, "active_applied_to_stale": 0,
         "active_applied_to_invalid": 0, "active_answers_invalid": 0, "requests_unanswered": 0,
-        "max_commanded_current_a": 2.0,
+        "max_commanded_current_a": 2.0, "armed_without_lease": 0,
     }  # fmt: skip
     assert failures(clean, 2.0) == []
     for name in clean:

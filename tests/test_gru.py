@@ -255,6 +255,6 @@ def test_the_daemon_inverting_a_gru_tracks_the_simulators_force(tmp_path):
         f"answered Et {summary['et_answered']:.4f}, faults {len(summary['faults'])},"
         f" work p99 {work['p99']:.0f} us"
     )
-    explain(stats, summary["faults"], summary["clock_t0_s"])  # each one in a measured stall
+    explain(stats, summary["faults"], summary["clock_t0_s"], summary["kernel_stalls"])
     assert summary["controller"] == "network_inversion"
     assert summary["et_answered"] <= BOUND

@@ -178,3 +178,21 @@ def test_loop_end_sees_a_dead_sidecar_without_raising():
         assert loop.dropped == 1
     finally:
         loop.close()
+
+
+def test_a_summary_with_more_stalls_than_a_message_holds_lists_the_largest_and_counts_all(ends):
+    """The daemon's summary lists up to 256 of its loop's stalls (about 18 kB); the recording's
+    message holds 4 kB: the largest are listed, the rest counted, the faults kept."""
+    loop, side = ends
+    windows = [[0.002 * k, 0.002 * k + 0.004, 2.0 + (k * 37) % 50 / 10.0, 0.0] for k in range(256)]
+    stalls = {"measured": True, "windows_count": 300, "windows": windows, "windows_not_listed": 44}
+    faults = [{"t": 1.0, "reason": "no sensor frame for 20.5 ms"}]
+    assert loop.send_summary({"et": 0.02, "faults": faults, "kernel_stalls": stalls})
+    [(mtype, payload)] = _read_all(side)
+    got = decode_json(payload)
+    assert mtype == Msg.SUMMARY and got["faults"] == faults
+    listed = got["kernel_stalls"]["windows"]
+    assert 0 < len(listed) < 256 and got["kernel_stalls"]["windows_not_listed"] == 300 - len(listed)
+    assert listed == sorted(listed)  # by time
+    smallest_listed = min(w[2] for w in listed)
+    assert all(w in listed for w in windows if w[2] > smallest_listed)

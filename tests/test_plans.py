@@ -3,6 +3,8 @@ JUnit and HTML reports read back, and plans run against firmware_sim and a daemo
 
 from __future__ import annotations
 
+import dataclasses
+import html
 import math
 import os
 import re
@@ -11,6 +13,7 @@ import subprocess
 import sys
 import textwrap
 import time
+import xml.etree.ElementTree as ET
 from pathlib import Path
 
 import numpy as np
@@ -20,10 +23,10 @@ from junitparser import Error, Failure, JUnitXml, Properties, Property
 from mrrig.loop.samples import SAMPLE_DTYPE, RigState
 from mrrig.offline.metrics import error_norm
 from mrrig.plans.criteria import Criteria, failures, measure
-from mrrig.plans.plan import PlanError, load_plan
+from mrrig.plans.plan import MAX_PLAN_BYTES, MAX_STEPS, PlanError, load_plan
 from mrrig.plans.report import Identity, write_html, write_junit
 from mrrig.plans.runner import StepResult
-from tests.conftest import REPO, rig_config, start, stop, zenoh_configs
+from tests.conftest import REPO, OutputWatch, rig_config, start, stop, zenoh_configs
 from tests.live_rig import live_rig
 from tests.test_lifecycle_errors import NO_MODEL
 
@@ -83,6 +86,13 @@ def mrrig(*args: str, timeout_s: float = 120.0, **kw) -> subprocess.CompletedPro
         ('faults = "all"', "step 2 (impossible Et).criteria.faults: expected one of"),
         ("et_max = -1.0", "step 2 (impossible Et).criteria.et_max: must be > 0"),
         ("etmax = 0.1", "step 2 (impossible Et).criteria.etmax: unknown field"),
+        # issue 40, finding 15: finite and in a physical range
+        (
+            "temperature_max_degc = -1e300",
+            "step 2 (impossible Et).criteria.temperature_max_degc: -1e+300 is outside"
+            " [-40, 250] degC",
+        ),
+        ("peak_current_a_max = 1e300", "criteria.peak_current_a_max: 1e+300 is outside [0, 5] A"),
     ],
 )
 def test_a_plan_error_names_the_step_and_the_field(tmp_path, change, where):
@@ -174,6 +184,54 @@ def test_a_plan_error_exits_2_with_one_line(tmp_path):
     assert out.stderr.strip().splitlines() == [
         f"error: {path}: step 1 (constant current).settle_s: expected a number, got True"
     ]
+
+
+def test_a_compare_et_that_is_not_an_et_is_a_plan_error(tmp_path):
+    """Issue 40, finding 15: `compare_et = nan` was accepted."""
+    for value, shown in (("nan", "nan"), ("-1e300", "-1e+300"), ("inf", "inf")):
+        text = PLAN.format(d1=1).replace(
+            CRITERIA, CRITERIA + f" }}\ncompare_et = {{ paper = {value}"
+        )
+        path = write(tmp_path, text)
+        with pytest.raises(PlanError) as err:
+            load_plan(path)
+        assert f"step 2 (impossible Et).compare_et.paper: {shown} is not an Et" in str(err.value)
+
+
+def _many_steps(tmp_path, n: int, padding: int = 0):
+    step = '[[step]]\nname = "s{k}"\nduration_s = 1\nreference = {{ kind = "constant" }}\n'
+    text = (
+        '[plan]\nname = "big"\n'
+        + "#" * padding
+        + "\n"
+        + "".join(step.format(k=k) for k in range(n))
+    )
+    return write(tmp_path, text, f"big{n}.toml")
+
+
+def test_a_plan_is_bounded_in_steps_and_bytes_with_one_line(tmp_path):
+    """Issue 40, finding 15: a 1,000,000-step plan took 2 min and 916 MB before it found that
+    no daemon answered: the plan's size is bounded before anything else."""
+    assert len(load_plan(_many_steps(tmp_path, MAX_STEPS)).steps) == MAX_STEPS
+    with pytest.raises(PlanError, match=f"step: {MAX_STEPS + 1} steps, over the limit of"):
+        load_plan(_many_steps(tmp_path, MAX_STEPS + 1))
+    huge = _many_steps(tmp_path, 1, padding=MAX_PLAN_BYTES)
+    with pytest.raises(PlanError, match=f"bytes, over the limit of {MAX_PLAN_BYTES}"):
+        load_plan(huge)
+    out = mrrig("test", str(_many_steps(tmp_path, MAX_STEPS + 1)), "--rig", "nobody")
+    assert out.returncode == 2
+    (line,) = out.stderr.strip().splitlines()
+    assert f"{MAX_STEPS + 1} steps, over the limit of {MAX_STEPS}" in line
+
+
+def test_a_name_that_is_not_one_printable_line_is_a_plan_error(tmp_path):
+    """Issue 40, finding 14: a step's name goes to the terminal, the JUnit and the catalog."""
+    for bad in ("two\\nlines", "red\\u001b[31m"):
+        path = write(tmp_path, PLAN.format(d1=1).replace('"impossible Et"', f'"{bad}"'))
+        with pytest.raises(PlanError, match=r"step 2 \(.*\)\.name: .*one printable line"):
+            load_plan(path)
+    path = write(tmp_path, PLAN.format(d1=1).replace('"impossible Et"', '"$x$ and a$b"'))
+    assert load_plan(path).steps[1].name == "$x$ and a$b"
 
 
 # --- criteria on synthetic telemetry -------------------------------------------------------
@@ -309,6 +367,46 @@ def test_html_holds_the_identity_the_table_and_one_plot_per_step(tmp_path):
     assert "<h1>mrrig test: two steps: failed</h1>" in text
 
 
+def _renamed(results: list[StepResult], names: list[str]) -> list[StepResult]:
+    return [
+        dataclasses.replace(r, step=dataclasses.replace(r.step, name=n))
+        for r, n in zip(results, names, strict=True)
+    ]
+
+
+def test_junit_with_control_characters_in_names_and_messages_is_well_formed(tmp_path):
+    """Issue 40, finding 14: control characters in a step's name or a reason made the JUnit
+    file ill-formed XML; each is escaped as visible text, the file parses."""
+    plan, results = results_of(tmp_path)
+    results = _renamed(results, ["bell\x07 step\nsecond line", "esc\x1b[31m\x00nul"])
+    results[1].reasons = ["fault \x0c form feed", "claimed host pc\x01"]
+    path = tmp_path / "report.xml"
+    write_junit(path, "plan\x02", Identity.of(plan.path, "r\x03", "v", "t"), results)
+    ET.parse(path)  # well-formed
+    cases = junit_cases(path)
+    assert list(cases) == ["bell\\x07 step\\x0asecond line", "esc\\x1b[31m\\x00nul"]
+    (failure,) = cases["esc\\x1b[31m\\x00nul"].result
+    assert failure.message == "fault \\x0c form feed; claimed host pc\\x01"
+
+
+def test_a_dollar_in_a_step_name_is_text_in_the_html_report(tmp_path):
+    """Issue 40, finding 12: matplotlib read a `$` in a step's name as mathtext: `$x^$` broke
+    the report, `$x$` was typeset. The names are in the report and its figures as written."""
+    import matplotlib.cbook
+
+    from mrrig.safe_text import plot_literal
+
+    plan, results = results_of(tmp_path)
+    names = ["$x$ and a$b", "$x^$ $\\frac$"]
+    results = _renamed(results, names)
+    path = tmp_path / "report.html"
+    write_html(path, plan.name, Identity.of(plan.path, "rig1", "v", "t"), results)
+    text = path.read_text()
+    assert text.count("src='data:image/png;base64,") == 2
+    assert all(f"<td>{html.escape(n)}</td>" in text for n in names)
+    assert not any(matplotlib.cbook.is_math_text(plot_literal(n)) for n in names)
+
+
 # --- against the simulated rig -------------------------------------------------------------
 
 
@@ -432,6 +530,83 @@ def test_ctrl_c_in_a_step_leaves_the_rig_safe_and_the_step_aborted(rig, tmp_path
     (error,) = cases["constant current"].result
     assert isinstance(error, Error) and "interrupted" in error.message
     assert cases["impossible Et"].result[0].message.startswith("not run")
+
+
+@pytest.mark.process
+def test_a_double_ctrl_c_still_writes_the_reports_and_the_catalog_rows(tmp_path):
+    """Issue 40, finding 8: two SIGINTs 50 ms apart in a step of `mrrig test --sim` left no
+    JUnit, HTML or catalog row (the second one cut the step's ending and the reports)."""
+    from mrrig.catalog import find_runs
+
+    daemon_z, client_z, _ = zenoh_configs(tmp_path)
+    cfg = rig_config(
+        tmp_path,
+        "ws://127.0.0.1:1/",  # --sim gives the daemon its bridge's channel
+        None,
+        rig={"name": "plans-ctrl-c"},
+        telemetry={"enabled": True, "zenoh_config": str(daemon_z)},
+        **NO_MODEL,
+    )
+    plan = write(tmp_path, PLAN.format(d1=30))
+    junit, html, catalog = tmp_path / "r.xml", tmp_path / "r.html", tmp_path / "c.sqlite"
+    args = ["--sim", "--config", str(cfg), "--zenoh-config", str(client_z), "--junit",
+            str(junit), "--html", str(html), "--catalog", str(catalog)]  # fmt: skip
+    proc = start(
+        ["-m", "mrrig", "test", str(plan), *args],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+    )
+    out = OutputWatch(proc, "/30.5 s ")  # the step's progress: it is running
+    try:
+        assert out.seen.wait(120), out.text()
+        proc.send_signal(signal.SIGINT)
+        time.sleep(0.05)
+        proc.send_signal(signal.SIGINT)
+        proc.wait(timeout=60)
+    finally:
+        stop(proc)
+    out.join()
+    text = out.text()
+    assert proc.returncode == 1, text
+    assert "plan two steps: FAILED (interrupted)" in text and "Traceback" not in text, text
+    cases = junit_cases(junit)
+    (error,) = cases["constant current"].result
+    assert isinstance(error, Error) and "interrupted" in error.message
+    assert cases["impossible Et"].result[0].message.startswith("not run")
+    assert "constant current" in html.read_text()
+    (row,) = find_runs(catalog)
+    assert (row.plan, row.step, row.verdict) == ("two steps", "constant current", "aborted")
+
+
+@pytest.mark.process
+def test_sigterm_in_a_step_is_named_as_sigterm(rig, tmp_path):
+    """Issue 40, finding 15: a SIGTERM was reported as "interrupted (Ctrl-C)"."""
+    from mrrig.api import Rig
+
+    plan = write(tmp_path, PLAN.format(d1=30))
+    junit = tmp_path / "r.xml"
+    args = ["--rig", RIG, "--zenoh-config", str(rig), "--junit", str(junit)]
+    proc = start(
+        ["-m", "mrrig", "test", str(plan), *args],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+    )
+    try:
+        with Rig(RIG, zenoh_config=rig) as r:
+            deadline = time.monotonic() + 20
+            while r.status()["state"] != "ARMED":
+                assert time.monotonic() < deadline, "the plan never armed the rig"
+                time.sleep(0.05)
+        proc.send_signal(signal.SIGTERM)
+        stdout, _ = proc.communicate(timeout=30)
+    finally:
+        stop(proc)
+    assert proc.returncode == 1, stdout
+    (error,) = junit_cases(junit)["constant current"].result
+    assert error.message == "interrupted (SIGTERM): the rig disarmed", stdout
+    assert "Ctrl-C" not in stdout
 
 
 @pytest.mark.process

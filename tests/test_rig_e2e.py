@@ -1,15 +1,18 @@
 """The simulator and the daemon as separate processes over the python-can-remote bridge.
 
-Each run is proved against the stalls the simulator measured (`tests/stall_proof.py`): a
-fault that no measured stall explains fails the test, whatever its reason.
+Each run is proved against the stalls the simulator measured and the daemon's own that the
+kernel measured (`tests/stall_proof.py`): a fault that no measured stall explains fails the
+test, whatever its reason.
 """
 
 from __future__ import annotations
 
 import json
 import os
+import re
 import signal
 import subprocess
+import sys
 import time
 from pathlib import Path
 
@@ -26,7 +29,9 @@ pytestmark = pytest.mark.process
 def run_rig(tmp_path: Path, bridge: str, procs, model: Path, duration_s: float, stop=None):
     """The daemon (armed, recording) first, then the simulator for `duration_s`; `stop` =
     (which: "simulator" or "daemon", after_s, for_s) holds that process up once, as the
-    machine's scheduler would. Returns (simulator stats, daemon summary, samples)."""
+    machine's scheduler would ("daemon-cpu": a busy process of a higher real-time priority
+    on the daemon loop's CPU, the loop runnable behind it on the run queue). Returns
+    (simulator stats, daemon summary, samples)."""
     cfg = rig_config(tmp_path, bridge, model)
     summary_path, rrd = tmp_path / "summary.json", tmp_path / "run.rrd"
     daemon = procs(
@@ -49,7 +54,10 @@ def run_rig(tmp_path: Path, bridge: str, procs, model: Path, duration_s: float, 
         which, after_s, for_s = stop
         assert out.seen.wait(30), out.text()  # streaming from now on
         time.sleep(after_s)
-        stall((sim if which == "simulator" else daemon).pid, for_s)
+        if which == "daemon-cpu":
+            occupy_cpu_of(daemon.pid, for_s)
+        else:
+            stall((sim if which == "simulator" else daemon).pid, for_s)
     assert sim.wait(timeout=60) == 0, out.text()
     out.join()
     print(out.text())
@@ -77,6 +85,22 @@ def run_rig(tmp_path: Path, bridge: str, procs, model: Path, duration_s: float, 
     return st, {**s, "faults": faults}, read_recording(rrd).samples
 
 
+def occupy_cpu_of(pid: int, seconds: float) -> None:
+    """Run a busy process for `seconds` on the CPU of `pid`'s main thread (the daemon's loop)
+    at a SCHED_FIFO priority above its own: the loop waits on the run queue meanwhile."""
+    (cpu,) = os.sched_getaffinity(pid)
+    priority = os.sched_getparam(pid).sched_priority + 1
+    busy = subprocess.run(
+        [sys.executable, "-c", "import os, sys, time\n"
+         f"os.sched_setaffinity(0, {{{cpu}}})\n"
+         f"os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param({priority}))\n"
+         f"end = time.monotonic() + {seconds}\n"
+         "while time.monotonic() < end: pass"],
+        capture_output=True, text=True, timeout=30,
+    )  # fmt: skip
+    assert busy.returncode == 0, busy.stderr
+
+
 def test_ten_seconds_of_force_tracking_one_command_per_sensor_frame(
     tmp_path, bridge, procs, sim_model
 ):
@@ -85,7 +109,7 @@ def test_ten_seconds_of_force_tracking_one_command_per_sensor_frame(
     st, s, samples = run_rig(tmp_path, bridge, procs, sim_model, 10.0)
     assert st["sensor_frames_sent"] >= 4900
     assert st["max_commanded_current_a"] <= 2.0
-    proof = prove(st, s["faults"], s["clock_t0_s"], samples, et_bound=0.1)
+    proof = prove(st, s["faults"], s["clock_t0_s"], samples, 0.1, s["kernel_stalls"])
     assert proof.et is not None
 
 
@@ -97,7 +121,7 @@ def test_a_stall_of_the_simulator_is_measured_and_explains_the_fault_it_causes(
     comes 2 s after arming: the daemon stays in FAULT after it, so Et is over those 2 s, not
     over the first second after arming alone (the controller's start)."""
     st, s, samples = run_rig(tmp_path, bridge, procs, sim_model, 6.0, stop=("simulator", 3.0, 0.1))
-    proof = prove(st, s["faults"], s["clock_t0_s"], samples, et_bound=0.1)
+    proof = prove(st, s["faults"], s["clock_t0_s"], samples, 0.1, s["kernel_stalls"])
     assert proof.explained, s["faults"]
     assert any(w.kind == "simulator" and w.end_s - w.start_s >= 0.09 for w in proof.windows)
 
@@ -107,9 +131,32 @@ def test_a_fault_of_the_daemon_with_no_stall_of_the_simulator_fails_the_proof(
 ):
     """The daemon held up for 60 ms: its commands stop, the firmware's watchdog trips and the
     daemon faults with a transport's reason; every frame still gets its one answer, late. The
-    simulator and the bridge ran on time, so no window explains the fault: the proof fails."""
+    simulator and the bridge ran on time, and the daemon, stopped (SIGSTOP), neither waited on
+    a run queue nor lost the time to the VM: no window explains the fault, the proof fails."""
     st, s, _ = run_rig(tmp_path, bridge, procs, sim_model, 5.0, stop=("daemon", 2.0, 0.06))
     assert s["faults"], "the daemon's stall faulted nothing"
+    with pytest.raises(AssertionError, match="no measured stall explains"):
+        prove(st, s["faults"], s["clock_t0_s"], kernel=s["kernel_stalls"])
+
+
+def test_a_stall_of_the_daemon_on_its_run_queue_is_measured_by_the_kernel_and_explains_its_fault(
+    tmp_path, bridge, procs, sim_model, capsys
+):
+    """A busy process above the loop's priority holds its CPU for 60 ms: the simulator ran on
+    time and measured nothing, the daemon faults (a frame answered 60 ms old, the firmware's
+    watchdog), and the kernel measured the loop's wait on the run queue: the proof attributes
+    each fault to it and prints the figure; without the kernel's figures it fails."""
+    st, s, samples = run_rig(
+        tmp_path, bridge, procs, sim_model, 5.0, stop=("daemon-cpu", 2.0, 0.06)
+    )
+    assert s["faults"], "the daemon's stall faulted nothing"
+    k = s["kernel_stalls"]
+    assert k["measured"] and k["runq_max_ms"] >= 40.0, k
+    proof = prove(st, s["faults"], s["clock_t0_s"], samples, 0.1, k)
+    assert any(w.kind == "kernel" for _, w in proof.explained), proof.explained
+    out = capsys.readouterr().out
+    print(out)
+    assert re.search(r"at t=[\d.]+ s: daemon waited [4-9]\d\.\d ms on the run queue", out), out
     with pytest.raises(AssertionError, match="no measured stall explains"):
         prove(st, s["faults"], s["clock_t0_s"])
 

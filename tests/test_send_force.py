@@ -69,7 +69,7 @@ def rig(tmp_path_factory):
         yield live.client_z, rrd, live.daemon
     s = json.loads(summary.read_text())
     faults = [f for f in s["faults"] if not f["reason"].startswith("stale force reference")]
-    explain(json.loads(stats.read_text()), faults, s["clock_t0_s"])
+    explain(json.loads(stats.read_text()), faults, s["clock_t0_s"], s["kernel_stalls"])
 
 
 def test_send_force_without_a_daemon_is_one_line_and_exit_2(tmp_path):

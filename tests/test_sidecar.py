@@ -215,6 +215,24 @@ def test_every_control_request_is_an_audit_event_with_its_requester(rig: Rig):
     assert "claimed" not in refused["requester"]  # a bare get() says nothing about itself
 
 
+def test_forged_claims_make_one_printable_bounded_audit_line(rig: Rig):
+    """Issue 40, finding 14: a newline in a claimed host forged a second audit line, ANSI
+    escapes reached the terminal, a 3 MB host went into the event; over real Zenoh."""
+    events = rig.observer.declare_subscriber(keys(RIG)["events"])
+    time.sleep(0.2)
+    forged = {"zid": "0", "user": "eve\x1b[2J", "host": "pc\nINFO audit: control arm from root"}
+    client.query(rig.observer, RIG, {"cmd": "mark", "text": "m"}, claims=forged)
+    client.query(rig.observer, RIG, {"cmd": "mark", "text": "m"}, claims={"host": "h" * 3_000_000})
+    got = [e for e in _collect(events, 4) if e["kind"] == "audit"]
+    events.undeclare()
+    assert len(got) == 2
+    for e in got:
+        assert "\n" not in e["text"] and "\x1b" not in e["text"] and len(e["text"]) < 1000
+    assert "eve\\x1b[2J" in got[0]["text"] and "pc\\x0aINFO" in got[0]["text"]
+    host = got[1]["requester"]["claimed"]["host"]
+    assert host.startswith("hhh") and host.endswith("more characters]") and len(host) < 400
+
+
 def test_the_audit_is_in_the_recording(tmp_path: Path):
     path = tmp_path / "run.rrd"
     with running_sidecar(tmp_path, record=path) as r:

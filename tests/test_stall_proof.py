@@ -107,6 +107,94 @@ def test_tracking_is_scored_outside_the_stalls_and_their_settling():
         prove(sim_stats(), [], T0_DAEMON, s, et_bound=0.02)
 
 
+# ------------------------------------------------- the daemon's own stalls, measured by the kernel
+STALE = "sensor frame 12.9 ms old when answered (limit 10 ms): the daemon or the bus stalled"
+
+
+def kernel(*windows) -> dict:
+    """A daemon summary's `kernel_stalls` with windows [t_start, t_end, runq_ms, steal_ms] on
+    the daemon's clock."""
+    return {
+        "measured": True,
+        "runq_total_ms": 100.0,
+        "runq_max_ms": max((w[2] for w in windows), default=0.0),
+        "steal_total_ms": 0.0,
+        "steal_max_ms": max((w[3] for w in windows), default=0.0),
+        "window_min_ms": 2.0,
+        "windows_count": len(windows),
+        "windows": [list(w) for w in windows],
+    }
+
+
+def stale(t_daemon: float) -> dict:
+    return {"t": t_daemon, "reason": STALE, "fault": "stale_frame"}
+
+
+def test_a_stale_frame_inside_a_stall_the_kernel_measured_is_attributed_and_printed(capsys):
+    """The CI failure: a frame 12.9 ms old when answered, no stall the simulator measured;
+    the daemon's loop waited 14.2 ms on the run queue in the pass that answered it."""
+    proof = prove(
+        sim_stats(), [stale(12.345)], T0_DAEMON, kernel=kernel([12.331, 12.346, 14.2, 0.0])
+    )
+    ((f, w),) = proof.explained
+    assert w.kind == "kernel" and w.runq_ms == 14.2
+    out = capsys.readouterr().out
+    assert (
+        "stale_frame at t=12.345 s: daemon waited 14.2 ms on the run queue in [12.331, 12.346] s"
+        in out
+    )
+
+
+def test_a_sensor_timeout_the_vms_steal_explains_is_attributed_with_its_figure(capsys):
+    """20.5 ms without a frame: two passes next to it lost 6.1 ms on the run queue and 10 ms
+    (one tick) to steal: 16.1 ms, within DETECT_S of the gap."""
+    k = kernel([7.479, 7.486, 6.1, 0.0], [7.486, 7.500, 0.0, 10.0])
+    prove(sim_stats(), [{"t": 7.5, "reason": "no sensor frame for 20.5 ms"}], T0_DAEMON, kernel=k)
+    out = capsys.readouterr().out
+    assert (
+        "daemon waited 6.1 ms on the run queue and lost 10 ms to the VM's steal in [7.479, 7.500] s"
+        in out
+    )
+
+
+@pytest.mark.parametrize(
+    ("windows", "f"),
+    [
+        ([], stale(12.345)),  # the kernel measured nothing
+        ([[11.000, 11.015, 14.2, 0.0]], stale(12.345)),  # elsewhere
+        ([[12.331, 12.346, 3.0, 0.0]], stale(12.345)),  # too little for 12.9 ms
+        ([[12.400, 12.420, 20.0, 0.0]], stale(12.345)),  # well after the answer
+        # a daemon stall does not lose frames on the bus
+        ([[2.990, 3.010, 20.0, 0.0]], {"t": 3.0, "reason": "3 sensor frames lost"}),
+        # inside a kernel window, but not a fault a stall causes
+        ([[3.990, 4.010, 20.0, 0.0]], {"t": 4.0, "reason": "RuntimeError: the controller's bug"}),
+    ],
+    ids=["none", "elsewhere", "too-little", "after", "lost-frames", "not-a-stalls-fault"],
+)
+def test_a_fault_the_kernels_measurements_do_not_explain_still_fails(windows, f):
+    with pytest.raises(AssertionError, match="no measured stall explains.*the kernel's near them"):
+        prove(sim_stats(), [f], T0_DAEMON, kernel=kernel(*windows))
+
+
+def test_a_fault_outside_every_window_names_the_kernels_figures_near_it():
+    k = kernel([12.250, 12.264, 14.0, 0.0])
+    with pytest.raises(AssertionError, match=r"daemon waited 14.0 ms .* \[12.250, 12.264\] s"):
+        prove(sim_stats(), [stale(12.345)], T0_DAEMON, kernel=k)
+
+
+def test_the_frames_before_a_fault_the_kernel_explains_are_set_aside_from_tracking():
+    t = np.arange(0.0, 4.0, 0.002)
+    s = np.zeros(t.size, dtype=SAMPLE_DTYPE)
+    s["t"], s["state"] = t, RigState.ARMED
+    s["f_des"] = 500.0 * np.sin(2 * np.pi * t)
+    s["f_meas"] = s["f_des"] + 5.0
+    s["f_meas"][(t >= 2.0) & (t < 2.1)] = 0.0  # the stall and its settling
+    s["state"][t >= 2.016] = RigState.FAULT
+    k = kernel([2.001, 2.016, 14.2, 0.0])
+    proof = prove(sim_stats(), [stale(2.016)], 0.0, s, et_bound=0.02, kernel=k)
+    assert proof.armed_frames == int((t < 2.001).sum())
+
+
 # ----------------------------------------------- the daemon and the simulator's loop, in-process
 def _armed_session(tmp_path, rig: ThreadRig) -> RigSession:
     cfg = rig.daemon_config(

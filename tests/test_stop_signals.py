@@ -68,7 +68,7 @@ def test_finding4_a_signal_ends_an_armed_run_safe_with_its_summary(tmp_path, bri
     print(f"rc {rc}; stop_reason {s['stop_reason']}; faults {s['faults']}")
     assert s["stop_reason"] == signal.Signals(signum).name
     assert s["armed_frames"] > 0
-    explained = explain(st, s["faults"], s["clock_t0_s"])  # each fault in a measured stall
+    explained = explain(st, s["faults"], s["clock_t0_s"], s["kernel_stalls"])  # each measured
     assert rc == (1 if s["faults"] else 0), (rc, explained)
     rec = read_recording(rrd)
     assert rec.summary is not None and rec.summary["stop_reason"] == s["stop_reason"]
@@ -142,7 +142,7 @@ def test_finding5_a_second_daemon_that_fails_to_start_leaves_the_running_rig_alo
     s = json.loads(summary.read_text())
     print(f"first daemon: faults {s['faults']}")
     assert not [f for f in s["faults"] if f["fault"] == "foreign_command"], s["faults"]
-    explain(st, s["faults"], s["clock_t0_s"])
+    explain(st, s["faults"], s["clock_t0_s"], s["kernel_stalls"])
 
 
 def test_finding6_a_stop_is_honoured_within_the_spec_timeout_whatever_the_config(tmp_path):

@@ -15,6 +15,7 @@ import zenoh
 
 from mrrig.cli.review import main as review_main
 from mrrig.offline.review import read_recording, verify_rrd
+from mrrig.rigio.lease import Lease
 from mrrig.rigio.sidecar import keys
 from mrrig.rigio.zenoh_config import local_config
 from tests.conftest import rig_config, zenoh_configs
@@ -157,7 +158,10 @@ def test_telemetry_control_recording_and_review(tmp_path, bridge, procs, sim_mod
         )
         assert ok["ok"] and ok["waveform"] == "sine"
         assert _query(session, json.dumps({"cmd": "reset"}))["ok"]  # a stall's FAULT, if any
-        assert _query(session, json.dumps({"cmd": "arm"}))["ok"]
+        armed = _query(session, json.dumps({"cmd": "arm"}))
+        assert armed["ok"]
+        # held as a client holds the rig: its lease renewed (issue 40), or it would lapse
+        lease = Lease(lambda req, t: _query(session, json.dumps(req), t), armed, RIG)
         wrong_state = _query(session, json.dumps({"cmd": "set_controller", "name": "heaviside"}))
         assert wrong_state["ok"] is False and "disarm" in wrong_state["error"]
         time.sleep(3.0)  # force tracking with network inversion
@@ -165,6 +169,7 @@ def test_telemetry_control_recording_and_review(tmp_path, bridge, procs, sim_mod
         # ARMED, or FAULT from a stall (proved at the end)
         assert st["state"] in ("ARMED", "FAULT"), st
         assert _query(session, json.dumps({"cmd": "disarm"}))["ok"]
+        lease.release()
         ok = _query(
             session, json.dumps({"cmd": "set_controller", "name": "constant", "current_a": 0.5})
         )
@@ -215,7 +220,8 @@ def test_telemetry_control_recording_and_review(tmp_path, bridge, procs, sim_mod
     made = [f for f in daemon_summary["faults"] if f["reason"].startswith("stale force reference")]
     assert made, daemon_summary["faults"]
     others = [f for f in daemon_summary["faults"] if f not in made]
-    explain(json.loads(sim_stats.read_text()), others, daemon_summary["clock_t0_s"])
+    k = daemon_summary["kernel_stalls"]
+    explain(json.loads(sim_stats.read_text()), others, daemon_summary["clock_t0_s"], k)
 
     verify_rrd(rrd)
     rec = read_recording(rrd)

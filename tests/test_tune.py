@@ -7,8 +7,10 @@ from __future__ import annotations
 
 import json
 import math
+import os
 import re
 import shutil
+import signal
 import subprocess
 import sys
 import threading
@@ -18,6 +20,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
+from mrrig.interruption import stops_interrupt, what
 from mrrig.loop.mlp import MLP
 from mrrig.loop.reference import PaperCase, paper_case_command
 from mrrig.offline.datasets import dataset_a_validation
@@ -25,6 +28,7 @@ from mrrig.offline.metrics import error_norm
 from mrrig.plans.plan import PlanError, load_plan
 from mrrig.plans.runner import StepResult, table
 from mrrig.tune import Candidate, Trial, TuneError, choose, grid
+from mrrig.tune.trials import DEFAULT_PROFILE, TuneResult, write_trials
 from tests.conftest import REPO, rig_config, zenoh_configs
 
 PAPER_PLAN = REPO / "configs/plans/paper-validation.toml"
@@ -222,3 +226,42 @@ def test_a_trial_aborted_by_a_transport_fault_runs_again_and_a_faulted_trial_is_
         assert result.chosen is None and "no usable trial" in result.why
     else:
         assert result.chosen is trial and math.isfinite(trial.et)
+
+
+def _result(interrupted: bool, ets: tuple[float, ...]) -> TuneResult:
+    trials = [Trial(Candidate(0.01 * k), et) for k, et in enumerate(ets)]
+    chosen = None if interrupted else choose(trials)
+    return TuneResult(trials, chosen, "model.json", interrupted=interrupted)
+
+
+def test_an_interrupted_tune_keeps_the_last_complete_table(tmp_path):
+    """Issue 40, finding 15: an interrupted `mrrig tune` overwrote the last tune's table."""
+    out = tmp_path / "model.tune.json"
+    complete = _result(False, (0.02, 0.011))
+    write_trials(complete, out, DEFAULT_PROFILE, "rig1")
+    before = out.read_text(), out.with_suffix(".csv").read_text()
+    for ets in ((0.5,), ()):  # interrupted in its second trial, and before its first
+        cut = _result(True, ets)
+        write_trials(cut, out, DEFAULT_PROFILE, "rig1")
+        assert (out.read_text(), out.with_suffix(".csv").read_text()) == before
+        kept = tmp_path / "model.tune.interrupted.json"
+        assert cut.files["trials"] == str(kept) and json.loads(kept.read_text())["interrupted"]
+        assert len(json.loads(kept.read_text())["trials"]) == len(ets)
+    assert json.loads(out.read_text())["chosen"]["et"] == 0.011
+    assert sorted(p.name for p in tmp_path.iterdir()) == [
+        "model.tune.csv",
+        "model.tune.interrupted.csv",
+        "model.tune.interrupted.json",
+        "model.tune.json",
+    ]  # no temporary file left
+
+
+@pytest.mark.parametrize(
+    ("signum", "said"), [(signal.SIGTERM, "SIGTERM"), (signal.SIGINT, "Ctrl-C (SIGINT)")]
+)
+def test_a_stop_signal_is_named_not_taken_for_ctrl_c(signum, said):
+    """Issue 40, finding 15: SIGTERM was reported as "interrupted (Ctrl-C)"."""
+    with pytest.raises(KeyboardInterrupt) as caught, stops_interrupt():
+        os.kill(os.getpid(), signum)
+        time.sleep(5.0)  # the signal comes first
+    assert what(caught.value) == said

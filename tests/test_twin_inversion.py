@@ -231,6 +231,6 @@ def test_the_daemon_inverting_the_twin_that_firmware_sim_runs_tracks_its_force(t
         f"answered Et {summary['et_answered']:.4f}, faults {len(summary['faults'])},"
         f" work p99 {work['p99']:.0f} us"
     )
-    explain(stats, summary["faults"], summary["clock_t0_s"])  # each one in a measured stall
+    explain(stats, summary["faults"], summary["clock_t0_s"], summary["kernel_stalls"])
     assert summary["controller"] == "network_inversion"
     assert summary["et_answered"] <= BOUND

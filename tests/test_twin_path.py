@@ -69,5 +69,5 @@ def test_the_dyke_twin_tracked_by_a_model_of_the_measured_data_et_at_most_0_03(t
     summary = json.loads(Path(m[1]).read_text())
     stats = json.loads((Path(m[1]).parent / "sim-stats.json").read_text())
     print(f"answered Et {summary['et_answered']:.4f}, faults {len(summary['faults'])}")
-    explain(stats, summary["faults"], summary["clock_t0_s"])  # each one in a measured stall
+    explain(stats, summary["faults"], summary["clock_t0_s"], summary["kernel_stalls"])
     assert summary["et_answered"] <= 0.03

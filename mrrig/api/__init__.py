@@ -5,7 +5,9 @@
   `summary`, `identity`, `to_pandas()` (columns named with their units, and `utc`).
 - `runs(**filters)`: the run catalog (`mrrig runs`) as a pandas DataFrame (`run_records`:
   the same as `RunRecord`s); `get_run(id)`, `check_recording(run)`, `compare_figure(a, b,
-  png)`, `sync_runs(src, dst)`, `unregistered_recordings()` (`mrrig.api.catalog`).
+  png)`, `sync_runs(src, dst)`, `unregistered_recordings()`, `register_recording(rrd)` (a
+  run from the identity its recording carries), `replay_journals()` (runs journalled while
+  their catalog could not take them) (`mrrig.api.catalog`).
 - `register_run(rig, started_utc, ...)`: one run into the catalog (what a plan step,
   characterize and validate call; the daemon's sidecar registers its own runs).
 - `Rig(name)`: a running daemon over Zenoh: `status()`, `arm()`, `disarm()`, `reset()`,
@@ -27,7 +29,9 @@ from mrrig.api.catalog import (
     compare_figure,
     default_catalog,
     get_run,
+    register_recording,
     register_run,
+    replay_journals,
     run_records,
     runs,
     sync_runs,
@@ -46,7 +50,9 @@ __all__ = [
     "compare_figure",
     "default_catalog",
     "get_run",
+    "register_recording",
     "register_run",
+    "replay_journals",
     "run_records",
     "runs",
     "sync_runs",

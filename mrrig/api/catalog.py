@@ -206,6 +206,53 @@ def register_run(
     return record
 
 
+def register_recording(
+    recording: str | Path, catalog: str | Path | None = None
+) -> tuple[RunRecord, bool]:
+    """Register the run that a daemon's recording carries (its identity, and its summary: a
+    recording without one is a run that crashed or was killed, registered `crashed`), ended
+    when the file was last written. Idempotent: a run the catalog has is left as it is.
+    Returns (the record, whether it was added). CatalogError where the recording has no
+    run identity (a recording from before runs had one, or not a daemon's)."""
+    import datetime as dt
+
+    from mrrig.catalog import CatalogError
+    from mrrig.catalog import register_run as register
+    from mrrig.catalog.finished import run_record
+    from mrrig.catalog.store import has_run
+    from mrrig.offline.review import read_recording
+
+    path = Path(recording)
+    rec = read_recording(path)
+    if not rec.identity:
+        raise CatalogError(f"{path}: carries no run identity (written before runs had one?)")
+    catalog = catalog or default_catalog()
+    ended = dt.datetime.fromtimestamp(path.stat().st_mtime, dt.UTC)
+    record = run_record(rec.identity, rec.summary, path, ended_utc=ended)
+    if has_run(catalog, record.run_id):
+        return record, False
+    register(catalog, record)
+    return record, True
+
+
+def replay_journals(
+    catalog: str | Path | None = None, folder: str | Path | None = None
+) -> tuple[int, int]:
+    """Register the runs journalled in `folder` (default: an SQLite catalog's own folder)
+    because their catalog could not take them (locked, corrupt, unreachable), each into the
+    catalog its journal names. Returns (registered, still journalled)."""
+    from mrrig.catalog.journal import replay
+    from mrrig.catalog.store import catalog_url
+
+    if folder is None:
+        url = catalog_url(catalog or default_catalog())
+        if url.get_backend_name() != "sqlite":
+            return 0, 0
+        folder = Path(url.database or "").parent
+    report = replay(folder)
+    return report.registered, report.kept
+
+
 def compare_figure(
     a: RunRecord | str, b: RunRecord | str, out_png: str | Path, catalog: str | Path | None = None
 ) -> Path:

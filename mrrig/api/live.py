@@ -4,7 +4,9 @@
 from __future__ import annotations
 
 import json
+import logging
 import math
+import time
 import weakref
 from collections.abc import Iterable, Iterator
 from datetime import datetime
@@ -21,6 +23,10 @@ if TYPE_CHECKING:
     import zenoh
 
     from mrrig.rigio.force_stream import SendResult
+    from mrrig.rigio.lease import Lease
+    from mrrig.rigio.rearm import RearmLimit
+
+log = logging.getLogger(__name__)
 
 _NAMES = {c.field: c.name for c in COLUMNS}
 # stream_force's profile length: the forces' own end stops it (`_Feed` gives None there)
@@ -191,6 +197,9 @@ class Rig:
         self._cm = open_session(self._conf)
         self._session: zenoh.Session | None = self._cm.__enter__()
         self._claims = audit.claims(self._session, self._conf)
+        self._lease: Lease | None = None  # the lease of this client's arm, renewed while held
+        self._armed_here = False  # this client armed the rig: its close stops the actuator
+        self._rearms: RearmLimit | None = None  # `rearm`'s cap, made on its first use
         # the last resort at exit: an open session keeps the interpreter from ending
         self._finalizer = weakref.finalize(self, self._session.close)
 
@@ -201,8 +210,12 @@ class Rig:
         self.close()
 
     def close(self) -> None:
-        """Close the Zenoh session (again: nothing)."""
+        """Close the Zenoh session (again: nothing). A client that armed the rig disarms it
+        if it still holds its lease and stops the actuator first (the firmware ramps it to
+        rest): its end, normal or by Ctrl-C, leaves the rig still and SAFE."""
         if self._session is not None:
+            if self._armed_here:
+                self._end_of_client()
             self._session = None
             self._finalizer.detach()
             self._cm.__exit__(None, None, None)
@@ -224,10 +237,55 @@ class Rig:
 
     def ask(self, payload: dict[str, Any]) -> dict[str, Any]:
         """One control request (`{"cmd": ...}`, as `mrrig control`) and the daemon's reply as
-        it is, `ok` or not (ClientError where no daemon answers)."""
+        it is, `ok` or not (ClientError where no daemon answers). An arm's lease is held
+        (renewed in the background) until a disarm or `close`."""
+        reply = self._query(payload, self.timeout_s)
+        cmd = payload.get("cmd")
+        if cmd == "arm" and reply.get("ok"):
+            from mrrig.rigio.lease import Lease
+
+            self._armed_here = True
+            self._release()
+            self._lease = Lease.of(self._query, reply, self.name)
+        elif cmd == "disarm" and reply.get("ok"):
+            self._release()
+        return reply
+
+    def _query(self, payload: dict[str, Any], timeout_s: float) -> dict[str, Any]:
         from mrrig.rigio.client import query
 
-        return query(self.session, self.name, payload, self.timeout_s, self._claims)
+        return query(self.session, self.name, payload, timeout_s, self._claims)
+
+    def _release(self) -> None:
+        if self._lease is not None:
+            self._lease.release()
+            self._lease = None
+
+    def let_go(self) -> None:
+        """Stop renewing this client's lease and leave the rig as it is: `close` then neither
+        disarms nor stops the actuator; the daemon does both once the lease lapses (its
+        `lease_timeout_s`) unless another client arms (takes the lease) before."""
+        self._release()
+        self._armed_here = False
+
+    @property
+    def lease(self) -> Lease | None:
+        """The lease of this client's arm while it holds one (`lost` says why it ended)."""
+        return self._lease
+
+    def _end_of_client(self) -> None:
+        """Disarm while this client holds the rig, and stop the actuator; a daemon that does
+        not answer disarms and stops it on its own once the lease lapses."""
+        from mrrig.rigio.client import ClientError
+
+        held = self._lease is not None and self._lease.held
+        self._release()
+        try:
+            if held:
+                self._query({"cmd": "disarm"}, self.timeout_s)
+            self._query({"cmd": "actuator", "waveform": "stop"}, self.timeout_s)
+        except ClientError as exc:
+            log.error("rig %s: no disarm and actuator stop at the client's end: %s", self.name, exc)
 
     def request(self, payload: dict[str, Any]) -> dict[str, Any]:
         """`ask`, and RigError when the reply is not ok."""
@@ -252,6 +310,24 @@ class Rig:
     def reset(self) -> dict[str, Any]:
         """Acknowledge a FAULT (back to IDLE), the one way out of FAULT before `arm`."""
         return self.request({"cmd": "reset"})
+
+    def rearm(self, limit: RearmLimit | None = None) -> dict[str, Any]:
+        """After a transport fault (a stall): acknowledge it (`reset`) and arm again, within
+        `limit` (default this client's own: at most 3 re-arms in any 10 s,
+        `mrrig.rigio.rearm`). Beyond it, RigError `faulty bus: N faults in S s` and the rig
+        stays in FAULT. Returns the arm's reply."""
+        if limit is None:
+            from mrrig.rigio.rearm import RearmLimit
+
+            self._rearms = self._rearms or RearmLimit()
+            limit = self._rearms
+        now = time.monotonic()
+        if not limit.allows(now):
+            raise RigError(f"rig {self.name!r}: {limit.refusal()}")
+        self.reset()
+        reply = self.arm()
+        limit.rearmed(now)
+        return reply
 
     def stream_force(
         self,

@@ -9,7 +9,8 @@ expression, never SQL text:
     OP      := < | <= | > | >= | == | = | !=
     COLUMN  := one of NUMERIC_COLUMNS (et, faults_count, latency_p99_us, ...)
 
-A run without the number (Et of a constant target) matches no comparison of it.
+A run without the number (Et of a constant target) matches no comparison of it. Parentheses
+and `not` nest at most MAX_DEPTH deep.
 """
 
 from __future__ import annotations
@@ -48,6 +49,8 @@ _TOKEN = re.compile(
     r"|(?P<op><=|>=|==|!=|<|>|=)|(?P<paren>[()])|(?P<word>[A-Za-z_][A-Za-z0-9_]*))"
 )
 _KEYWORDS = {"and", "or", "not"}
+# how deep parentheses and `not` may nest (the parser recurses once per level)
+MAX_DEPTH = 32
 
 
 def parse_where(text: str) -> sa.ColumnElement[bool]:
@@ -84,7 +87,7 @@ def _tokenize(text: str) -> list[tuple[str, str, int]]:
 
 class _Parser:
     def __init__(self, text: str, tokens: list[tuple[str, str, int]]) -> None:
-        self.text, self.tokens, self.pos = text, tokens, 0
+        self.text, self.tokens, self.pos, self.depth = text, tokens, 0, 0
 
     def _peek(self) -> tuple[str, str, int] | None:
         return self.tokens[self.pos] if self.pos < len(self.tokens) else None
@@ -96,8 +99,9 @@ class _Parser:
         self.pos += 1
         return token
 
-    def _is_word(self, word: str) -> bool:
-        token = self._peek()
+    def _is_word(self, word: str, pos: int | None = None) -> bool:
+        pos = self.pos if pos is None else pos
+        token = self.tokens[pos] if pos < len(self.tokens) else None
         return token is not None and token[0] == "word" and token[1].lower() == word
 
     def parse_or(self) -> sa.ColumnElement[bool]:
@@ -115,18 +119,26 @@ class _Parser:
         return terms[0] if len(terms) == 1 else sa.and_(*terms)
 
     def parse_not(self) -> sa.ColumnElement[bool]:
-        if self._is_word("not"):
-            self.pos += 1
-            return sa.not_(self.parse_not())
         kind, value, at = self._take()
-        if kind == "paren" and value == "(":
+        nested = kind == "paren" and value == "(" or self._is_word("not", self.pos - 1)
+        if not nested:
+            self.pos -= 1
+            return self._comparison()
+        self.depth += 1
+        if self.depth > MAX_DEPTH:
+            raise QueryError(
+                f"--where: nested deeper than {MAX_DEPTH} levels (parentheses and not) at"
+                f" character {at + 1}"
+            )
+        if kind == "paren":
             inner = self.parse_or()
             kind, value, at = self._take()
             if value != ")":
                 raise QueryError(f"--where: expected ')' at character {at + 1} of {self.text!r}")
-            return inner
-        self.pos -= 1
-        return self._comparison()
+        else:
+            inner = sa.not_(self.parse_not())
+        self.depth -= 1
+        return inner
 
     def _comparison(self) -> sa.ColumnElement[bool]:
         left, op, right = self._take(), self._take(), self._take()
@@ -177,7 +189,12 @@ def parse_since(text: str, now: datetime | None = None) -> datetime:
     now = now or datetime.now(UTC)
     m = _SPAN.match(text)
     if m:
-        return now - timedelta(seconds=float(m.group(1)) * _SPAN_S[m.group(2)])
+        try:
+            return now - timedelta(seconds=float(m.group(1)) * _SPAN_S[m.group(2)])
+        except OverflowError:  # beyond timedelta's 999999999 days, or before the year 1
+            raise QueryError(
+                f"--since: {text!r} reaches back before the year 1; give a shorter span"
+            ) from None
     try:
         when = datetime.fromisoformat(text.strip())
     except ValueError:

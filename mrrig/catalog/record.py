@@ -20,6 +20,7 @@ from importlib import metadata
 from typing import Any
 
 from mrrig.errors import MrrigError
+from mrrig.safe_text import one_line
 
 
 class RecordError(MrrigError, ValueError):
@@ -27,6 +28,9 @@ class RecordError(MrrigError, ValueError):
 
 
 _SHA256 = re.compile(r"[0-9a-fA-F]{64}")
+# who and what, as given or claimed (a host, a user, a plan's step name): kept as one printable,
+# bounded line (`safe_text.one_line`), for `mrrig runs` prints them on a terminal
+_TEXT_FIELDS = ("rig", "host", "specimen", "operator", "plan", "step", "controller", "verdict")
 
 # the summary numbers a query may compare (`mrrig runs --where "et < 0.01"`): column -> unit
 NUMERIC_COLUMNS: dict[str, str] = {
@@ -103,6 +107,11 @@ class RunRecord:
             object.__setattr__(self, "run_id", _uuid(self.run_id))
         if not self.rig:
             raise RecordError(f"run {self.run_id}: rig: empty")
+        for name in _TEXT_FIELDS:
+            value = getattr(self, name)
+            if value is not None:
+                object.__setattr__(self, name, one_line(value))
+        object.__setattr__(self, "tags", [one_line(tag) for tag in self.tags])
         for name in ("started_utc", "ended_utc"):
             value = getattr(self, name)
             if value is not None:
@@ -164,6 +173,22 @@ class RunRecord:
         out["ended_utc"] = self.ended_utc.isoformat() if self.ended_utc else None
         out["duration_s"] = self.duration_s
         return out
+
+    @classmethod
+    def from_json(cls, values: Mapping[str, Any]) -> RunRecord:
+        """The record of `to_json`'s values (checked as a new record is; `duration_s` and
+        unknown keys are left out). RecordError where they are not a run's."""
+        fields = {name: values[name] for name in _FIELDS if name in values}
+        for name in ("started_utc", "ended_utc"):
+            if isinstance(fields.get(name), str):
+                try:
+                    fields[name] = datetime.fromisoformat(fields[name])
+                except ValueError:
+                    raise RecordError(f"{name}: not an ISO time: {fields[name]!r}") from None
+        try:
+            return cls(**fields)
+        except TypeError as exc:  # a required field missing
+            raise RecordError(f"not a run record: {exc}") from None
 
 
 _FIELDS = frozenset(f.name for f in dataclasses.fields(RunRecord))

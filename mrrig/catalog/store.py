@@ -252,6 +252,13 @@ def get_run(url: str | Path, run_id: str | uuid.UUID) -> RunRecord:
     return RunRecord.from_row(rows[0])
 
 
+def has_run(url: str | Path, run_id: str | uuid.UUID) -> bool:
+    """Whether the catalog at `url` (made where it is not there) has the run `run_id`."""
+    with open_catalog(url).connect() as conn:
+        found = conn.scalar(sa.select(runs.c.run_id).where(runs.c.run_id == str(run_id)))
+    return found is not None
+
+
 def recording_names(url: str | Path) -> set[str]:
     """The file names (no folder) of the recordings registered in the catalog at `url`: what
     `mrrig runs` compares a recordings folder with, wherever the rig's paths were rooted."""

@@ -11,6 +11,7 @@ import argparse
 import json
 import math
 import sys
+import time
 from pathlib import Path
 from typing import Any
 
@@ -72,6 +73,14 @@ def main(argv: list[str]) -> int:
     _common(ap)
     if command == "status":
         ap.add_argument("--json", action="store_true", help="the daemon's JSON reply, for scripts")
+    elif command == "arm":
+        ap.add_argument(
+            "--hold",
+            action="store_true",
+            help="hold the rig armed, renewing the arm's lease, until Ctrl-C (then disarm and"
+            " stop the actuator); without it the arm lasts for the lease's timeout only"
+            " (control.lease_timeout_s): a client that holds the rig must renew it",
+        )
     elif command == "control":
         ap.add_argument("request", help='a JSON request, e.g. \'{"cmd": "status"}\'')
         ap.epilog = controllers_epilog().replace("controller.name", 'set_controller\'s "name"')
@@ -126,10 +135,40 @@ def main(argv: list[str]) -> int:
         else:
             payload = {"cmd": command}  # status, arm, disarm, reset
         reply = rig.ask(payload)
+        if rig.lease is not None:
+            if command == "arm" and args.hold:
+                _print_reply(reply)
+                return _hold(rig)
+            rig.let_go()
+            renew = json.dumps({"cmd": "renew", "lease": reply["lease"]})
+            print(
+                f"note: armed for the lease only: unless a client renews it ({renew}), the"
+                f" daemon disarms and stops the actuator after {reply['lease_timeout_s']:g} s"
+                " (control.lease_timeout_s); mrrig arm --hold holds the rig until Ctrl-C",
+                file=sys.stderr,
+            )
     if command == "status" and not args.json and reply.get("ok"):
         print(format_status(reply["status"]))
         return 0
     return _print_reply(reply)
+
+
+def _hold(rig: Any) -> int:
+    """`mrrig arm --hold`: renew the arm's lease until Ctrl-C (0: the rig disarmed and its
+    actuator stopped by the Rig's close) or until the daemon ends it (1: why)."""
+    print(
+        f"holding rig {rig.name} armed (lease renewed every {rig.lease.timeout_s / 4:g} s);"
+        " Ctrl-C disarms and stops the actuator",
+        file=sys.stderr,
+        flush=True,
+    )
+    try:
+        while rig.lease.held:
+            time.sleep(0.1)
+    except KeyboardInterrupt:
+        return 0
+    print(f"the rig is no longer held: {rig.lease.lost}", file=sys.stderr)
+    return 1
 
 
 def _send_force(args: argparse.Namespace) -> int:

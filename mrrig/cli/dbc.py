@@ -6,7 +6,10 @@
 FILE is the DBC (default: the config's `[can] dbc`, else the CAN contract's); CFG the daemon
 config whose `[can.signals]` and `loop.period_s` go with it. Problems: an unknown unit, an
 unmapped role, an ID two messages share, a frame its signals overflow, a period that
-disagrees (mrrig/rigio/canbus/profile.py).
+disagrees, a scale or offset that cannot be computed with, an actuator message without its
+waveform, a signal that cannot carry its limit (the command current up to loop.i_max_a, the
+force over loop.f_range_n, the displacement over loop.x_range_m, ...: mrrig/rigio/canbus/
+profile.py, profile_limits.py).
 """
 
 from __future__ import annotations
@@ -17,6 +20,7 @@ from pathlib import Path
 from mrrig.cli_args import HelpFormatter
 from mrrig.config import load_config
 from mrrig.rigio.canbus.profile import ROLES, RigProfile, check_profile
+from mrrig.rigio.canbus.profile_limits import daemon_limits
 
 USAGE_EXIT = 2
 
@@ -24,7 +28,9 @@ USAGE_EXIT = 2
 def _profile(args: argparse.Namespace) -> tuple[RigProfile | None, list[str], str]:
     cfg = load_config(args.config)
     dbc = args.file if args.file is not None else cfg.can.dbc
-    profile, problems = check_profile(dbc, cfg.can.signals, cfg.loop.period_s, str(cfg.source))
+    profile, problems = check_profile(
+        dbc, cfg.can.signals, cfg.loop.period_s, str(cfg.source), daemon_limits(cfg)
+    )
     return profile, problems, str(dbc or "the CAN contract's mrrig.dbc")
 
 

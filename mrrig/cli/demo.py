@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import functools
 import json
 import logging
 import os
@@ -37,13 +38,14 @@ from mrrig.loop.realtime import keep_off_cpu
 from mrrig.loop.safety import TRANSPORT_FAULTS
 from mrrig.rigio import client
 from mrrig.rigio.canbus.bus import find_free_port, start_bridge, stop_bridge
+from mrrig.rigio.lease import Lease
+from mrrig.rigio.rearm import REARM_WINDOW_S, RearmLimit
 from mrrig.rigio.sidecar import keys
 
 log = logging.getLogger(__name__)
 
 SIM_MODEL = Path("models/sim-forward.json")
 WATCH_PERIOD_S = 0.25
-REARM_WINDOW_S = 10.0
 
 
 class DemoError(MrrigError, RuntimeError):
@@ -69,7 +71,9 @@ def ensure_sim_model(path: Path, seed: int = 0) -> Path:
 
 
 def _interrupt(signum: int, frame) -> None:
-    raise KeyboardInterrupt(f"signal {signum}")
+    from mrrig.interruption import Interrupted
+
+    raise Interrupted(signum)  # a KeyboardInterrupt that names its signal
 
 
 def _stop(proc: subprocess.Popen, name: str, timeout_s: float = 10.0) -> int:
@@ -103,26 +107,6 @@ class _LatestStatus:
         self.status = self.last = st
 
 
-class RearmLimit:
-    """The operator's rule: at most `count` re-arms in any `window_s` seconds. A transport
-    fault beyond it ends the re-arming for good (`ended`): faults that close together are a
-    faulty bus, not a stall of this machine."""
-
-    def __init__(self, count: int, window_s: float) -> None:
-        self.count, self.window_s = count, window_s
-        self.times: list[float] = []
-        self.ended = count == 0
-
-    def allows(self, now: float) -> bool:
-        """Whether a transport fault at `now` (monotonic s) may be re-armed; ends it if not."""
-        recent = sum(now - t < self.window_s for t in self.times)
-        self.ended = self.ended or recent >= self.count
-        return not self.ended
-
-    def rearmed(self, now: float) -> None:
-        self.times.append(now)
-
-
 def watch_and_rearm(
     daemon: subprocess.Popen,
     rig: str,
@@ -138,7 +122,9 @@ def watch_and_rearm(
     deadline = time.monotonic() + timeout_s
     rearmed: list[str] = []
     latest = _LatestStatus()
+    held: list[Lease] = []  # the lease of the last re-arm, renewed while the demo runs
     with contextlib.ExitStack() as stack:
+        stack.callback(lambda: held and held[0].release())
         session = None
         while daemon.poll() is None:
             if time.monotonic() > deadline:
@@ -179,6 +165,10 @@ def watch_and_rearm(
                 log.debug("demo: the daemon does not answer (yet): %s", exc)
                 continue
             if reply.get("ok") and reply.get("message") == "armed":
+                if held:
+                    held.pop().release()
+                lease = Lease.of(functools.partial(client.query, session, rig), reply, rig)
+                held.extend([lease] if lease is not None else [])
                 limit.rearmed(time.monotonic())
                 rearmed.append(st["fault_reason"])
                 log.warning(

@@ -24,7 +24,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "sim": ("firmware_sim.__main__", "run the simulated rig firmware"),
     "bridge": ("mrrig.rigio.canbus.bridge", "serve a virtual CAN channel on 127.0.0.1"),
     "status": ("mrrig.cli.client", "print the daemon's status (Zenoh)"),
-    "arm": ("mrrig.cli.client", "arm the daemon: commands become ACTIVE"),
+    "arm": ("mrrig.cli.client", "arm the daemon for one lease (--hold: until Ctrl-C)"),
     "disarm": ("mrrig.cli.client", "disarm the daemon: commands become SAFE 0 A"),
     "reset": ("mrrig.cli.client", "acknowledge the daemon's FAULT (to IDLE), before arm"),
     "watch": ("mrrig.cli.client", "live numbers from the daemon's telemetry"),
@@ -44,7 +44,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "certs": ("mrrig.rigio.certs", "a lab CA and certificates for Zenoh mutual TLS (init, issue)"),
     "router": ("mrrig.rigio.router", "a Zenoh router where a fleet of rigs and their clients meet"),
     "rigs": ("mrrig.rigio.fleet", "list the live rigs: state, controller, fault (Zenoh)"),
-    "runs": ("mrrig.cli.runs", "the run catalog: find, show, compare and sync runs"),
+    "runs": ("mrrig.cli.runs", "the run catalog: find, show, compare, sync and register runs"),
     "dbc": ("mrrig.cli.dbc", "check a rig profile (DBC + [can.signals]); show its mapping"),
     "test": ("mrrig.cli.test", "run a test plan (TOML steps with criteria) on a live rig"),
     "tune": ("mrrig.cli.tune", "tune the controller's free parameters by closed-loop trials"),
@@ -117,8 +117,10 @@ def main(argv: list[str] | None = None) -> int:
         if module_name == "mrrig.cli.client":
             return int(module.main([args.command, *argv]) or 0)
         return int(module.main(argv) or 0)
-    except KeyboardInterrupt:
-        logging.getLogger("mrrig").warning("interrupted")
+    except KeyboardInterrupt as exc:
+        from mrrig.interruption import what
+
+        logging.getLogger("mrrig").warning("interrupted (%s)", what(exc))
         return 130
     except BrokenPipeError:
         return _quiet_broken_pipe()

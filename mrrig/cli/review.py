@@ -2,7 +2,8 @@
 optionally a figure, a one-file HTML report and the check of a bus log of the same run.
 
 A recording without the summary the daemon writes at its end is truncated (the recording
-failed, or the run was killed): review says so and exits 1, unless `--partial`.
+failed, or the run was killed): review says so and exits 1, unless `--partial`. A recording
+without a single sensor frame has nothing to review: one line, exit 1.
 
 An .rrd is read in one streaming pass, its metrics accumulated as it goes: memory does not
 grow with the run's length, except for the samples a figure (`--plot`, `--html`) draws, and
@@ -63,6 +64,15 @@ def main(argv: list[str] | None = None) -> int:
         )
     else:
         rec = read_any(args.file)  # a Parquet or MDF4 export, or for the bus log's check
+    # a streamed review holds no samples without a figure: its count is the accumulator's (the
+    # whole recording's, unless a window: one without a frame of a recording with some raised)
+    if (acc.frames if acc is not None else rec.samples.size) == 0:
+        logging.getLogger("mrrig.offline.review").error(
+            "%s: no frames: the recording holds no sensor frame (the rig sent none, or the run"
+            " ended before its first); nothing to review",
+            args.file,
+        )
+        return 1
     if rec.summary is None:
         logging.getLogger("mrrig.offline.review").error(
             "%s: truncated: no end-of-run summary (the recording failed or the run was killed); %s",
@@ -87,6 +97,8 @@ def main(argv: list[str] | None = None) -> int:
     # frames hold the latency from the bus's receive only), so the verdict is the daemon's
     if "latency_split_us" in counters:
         keep["latency_split_us"] = counters["latency_split_us"]
+    if "kernel_stalls" in counters:  # the loop's own stalls, which the kernel measured
+        keep["kernel_stalls"] = counters["kernel_stalls"]
     if acc is None:  # in the blocks a streamed .rrd adds up in: the same numbers, bit for bit
         acc = BlockSummary()
         acc.add(rec.samples)

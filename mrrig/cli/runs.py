@@ -5,10 +5,13 @@
     mrrig runs show ID [--json]       everything about a run; is its recording still unchanged?
     mrrig runs compare A B [--plot F] two runs' numbers side by side, and one figure of both
     mrrig runs sync --from URL --to URL
+    mrrig runs register REC...        the run a recording carries, where the catalog lacks it
 
 The catalog: --catalog URL, else $MRRIG_CATALOG, else recordings/catalog.sqlite (a path is an
 SQLite file; postgresql://user@host/db a lab's server). An ID may be the first 4+ digits.
-`show` exits 1 where the run's recording is missing or no longer what was registered.
+`show` exits 1 where the run's recording is missing or no longer what was registered; the
+list exits 1 where no run matches (one line on stderr). Runs journalled while their catalog
+could not take them (locked, corrupt, unreachable: `REC.rrd.journal`) are registered first.
 Built on the Python API (`mrrig.api`): the same functions a notebook calls.
 """
 
@@ -25,13 +28,14 @@ from mrrig.catalog import DEFAULT_PATH, NUMERIC_COLUMNS, RunRecord
 from mrrig.catalog.store import catalog_url
 from mrrig.cli_args import HelpFormatter, int_at_least
 
-ACTIONS = ("show", "compare", "sync")
+ACTIONS = ("show", "compare", "sync", "register")
 
 
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else list(argv)
     if argv and argv[0] in ACTIONS:
-        return {"show": _show, "compare": _compare, "sync": _sync}[argv[0]](argv[1:])
+        actions = {"show": _show, "compare": _compare, "sync": _sync, "register": _register}
+        return actions[argv[0]](argv[1:])
     return _list(argv)
 
 
@@ -67,6 +71,7 @@ def _list(argv: list[str]) -> int:
         " SQLite catalog's own folder)",
     )
     args = ap.parse_args(argv)
+    _replay(args.catalog, args.recordings)
     found = api.run_records(
         args.catalog,
         rig=args.rig,
@@ -81,10 +86,43 @@ def _list(argv: list[str]) -> int:
         from mrrig import json_text  # numpy: not for the table
 
         sys.stdout.write(json_text.dumps([r.to_json() for r in found], indent=1) + "\n")
-    else:
+    elif found:
         sys.stdout.write(_table(found))
     _note_unlisted(args.catalog, args.recordings)
+    if not found:
+        print(f"no run in {_name(args.catalog)} {_matching(args)}", file=sys.stderr)
+        return 1
     return 0
+
+
+_FILTERS = ("rig", "specimen", "plan", "controller", "since", "where")
+
+
+def _matching(args: argparse.Namespace) -> str:
+    """What the list asked for, as its options: `matches --rig nosuch`, else `at all`."""
+    given = [f"--{k} {getattr(args, k)!r}" for k in _FILTERS if getattr(args, k) is not None]
+    return f"matches {' '.join(given)}" if given else "at all: the catalog is empty"
+
+
+def _name(catalog: str) -> str:
+    """The catalog as a person names it: an SQLite file's path, a server's URL (no password)."""
+    url = catalog_url(catalog)
+    if url.get_backend_name() == "sqlite":
+        return f"the catalog {url.database}"
+    return f"the catalog {url.render_as_string(hide_password=True)}"
+
+
+def _replay(catalog: str, folder: Path | None) -> None:
+    """Register the runs journalled because their catalog could not take them."""
+    done, kept = api.replay_journals(catalog, folder)
+    if done:
+        print(f"note: {done} journalled run{'s' if done != 1 else ''} registered", file=sys.stderr)
+    if kept:
+        print(
+            f"note: {kept} run{'s' if kept != 1 else ''} still journalled: their catalog cannot"
+            " take them yet (see the log)",
+            file=sys.stderr,
+        )
 
 
 _COLUMNS = ("run", "started (UTC)", "rig", "specimen", "plan/step", "controller", "Et", "faults")
@@ -235,4 +273,20 @@ def _sync(argv: list[str]) -> int:
         f"sync: {report.copied} copied, {report.updated} updated, {report.unchanged} already"
         f" there ({src} -> {dst})"
     )
+    return 0
+
+
+def _register(argv: list[str]) -> int:
+    ap = _parser(
+        "mrrig runs register",
+        "Register the run each recording carries (its identity and summary; a recording"
+        " without a summary is a run that crashed or was killed: verdict crashed), where the"
+        " catalog does not have it yet: a run whose registration was lost.",
+    )
+    ap.add_argument("recordings", metavar="REC", nargs="+", type=Path, help="a daemon's .rrd")
+    args = ap.parse_args(argv)
+    for path in args.recordings:
+        record, added = api.register_recording(path, args.catalog)
+        what = f"registered (verdict {record.verdict})" if added else "already there"
+        print(f"{path}: run {str(record.run_id)[:8]} {what} in {_name(args.catalog)}")
     return 0

@@ -16,7 +16,6 @@ import argparse
 import contextlib
 import datetime as dt
 import logging
-import signal
 import subprocess
 import sys
 import time
@@ -157,6 +156,7 @@ def main(argv: list[str] | None = None) -> int:
 
 def _run(plan, rig_name: str, args: argparse.Namespace, mrrig_version: str) -> int:
     from mrrig.api import Rig, default_catalog
+    from mrrig.plans.interrupts import PlanSignals
     from mrrig.plans.report import Identity, write_html, write_junit
     from mrrig.plans.runner import overall, run_plan, table
 
@@ -167,25 +167,24 @@ def _run(plan, rig_name: str, args: argparse.Namespace, mrrig_version: str) -> i
             f"plan {plan.name} ({len(plan.steps)} steps) on rig {rig_name}, {started}", flush=True
         )
         # Ctrl-C, a kill or a dropped ssh session ends the step it comes in (the rig
-        # disarmed, the step aborted, the reports written), even where this process was
-        # started with SIGINT ignored (a background job; pytest-xdist's workers)
-        stops = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
-        old = {sig: signal.signal(sig, signal.default_int_handler) for sig in stops}
-        try:
+        # disarmed, the step aborted with the signal named, the reports written), even where
+        # this process was started with SIGINT ignored (a background job; pytest-xdist's
+        # workers); a second one (a double Ctrl-C) does not cut the step's end, the catalog
+        # rows or the reports
+        with PlanSignals().installed() as stops:
             results, interrupted = run_plan(
                 plan, rig, lambda line: print(line, flush=True), args.catalog or default_catalog()
             )
-        finally:
-            for sig, handler in old.items():
-                signal.signal(sig, handler)
-    print(table(results))
-    verdict = overall(results)
-    print(f"plan {plan.name}: {verdict.upper()}" + (" (interrupted)" if interrupted else ""))
-    ident = Identity.of(plan.path, rig_name, mrrig_version, started)
-    if args.junit:
-        write_junit(args.junit, plan.name, ident, results)
-        print(f"JUnit report: {args.junit}")
-    if args.html:
-        write_html(args.html, plan.name, ident, results)
-        print(f"HTML report: {args.html}")
+            interrupted = interrupted or stops.received > 0
+            print(table(results))
+            verdict = overall(results)
+            ended = " (interrupted)" if interrupted else ""
+            print(f"plan {plan.name}: {verdict.upper()}{ended}")
+            ident = Identity.of(plan.path, rig_name, mrrig_version, started)
+            if args.junit:
+                write_junit(args.junit, plan.name, ident, results)
+                print(f"JUnit report: {args.junit}")
+            if args.html:
+                write_html(args.html, plan.name, ident, results)
+                print(f"HTML report: {args.html}")
     return 0 if verdict == "passed" else 1

@@ -19,11 +19,11 @@ from __future__ import annotations
 
 import argparse
 import contextlib
-import signal
 from pathlib import Path
 
 from mrrig.cli.test import add_sim_arguments
 from mrrig.cli_args import HelpFormatter
+from mrrig.interruption import stops_interrupt
 from mrrig.rigio import client
 
 
@@ -108,9 +108,7 @@ def _tune(rig_name: str, candidates, args: argparse.Namespace) -> int:
     with Rig(rig_name, zenoh_config=args.zenoh_config) as rig:
         rig.status()  # no rig answering: one line, exit 2, before any trial
         model_path = _local_model(rig, args)
-        stops = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
-        old = {sig: signal.signal(sig, signal.default_int_handler) for sig in stops}
-        try:
+        with stops_interrupt():
             result = tr.run_trials(
                 rig,
                 candidates,
@@ -119,9 +117,6 @@ def _tune(rig_name: str, candidates, args: argparse.Namespace) -> int:
                 args.model,
                 default_catalog(),
             )
-        finally:
-            for sig, handler in old.items():
-                signal.signal(sig, handler)
         print(tr.table(result.trials, result.chosen))
         out = args.out or model_path.with_suffix(".tune.json")
         tr.write_trials(result, out, profile, rig_name)

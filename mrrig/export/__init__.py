@@ -133,8 +133,12 @@ def default_out(recording: Path, fmt: str) -> Path:
     return recording.with_suffix(f".{fmt}")
 
 
-def export(rec: Recording, fmt: str, out: Path) -> Path:
-    """Write `rec` as `fmt` (one of `FORMATS`) to `out`; returns `out`."""
+def export(rec: Recording, fmt: str, out: Path, force: bool = False) -> Path:
+    """Write `rec` as `fmt` (one of `FORMATS`) to `out`; returns `out`. A file there already
+    is replaced only with `force`; a link, a catalog or a recording never (`OutputError`,
+    `mrrig.export.target`)."""
+    from mrrig.export.target import OutputError, write_new
+
     if fmt not in FORMATS:
         raise ExportError(f"{out}: unknown export format {fmt!r} (one of {', '.join(FORMATS)})")
     t0, source = utc_start(rec)
@@ -142,7 +146,9 @@ def export(rec: Recording, fmt: str, out: Path) -> Path:
         log.warning("%s: no UTC start: the utc column is empty (%s)", rec.path, source)
     writer = {"parquet": _write_parquet, "csv": _write_csv, "mf4": _write_mf4}[fmt]
     try:
-        writer(rec, out, t0, _meta(rec, source, t0))
+        write_new(out, force, lambda tmp: writer(rec, tmp, t0, _meta(rec, source, t0)))
+    except OutputError:
+        raise
     except OSError as e:
         raise ExportError(f"{out}: cannot write: {e.strerror or e}") from e
     return out

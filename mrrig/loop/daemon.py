@@ -45,6 +45,8 @@ from mrrig.loop.coverage import controller_envelope
 from mrrig.loop.detectors import Detectors
 from mrrig.loop.estimation import RealtimeKalman
 from mrrig.loop.inversion import DEFAULT_CONTINUITY
+from mrrig.loop.kernel_stalls import KernelStalls, stall_event
+from mrrig.loop.lease import PATH_QUIET_S, ArmLease
 from mrrig.loop.mlp import MLP, ModelError
 from mrrig.loop.model_fit import RigUnits, check_cost, check_period, check_units
 from mrrig.loop.realtime import keep_off_cpu, leave_realtime, make_realtime
@@ -63,6 +65,7 @@ from mrrig.rigio import sdnotify
 from mrrig.rigio.canbus.bus import open_bus
 from mrrig.rigio.canbus.codec import Codec
 from mrrig.rigio.canbus.profile import load_profile
+from mrrig.rigio.canbus.profile_limits import daemon_limits
 from mrrig.rigio.control import (
     Change,
     ControlWorker,
@@ -269,7 +272,9 @@ class Daemon:
         self.cfg = cfg
         self.period_s = cfg.loop.period_s
         # the rig profile: the DBC and its roles ([can]); the start-up line names what is off
-        self.profile = load_profile(cfg.can.dbc, cfg.can.signals, cfg.loop.period_s, cfg.source)
+        self.profile = load_profile(
+            cfg.can.dbc, cfg.can.signals, cfg.loop.period_s, cfg.source, daemon_limits(cfg)
+        )
         if self.profile.protections_off:
             log.warning("%s", self.profile.startup_line())
         self.codec = self.profile.codec
@@ -303,8 +308,11 @@ class Daemon:
         self.actuator = cfg.actuator
         # the motion the rig was armed with: armed changes are bounded from it, not per request
         self.actuator_at_arm = cfg.actuator
+        self.lease = ArmLease(cfg.control.lease_timeout_s)  # a remote arm's, while held
         self.record_path = record_path
         self.exit_code = Exit.OK
+        # why the daemon raised, where it did: the summary says so (the catalog: `crashed`)
+        self.crashed = ""
         self.record_paths = [record_path] if record_path is not None else []
         self._clock_warned = False
         self._sidecar_deadline = math.inf
@@ -347,11 +355,14 @@ class Daemon:
             "force_refs_received": 0,  # on force_ref, with the zenoh reference
             "force_refs_clamped": 0,  # of those, outside loop.f_range_n (clamped into it)
             "can_log_dropped": 0,  # frames the pipe to the bus log's writer could not take
+            "leases_lapsed": 0,  # armed by a client that stopped renewing its lease
         }
         self.events: list[dict] = []
         self._keep_batches = keep_batches
         self._chunks: list[np.ndarray] = []  # only with keep_batches
         self._summary = SummaryAccumulator()  # the exit summary, built batch by batch
+        # the loop thread's run-queue delay and the VM's steal, pass by pass
+        self.kernel_stalls = KernelStalls(self.period_s)
         # per answered frame, the parts of latency_us: the wait between the bus's receive
         # timestamp and the loop's read, the loop's work from its read to the end of send()
         # (the spec's budget), and the send() call within that work
@@ -425,8 +436,10 @@ class Daemon:
 
     # ---- CAN ---------------------------------------------------------------------------
     def _send(self, name: str, values: dict[str, Any]) -> bool:
-        msg = self.packer.message(name, values)
+        """Encode and send; a failure of either (a value the profile cannot carry, the bus) is
+        a BUS_ERROR fault, never the end of the loop."""
         try:
+            msg = self.packer.message(name, values)
             t = time.perf_counter()
             self.bus.send(msg, timeout=self.cfg.bus.send_timeout_s)
             self._send_call_s = time.perf_counter() - t
@@ -452,6 +465,8 @@ class Daemon:
         if ok:
             self.counters["commands_sent"] += 1
             self.counters["commands_active"] += active
+        elif active:  # in FAULT now: the frame is answered SAFE, if that can be sent
+            self._send_command(False, 0.0, 0.0, echo)
 
     def _send_actuator(self) -> None:
         a = self.actuator
@@ -496,7 +511,7 @@ class Daemon:
                 if self._pipelined():
                     f_des, f_next = self._targets_now(t, x, xd, xdd)
                 else:
-                    f_des = float(self.reference.force(t, x, xd))
+                    f_des = float(self.reference.forecast(t, x, xd))
             except ref.StaleReference as exc:
                 f_des = 0.0
                 if sup.active:
@@ -542,6 +557,8 @@ class Daemon:
         active = sup.active
         safe_f = f_des if math.isfinite(f_des) else 0.0
         self._send_command(active, i_cmd if active else 0.0, safe_f, counter)
+        active = active and sup.active  # a send that failed faulted it: answered SAFE
+        f_record = f_des
         if self._stop:
             self._safe_sent_at_stop = True
         work_us = (time.perf_counter() - t_rx) * 1e6
@@ -553,6 +570,10 @@ class Daemon:
         try:
             if active:
                 self.controller.after_send()  # on-line adaptation: armed, no fault this frame
+            if self.reference.follows_motion:
+                # this instant's desired force: the reference moved on along the motion as
+                # estimated now that the frame has come (the targets were its forecasts)
+                f_record = self._clamp_force(float(self.reference.force(t, x, xd)))
             # off the latency path: the next frame's Kalman step, reference and controller
             # work, from the predicted state
             self._prepare_next(t + self.period_s, active)
@@ -570,7 +591,7 @@ class Daemon:
             events += sup.trip(t, Fault.INTERNAL_ERROR, f"{type(exc).__name__}: {exc}")
         row = self._buf[self._n]
         row["t"], row["counter"], row["x"], row["x_est"] = t, counter, x_meas, x
-        row["xd"], row["xdd"], row["f_meas"], row["f_des"] = xd, xdd, f_meas, f_des
+        row["xd"], row["xdd"], row["f_meas"], row["f_des"] = xd, xdd, f_meas, f_record
         row["f_model"], row["i_cmd"] = f_model, i_cmd if active else 0.0
         row["i_meas"], row["latency_us"], row["state"] = self._i_meas, latency_us, sup.state
         row["temp_degc"] = self._temp_degc
@@ -619,17 +640,17 @@ class Daemon:
     def _targets_now(self, t: float, x: float, xd: float, xdd: float) -> tuple[float, float]:
         """This frame's desired force and the next frame's: computed after the previous
         frames' commands (`_prepare_next`) where they were, else now, the next one at the
-        state one period on (eq. 21). The reference is evaluated once per instant, in
-        order (a reference damper steps once per frame), on the frame sequence rather than
-        on receive times, which jitter."""
+        state one period on (eq. 21): the reference's forecasts, each instant's once, on
+        the frame sequence rather than on receive times, which jitter. A reference damper
+        moves on after the command, on the estimate of the instant (`cycle`)."""
         T = self.period_s
         q = self._targets
-        f_des = q[0] if q else float(self.reference.force(t, x, xd))
+        f_des = q[0] if q else float(self.reference.forecast(t, x, xd))
         if len(q) > 1:
             f_next = q[1]
         else:
             xn, xdn = x + xd * T + 0.5 * xdd * T * T, xd + xdd * T
-            f_next = float(self.reference.force(t + T, xn, xdn))
+            f_next = float(self.reference.forecast(t + T, xn, xdn))
         self._targets = [f_next]
         return f_des, f_next
 
@@ -652,18 +673,17 @@ class Daemon:
                 return  # not after a frame's targets: the next frame computes its own
             T = self.period_s
             xn, xdn = xp + xdp * T + 0.5 * xddp * T * T, xdp + xddp * T
-            self._targets.append(float(self.reference.force(t_next + T, xn, xdn)))
+            self._targets.append(float(self.reference.forecast(t_next + T, xn, xdn)))
             if active:
                 f_now, f_after = (self._clamp_force(f) for f in self._targets)
                 self.controller.prepare_one(xp, xdp, xddp, f_now, f_after)
             return
-        self.reference.prepare(t_next, xp, xdp)
-        if not active:
-            return
-        try:
-            f_next = float(self.reference.force(t_next, xp, xdp))
+        try:  # the frame's own desired force, forecast off its latency path
+            f_next = float(self.reference.forecast(t_next, xp, xdp))
         except ref.StaleReference:
             return  # the frame itself will say so
+        if not active:
+            return
         f_next = self._clamp_force(f_next)
         wants = self.controller.wants_next_target
         self.controller.prepare_one(xp, xdp, xddp, f_next, f_next if wants else None)
@@ -920,19 +940,26 @@ class Daemon:
             if not ok:
                 raise RequestError(msg)
             if events:
+                self.lease.end()  # armed anew: a lease of its own
                 self.actuator_at_arm = self.actuator
                 self.controller.reset(1)
                 self.detectors.reset()
                 self.reset_reference(self.now(), self.last_x)
                 self._listen_since = time.perf_counter()  # frames must come while armed
             self._emit(events)
-            return {"state": sup.state.name, "message": msg}
+            if not c.remote:  # in process: the daemon ends with its client
+                return {"state": sup.state.name, "message": msg}
+            self.lease.grant(time.perf_counter())
+            return {"state": sup.state.name, "message": msg, **self.lease.reply()}
+        if c.cmd == "renew":
+            return self._renew(c.lease)
         if c.cmd == "reset":
             msg, events = sup.reset(self.now())
             self._emit(events)
             return {"state": sup.state.name, "message": msg}
         if c.cmd == "disarm":
             self._emit(sup.disarm(self.now(), "disarmed by request"))
+            self.lease.end()
             return {"state": sup.state.name}
         if c.cmd == "status":
             return {"status": self.status()}
@@ -970,6 +997,37 @@ class Daemon:
             "amplitude_m": a.amplitude_m,
             "frequency_hz": a.frequency_hz,
         }
+
+    def _renew(self, lease_id: str) -> dict[str, Any]:
+        """Keep an arm's lease; refused when it is not the one held or the rig left ARMED."""
+        if self.supervisor.state is not RigState.ARMED:
+            self.lease.end()
+            raise RequestError(f"lease {lease_id}: ended, the rig is {self.supervisor.state.name}")
+        if not self.lease.renew(lease_id, time.perf_counter()):
+            raise RequestError(f"lease {lease_id}: not held (lapsed, or another arm's)")
+        return self.lease.reply()
+
+    def _lease_lapsed(self, t_rx: float) -> None:
+        """No renewal of the arm's lease within its timeout (its client killed or cut off):
+        FAULT (this frame on answered SAFE) and the actuator stopped, as a detector's stop. The
+        lease's clock stops while the telemetry process, which carries the renewals, is
+        silent (a stall of it is no client's end; `telemetry_lost` guards that)."""
+        heard = self._sidecar_deadline - self.cfg.telemetry.heartbeat_timeout_s
+        if self.link is not None and t_rx - heard > PATH_QUIET_S:
+            self.lease.deadline = t_rx + self.lease.timeout_s
+            return
+        timeout_s, unrenewed_s = self.lease.timeout_s, t_rx - self.lease.deadline
+        self.lease.end()
+        if not self.supervisor.active:
+            return
+        self.counters["leases_lapsed"] += 1
+        reason = (
+            f"lease lapsed: no renewal for {unrenewed_s + timeout_s:.2f} s"
+            f" (limit control.lease_timeout_s = {timeout_s:g} s): the client that armed is gone"
+        )
+        self.actuator = replace(self.actuator, waveform="stop")
+        self._last_actuator_sent = -math.inf
+        self._emit(self.supervisor.trip(t_rx - self.t0, Fault.LEASE_LAPSED, reason))
 
     def _adaptation_change(self, c: Change) -> dict[str, Any]:
         adapt = getattr(self.controller, "adapt", None)
@@ -1116,7 +1174,8 @@ class Daemon:
             self._sidecar_deadline = time.perf_counter() + SIDECAR_START_S
         try:
             self.bus = open_bus(cfg.bus.interface, cfg.bus.channel, **cfg.bus.options)
-        except BaseException:
+        except BaseException as exc:
+            self.crashed = f"{type(exc).__name__}: {exc}"
             self._shutdown()
             raise
         try:
@@ -1135,6 +1194,9 @@ class Daemon:
             self._cpu0 = time.process_time()
             self._arm_pending = cfg.loop.arm_on_start
             self._loop()
+        except BaseException as exc:
+            self.crashed = f"{type(exc).__name__}: {exc}"
+            raise
         finally:
             self._shutdown()
         return self.summary
@@ -1152,6 +1214,7 @@ class Daemon:
         self.notifier.ready(f"rig {cfg.rig.name}: listening on {cfg.bus.channel}")
         log.info("loop running: one command per sensor frame")
         stop_deadline = None
+        self.kernel_stalls.start(self.now())  # this thread's: the loop's
         while not self._safe_sent_at_stop:
             if self._stop and stop_deadline is None:
                 stop_deadline = time.perf_counter() + timeout_s
@@ -1168,6 +1231,8 @@ class Daemon:
             self.notifier.pet(t_rx)
             # a change prepared before this frame came applies to it
             self._apply_change()
+            if t_rx > self.lease.deadline:
+                self._lease_lapsed(t_rx)
             if msg is not None:
                 self.on_frame(msg, t_rx, self._queued_s(msg))
             self.check_timeout(t_rx)
@@ -1178,8 +1243,16 @@ class Daemon:
             if t - self._last_actuator_sent >= ACTUATOR_PERIOD_S:
                 self._send_actuator()
             self._send_status()
+            self._read_kernel_stalls()
             if end is not None and t_rx >= end:
                 self.request_stop(f"duration {cfg.loop.duration_s:g} s reached")
+
+    def _read_kernel_stalls(self) -> None:
+        """Once a pass, after the frame's command: the run-queue delay and steal since the
+        previous pass; a pass that lost a window's worth is an event of the recording."""
+        window = self.kernel_stalls.read(self.now())
+        if window is not None and self.link is not None:
+            self.link.send_event(stall_event(window))
 
     def _discard_backlog(self) -> None:
         """Drop the frames queued while the daemon started: the rig has moved on. Up to the
@@ -1189,7 +1262,7 @@ class Daemon:
         stale = 0
         while (msg := self.bus.recv(timeout=0)) is not None:
             stale += 1
-            if self._queued_s(msg) <= self.cfg.loop.max_frame_age_s:
+            if self._queued_s(msg) <= self.cfg.loop.frame_age_limit_s:
                 break
         if stale:
             log.info("discarded %d frames queued before the loop started", stale)
@@ -1251,6 +1324,7 @@ class Daemon:
 
     def _shutdown(self) -> None:
         """SAFE first, then the actuator to rest, the summary, the sidecar, the bus."""
+        self.kernel_stalls.stop(self.now())  # the loop's last pass
         self.control.stop()
         while (taken := self.control.take()) is not None:
             if taken[0].cmd == "sidecar" and taken[0].sidecar is not None:
@@ -1296,8 +1370,11 @@ class Daemon:
         if self.exit_code == Exit.OK and self.supervisor.state is RigState.FAULT:
             self.exit_code = Exit.FAULT
         self.summary["exit_code"] = self.exit_code
+        if self.crashed:
+            self.summary["crashed"] = self.crashed
         qs = (50, 99, 99.9)
         self.summary["latency_split_us"] = {k: h.percentiles(qs) for k, h in self._split_us.items()}
+        self.summary["kernel_stalls"] = self.kernel_stalls.result()
         if self.link is not None:
             self.link.send_summary(self.summary)
             self.link.send_stop()

@@ -8,11 +8,12 @@ from __future__ import annotations
 
 import abc
 import math
+from dataclasses import astuple
 from pathlib import Path
 
 import numpy as np
 
-from damper.plant import BoucWenDamper, BoucWenParams
+from damper.plant import BoucWenDamper, BoucWenParams, bouc_wen_force
 from damper.plant_file import load_plant
 from damper.signals import bandlimited_noise
 from mrrig.errors import MrrigError
@@ -40,12 +41,18 @@ class ForceReference(abc.ABC):
     def force(self, t_s: float, x_m: float, xd_m_s: float) -> float:
         """Desired force at t_s, N."""
 
-    def prepare(self, t_s: float, x_m: float, xd_m_s: float) -> None:  # noqa: B027
-        """Compute the force for the next instant ahead of time, from a predicted state.
+    def forecast(self, t_s: float, x_m: float, xd_m_s: float) -> float:
+        """The desired force at a coming instant t_s, from the motion predicted there, without
+        moving the source on: what a controller solves for before the instant comes. A source
+        whose force depends on the motion's path (`follows_motion`) forecasts from the state
+        it reached at its last `force` instant; any other's forecast is its force."""
+        return self.force(t_s, x_m, xd_m_s)
 
-        The daemon calls this after it has sent a command, so that a reference that is
-        costly to evaluate (a damper model) is off the receive -> send path.
-        """
+    # whether the force depends on the path of the motion (a reference damper): the daemon
+    # then moves the source on by `force` on the motion as estimated at each instant, once its
+    # frame has come, and that force is the instant's desired force (what it records and
+    # judges Et by); the controller's targets are `forecast`s
+    follows_motion = False
 
 
 class Constant(ForceReference):
@@ -137,9 +144,19 @@ class BoucWenReference(ForceReference):
 
     This is the paper's validation protocol brought to the rig: the desired force is what a
     damper with the given current profile (constant + sine) produces, so it is reachable.
+
+    `force(t, x, xd)` moves the damper on to t along the motion (x, xd at t), one period a
+    call (the periods since the last call where frames were lost); `forecast` steps a copy
+    from there to a coming instant and leaves the damper where it was. The daemon moves it
+    on the Kalman filter's estimate of each instant once that instant's frame has come, and
+    forecasts the controller's targets from the predicted motion: a damper moved on the
+    predictions themselves integrates their errors into its hysteresis state (eq. 31), and
+    its pre-yield stiffness (alpha A, eqs 31-33: about 2.4 N per um at 0.75 A) makes 1-2 um
+    of displacement error newtons of force.
     """
 
     kind = "bouc_wen"
+    follows_motion = True
 
     def __init__(
         self,
@@ -161,32 +178,55 @@ class BoucWenReference(ForceReference):
         except ValueError as exc:
             raise ForceReferenceError(str(exc)) from None
         self._damper = BoucWenDamper(params, substep_s=2.5e-4)
+        self._params = astuple(params)
         self.current_a, self.current_amp_a = current_a, current_amp_a
         self.w = 2 * math.pi * current_freq_hz
         self.dt_s = dt_s
-        self._prepared_t = -math.inf
-        self._prepared_f = 0.0
+        self.reset(0.0, 0.0)
 
     def reset(self, t_s: float, x_m: float) -> None:
-        self._damper.reset(x_m, 0.0, self.current_a)
-        self._prepared_t = -math.inf
-        self._prepared_f = 0.0
+        self._t = t_s  # the instant the damper is at, and the motion there
+        self._motion = (x_m, 0.0)
+        self._f = self._offset_n + self._damper.reset(x_m, 0.0, self.current_a)
+        # the forecasts since: (t, state, x, xd, force) of the latest
+        self._ahead: tuple | None = None
 
     def _current(self, t_s: float) -> float:
         return max(0.0, self.current_a + self.current_amp_a * math.sin(self.w * t_s))
 
-    def _step(self, t_s: float, x_m: float, xd_m_s: float) -> float:
-        return self._damper.step(x_m, xd_m_s, self._current(t_s), self.dt_s) + self._offset_n
-
-    def prepare(self, t_s: float, x_m: float, xd_m_s: float) -> None:
-        self._prepared_f = self._step(t_s, x_m, xd_m_s)
-        self._prepared_t = t_s
+    def _periods(self, t_s: float, since_s: float) -> int:
+        return round((t_s - since_s) / self.dt_s)
 
     def force(self, t_s: float, x_m: float, xd_m_s: float) -> float:
-        # the value prepared from the predicted state, when it is for this instant
-        if abs(t_s - self._prepared_t) < 0.5 * self.dt_s:
-            return self._prepared_f
-        return self._step(t_s, x_m, xd_m_s)
+        d = self._damper
+        n = self._periods(t_s, self._t)
+        if n <= 0:  # the instant it is at (a reset there): the motion there as now given
+            d.set_state(d.state, x_m, xd_m_s)
+            self._f = bouc_wen_force(*d.state, x_m, xd_m_s, self._params) + self._offset_n
+        else:
+            self._f = d.step(x_m, xd_m_s, self._current(t_s), n * self.dt_s) + self._offset_n
+            self._t = t_s
+        self._motion, self._ahead = (x_m, xd_m_s), None
+        return self._f
+
+    def forecast(self, t_s: float, x_m: float, xd_m_s: float) -> float:
+        ahead = self._ahead
+        if ahead is not None and self._periods(t_s, ahead[0]) == 0:
+            return ahead[4]  # forecast already (the daemon's targets, a frame before)
+        n = self._periods(t_s, self._t)
+        if n <= 0:
+            return self._f
+        d = self._damper
+        here = (d.state, *self._motion)
+        t0 = self._t
+        if ahead is not None and 0 < self._periods(ahead[0], self._t) < n:
+            d.set_state(ahead[1], ahead[2], ahead[3])  # on from the latest forecast
+            t0 = ahead[0]
+        f = d.step(x_m, xd_m_s, self._current(t_s), self._periods(t_s, t0) * self.dt_s)
+        f += self._offset_n
+        self._ahead = (t_s, d.state, x_m, xd_m_s, f)
+        d.set_state(*here)
+        return f
 
 
 # Table 6's validation cases (spec/modeling.md section 4 A): 6 s at 1 ms, drawn with data set
@@ -228,7 +268,6 @@ class PaperCase(BoucWenReference):
         self._i = (current_scale * paper_case_command(case)).tolist()
         # the damper starts as the one that made the desired force: its coil at the first input
         super().__init__(preset, self._i[0], 0.0, 1.0, dt_s)
-        self._t0 = 0.0
 
     def reset(self, t_s: float, x_m: float) -> None:
         self._t0 = t_s

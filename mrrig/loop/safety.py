@@ -43,6 +43,7 @@ class Fault(enum.Enum):
     RECORDING_FAILED = "recording_failed"  # the recording could not be written
     DUPLICATE_RIG = "duplicate_rig"  # a second daemon of this rig's name on the Zenoh network
     NO_SENSOR_FRAMES = "no_sensor_frames"  # none valid within the sensor timeout of start/arm
+    LEASE_LAPSED = "lease_lapsed"  # the client that armed stopped renewing its lease
     # the error detectors' disarm and stop actions (mrrig/loop/detectors.py)
     TRACKING_ERROR = "tracking_error"
     OVER_VELOCITY = "over_velocity"

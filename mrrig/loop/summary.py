@@ -10,6 +10,7 @@ import numpy as np
 
 from mrrig.loop.coverage import OUTSIDE_BITS
 from mrrig.loop.feasibility import F_DEADBAND_N, V_DEADBAND_M_S, opposed
+from mrrig.loop.kernel_stalls import format_stalls
 from mrrig.loop.samples import RigState
 
 
@@ -347,6 +348,7 @@ def format_summary(d: Mapping[str, Any]) -> str:
         f"frame gaps    max {_fmt(d['frame_gap_ms']['max'], ' ms')},"
         f" {d['frame_gap_ms']['over_10_ms']} over 10 ms",
         *_coverage_lines(d.get("coverage")),
+        *([f"kernel stalls {format_stalls(d['kernel_stalls'])}"] if "kernel_stalls" in d else []),
         f"faults        {len(d['faults'])}",
     ]
     lines += [f"  t={_fmt(f['t'], ' s', 6)}  {f['reason']}" for f in d["faults"]]
@@ -366,6 +368,7 @@ def format_summary(d: Mapping[str, Any]) -> str:
         "faults",
         "clock_t0_s",  # for tools that set the run beside another process's clock
         "coverage",
+        "kernel_stalls",  # the loop's own stalls (mrrig.loop.kernel_stalls)
     }
     extra = {k: v for k, v in d.items() if k not in known}
     if extra:

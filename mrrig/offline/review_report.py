@@ -22,6 +22,7 @@ import numpy as np
 
 from mrrig.loop.samples import RigState
 from mrrig.offline.review import Recording
+from mrrig.safe_text import one_line, plot_literal
 
 _MAX_POINTS = 4000  # per line: about twice the pixels of a panel's width at 100 dpi
 
@@ -123,7 +124,7 @@ def plot(rec: Recording, metrics: Mapping[str, Any], out_png: str | Path | io.By
             ax.axvline(tf, color="red", lw=0.8, alpha=0.7)
         # stagger the labels so that faults close together stay readable
         ax_f.annotate(
-            reason,
+            plot_literal(reason),
             (tf, 1.0 - 0.08 * (k % 4)),
             xycoords=("data", "axes fraction"),
             fontsize=8,
@@ -155,7 +156,7 @@ def plot(rec: Recording, metrics: Mapping[str, Any], out_png: str | Path | io.By
         ax_lat.axvline(p99, color="red", lw=0.8, label=f"p99 {p99:.0f} us")
         ax_lat.legend(loc="upper right", fontsize=8)
     ax_lat.set(xlabel="cycle latency (us)", ylabel="frames", title="Latency receive -> send")
-    fig.suptitle(title(rec, metrics))
+    fig.suptitle(plot_literal(title(rec, metrics)))
     fig.savefig(out_png, dpi=100, format="png")
     plt.close(fig)
 
@@ -239,16 +240,17 @@ def plot_compare(
         armed = s["state"] == RigState.ARMED
         t0 = float(s["t"][armed][0]) if armed.any() else float(s["t"][0]) if s.size else 0.0
         t = s["t"] - t0
-        _line(ax_f, t, s["f_meas"], label=f"{label}: f_meas measured", color=color)
-        _line(ax_f, t, s["f_des"], label=f"{label}: f_des desired", color=color, ls="--")
-        _line(ax_e, t, s["f_meas"] - s["f_des"], label=f"{label}: f_meas - f_des", color=color)
-        _line(ax_i, t, s["i_cmd"], label=f"{label}: i_cmd commanded", color=color)
+        shown = plot_literal(label)  # a `$` in a run's label is text, not mathtext
+        _line(ax_f, t, s["f_meas"], label=f"{shown}: f_meas measured", color=color)
+        _line(ax_f, t, s["f_des"], label=f"{shown}: f_des desired", color=color, ls="--")
+        _line(ax_e, t, s["f_meas"] - s["f_des"], label=f"{shown}: f_meas - f_des", color=color)
+        _line(ax_i, t, s["i_cmd"], label=f"{shown}: i_cmd commanded", color=color)
         fault_times = [e["t"] - t0 for e in events if e.get("kind") == "fault" and "t" in e]
         for tf in fault_times:
             for ax in (ax_f, ax_e, ax_i):
                 ax.axvline(tf, color=color, lw=0.8, ls=":")
-        ax_fv.plot(s["xd"][armed], s["f_meas"][armed], ".", ms=1, color=color, label=label)
-        titles.append(f"{label}: {int(armed.sum())} armed frames")
+        ax_fv.plot(s["xd"][armed], s["f_meas"][armed], ".", ms=1, color=color, label=shown)
+        titles.append(f"{one_line(label)}: {int(armed.sum())} armed frames")
     ax_f.set(ylabel="force (N)", title="Force tracking (dotted: a fault)")
     ax_e.set(ylabel="error (N)", title="Tracking error")
     ax_e.axhline(0.0, color="0.5", lw=0.5)
@@ -257,7 +259,7 @@ def plot_compare(
         ax.legend(loc="upper left", bbox_to_anchor=(1.0, 1.0), fontsize=8, frameon=False)
     ax_fv.set(xlabel="velocity (m/s)", ylabel="measured force (N)", title="Force-velocity, armed")
     ax_fv.legend(loc="lower right", markerscale=8, fontsize=8)
-    fig.suptitle("; ".join(titles))
+    fig.suptitle(plot_literal("; ".join(titles)))
     # the title also as the PNG's own: a figure filed away still says which runs it shows
     fig.savefig(out_png, dpi=100, format="png", metadata={"Title": "; ".join(titles)})
     plt.close(fig)

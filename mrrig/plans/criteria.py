@@ -21,6 +21,16 @@ from mrrig.loop.safety import TRANSPORT_FAULTS
 from mrrig.loop.samples import RigState
 from mrrig.offline.metrics import error_norm
 
+# each limit's physical range (low, high, unit): a damper's coil takes at most 5 A (the
+# daemon's i_max_a bound), its fluid works between about -40 and 150 degC; -1e300 degC was
+# accepted and failed every step
+_RANGES = {
+    "et_max": (0.0, 100.0, ""),  # Et: 0 perfect, 1 no better than zero force
+    "peak_current_a_max": (0.0, 5.0, " A"),
+    "latency_p99_us_max": (0.0, 1e6, " us"),
+    "temperature_max_degc": (-40.0, 250.0, " degC"),
+}
+
 
 @dataclass(frozen=True)
 class Criteria:
@@ -37,6 +47,10 @@ class Criteria:
             value = getattr(self, name)
             if value is not None and not value > 0:
                 raise ValueError(f"{name}: must be > 0")
+        for name, (low, high, unit) in _RANGES.items():
+            value = getattr(self, name)
+            if value is not None and not (math.isfinite(value) and low <= value <= high):
+                raise ValueError(f"{name}: {value!r} is outside [{low:g}, {high:g}]{unit}")
         share = self.coverage_outside_max
         if share is not None and not 0 <= share <= 1:
             raise ValueError("coverage_outside_max: must be in [0, 1] (a share of the samples)")

@@ -9,6 +9,7 @@ duration and settling time, and its `criteria`. An error is one line naming the 
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
@@ -16,7 +17,16 @@ from typing import Any, Literal
 from mrrig.config import ActuatorSection, ControllerSection, ReferenceSection
 from mrrig.loop.controllers import CONTROLLERS
 from mrrig.plans.criteria import Criteria
+from mrrig.safe_text import MAX_CHARS, one_line
 from mrrig.typed_config import ConfigError, load_toml, parse
+
+# a plan's size: a 1,000,000-step plan took 2 minutes and 916 MB to read before it found that
+# no daemon answered. A day of 90 s steps is under 1000; the file's bytes are bounded before
+# it is parsed (a step is a few hundred bytes)
+MAX_STEPS = 1000
+MAX_PLAN_BYTES = 2_000_000
+# what `compare_et` may hold: Et is a normalized error (0: perfect, 1: no better than zero force)
+MAX_COMPARE_ET = 100.0
 
 # a model-using controller without `model` keeps the daemon's model (set_controller's rule):
 # the plan checks every other field with this stand-in, and sends no model
@@ -46,9 +56,15 @@ class Step:
     compare_et: dict[str, float] = field(default_factory=dict)
 
     def check(self) -> None:
+        _one_line("name", self.name)
         for source, value in self.compare_et.items():
             if isinstance(value, bool) or not isinstance(value, int | float):
                 raise ValueError(f"compare_et.{source}: expected a number, got {value!r}")
+            if not (math.isfinite(value) and 0 <= value <= MAX_COMPARE_ET):
+                raise ValueError(
+                    f"compare_et.{source}: {value!r} is not an Et (a finite number in"
+                    f" [0, {MAX_COMPARE_ET:g}])"
+                )
         if not 0 < self.duration_s <= 24 * 3600:
             raise ValueError("duration_s: must be in (0, 86400] s")
         if not 0 <= self.settle_s <= 600:
@@ -90,10 +106,34 @@ class _Header:
     rig: str | None = None
     description: str = ""
 
+    def check(self) -> None:
+        _one_line("name", self.name)
+        if self.rig is not None:
+            _one_line("rig", self.rig)
+
+
+def _one_line(field_name: str, text: str) -> None:
+    """A name a terminal, a log line, the JUnit report and the catalog show: printable, one
+    line, of bounded length (`safe_text.one_line` would change it)."""
+    if one_line(text) != text:
+        raise ValueError(
+            f"{field_name}: {one_line(text, 60)}: one printable line of at most {MAX_CHARS}"
+            " characters (no control character, line break or bidi override)"
+        )
+
 
 def load_plan(path: str | Path) -> Plan:
     """Parse and check a plan file; PlanError (one line: file, step, field) when it cannot run."""
     path = Path(path)
+    try:
+        size = path.stat().st_size
+    except OSError:
+        size = 0  # load_toml names what is wrong with the file
+    if size > MAX_PLAN_BYTES:
+        raise PlanError(
+            f"{path}: {size} bytes, over the limit of {MAX_PLAN_BYTES} for a plan (at most"
+            f" {MAX_STEPS} steps)"
+        )
     try:
         table = load_toml(path)
     except ConfigError as exc:
@@ -109,6 +149,10 @@ def load_plan(path: str | Path) -> Plan:
     steps = table.get("step")
     if not isinstance(steps, list) or not steps:
         raise PlanError(f"{source}: step: a plan needs at least one [[step]]")
+    if len(steps) > MAX_STEPS:
+        raise PlanError(
+            f"{source}: step: {len(steps)} steps, over the limit of {MAX_STEPS} (split the plan)"
+        )
     return Plan(
         name=header.name,
         path=path,

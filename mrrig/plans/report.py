@@ -14,6 +14,10 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from mrrig.plans.runner import StepResult, overall
+from mrrig.safe_text import one_line, plot_literal
+
+# a JUnit message: the reasons of a step, more than a name (safe_text.MAX_CHARS)
+_MAX_MESSAGE_CHARS = 4096
 
 
 @dataclass(frozen=True)
@@ -41,7 +45,10 @@ def _number(value: float) -> str:
 
 def write_junit(path: Path, plan_name: str, ident: Identity, results: list[StepResult]) -> None:
     """One testsuite (in <testsuites>) named after the plan; a failed step is a <failure>, an
-    aborted one an <error>, a skipped one <skipped>, each with the reason as its message."""
+    aborted one an <error>, a skipped one <skipped>, each with the reason as its message. Every
+    text is one printable line (`safe_text.one_line`): a control character in a step's name or
+    a fault's reason made the XML ill-formed."""
+    plan_name = one_line(plan_name)
     root = ET.Element("testsuites", name=plan_name)
     suite = ET.SubElement(
         root,
@@ -62,10 +69,14 @@ def write_junit(path: Path, plan_name: str, ident: Identity, results: list[StepR
         ("mrrig_version", ident.mrrig_version),
         ("operator", ident.operator),
     ):
-        ET.SubElement(props, "property", name=name, value=value)
+        ET.SubElement(props, "property", name=name, value=one_line(value, _MAX_MESSAGE_CHARS))
     for r in results:
         case = ET.SubElement(
-            suite, "testcase", classname=plan_name, name=r.step.name, time=f"{r.wall_s:.3f}"
+            suite,
+            "testcase",
+            classname=plan_name,
+            name=one_line(r.step.name),
+            time=f"{r.wall_s:.3f}",
         )
         cprops = ET.SubElement(case, "properties")
         values = {
@@ -86,8 +97,8 @@ def write_junit(path: Path, plan_name: str, ident: Identity, results: list[StepR
                 "against_motion_share": _number(n.opposed_share),
             }
         for name, value in values.items():
-            ET.SubElement(cprops, "property", name=name, value=value)
-        message = "; ".join(r.reasons)
+            ET.SubElement(cprops, "property", name=name, value=one_line(value, _MAX_MESSAGE_CHARS))
+        message = one_line("; ".join(r.reasons), _MAX_MESSAGE_CHARS)
         tag = {"failed": "failure", "aborted": "error", "skipped": "skipped"}.get(r.verdict)
         if tag is not None:
             ET.SubElement(case, tag, message=message).text = message
@@ -113,7 +124,7 @@ def _plot_png(r: StepResult) -> str:
         ax.legend(loc="upper right")
     ax.set_xlabel("t (s)")
     ax.set_ylabel("force (N)")
-    ax.set_title(f"{r.step.name}: {r.verdict}")
+    ax.set_title(plot_literal(f"{r.step.name}: {r.verdict}"))
     fig.tight_layout()
     buf = io.BytesIO()
     fig.savefig(buf, format="png")

@@ -4,8 +4,11 @@ telemetry over Zenoh: `mrrig.api.Rig`), step by step.
 Per step: out of FAULT by an explicit `reset` (spec/system.md: a new step needs it), disarm,
 the step's actuator, controller and profile, arm, settle, telemetry for the step's duration,
 disarm, verdict. A fault aborts the step with the fault's reason (with `faults = "transport"`
-a transport fault is reset and re-armed, and counted); Ctrl-C disarms, marks the step aborted
-and ends the plan.
+a transport fault is reset and re-armed, and counted, at most 3 times in any 10 s: one more is
+a faulty bus, and aborts the step); Ctrl-C disarms, marks the step aborted and ends the plan.
+The arm's lease is renewed in the background while the step holds the rig (`mrrig.api.Rig`):
+a plan killed mid-step leaves the daemon to disarm and stop the actuator once it lapses; the
+plan's end (normal or Ctrl-C) stops the actuator.
 """
 
 from __future__ import annotations
@@ -22,13 +25,16 @@ import numpy as np
 
 from mrrig.api import Rig, RigError, register_run
 from mrrig.errors import MrrigError
+from mrrig.interruption import what
 from mrrig.loop.safety import TRANSPORT_FAULTS
 from mrrig.loop.samples import SAMPLE_DTYPE
 from mrrig.plans.criteria import Numbers, failures, measure
 from mrrig.plans.feasibility import Prediction, before_arming
+from mrrig.plans.interrupts import interruptible
 from mrrig.plans.plan import Plan, Step
 from mrrig.rigio.client import ClientError
 from mrrig.rigio.control import MAX_MARK_CHARS, MAX_MARK_DATA_CHARS
+from mrrig.rigio.rearm import RearmLimit
 
 log = logging.getLogger(__name__)
 
@@ -79,12 +85,14 @@ def run_plan(
         where = f"plan {plan.name}: step {index}/{len(plan.steps)} {step.name}"
         try:
             _mark(rig, f"{where}: start", _start_data(plan, index, step))
-            _run_step(index, len(plan.steps), step, rig, result, progress)
+            with interruptible():  # a stop signal interrupts the step, never its ending
+                _run_step(index, len(plan.steps), step, rig, result, progress)
         except StepAborted as exc:
             result.verdict, result.reasons = "aborted", [str(exc)]
-        except KeyboardInterrupt:
+        except KeyboardInterrupt as exc:
             interrupted = True
-            result.verdict, result.reasons = "aborted", ["interrupted (Ctrl-C): the rig disarmed"]
+            reason = f"interrupted ({what(exc)}): the rig disarmed"
+            result.verdict, result.reasons = "aborted", [reason]
         finally:
             _disarm(rig)
             result.wall_s = time.monotonic() - t0
@@ -230,6 +238,7 @@ def _run_step(
     progress(f"  step {index}/{count} {step.name}: {result.predicted.text()}")
     tele = rig.telemetry(duration_s=step.settle_s + step.duration_s, quiet_s=CONTROL_PATIENCE_S)
     _request(rig, {"cmd": "arm"})
+    rearms = RearmLimit()  # per step: a faulty bus aborts it (mrrig.rigio.rearm)
     t0 = last_status = last_progress = answered = time.monotonic()
     total = step.settle_s + step.duration_s
     for _batch in tele:
@@ -237,7 +246,7 @@ def _run_step(
         if now - last_status >= STATUS_PERIOD_S:
             last_status = now
             try:
-                _check_faults(step, rig, result)
+                _check_faults(step, rig, result, rearms)
                 answered = time.monotonic()
             except ClientError as exc:
                 if time.monotonic() - answered > CONTROL_PATIENCE_S:
@@ -255,7 +264,7 @@ def _run_step(
                 f"Et {numbers.et:.4f}, faults {len(result.faults)}"
             )
     try:
-        _check_faults(step, rig, result)
+        _check_faults(step, rig, result, rearms)
     except ClientError as exc:
         raise StepAborted(f"no status from the rig at the step's end: {exc}") from None
     result.samples = tele.samples
@@ -266,7 +275,7 @@ def _run_step(
     result.verdict = "failed" if result.reasons else "passed"
 
 
-def _check_faults(step: Step, rig: Rig, result: StepResult) -> None:
+def _check_faults(step: Step, rig: Rig, result: StepResult, limit: RearmLimit) -> None:
     status = rig.status()
     if status["state"] != "FAULT":
         return
@@ -275,9 +284,10 @@ def _check_faults(step: Step, rig: Rig, result: StepResult) -> None:
     result.faults.append(fault)
     if step.criteria.faults == "transport" and fault in TRANSPORT_FAULTS:
         log.warning("transport fault %s (%s): reset and re-arm", fault, reason)
-        _request(rig, {"cmd": "reset"})
-        _wait_state(rig, "IDLE")
-        _request(rig, {"cmd": "arm"})
+        try:
+            rig.rearm(limit)
+        except RigError as exc:
+            raise StepAborted(f"{exc}; the last: fault {fault}: {reason}") from None
         result.rearms += 1
         return
     raise StepAborted(f"fault {fault}: {reason}")

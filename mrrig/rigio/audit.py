@@ -25,6 +25,7 @@ from typing import Any
 import zenoh
 
 from mrrig.rigio.run_identity import certificate_cn
+from mrrig.safe_text import one_line
 
 log = logging.getLogger(__name__)
 
@@ -58,6 +59,27 @@ def claims(session: zenoh.Session, conf: zenoh.Config | None) -> dict[str, Any]:
 
 
 _MAX_VIA = 8
+_MAX_CLAIMS = 16  # fields of a client's claims kept (claims() sends at most five)
+
+
+def parse_claims(raw: bytes) -> dict[str, Any] | str:
+    """A client's claims as the audit keeps them: each field's name and text one printable line
+    of bounded length (`safe_text.one_line`), a number as it is, at most _MAX_CLAIMS fields;
+    not a JSON object: a bounded excerpt. A newline in a claimed host forged a second audit
+    line; a 3 MB host went into every event."""
+    try:
+        claimed = json.loads(raw)
+    except ValueError:
+        return one_line(raw[:MAX_REQUEST_CHARS].decode("utf-8", "replace"))
+    if not isinstance(claimed, dict):
+        return one_line(json.dumps(claimed)[:MAX_REQUEST_CHARS])
+    out: dict[str, Any] = {}
+    for key, value in list(claimed.items())[:_MAX_CLAIMS]:
+        plain = isinstance(value, int | float | bool) or value is None
+        out[one_line(key, 64)] = value if plain else one_line(value)
+    if len(claimed) > _MAX_CLAIMS:
+        out["more_fields"] = len(claimed) - _MAX_CLAIMS
+    return out
 
 
 def _links(session: zenoh.Session | None) -> list[Any]:
@@ -77,17 +99,18 @@ def requester(query: zenoh.Query, session: zenoh.Session | None = None) -> dict[
     if info is not None:
         out["source"] = str(info)
     if query.attachment is not None:
-        try:
-            claimed = json.loads(query.attachment.to_bytes())
-            out["claimed"] = claimed if isinstance(claimed, dict) else str(claimed)
-        except ValueError:
-            out["claimed"] = query.attachment.to_bytes()[:200].decode("utf-8", "replace")
+        out["claimed"] = parse_claims(query.attachment.to_bytes())
     links = _links(session)
     claimed = out.get("claimed")
     zid = str(claimed.get("zid")) if isinstance(claimed, dict) else None
     mine = next((link for link in links if str(link.zid) == zid), None)
     if mine is not None:
-        out["link"] = {"zid": zid, "auth": mine.auth_identifier, "remote": str(mine.dst)}
+        auth = mine.auth_identifier
+        out["link"] = {
+            "zid": zid,
+            "auth": one_line(auth) if auth else auth,
+            "remote": str(mine.dst),
+        }
     elif links:
         out["via"] = [
             {"zid": str(link.zid), "auth": link.auth_identifier} for link in links[:_MAX_VIA]
@@ -117,7 +140,7 @@ def event(
     result = {k: reply[k] for k in _RESULT_KEYS if k in reply}
     cmd = request.get("cmd", "?")
     outcome = "accepted" if reply.get("ok") else f"refused: {reply.get('error')}"
-    text = f"control {cmd} from {_who(who)}: {outcome}"
+    text = one_line(f"control {cmd} from {_who(who)}: {outcome}", MAX_REQUEST_CHARS)
     log.info("audit: %s", text)
     return {
         "t": t_s,

@@ -18,6 +18,12 @@ What needs DISARMED (not ARMED: IDLE or FAULT): `set_controller`, `set_model`, `
 `control.armed_amplitude_step_m` from the amplitude at arming, while ARMED; `actuator` STOP
 is always taken (the firmware ramps to rest). The loop checks the state again when it
 applies a change: an `arm` that came first wins.
+
+An `arm` over the control plane (from the telemetry process: a Zenoh client) holds a lease:
+its reply names it (`lease`, `lease_timeout_s`), and the client renews it (`renew` with that
+`lease`) within `control.lease_timeout_s`, or the loop disarms and stops the actuator
+(`mrrig.loop.lease`). An in-process arm (characterize, validate) needs none: the daemon ends
+with its client.
 """
 
 from __future__ import annotations
@@ -32,7 +38,7 @@ import threading
 import time
 import unicodedata
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -199,6 +205,8 @@ class Change:
     actuator: ActuatorSection | None = None
     sidecar: Any = None  # "sidecar": a restarted telemetry process (process, link, replies)
     frozen: bool = True  # "freeze_adaptation"
+    lease: str = ""  # "renew": the lease an arm answered
+    remote: bool = False  # from a Zenoh client (an arm holds a lease), not in process
 
 
 def read_limited(path: Path, dirs: tuple[Path, ...], max_bytes: int, timeout_s: float) -> str:
@@ -333,6 +341,11 @@ class Preparer:
             )
         if cmd in ("arm", "disarm", "reset", "status", "reset_adaptation"):
             return Change(cmd)
+        if cmd == "renew":
+            lease = req.get("lease")
+            if not isinstance(lease, str) or not lease or len(lease) > 64:
+                raise RequestError(f"lease: the id an arm answered is required, got {lease!r}")
+            return Change(cmd, lease=lease)
         return getattr(self, f"_{cmd}")(req)
 
     def _freeze_adaptation(self, req: dict) -> Change:
@@ -536,6 +549,8 @@ class ControlWorker:
                 raw = item.req
                 req = parse_request(raw) if isinstance(raw, bytes) else check_request(raw)
                 item.change = self._prep.prepare(req)
+                if isinstance(raw, bytes):  # through the telemetry process: a Zenoh client
+                    item.change = replace(item.change, remote=True)
             except RequestError as exc:
                 self._deliver(item, {"ok": False, "error": str(exc)})
                 continue
@@ -596,6 +611,7 @@ class Pending:
 
 COMMANDS = (
     "arm",
+    "renew",  # keep the lease an arm answered ({"cmd": "renew", "lease": ID})
     "disarm",
     "reset",  # acknowledge a FAULT (to IDLE): arm is refused until then
     "status",

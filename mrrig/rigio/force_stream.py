@@ -7,12 +7,17 @@ nothing is sent. With `arm`, it arms the daemon once the daemon has counted the 
 with a ramp to 0 N and a disarm while the reference is still fresh, so a finished profile is
 not a stale-reference fault (`disarm=False` leaves the daemon armed for another source, and
 it faults `stale_reference` if none follows). Ctrl-C ramps down and disarms the same way.
+With `arm`, the arm's lease is renewed while streaming (`mrrig.rigio.lease`) and the actuator
+stopped after the disarm; with `disarm=False` the lease is released at the end: another
+client must arm (take it) within `control.lease_timeout_s`, or the daemon disarms and stops
+the actuator (`lease_lapsed`).
 Progress goes to `out` once a second: time, the force sent, the daemon's state and fault.
 """
 
 from __future__ import annotations
 
 import contextlib
+import functools
 import json
 import logging
 import math
@@ -29,6 +34,7 @@ from mrrig.errors import MrrigError
 from mrrig.loop import profile_csv
 from mrrig.loop.safety import TRANSPORT_FAULTS
 from mrrig.rigio.client import ClientError, ZenohConfigLike, open_session, query
+from mrrig.rigio.lease import Lease
 from mrrig.rigio.sidecar import JSON, keys
 
 log = logging.getLogger(__name__)
@@ -168,7 +174,12 @@ def send_force(
 
         try:
             if arm:
-                _hold_and_arm(session, pub, rig, fn(0.0), rate_hz, received0, timeout_s, result)
+                reply = _hold_and_arm(
+                    session, pub, rig, fn(0.0), rate_hz, received0, timeout_s, result
+                )
+                lease = Lease.of(functools.partial(query, session, rig), reply, rig)
+                if lease is not None:  # renewed while streaming; released after the disarm
+                    stack.callback(lease.release)
             stream(pub, lambda k: fn(k / rate_hz) if k < n_profile else None, rate_hz, on_put)
         except KeyboardInterrupt:
             result.interrupted = True
@@ -189,7 +200,7 @@ def _hold_and_arm(
     received0: int,
     timeout_s: float,
     result: SendResult,
-) -> None:
+) -> dict[str, Any]:
     """Put the profile's first value at `rate_hz` until the daemon has counted one (nothing is
     armed on a reference that has not arrived), then arm; the profile starts after. The
     reference stays fresh meanwhile: an armed daemon faults on one older than its timeout."""
@@ -225,6 +236,7 @@ def _hold_and_arm(
     if not reply.get("ok"):
         raise SendForceError(f"rig {rig!r}: arming refused: {reply.get('error')}")
     result.armed_by_us = True
+    return reply
 
 
 def _finish(
@@ -238,7 +250,8 @@ def _finish(
     timeout_s: float,
     result: SendResult,
 ) -> None:
-    """The ramp to 0 N, then the disarm while the reference is fresh."""
+    """The ramp to 0 N, then the disarm while the reference is fresh and, where this client
+    armed the rig, the actuator stopped (the firmware ramps it to rest)."""
     values = ramp(f_last, ramp_s, rate_hz)
     result.ramp_samples = stream(pub, lambda k: values[k] if k < len(values) else None, rate_hz)
     result.sent += result.ramp_samples
@@ -248,6 +261,11 @@ def _finish(
         except ClientError as exc:
             raise SendForceError(f"rig {rig!r}: could not disarm after the profile: {exc}") from exc
         result.disarmed = bool(reply.get("ok"))
+        if result.armed_by_us:
+            try:
+                query(session, rig, {"cmd": "actuator", "waveform": "stop"}, timeout_s)
+            except ClientError as exc:
+                log.error("rig %s: no actuator stop after the profile: %s", rig, exc)
 
 
 class _Progress:

@@ -31,6 +31,7 @@ from typing import Any
 import numpy as np
 
 from mrrig import json_text
+from mrrig.loop.kernel_stalls import shortened
 from mrrig.loop.samples import SAMPLE_DTYPE
 
 log = logging.getLogger(__name__)
@@ -234,8 +235,15 @@ class LoopEnd:
     def send_summary(self, summary: dict[str, Any]) -> bool:
         """The run's summary for the recording. A run with many faults lists more than one
         message holds: the first ones that fit are listed and the rest counted
-        (`faults_not_listed`); each fault is an event of the recording in any case."""
+        (`faults_not_listed`); each fault is an event of the recording in any case. So are
+        the loop's stalls (`kernel_stalls`): fewer of them are listed first, the largest kept."""
         raw = _encode_json(summary)
+        stalls = summary.get("kernel_stalls") or {}
+        keep = len(stalls.get("windows") or [])
+        while len(raw) > MAX_PAYLOAD and keep:
+            keep //= 2
+            summary = dict(summary, kernel_stalls=shortened(stalls, keep))
+            raw = _encode_json(summary)
         faults = summary.get("faults") or []
         keep = len(faults)
         while len(raw) > MAX_PAYLOAD and keep:

@@ -12,6 +12,9 @@ recording. Every control request, answered or refused, becomes an audit event
 One rig per name: it does not start where a token of its rig's name is alive, and a token of
 its name that appears while it runs (a second daemon that missed it) is a `duplicate_rig`
 fault for the loop, and every request but `status` and `disarm` is refused while it lasts.
+A token counts only once it is attributed: the session whose id it carries answers the rig's
+status (`mrrig/<rig>/status`, asked of every session every second while it is not); a token
+alone, which any session allowed to declare it could, is logged and does not fault the rig.
 The recording's file is checked every second: gone, replaced, shrunk or not grown is a
 `recording_failed` (a removed directory otherwise loses the run silently), and the status
 shows its path and size.
@@ -81,6 +84,8 @@ STATUS_FRESH_S = 0.5
 # a start-up's look for a live daemon of the same name: the answer of every reachable session
 # comes within milliseconds (its peers are connected once the session is open)
 DUPLICATE_CHECK_S = 1.0
+# how often a token of the rig's name that no daemon has answered for is asked after again
+ATTRIBUTE_PERIOD_S = 1.0
 # the commands still taken while a second daemon of the rig's name is alive: the rest would
 # be obeyed by both
 _WHILE_DUPLICATE = ("status", "disarm")
@@ -122,10 +127,6 @@ class SampleSink(Protocol):
     def abandon(self) -> None: ...
 
 
-# a daemon run's verdict in the catalog, from its exit code (mrrig.loop.daemon.Exit)
-RUN_VERDICTS = {0: "ok", 1: "fault", 3: "bus_lost", 4: "telemetry_lost"}
-
-
 def keys(rig: str) -> dict[str, str]:
     """The rig's Zenoh key expressions (spec/system.md); `alive` selects the liveliness tokens
     of every daemon of that name (`alive_token`)."""
@@ -156,11 +157,32 @@ def duplicate_text(rig: str, others: list[str]) -> str:
     )
 
 
+def token_session(token: str) -> str:
+    """The session id an `alive_token` carries."""
+    return token.rsplit("/", 1)[-1]
+
+
+def replier(reply: zenoh.Reply) -> str | None:
+    """The id of the session that sent a reply (None where Zenoh does not say)."""
+    if reply.ok is None or reply.replier_id is None:
+        return None
+    return str(reply.replier_id.zid)
+
+
 def alive_elsewhere(session: zenoh.Session, rig: str, timeout_s: float) -> list[str]:
-    """The liveliness tokens of other daemons of the rig's name that this session reaches."""
+    """The liveliness tokens of other daemons of the rig's name that this session reaches:
+    those whose session also answers the rig's status. A token that none answers for is left
+    to the running sidecar, which asks again every second (a daemon that has no status yet
+    answers then)."""
     own = alive_token(rig, str(session.zid()))
     replies = session.liveliness().get(keys(rig)["alive"], timeout=timeout_s)
-    return [str(r.ok.key_expr) for r in replies if r.ok is not None and str(r.ok.key_expr) != own]
+    tokens = [str(r.ok.key_expr) for r in replies if r.ok is not None]
+    tokens = [t for t in tokens if t != own]
+    if not tokens:
+        return []
+    status = session.get(keys(rig)["status"], target=zenoh.QueryTarget.ALL, timeout=timeout_s)
+    answered = {replier(r) for r in status}
+    return [t for t in tokens if token_session(t) in answered]
 
 
 def telemetry_json(rig: str, batch: np.ndarray) -> str:
@@ -249,6 +271,9 @@ class Sidecar:
         self._pubs: dict[str, zenoh.Publisher] = {}  # empty without a session
         self._own_token = ""
         self._duplicates: set[str] = set()  # other daemons' tokens of this rig's name
+        self._unattributed: set[str] = set()  # tokens of its name no daemon answered for yet
+        self._attributed_s = -math.inf  # when the rig's status was last asked of all
+        self._asking: Any = None  # the replies to that question (read here, no callback)
         self._recording_checked_s = time.monotonic()
         self._recording_bytes = 0
 
@@ -319,6 +344,7 @@ class Sidecar:
         while not self._stop:
             now = time.monotonic()
             self._heartbeat(now)
+            self._attribute(now)
             wake_at = min(
                 (
                     next_telemetry_s,
@@ -470,14 +496,55 @@ class Sidecar:
             self._answer(p.query, p.request, p.requester, NO_ANSWER)
 
     def _handle_alive(self, token: str, put: bool) -> None:
-        """A liveliness token of this rig's name came or went: another daemon's is a fault."""
+        """A liveliness token of this rig's name came or went: another daemon's, once its
+        session answers for it (`_attributed`), is a fault."""
         if token == self._own_token:
             return
         if not put:
+            self._unattributed.discard(token)
             if token in self._duplicates:
                 self._duplicates.discard(token)
                 log.warning("the second daemon of rig %r is gone (%s)", self.rig, token)
             return
+        log.warning(
+            "liveliness token %s of rig %r: a second daemon once its session answers the"
+            " rig's status; until then it is not taken for one",
+            token,
+            self.rig,
+        )
+        self._unattributed.add(token)
+        self._attributed_s = -math.inf  # ask now
+
+    def _attribute(self, now: float) -> None:
+        """Ask every session for the rig's status while a token is unattributed, and take
+        the answers that came (polled: a late one after shutdown has nothing to wake)."""
+        while self._asking is not None:
+            try:
+                reply = self._asking.try_recv()
+            except zenoh.ZError:  # all answers in
+                self._asking = None
+                break
+            if reply is None:
+                break
+            if (zid := replier(reply)) is not None:
+                self._attributed(zid)
+        if not self._unattributed or now - self._attributed_s < ATTRIBUTE_PERIOD_S:
+            return
+        self._attributed_s = now
+        try:
+            self._asking = self._session.get(
+                self._keys["status"], target=zenoh.QueryTarget.ALL, timeout=ATTRIBUTE_PERIOD_S
+            )
+        except zenoh.ZError as exc:
+            log.warning("could not ask for the status of rig %r: %s", self.rig, exc)
+
+    def _attributed(self, zid: str) -> None:
+        """A session answered the rig's status: its token is another daemon's."""
+        for token in [t for t in self._unattributed if token_session(t) == zid]:
+            self._unattributed.discard(token)
+            self._duplicate(token)
+
+    def _duplicate(self, token: str) -> None:
         self._duplicates.add(token)
         reason = duplicate_text(self.rig, [token])
         log.error("%s", reason)
@@ -674,13 +741,23 @@ class Sidecar:
 
     def _register_run(self) -> None:
         """The finished run into its catalog (spooled locally where a lab's database cannot
-        be reached) and on `mrrig/<rig>/runs`. After the loop has ended: nothing waits on the
-        database but this process's exit."""
+        be reached; journalled beside its recording where no catalog takes it, replayed at
+        the next registration or `mrrig runs`) and on `mrrig/<rig>/runs`. After the loop has
+        ended: nothing waits on the database but this process's exit. A daemon that sent no
+        summary (killed, crashed) is registered too, as `crashed`."""
         ident = self._identity
-        if ident is None or self._summary is None:
+        if ident is None:
             return
-        record = run_record(ident, self._summary, self._record_path)
-        if record is None:
+        from mrrig.catalog import CatalogError, RecordError
+        from mrrig.catalog.finished import run_record
+        from mrrig.catalog.journal import register_journalled, replay
+
+        if self._summary is None:
+            log.error("run %s: the daemon ended without a summary", ident.get("run_id"))
+        try:
+            record = run_record(ident, self._summary, self._record_path)
+        except RecordError as exc:
+            log.error("run %s: no catalog record: %s", ident.get("run_id"), exc)
             return
         if self._session is not None:
             try:
@@ -691,41 +768,15 @@ class Sidecar:
                 log.warning("publishing the run on %s failed: %s", self._keys["runs"], exc)
         if ident.get("catalog") is None:
             return
-        from mrrig.catalog import CatalogError, register_run
-
         try:
-            where = register_run(ident["catalog"], record, spool_url=ident.get("catalog_spool"))
+            where = register_journalled(record, ident["catalog"], ident.get("catalog_spool"))
         except CatalogError as exc:
             log.error("run %s not registered: %s", record.run_id, exc)
             return
         spooled = " (spooled: the catalog asked for was unreachable)" if where.spooled else ""
         log.info("run %s registered in %s%s", record.run_id, where.url, spooled)
-
-
-def run_record(ident: dict[str, Any], summary: dict[str, Any], recording: Path | None) -> Any:
-    """The catalog's record of a finished run: its identity, the summary's numbers, the
-    recording's path, size and sha256; None (logged) where the identity is not one."""
-    import datetime as dt
-
-    from mrrig.catalog import RecordError, RunRecord, summary_numbers
-    from mrrig.rigio.run_identity import file_sha256
-
-    fields = {k: v for k, v in ident.items() if k not in ("catalog", "catalog_spool")}
-    fields["started_utc"] = dt.datetime.fromisoformat(fields["started_utc"])
-    exists = recording is not None and recording.is_file()
-    try:
-        return RunRecord(
-            **fields,
-            ended_utc=dt.datetime.now(dt.UTC),
-            verdict=RUN_VERDICTS.get(summary.get("exit_code"), "error"),
-            recording_path=str(recording.resolve()) if exists else None,
-            recording_size_bytes=recording.stat().st_size if exists else None,
-            recording_sha256=file_sha256(recording) if exists else None,
-            **summary_numbers(summary),
-        )
-    except (RecordError, TypeError, ValueError) as exc:
-        log.error("run %s: no catalog record: %s", ident.get("run_id"), exc)
-        return None
+        if self._record_path is not None:
+            replay(self._record_path.parent)
 
 
 def lower_priority(nice: int) -> None:

@@ -13,8 +13,10 @@ from __future__ import annotations
 
 import csv
 import datetime as dt
+import io
 import logging
 import math
+import os
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -156,8 +158,9 @@ def run_trials(
     for k, c in enumerate(candidates, start=1):
         trial, interrupted = _run_one(rig, k, len(candidates), c, profile, model, progress, catalog)
         trials.append(trial)
-        if interrupted:
-            return TuneResult(trials, None, model, interrupted=True, why="interrupted")
+        if interrupted:  # the trial's last reason names the signal
+            why = trial.note.split("; ")[-1] or "interrupted"
+            return TuneResult(trials, None, model, interrupted=True, why=why)
     try:
         return TuneResult(trials, choose(trials), model)
     except TuneError as exc:
@@ -219,7 +222,12 @@ def table(trials: Sequence[Trial], chosen: Trial | None) -> str:
 
 
 def write_trials(result: TuneResult, json_path: Path, profile: TuningProfile, rig: str) -> None:
-    """The trial table as JSON (with the profile, the rig and the choice) and as CSV beside."""
+    """The trial table as JSON (with the profile, the rig and the choice) and as CSV beside,
+    each written to a temporary file and renamed into place: a table is whole or not there.
+    An interrupted tune's table goes to `<name>.interrupted.json` (and .csv): the last
+    complete tune's table stays (an interrupted tune overwrote it)."""
+    if result.interrupted:
+        json_path = json_path.with_name(f"{json_path.stem}.interrupted{json_path.suffix}")
     record = {
         "rig": rig,
         "model": result.model,
@@ -230,14 +238,29 @@ def write_trials(result: TuneResult, json_path: Path, profile: TuningProfile, ri
         "trials": [t.as_dict() for t in result.trials],
     }
     json_path.parent.mkdir(parents=True, exist_ok=True)
-    json_path.write_text(json_text.dumps(record, indent=2))
     csv_path = json_path.with_suffix(".csv")
     rows = [t.as_dict() for t in result.trials]
-    with csv_path.open("w", newline="") as fh:
-        writer = csv.DictWriter(fh, fieldnames=list(rows[0]))
+    text = io.StringIO()
+    if rows:  # interrupted before its first trial: an empty table
+        writer = csv.DictWriter(text, fieldnames=list(rows[0]))
         writer.writeheader()
         writer.writerows(rows)
+    _write_whole(csv_path, text.getvalue())
+    _write_whole(json_path, json_text.dumps(record, indent=2))
     result.files |= {"trials": str(json_path), "trials_csv": str(csv_path)}
+
+
+def _write_whole(path: Path, text: str) -> None:
+    """`text` into `path` through a temporary file beside it, renamed into place."""
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    try:
+        with tmp.open("w", newline="") as fh:
+            fh.write(text)
+            fh.flush()
+            os.fsync(fh.fileno())
+        os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)
 
 
 def write_choice(result: TuneResult, model_path: Path, rig: str) -> None:

@@ -9,7 +9,10 @@ waited; its invalid RigSensors frames stay inside the bad-frame budget so that t
 armed), random JSON requests (any depth, size, type, unicode, NaN) and, while armed, request
 sequences: chains of individually valid changes 5 ms apart (six actuator amplitude steps of
 4 mm, six frequency steps, set_profile forces rising past `loop.f_range_n` then arming,
-force_ref values rising to 1e300), and re-arms the daemon after every fault. It sends the
+force_ref values rising to 1e300), and re-arms the daemon after every fault (renewing the
+lease of its arms). Every 15 s a client that holds the rig armed (`mrrig arm --hold`) is
+SIGKILLed at a random moment: the rig must leave ARMED within the lease's timeout
+(`armed_without_lease`, mrrig.offline.bench.fuzz_lease). It sends the
 daemon SIGHUP, SIGUSR1, SIGUSR2, SIGQUIT and SIGPIPE in turn: each must end the run SAFE (the
 last DamperCommand SAFE, the actuator stopped, a summary written, exit code 0 or 1) or be
 ignored (the daemon answers on); a daemon that ended is started again. A listener on the bus
@@ -25,7 +28,8 @@ ACTIVE commands the firmware applied to a stale frame (older than its stale_answ
 its own clock) or to no valid frame, ACTIVE answers to no genuine frame (the listener's),
 control requests without an answer (but those sent while a signal ended the daemon). The
 late commands the firmware dropped (spec/can-protocol.md) and the ACTIVE answers that
-reached the bus over the age limit are reported.
+reached the bus over the age limit are reported. Then, the rig stopped, an observer's misuse
+of a sidecar on the shipped access control (`mrrig.offline.bench.fuzz_observer`).
 
 Answer latency "as the firmware sees it": from the bridge's receive timestamp of a sensor
 frame to the bridge's receive timestamp of its command (both carried in the frames a bus
@@ -56,9 +60,11 @@ import zenoh
 from mrrig import json_text
 from mrrig.cli_args import HelpFormatter, output_file, positive
 from mrrig.config import load_config
+from mrrig.offline.bench import fuzz_lease, fuzz_observer
 from mrrig.pycan import can
 from mrrig.rigio.canbus.bus import find_free_port, open_bus, start_bridge, stop_bridge
 from mrrig.rigio.canbus.codec import Codec
+from mrrig.rigio.lease import Lease
 from mrrig.rigio.run_identity import CATALOG_ENV
 from mrrig.rigio.sidecar import JSON, keys
 from mrrig.rigio.zenoh_config import local_config
@@ -231,6 +237,33 @@ class Requests:
             if reply.ok is not None:
                 return json.loads(reply.ok.payload.to_bytes())
         return None
+
+
+class Holder:
+    """The lease of the bench's last arm, renewed as a client that holds the rig renews it
+    (`mrrig.rigio.lease`): the campaign's armed stretches last as long as it wants them."""
+
+    def __init__(self, requests: Requests) -> None:
+        self.requests = requests
+        self.lease: Lease | None = None
+
+    def _ask(self, payload: dict, _timeout_s: float) -> dict:
+        reply = self.requests.ask(payload)
+        if reply is None:
+            raise ConnectionError("no answer")
+        return reply
+
+    def arm(self) -> dict | None:
+        reply = self.requests.ask({"cmd": "arm"})
+        if reply is not None and reply.get("lease"):
+            self.release()
+            self.lease = Lease(self._ask, reply, "fuzz")
+        return reply
+
+    def release(self) -> None:
+        if self.lease is not None:
+            self.lease.release()
+            self.lease = None
 
 
 def random_json(rng: random.Random, depth: int = 0) -> Any:
@@ -444,9 +477,10 @@ def run(minutes: float, config: Path, sim_config: Path, seed: int, out: Path | N
     crashes: list[str] = []
     signals: list[dict[str, str]] = []
     excused: list[tuple[float, float]] = []  # requests sent here may go unanswered
-    listener = fuzz_bus = None
+    listener = fuzz_bus = holder = None
     try:
         requests = Requests(daemon.start(), cfg.rig.name)
+        holder = Holder(requests)
         daemon.wait_ready(requests)
         sim_stats = work / "sim.json"
         sim = subprocess.Popen(
@@ -505,7 +539,7 @@ def run(minutes: float, config: Path, sim_config: Path, seed: int, out: Path | N
             requests.ask({"cmd": "set_profile", "kind": "bouc_wen", "current_a": 0.8,
                           "current_amp_a": 0.5})  # fmt: skip
             requests.ask({"cmd": "reset"})  # re-arming after a fault: acknowledged
-            return bool((requests.ask({"cmd": "arm"}) or {}).get("ok"))
+            return bool((holder.arm() or {}).get("ok"))
 
         def sequence(kind: str) -> None:
             """One chain of small changes 5 ms apart: disarmed, the motion or the reference
@@ -521,7 +555,7 @@ def run(minutes: float, config: Path, sim_config: Path, seed: int, out: Path | N
             steps = chain(kind, rng)
             if kind != "set_profile":
                 requests.ask({"cmd": "reset"})
-                requests.ask({"cmd": "arm"})
+                holder.arm()
             for step in steps:
                 if kind == "force_ref":
                     daemon.session.put(force_ref_key, json.dumps(step))
@@ -530,7 +564,7 @@ def run(minutes: float, config: Path, sim_config: Path, seed: int, out: Path | N
                 time.sleep(CHAIN_GAP_S)
             if kind == "set_profile":
                 requests.ask({"cmd": "reset"})
-                requests.ask({"cmd": "arm"})
+                holder.arm()
             time.sleep(SHOW_S)
             if kind == "force_ref":  # back to the reference the campaign runs on
                 requests.ask({"cmd": "disarm"})
@@ -563,6 +597,10 @@ def run(minutes: float, config: Path, sim_config: Path, seed: int, out: Path | N
         pending: tuple[signal.Signals, float] | None = None  # (signal, sent at)
         next_req = next_arm = next_bad = next_seq = time.monotonic()
         next_signal = time.monotonic() + signal_every_s / 2
+        # clients that hold the rig, killed at random (issue 40): their lease must lapse
+        killed = fuzz_lease.KilledClients()
+        client_z = fuzz_lease.client_config(endpoints, work)
+        next_kill = time.monotonic() + fuzz_lease.KILL_EVERY_S / 2
         t_next = time.monotonic()
         armed = False
         while (now := time.monotonic()) < end or len(unsent) > 1 or pending is not None:
@@ -605,6 +643,12 @@ def run(minutes: float, config: Path, sim_config: Path, seed: int, out: Path | N
                 excused.append((now - REQUEST_TIMEOUT_S, float("inf")))
                 daemon.proc.send_signal(sig)
                 pending = (sig, now)
+            elif now >= next_kill and now < end:
+                holder.release()  # the killed client's lease is the only one
+                lease_s = cfg.control.lease_timeout_s
+                fuzz_lease.kill_a_client(requests.ask, cfg.rig.name, client_z, lease_s, rng, killed)
+                next_kill = time.monotonic() + fuzz_lease.KILL_EVERY_S
+                next_arm = time.monotonic()
             elif now >= next_arm:
                 next_arm += 1.0
                 alive()
@@ -668,6 +712,7 @@ def run(minutes: float, config: Path, sim_config: Path, seed: int, out: Path | N
             "active_answers_stale_at_bus": st["answers"]["active_to_stale"],
             "active_answers_invalid": listener.active_unmatched,
             "rearms": rearms,
+            **killed.counts(),
             "answer_latency_p99_us": {"quiet": q99, "burst": b99, "ratio": b99 / q99},
             "answer_latency_frames": {"quiet": nq, "burst": nb},
             "daemon": {
@@ -679,6 +724,8 @@ def run(minutes: float, config: Path, sim_config: Path, seed: int, out: Path | N
             ),
         }
     finally:
+        if holder is not None:
+            holder.release()
         if fuzz_bus is not None:
             fuzz_bus.shutdown()
         daemon.close_session()
@@ -687,7 +734,9 @@ def run(minutes: float, config: Path, sim_config: Path, seed: int, out: Path | N
                 p.kill()
                 p.wait()
         stop_bridge(bridge)
+    result["observer_misuse"] = fuzz_observer.run(work, rng, minutes)
     print(_report(result))
+    print(fuzz_observer.report(result["observer_misuse"]))
     if out is not None:
         out.write_text(json_text.dumps(result, indent=2))
     return 1 if failures(result, cfg.loop.i_max_a) else 0
@@ -701,8 +750,11 @@ def failures(result: dict[str, Any], i_max_a: float) -> list[str]:
         "requests_unanswered",
     ]  # fmt: skip
     out = [n for n in names if result[n]]
+    out += [n for n in ("armed_without_lease",) if result.get(n)]
     if result["max_commanded_current_a"] > i_max_a + 1e-4:
         out.append("max_commanded_current_a")
+    if "observer_misuse" in result:
+        out += fuzz_observer.failures(result["observer_misuse"])
     return out
 
 
@@ -755,12 +807,20 @@ def _report(r: dict) -> str:
             f"limit {r['active_answers_stale_at_bus']}, to no genuine frame "
             f"{r['active_answers_invalid']}",
             f"  control requests unanswered {r['requests_unanswered']}",
+            f"  clients killed while armed {r['clients_killed']} (never armed"
+            f" {r['clients_never_armed']}): armed without a live lease beyond its timeout"
+            f" {r['armed_without_lease']}, left ARMED after a kill max"
+            f" {_seconds(r['left_armed_after_kill_s_max'])}",
             f"  answer latency p99 as the firmware sees it: quiet {lat['quiet']:.0f} us, "
             f"burst {lat['burst']:.0f} us, ratio {lat['ratio']:.2f} (target <= 1.5)",
             f"  daemon: {r['daemon']}",
             f"  faults: {dict(r['faults'])}",
         ]
     )
+
+
+def _seconds(value: float | None) -> str:
+    return "n/a" if value is None else f"{value:.2f} s"
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -143,6 +143,28 @@ def _attribute(msg: DbcMessage, name: str) -> int | float | str:
     raise CodecError(f"{msg.name}: DBC message attribute {name!r} missing")
 
 
+def scaling_problem(signal: cantools.database.can.Signal) -> str | None:
+    """Why a signal's scale, offset and [min|max] cannot be computed with (one line, without
+    the message's name), or None: a scale of 0 or not finite, an offset or a bound not finite,
+    an offset beside which the scale is below the float resolution (1e308 with 0.001), or a
+    range whose raw values overflow."""
+    scale, offset = signal.scale, signal.offset
+    if not math.isfinite(scale) or scale == 0:
+        return f"scale {scale:g} (a signal needs a finite, non-zero scale)"
+    if not math.isfinite(offset):
+        return f"offset {offset:g} is not finite"
+    if offset + scale == offset:
+        return f"offset {offset:g} leaves its scale {scale:g} below the float resolution"
+    ends = [b for b in (signal.minimum, signal.maximum) if b is not None]
+    if not all(math.isfinite(b) and math.isfinite((b - offset) / scale) for b in ends):
+        shown = "|".join("-" if b is None else f"{b:g}" for b in (signal.minimum, signal.maximum))
+        return f"range [{shown}] with scale {scale:g} and offset {offset:g} overflows its raw value"
+    bits = signal.length
+    if not signal.is_float and not math.isfinite(float(1 << bits) * abs(scale) + abs(offset)):
+        return f"{bits} bits with scale {scale:g} and offset {offset:g} overflow a float"
+    return None
+
+
 def _physical_to_raw(value: float, signal: cantools.database.can.Signal) -> float:
     return round((value - signal.offset) / signal.scale, 6)
 
@@ -158,6 +180,8 @@ def _signal_field(
     msg: DbcMessage, signal: cantools.database.can.Signal, rename: Rename | None
 ) -> SignalField:
     where = f"{msg.name}.{signal.name}"
+    if (why := scaling_problem(signal)) is not None:
+        raise CodecError(f"{where}: {why}")
     mask = (1 << signal.length) - 1
     big = signal.byte_order != "little_endian"
     nbits = 8 * msg.length
@@ -311,10 +335,13 @@ class Codec:
         except (OSError, cantools.database.UnsupportedDatabaseFormatError, ValueError) as exc:
             text = " ".join(str(exc).split())
             raise CodecError(f"{self.dbc_path}: cannot read the DBC: {text}") from None
-        self.layouts: dict[str, MessageLayout] = {
-            msg.name: _message_layout(msg, renames or {}, constants or {})
-            for msg in self.db.messages
-        }
+        try:
+            self.layouts: dict[str, MessageLayout] = {
+                msg.name: _message_layout(msg, renames or {}, constants or {})
+                for msg in self.db.messages
+            }
+        except CodecError as exc:
+            raise CodecError(f"{self.dbc_path.name}: {exc}") from None
         self.by_id: dict[int, MessageLayout] = {lay.key: lay for lay in self.layouts.values()}
         logger.debug("loaded %d messages from %s", len(self.layouts), self.dbc_path)
 

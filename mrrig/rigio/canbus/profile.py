@@ -32,7 +32,9 @@ from mrrig.rigio.canbus.codec import (
     MessageLayout,
     Packer,
     Rename,
+    scaling_problem,
 )
+from mrrig.rigio.canbus.profile_limits import Limits, carry_problems
 
 logger = logging.getLogger(__name__)
 
@@ -199,6 +201,8 @@ def layout_problems(db: cantools.database.Database, dbc: str) -> list[str]:
                 f" carries {CLASSIC_MAX_BYTES} (CAN FD: VFrameFormat)"
             )
         for sig in msg.signals:
+            if (why := scaling_problem(sig)) is not None:
+                problems.append(f"{dbc}: {msg.name}.{sig.name}: {why}")
             if sig.byte_order == "little_endian":
                 lo, hi = sig.start, sig.start + sig.length
             else:
@@ -217,10 +221,12 @@ def check_profile(
     signals: Mapping[str, str],
     period_s: float | None,
     source: str,
+    limits: Limits | None = None,
 ) -> tuple[RigProfile | None, list[str]]:
     """The profile of `[can]` and every problem found (one line each): (profile, []) when it
     can be used, (None, problems) otherwise. `period_s`: the config's sensor period, checked
-    against the sensor message's GenMsgCycleTime where the DBC has one."""
+    against the sensor message's GenMsgCycleTime where the DBC has one; `limits`: what each
+    role's signal must carry (mrrig/rigio/canbus/profile_limits.py)."""
     contract = dbc_path is None
     path = DEFAULT_DBC_PATH if dbc_path is None else Path(dbc_path)
     dbc = path.name
@@ -300,6 +306,12 @@ def check_profile(
                 f"{dbc}: {w.message}.{w.signal}: value table lacks {', '.join(missing)}"
                 " (actuator_waveform)"
             )
+    actuator = [name for name in ROLES if ROLES[name].group == "actuator"]
+    if mapped.keys() & set(actuator) and (missing := [n for n in actuator if n not in mapped]):
+        problems.append(
+            f"{source}: can.signals: {groups['actuator']} carries the actuator's command without"
+            f' {", ".join(missing)} (map each, or declare every actuator_* role "{ABSENT}")'
+        )
     if problems:
         return None, problems
     renames = {(m.message, m.signal): Rename(ROLES[m.role].key, m.factor) for m in mapped.values()}
@@ -320,6 +332,8 @@ def check_profile(
         command_message=groups["command"],
         actuator_message=groups.get("actuator"),
     )
+    if limits is not None and (problems := carry_problems(codec, mapped, ROLES, limits, source)):
+        return None, problems
     profile.protections_off = _protections_off(profile)
     if mapped.get("counter_echo") is not None and not profile.sensor_layout.e2e:
         return None, [
@@ -380,10 +394,14 @@ def contract_profile() -> RigProfile:
 
 
 def load_profile(
-    dbc_path: Path | None, signals: Mapping[str, str], period_s: float | None, source: str
+    dbc_path: Path | None,
+    signals: Mapping[str, str],
+    period_s: float | None,
+    source: str,
+    limits: Limits | None = None,
 ) -> RigProfile:
     """The profile, or a `ProfileError` with its first problem (`mrrig dbc check` lists all)."""
-    profile, problems = check_profile(dbc_path, signals, period_s, source)
+    profile, problems = check_profile(dbc_path, signals, period_s, source, limits)
     if profile is None:
         more = f" (and {len(problems) - 1} more: mrrig dbc check)" if len(problems) > 1 else ""
         raise ProfileError(problems[0] + more)
