@@ -308,15 +308,16 @@ def test_sigterm_with_close_handler_leaves_a_complete_recording(tmp_path: Path) 
 
 
 @pytest.mark.process
-def test_unhandled_sigterm_leaves_a_recording_without_footer(tmp_path: Path) -> None:
-    """No footer, so verify fails; what reached the disk still reads back as a clean prefix,
-    less the recorder's buffer and rerun's batcher (up to about one flush interval)."""
+def test_unhandled_sigterm_leaves_a_recording_without_end_marker(tmp_path: Path) -> None:
+    """No end marker (which `close()` writes), so verify fails; what reached the disk still
+    reads back as a clean prefix, less the recorder's buffer and rerun's batcher (up to about
+    one flush interval)."""
     path = tmp_path / "killed.rrd"
     proc = _start_writer(path, "unhandled")
     proc.send_signal(signal.SIGTERM)
     proc.wait(timeout=30)
     assert proc.returncode == -signal.SIGTERM
-    with pytest.raises(ReviewError, match="killed.rrd.*footer"):
+    with pytest.raises(ReviewError, match="killed.rrd: truncated: no end marker"):
         verify_rrd(path)
     back = read_recording(path)
     np.testing.assert_array_equal(back.samples["t"], np.arange(back.samples.size) * 0.002)

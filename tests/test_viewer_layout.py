@@ -81,11 +81,11 @@ def test_loops_span_comparable_ranges_on_both_axes(recorded, entity):
 
 
 def test_summary_text_is_in_the_recording(recorded):
-    from rerun.chunk import RrdReader
+    from mrrig.offline.rrd_scan import open_rrd
 
     texts = [
         row["TextDocument:text"][0]
-        for chunk in RrdReader(str(recorded)).stream()
+        for chunk in open_rrd(recorded).stream()
         if chunk.entity_path == f"/{REPORT_ENTITY}"
         for row in chunk.to_record_batch().to_pylist()
     ]

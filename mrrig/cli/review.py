@@ -4,6 +4,10 @@ optionally a figure, a one-file HTML report and the check of a bus log of the sa
 A recording without the summary the daemon writes at its end is truncated (the recording
 failed, or the run was killed): review says so and exits 1, unless `--partial`. A recording
 without a single sensor frame has nothing to review: one line, exit 1.
+
+An .rrd is read in one streaming pass, its metrics accumulated as it goes: memory does not
+grow with the run's length, except for the samples a figure (`--plot`, `--html`) draws, and
+the whole run's samples that `--can-log` checks.
 """
 
 from __future__ import annotations
@@ -15,8 +19,10 @@ from pathlib import Path
 from mrrig import json_text
 from mrrig.cli_args import HelpFormatter, finite, output_file
 from mrrig.export import read_any
-from mrrig.loop.summary import format_summary, summarize
-from mrrig.offline.review import verify_rrd
+from mrrig.loop.summary import format_summary
+from mrrig.offline.review import BlockSummary, review_recording, verify_rrd
+
+_EXPORTS = (".parquet", ".mf4")  # read whole by `read_any`; an .rrd is streamed
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -46,8 +52,21 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     if args.verify:
         verify_rrd(args.file)
-    rec = read_any(args.file)  # .rrd, or its Parquet or MDF4 export
-    if rec.samples.size == 0:
+    windowed = args.t_from is not None or args.t_to is not None
+    window_text = None
+    if windowed:
+        window_text = f"{_bound(args.t_from)} to {_bound(args.t_to)} s of sensor time"
+    streamed = args.can_log is None and args.file.suffix.lower() not in _EXPORTS
+    acc = None
+    if streamed:  # one pass in bounded memory: the samples kept only for a figure
+        rec, acc = review_recording(
+            args.file, args.t_from, args.t_to, keep_samples=bool(args.plot or args.html)
+        )
+    else:
+        rec = read_any(args.file)  # a Parquet or MDF4 export, or for the bus log's check
+    # a streamed review holds no samples without a figure: its count is the accumulator's (the
+    # whole recording's, unless a window: one without a frame of a recording with some raised)
+    if (acc.frames if acc is not None else rec.samples.size) == 0:
         logging.getLogger("mrrig.offline.review").error(
             "%s: no frames: the recording holds no sensor frame (the rig sent none, or the run"
             " ended before its first); nothing to review",
@@ -67,13 +86,10 @@ def main(argv: list[str] | None = None) -> int:
         from mrrig.rigio.canlog import check_bus_log
 
         bus_log = check_bus_log(args.can_log, rec.samples, rec.summary)
-    windowed = args.t_from is not None or args.t_to is not None
-    window_text = None
-    if windowed:
+    if windowed and not streamed:
         from mrrig.offline.review_report import window
 
         rec = window(rec, args.t_from, args.t_to)
-        window_text = f"{_bound(args.t_from)} to {_bound(args.t_to)} s of sensor time"
     # the run's counters describe the whole run, not a window of it
     counters = {} if windowed else rec.summary or {}
     keep = {k: v for k, v in counters.items() if not isinstance(v, dict | list)}
@@ -83,7 +99,10 @@ def main(argv: list[str] | None = None) -> int:
         keep["latency_split_us"] = counters["latency_split_us"]
     if "kernel_stalls" in counters:  # the loop's own stalls, which the kernel measured
         keep["kernel_stalls"] = counters["kernel_stalls"]
-    metrics = summarize(rec.samples, rec.events, keep)
+    if acc is None:  # in the blocks a streamed .rrd adds up in: the same numbers, bit for bit
+        acc = BlockSummary()
+        acc.add(rec.samples)
+    metrics = acc.result(rec.events, keep)
     # the files first: output cut short by a closed pipe (`| head`) must not lose them
     if args.plot or args.html:
         from mrrig.offline import review_report

@@ -12,7 +12,8 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from rerun.chunk import RrdReader
+
+from mrrig.offline.rrd_scan import open_rrd
 
 # rerun's ContainerKind values as stored in the blueprint
 CONTAINER_KINDS = {1: "tabs", 2: "horizontal", 3: "vertical", 4: "grid"}
@@ -37,7 +38,7 @@ class ViewNode:
 
 def _rows(path: Path, blueprint: bool) -> dict[str, dict[str, Any]]:
     """entity path -> {component: latest value} of the file's first blueprint or recording."""
-    reader = RrdReader(str(path))
+    reader = open_rrd(path)
     store = None
     if blueprint:
         stores = reader.blueprints()
@@ -83,7 +84,7 @@ def _node(rows: dict[str, dict[str, Any]], entity: str) -> ViewNode:
 
 def read_strips(path: str | Path, entity: str) -> list[np.ndarray]:
     """Every LineStrips2D strip logged at `entity` (each an N x 2 array), in file order."""
-    reader = RrdReader(str(Path(path)))
+    reader = open_rrd(path)
     strips = []
     for chunk in reader.stream():
         if chunk.entity_path != "/" + entity.strip("/"):

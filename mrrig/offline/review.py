@@ -7,33 +7,24 @@ The layout read here is the one `mrrig.rigio.recording` writes (see its module d
 from __future__ import annotations
 
 import dataclasses
-import json
 import logging
 import re
 import subprocess
 import sys
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 import numpy as np
-import pyarrow as pa
-import rerun as rr
 
 from mrrig.errors import MrrigError
 from mrrig.loop.samples import SAMPLE_DTYPE
-from mrrig.rigio.recording import (
-    EVENT_TIMELINE,
-    EVENTS_ENTITY,
-    FIELD_ENTITIES,
-    FRAME_TIMELINE,
-    LATER_FIELDS,
-    RUN_ENTITY,
-    SUMMARY_ENTITY,
-)
+from mrrig.loop.summary import SummaryAccumulator
+from mrrig.offline.rrd_scan import Scan, scan_recording
+from mrrig.rigio.recording import FIELD_ENTITIES, SUMMARY_ENTITY
 
 log = logging.getLogger(__name__)
 
-_DATASET = "run"
 RRD_MAGIC = b"RRF2"  # the FourCC an .rrd file starts with (rerun-sdk 0.41, as pinned)
 
 
@@ -53,79 +44,142 @@ class Recording:
     identity: dict[str, Any] | None = None
 
 
-def _read_field(dataset: Any, entity: str, path: Path) -> tuple[np.ndarray, np.ndarray]:
-    """Frame numbers and values of one scalar entity (one query per entity: much faster than
-    one query joining all of them)."""
-    name = f"/{entity}:Scalars:scalars"
-    table = (
-        dataset.filter_contents([f"/{entity}"])
-        .reader(index=FRAME_TIMELINE)
-        .select(FRAME_TIMELINE, name)
-        .to_arrow_table()
-    )
-    frames = table.column(FRAME_TIMELINE).to_numpy()
-    lists = table.column(name).combine_chunks()
-    lengths = lists.value_lengths().fill_null(0).to_numpy(zero_copy_only=False)
-    if not (lengths == 1).all():
-        log.warning("%s: %s has %d rows without one value", path, entity, (lengths != 1).sum())
-        keep = lengths == 1
-        frames, lists = frames[keep], lists.filter(pa.array(keep))
-    return frames, lists.flatten().to_numpy(zero_copy_only=False)
-
-
-def _rebuild_samples(dataset: Any, path: Path) -> np.ndarray:
-    """Samples from the per-field entities, aligned on the frame timeline. Frames missing a
-    field (a writer killed mid-flush) are dropped."""
-    columns = {}
-    absent = []
-    for field, entity in FIELD_ENTITIES.items():
-        try:
-            columns[field] = _read_field(dataset, entity, path)
-        except Exception:  # noqa: BLE001 - the query's own error for an entity never logged
-            if field not in LATER_FIELDS:
-                raise
-            absent.append(field)  # a recording made before the field existed
-    n = max((int(f.max()) + 1 for f, _ in columns.values() if f.size), default=0)
-    complete = np.ones(n, dtype=bool)
-    for frames, _ in columns.values():
-        present = np.zeros(n, dtype=bool)
-        present[frames] = True
-        complete &= present
-    if not complete.all():
-        log.warning("%s: %d frames with missing fields dropped", path, int((~complete).sum()))
-    samples = np.empty(int(complete.sum()), dtype=SAMPLE_DTYPE)
-    for field, (frames, values) in columns.items():
-        full = np.empty(n)
-        full[frames] = values
-        samples[field] = full[complete].astype(SAMPLE_DTYPE[field])
-    for field in absent:
-        samples[field] = np.nan
-    return samples[np.argsort(samples["t"], kind="stable")]
-
-
-def _rebuild_events(table: pa.Table) -> list[dict[str, Any]]:
-    events = []
-    for row in table.select(
-        [
-            f"/{EVENTS_ENTITY}:t_s",
-            f"/{EVENTS_ENTITY}:TextLog:level",
-            f"/{EVENTS_ENTITY}:TextLog:text",
-            f"/{EVENTS_ENTITY}:fields",
-        ]
-    ).to_pylist():
-        t_s, level, text, fields = (v[0] if v else None for v in row.values())
-        events.append({"t": t_s, "level": level, "text": text, **json.loads(fields or "{}")})
-    return events
-
-
 def read_recording(path: str | Path) -> Recording:
-    """Read a recording written by `Recorder`.
+    """Read a recording written by `Recorder`: its samples (sorted by t), events, summary and
+    identity, in one streaming pass (`mrrig.offline.rrd_scan`; memory: the samples).
 
-    A file without footer (writer killed before `close()`) still gives what reached the
-    disk; `rerun rrd optimize IN -o OUT` rewrites it with a footer. Serves the file with a
-    local Rerun server on 127.0.0.1 (random port) for the query and shuts it down before
-    returning.
+    A truncated file (writer killed before `close()`) still gives what reached the disk.
     """
+    path = Path(path)
+    batches: list[np.ndarray] = []
+    scan = scan_checked(path, batches.append)
+    samples = np.concatenate(batches) if batches else np.empty(0, dtype=SAMPLE_DTYPE)
+    return Recording(
+        path=path,
+        samples=samples[np.argsort(samples["t"], kind="stable")],
+        events=scan.events,
+        summary=scan.summary,
+        identity=scan.identity,
+    )
+
+
+SUMMARY_BLOCK = 1 << 16  # samples per addition to the summary's accumulator
+
+
+class BlockSummary:
+    """`SummaryAccumulator` fed in blocks of exactly `SUMMARY_BLOCK` samples, however the
+    samples come: a run read in streamed batches and the same run read whole (an export) sum
+    in the same order, so their metrics are equal to the last bit; a run shorter than a
+    block gives `summarize`'s numbers exactly."""
+
+    def __init__(self) -> None:
+        self.acc = SummaryAccumulator()
+        self._held: list[np.ndarray] = []
+        self._n = 0
+        self.frames = 0
+
+    def add(self, samples: np.ndarray) -> None:
+        self.frames += samples.size
+        while samples.size:
+            take = samples[: SUMMARY_BLOCK - self._n]
+            samples = samples[take.size :]
+            self._held.append(take)
+            self._n += take.size
+            if self._n == SUMMARY_BLOCK:
+                self._add_held()
+
+    def result(
+        self, events: list[dict[str, Any]], counters: dict[str, Any] | None = None
+    ) -> dict[str, Any]:
+        self._add_held()
+        return self.acc.result(events, counters)
+
+    def _add_held(self) -> None:
+        if self._held:
+            self.acc.add(np.concatenate(self._held))
+        self._held, self._n = [], 0
+
+
+FIGURE_MAX_SAMPLES = 1 << 21  # 256 MB of samples: a figure of a longer window thins them
+
+
+class FigureSamples:
+    """The samples a figure draws, in bounded memory: all of them up to `max_samples`; past
+    that, every `stride`-th (the stride doubling each time the held samples reach the cap)."""
+
+    def __init__(self, max_samples: int = FIGURE_MAX_SAMPLES) -> None:
+        self.max_samples = max_samples
+        self.stride = 1
+        self.seen = 0
+        self._held: list[np.ndarray] = []
+        self._n = 0
+
+    def add(self, samples: np.ndarray) -> None:
+        index = self.seen + np.arange(samples.size)
+        kept = samples[index % self.stride == 0]
+        self.seen += samples.size
+        if kept.size:
+            self._held.append(kept)
+            self._n += kept.size
+        if self._n > self.max_samples:  # those held are every stride-th: keep every other
+            thinned = np.concatenate(self._held)[::2]
+            self._held, self._n = [thinned], thinned.size
+            self.stride *= 2
+
+    def samples(self) -> np.ndarray:
+        return np.concatenate(self._held) if self._held else np.empty(0, dtype=SAMPLE_DTYPE)
+
+
+def review_recording(
+    path: str | Path,
+    t_from: float | None = None,
+    t_to: float | None = None,
+    keep_samples: bool = False,
+) -> tuple[Recording, BlockSummary]:
+    """The metrics of a recording's window [t_from, t_to] of sensor time (None: no bound),
+    accumulated in one streaming pass: memory bounded whatever the run's length. The
+    Recording returned has the window's events, the run's summary and identity, and its
+    samples only with `keep_samples` (a figure of them); else none."""
+    lo = -np.inf if t_from is None else t_from
+    hi = np.inf if t_to is None else t_to
+    if lo >= hi:
+        raise ValueError(f"--from {t_from:g} must be before --to {t_to:g}")
+    acc = BlockSummary()
+    figure = FigureSamples()
+    span = [np.inf, -np.inf]  # the recording's first and last sensor time
+
+    def take(batch: np.ndarray) -> None:
+        t = batch["t"]
+        span[0], span[1] = min(span[0], float(t.min())), max(span[1], float(t.max()))
+        inside = batch[(t >= lo) & (t <= hi)]
+        acc.add(inside)
+        if keep_samples:
+            figure.add(inside)
+
+    scan = scan_checked(path, take)
+    if scan.frames and not acc.frames:
+        raise ValueError(
+            f"{path}: no frame between {lo:g} and {hi:g} s (the recording has"
+            f" {span[0]:.3f} to {span[1]:.3f} s)"
+        )
+    events = [e for e in scan.events if e.get("t") is not None and lo <= e["t"] <= hi]
+    if t_from is None and t_to is None:
+        events = scan.events
+    if figure.stride > 1:
+        log.warning(
+            "%s: the figure draws every %d-th of the window's %d frames (its memory); the"
+            " metrics count them all",
+            path,
+            figure.stride,
+            figure.seen,
+        )
+    rec = Recording(Path(path), figure.samples(), events, scan.summary, scan.identity)
+    return rec, acc
+
+
+def scan_checked(path: str | Path, on_samples: Callable[[np.ndarray], None]) -> Scan:
+    """`scan_recording` of a file checked to be an mrrig recording, with its errors as one-line
+    ReviewErrors naming the file. `on_samples` gets the samples in frame order, in batches."""
     path = Path(path)
     if not path.is_file():
         raise ReviewError(f"{path}: no such file")
@@ -135,66 +189,38 @@ def read_recording(path: str | Path) -> Recording:
         # before the reader, which would log its own warning besides this error
         raise ReviewError(f"{path}: not an .rrd file (it starts {head!r}, not {RRD_MAGIC!r})")
     try:
-        server = rr.server.Server(host="127.0.0.1", datasets={_DATASET: [path]})
-    except Exception as e:
-        raise ReviewError(f"{path}: cannot serve the recording: {e}") from e
-    try:
-        dataset = server.client().get_dataset(_DATASET)
-        schema = dataset.schema()
-        indexes = {c.name for c in schema.index_columns()}
-        entities = set(schema.entity_paths())
-        if not entities:
-            raise ReviewError(
-                f"{path}: not a readable RRD (not an .rrd file, truncated, or without footer;"
-                " see `rerun rrd verify`)"
-            )
-        ours = {f"/{e}" for e in FIELD_ENTITIES.values()} | {f"/{SUMMARY_ENTITY}", "/rig"}
-        if not entities & ours:
-            shown = ", ".join(sorted(entities)[:5]) + (", ..." if len(entities) > 5 else "")
-            raise ReviewError(
-                f"{path}: not an mrrig recording: a Rerun file of another application (its"
-                f" entities {shown}; an mrrig recording has /rig and the rig's series)"
-            )
-        if FRAME_TIMELINE in indexes:
-            samples = _rebuild_samples(dataset, path)
-        else:
-            samples = np.empty(0, dtype=SAMPLE_DTYPE)
-        events: list[dict[str, Any]] = []
-        if EVENT_TIMELINE in indexes:
-            events_table = (
-                dataset.filter_contents([f"/{EVENTS_ENTITY}"])
-                .reader(index=EVENT_TIMELINE)
-                .to_arrow_table()
-            )
-            events = _rebuild_events(events_table)
-        summary = _static_json(dataset, entities, SUMMARY_ENTITY)
-        identity = _static_json(dataset, entities, RUN_ENTITY)
-    except ReviewError:
-        raise
-    except Exception as e:
+        scan = scan_recording(path, on_samples)
+    except Exception as e:  # noqa: BLE001 - the reader's own errors, whatever they are
         raise ReviewError(
-            f"{path}: cannot read the recording (truncated? `rerun rrd verify` checks it): {e}"
+            f"{path}: cannot read the recording (truncated? `mrrig review --verify` checks it): {e}"
         ) from e
-    finally:
-        server.shutdown()
-    return Recording(path=path, samples=samples, events=events, summary=summary, identity=identity)
-
-
-def _static_json(dataset: Any, entities: set[str], entity: str) -> dict[str, Any] | None:
-    """The JSON of a static TextDocument (the summary, the run's identity), or None."""
-    if f"/{entity}" not in entities:
-        return None
-    static = dataset.filter_contents([f"/{entity}"]).reader(index=None).to_arrow_table()
-    return json.loads(static.column(f"/{entity}:TextDocument:text")[0][0].as_py())
+    entities = scan.entities - {"/__properties"}
+    if not entities:
+        raise ReviewError(f"{path}: not a readable RRD (not an .rrd file, or truncated)")
+    ours = {f"/{e}" for e in FIELD_ENTITIES.values()} | {f"/{SUMMARY_ENTITY}", "/rig"}
+    if not entities & ours:
+        shown = ", ".join(sorted(entities)[:5]) + (", ..." if len(entities) > 5 else "")
+        raise ReviewError(
+            f"{path}: not an mrrig recording: a Rerun file of another application (its"
+            f" entities {shown}; an mrrig recording has /rig and the rig's series)"
+        )
+    return scan
 
 
 _VERIFIED_RE = re.compile(r"(\d+) files? verified without error")
+_FAILED_RE = re.compile(r"failed with (\d+) errors?")
+_NO_FOOTER = "Missing RRD footer"
 
 
 def verify_rrd(path: str | Path) -> None:
-    """Check a file with `rerun rrd verify`; raise ReviewError unless it reports it fine.
+    """Check a file with `rerun rrd verify`, and that it is whole: raise ReviewError unless
+    rerun reports it fine and it holds every frame its end marker counts.
 
-    The CLI exits 0 on a non-RRD file ("0 files verified"), so its output is what counts.
+    The CLI exits 0 on a non-RRD file ("0 files verified"), so its output is what counts. A
+    recording has no footer (`mrrig.rigio.recording`), which is the one error of rerun's that
+    is not one here; that rerun reads a file cut short without another, so the end marker
+    written at `close()` and the frames read back are what say that it is whole. A recording
+    from before the marker passes on rerun's verdict with its footer.
     """
     path = Path(path)
     if not path.is_file():
@@ -205,18 +231,32 @@ def verify_rrd(path: str | Path) -> None:
             [str(rerun_cli), "rrd", "verify", str(path)],
             capture_output=True,
             text=True,
-            timeout=300,
+            timeout=3600,
             check=False,
         )
     except (OSError, subprocess.TimeoutExpired) as e:
         raise ReviewError(f"{path}: cannot run {rerun_cli}: {e}") from e
     output = proc.stdout + proc.stderr
     m = _VERIFIED_RE.search(output)
-    if proc.returncode != 0 or m is None or int(m.group(1)) != 1:
-        lines = [ln.strip() for ln in output.splitlines() if ln.strip()]
+    if proc.returncode == 0 and m is not None and int(m.group(1)) == 1:
+        return  # footer and all
+    lines = [ln.strip() for ln in output.splitlines() if ln.strip()]
+    failed = _FAILED_RE.search(output)
+    if failed is None or int(failed.group(1)) != 1 or _NO_FOOTER not in output:
         # the line naming the file says what is wrong; the last one only counts errors
         reason = next((ln for ln in lines if path.name in ln), lines[-1] if lines else "")
         raise ReviewError(f"{path}: rerun rrd verify failed: {reason}")
+    scan = scan_checked(path, lambda batch: None)
+    if scan.end is None:
+        raise ReviewError(
+            f"{path}: truncated: no end marker (the writer was killed or its disk failed);"
+            f" {scan.frames} frames readable"
+        )
+    if scan.frames != scan.end.get("frames"):
+        raise ReviewError(
+            f"{path}: truncated: {scan.frames} frames readable of the {scan.end.get('frames')}"
+            " its end marker counts"
+        )
 
 
 def plot_recording(rec: Recording, out_png: str | Path) -> Path:

@@ -20,9 +20,16 @@ Layout of the recording (the contract `mrrig.offline.review` reads back):
 - `summary`: static `TextDocument` holding the JSON of `add_summary`'s dict (NaN allowed).
 - `run`: static `TextDocument` holding the run's identity (JSON: run id, rig, host, specimen,
   operator, start UTC, controller and its parameters, model, config and DBC sha256, version).
+- `recording_end`: static `TextDocument`, written by `close()`: JSON `frames` and `events`
+  sent. A file that lacks it, or holds fewer frames, is truncated.
 
 Samples are buffered and sent with `send_columns` every `flush_interval_s`: one `log` call
 per sample would cost 30-60 us.
+
+The file has no RRD footer (the manifest of its chunks): rerun would hold that manifest in the
+writer's memory for the whole run, about 1 kB a chunk (issue 40: 2-3 MB a minute). The end
+marker `recording_end` says that the file is whole; `rerun rrd optimize IN -o OUT` adds a
+footer where a tool needs one.
 """
 
 from __future__ import annotations
@@ -40,8 +47,12 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import rerun as rr
-import rerun.blueprint as rrb
+
+# rerun warns of every file written without a footer (which it is, on purpose: see above);
+# its other warnings stay, and a RUST_LOG of the user's own is theirs
+os.environ.setdefault("RUST_LOG", "warn,re_log_encoding::rrd::file_sink=error")
+import rerun as rr  # noqa: E402 - after its log filter
+import rerun.blueprint as rrb  # noqa: E402
 
 from mrrig import json_text
 from mrrig.errors import MrrigError
@@ -56,6 +67,9 @@ EVENT_TIMELINE = "event"
 EVENTS_ENTITY = "events"
 SUMMARY_ENTITY = "summary"
 RUN_ENTITY = "run"  # the run's identity (JSON), static, from the start
+# written by `close()`: the samples and events sent (JSON), static; the file has no footer, so
+# this is how a reader knows that it holds the whole recording
+RECORDING_END_ENTITY = "recording_end"
 LOOP_FV_ENTITY = "loops/force_velocity"
 LOOP_FX_ENTITY = "loops/force_displacement"
 # derived series for the viewer only (review reads FIELD_ENTITIES)
@@ -267,7 +281,11 @@ class Recorder:
         self.failed = ""  # why writing the file failed: what it holds is truncated
         self.path.parent.mkdir(parents=True, exist_ok=True)
         self._rec = rr.RecordingStream(APPLICATION_ID, recording_id=uuid.uuid4())
-        sinks: list[Any] = [rr.FileSink(self.path)]
+        # no footer: rerun keeps the footer's manifest (about 1 kB for each chunk, 50 chunks a
+        # second here) in memory until the file is closed, so a recording with one grows its
+        # writer by 2-3 MB a minute (issue 40). The file is whole without it; the run's end
+        # is its summary, and readers stream it (`mrrig.offline.review`)
+        sinks: list[Any] = [rr.FileSink(self.path, write_footer=False)]
         if live_url is not None:
             sinks.append(rr.GrpcSink(live_url))
         self._rec.set_sinks(*sinks, default_blueprint=default_blueprint())
@@ -390,12 +408,14 @@ class Recorder:
                 self._flush_locked()
 
     def close(self) -> None:
-        """Flush and write the footer (disconnect). Idempotent; later calls drop data."""
+        """Flush, write the end marker and disconnect. Idempotent; later calls drop data."""
         with self._guard():
             if self._closed:
                 return
             try:
                 self._flush_locked()
+                end = json_text.dumps({"frames": self._frames, "events": self._events})
+                self._rec.log(RECORDING_END_ENTITY, rr.TextDocument(end), static=True)
             finally:
                 self._rec.disconnect()
                 self._closed = True
@@ -410,7 +430,7 @@ class Recorder:
                 )
 
     def abandon(self) -> None:
-        """After a failed write: stop taking data without flushing or writing the footer (a
+        """After a failed write: stop taking data without flushing or writing the end marker (a
         stream whose file writer failed may hang in either). The file stays truncated."""
         with self._guard():
             self._closed = True

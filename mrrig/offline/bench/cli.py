@@ -18,6 +18,7 @@ BENCHES = {
     "train": "mrrig.offline.bench.train",
     "fuzz": "mrrig.offline.bench.fuzz",
     "catalog": "mrrig.offline.bench.catalog",
+    "soak": "mrrig.offline.bench.soak",
 }
 
 
