@@ -279,12 +279,32 @@ def test_bench_fuzz_fails_on_each_count_that_is_not_0():
         "crashes": [], "commands_above_limit": 0, "desired_force_out_of_range": 0,
         "motion_beyond_limits": 0, "active_applied_to_stale": 0,
         "active_applied_to_invalid": 0, "active_answers_invalid": 0, "requests_unanswered": 0,
-        "max_commanded_current_a": 2.0, "armed_without_lease": 0,
+        "max_commanded_current_a": 2.0, "armed_without_lease": 0, "faulty_bus_not_aborted": 0,
+        "runs_missing_from_catalog": [],
     }  # fmt: skip
     assert failures(clean, 2.0) == []
     for name in clean:
-        bad = {**clean, name: ["x"] if name == "crashes" else 3}
+        listed = name in ("crashes", "runs_missing_from_catalog")
+        bad = {**clean, name: ["x"] if listed else 3}
         assert failures(bad, 2.0) == [name]
+
+
+def test_bench_fuzz_counts_a_recording_whose_run_is_neither_catalogued_nor_journalled(tmp_path):
+    """Issue 40: a run is in the catalog, or journalled beside its recording and replayed into
+    it; a recording with neither is a lost run."""
+    from mrrig.catalog import register_run
+    from mrrig.catalog.journal import journal_path, write_journal
+    from mrrig.offline.bench.fuzz_faulty_bus import runs_missing
+    from tests.test_catalog import run
+
+    catalog = tmp_path / "catalog.sqlite"
+    recs = [tmp_path / f"fuzz-{n}.rrd" for n in range(3)]
+    for p in recs:
+        p.write_bytes(b"RRF2")
+    register_run(catalog, run(0, recording_path=str(recs[0])))
+    journalled = run(1, recording_path=str(recs[1]))
+    write_journal(journal_path(journalled, str(catalog), None), journalled, str(catalog), None)
+    assert runs_missing(recs, catalog) == ["fuzz-2.rrd"]
 
 
 @pytest.mark.process

@@ -12,7 +12,10 @@ sequences: chains of individually valid changes 5 ms apart (six actuator amplitu
 force_ref values rising to 1e300), and re-arms the daemon after every fault (renewing the
 lease of its arms). Every 15 s a client that holds the rig armed (`mrrig arm --hold`) is
 SIGKILLed at a random moment: the rig must leave ARMED within the lease's timeout
-(`armed_without_lease`, mrrig.offline.bench.fuzz_lease). It sends the
+(`armed_without_lease`, mrrig.offline.bench.fuzz_lease). Every minute (the first at half the
+fuzz phase, or half a minute) a client's step (`mrrig test`) holds the rig while the simulator
+is held up 0.1 s every 0.6 s: a faulty bus, on which the step must be aborted `faulty bus` at
+the re-arm cap (`faulty_bus_not_aborted`, mrrig.offline.bench.fuzz_faulty_bus). It sends the
 daemon SIGHUP, SIGUSR1, SIGUSR2, SIGQUIT and SIGPIPE in turn: each must end the run SAFE (the
 last DamperCommand SAFE, the actuator stopped, a summary written, exit code 0 or 1) or be
 ignored (the daemon answers on); a daemon that ended is started again. A listener on the bus
@@ -28,8 +31,10 @@ ACTIVE commands the firmware applied to a stale frame (older than its stale_answ
 its own clock) or to no valid frame, ACTIVE answers to no genuine frame (the listener's),
 control requests without an answer (but those sent while a signal ended the daemon). The
 late commands the firmware dropped (spec/can-protocol.md) and the ACTIVE answers that
-reached the bus over the age limit are reported. Then, the rig stopped, an observer's misuse
-of a sidecar on the shipped access control (`mrrig.offline.bench.fuzz_observer`).
+reached the bus over the age limit are reported. Then, the rig stopped, every daemon start's
+recording must have its run in the bench's catalog once the journals beside them are replayed
+(`runs_missing_from_catalog`), and an observer's misuse of a sidecar on the shipped access
+control (`mrrig.offline.bench.fuzz_observer`).
 
 Answer latency "as the firmware sees it": from the bridge's receive timestamp of a sensor
 frame to the bridge's receive timestamp of its command (both carried in the frames a bus
@@ -60,7 +65,7 @@ import zenoh
 from mrrig import json_text
 from mrrig.cli_args import HelpFormatter, output_file, positive
 from mrrig.config import load_config
-from mrrig.offline.bench import fuzz_lease, fuzz_observer
+from mrrig.offline.bench import fuzz_faulty_bus, fuzz_lease, fuzz_observer
 from mrrig.pycan import can
 from mrrig.rigio.canbus.bus import find_free_port, open_bus, start_bridge, stop_bridge
 from mrrig.rigio.canbus.codec import Codec
@@ -601,6 +606,9 @@ def run(minutes: float, config: Path, sim_config: Path, seed: int, out: Path | N
         killed = fuzz_lease.KilledClients()
         client_z = fuzz_lease.client_config(endpoints, work)
         next_kill = time.monotonic() + fuzz_lease.KILL_EVERY_S / 2
+        # a client's step on a faulty bus (issue 40): aborted at the re-arm cap
+        faulty = fuzz_faulty_bus.FaultyBus()
+        next_faulty = time.monotonic() + min(fuzz_faulty_bus.FAULTY_EVERY_S, fuzz_s) / 2
         t_next = time.monotonic()
         armed = False
         while (now := time.monotonic()) < end or len(unsent) > 1 or pending is not None:
@@ -648,6 +656,13 @@ def run(minutes: float, config: Path, sim_config: Path, seed: int, out: Path | N
                 lease_s = cfg.control.lease_timeout_s
                 fuzz_lease.kill_a_client(requests.ask, cfg.rig.name, client_z, lease_s, rng, killed)
                 next_kill = time.monotonic() + fuzz_lease.KILL_EVERY_S
+                next_arm = time.monotonic()
+            elif now >= next_faulty and now < end:
+                holder.release()  # the client's step holds the rig
+                fuzz_faulty_bus.faulty_bus_step(
+                    requests.ask, cfg.rig.name, client_z, sim.pid, work, faulty
+                )
+                next_faulty = time.monotonic() + fuzz_faulty_bus.FAULTY_EVERY_S
                 next_arm = time.monotonic()
             elif now >= next_arm:
                 next_arm += 1.0
@@ -713,6 +728,7 @@ def run(minutes: float, config: Path, sim_config: Path, seed: int, out: Path | N
             "active_answers_invalid": listener.active_unmatched,
             "rearms": rearms,
             **killed.counts(),
+            **faulty.counts(),
             "answer_latency_p99_us": {"quiet": q99, "burst": b99, "ratio": b99 / q99},
             "answer_latency_frames": {"quiet": nq, "burst": nb},
             "daemon": {
@@ -734,6 +750,10 @@ def run(minutes: float, config: Path, sim_config: Path, seed: int, out: Path | N
                 p.kill()
                 p.wait()
         stop_bridge(bridge)
+    # every daemon start's run in the catalog, or journalled and replayed into it now
+    recordings = [work / f"fuzz-{n}.rrd" for n in range(result["daemon_starts"])]
+    missing = fuzz_faulty_bus.runs_missing(recordings, Path(os.environ[CATALOG_ENV]))
+    result["recordings"], result["runs_missing_from_catalog"] = len(recordings), missing
     result["observer_misuse"] = fuzz_observer.run(work, rng, minutes)
     print(_report(result))
     print(fuzz_observer.report(result["observer_misuse"]))
@@ -750,7 +770,8 @@ def failures(result: dict[str, Any], i_max_a: float) -> list[str]:
         "requests_unanswered",
     ]  # fmt: skip
     out = [n for n in names if result[n]]
-    out += [n for n in ("armed_without_lease",) if result.get(n)]
+    out += [n for n in ("armed_without_lease", "faulty_bus_not_aborted") if result.get(n)]
+    out += [n for n in ("runs_missing_from_catalog",) if result.get(n)]
     if result["max_commanded_current_a"] > i_max_a + 1e-4:
         out.append("max_commanded_current_a")
     if "observer_misuse" in result:
@@ -811,6 +832,13 @@ def _report(r: dict) -> str:
             f" {r['clients_never_armed']}): armed without a live lease beyond its timeout"
             f" {r['armed_without_lease']}, left ARMED after a kill max"
             f" {_seconds(r['left_armed_after_kill_s_max'])}",
+            f"  a client's step on a faulty bus (the simulator held up {fuzz_faulty_bus.STALL_S:g}"
+            f" s every {fuzz_faulty_bus.STALL_EVERY_S:g} s) {r['faulty_bus_episodes']} times"
+            f" (never armed {r['faulty_bus_never_armed']}, {r['faulty_bus_stalls']} stalls):"
+            f" aborted 'faulty bus' {r['faulty_bus_aborted']}, not aborted"
+            f" {r['faulty_bus_not_aborted']} {r['faulty_bus_not_aborted_how']}",
+            f"  runs missing from the catalog {len(r['runs_missing_from_catalog'])} of"
+            f" {r['recordings']} recordings {r['runs_missing_from_catalog'][:5]}",
             f"  answer latency p99 as the firmware sees it: quiet {lat['quiet']:.0f} us, "
             f"burst {lat['burst']:.0f} us, ratio {lat['ratio']:.2f} (target <= 1.5)",
             f"  daemon: {r['daemon']}",
