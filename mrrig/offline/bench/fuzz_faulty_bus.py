@@ -17,7 +17,6 @@ from __future__ import annotations
 import os
 import signal
 import subprocess
-import sys
 import textwrap
 import time
 import xml.etree.ElementTree as ET
@@ -25,6 +24,8 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
+
+from mrrig.offline.bench.fuzz_lease import client_arms
 
 FAULTY_EVERY_S = 60.0  # a faulty-bus episode this often in the fuzz phase (the first at half)
 STALL_S, STALL_EVERY_S = 0.1, 0.6  # the simulator held up this long, this often
@@ -41,10 +42,10 @@ _PLAN = """\
     name = "faulty bus"
     duration_s = 30
     settle_s = 0.5
-    actuator = {{ waveform = "sine", amplitude_m = 0.005, frequency_hz = 1.0 }}
-    controller = {{ name = "constant", current_a = 0.5 }}
-    reference = {{ kind = "constant" }}
-    criteria = {{ faults = "transport" }}
+    actuator = { waveform = "sine", amplitude_m = 0.005, frequency_hz = 1.0 }
+    controller = { name = "constant", current_a = 0.5 }
+    reference = { kind = "constant" }
+    criteria = { faults = "transport" }
     """
 
 
@@ -67,10 +68,6 @@ class FaultyBus:
         }
 
 
-def _state(ask: Ask) -> str | None:
-    return ((ask({"cmd": "status"}) or {}).get("status") or {}).get("state")
-
-
 def _step_outcome(junit: Path) -> str:
     """The step's verdict and reason from the client's JUnit report."""
     if not junit.is_file():
@@ -91,22 +88,17 @@ def faulty_bus_step(
     """From IDLE: `mrrig test` arms the rig for its step; the simulator is stalled every
     STALL_EVERY_S until the client ends (or MAX_STALLS); its step must be aborted `faulty
     bus`."""
-    ask({"cmd": "disarm"})
-    ask({"cmd": "reset"})
     n = result.episodes
     result.episodes += 1
     plan, junit = work / f"faulty-bus-{n}.toml", work / f"faulty-bus-{n}.xml"
-    plan.write_text(textwrap.dedent(_PLAN.format()))
-    cmd = [sys.executable, "-m", "mrrig", "-q", "test", str(plan), "--rig", rig]
-    cmd += ["--zenoh-config", str(zenoh_config), "--junit", str(junit)]
-    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    plan.write_text(textwrap.dedent(_PLAN))
+    cmd = ["test", str(plan), "--rig", rig, "--zenoh-config", str(zenoh_config)]
+    proc = client_arms(ask, [*cmd, "--junit", str(junit)], ARM_WAIT_S)
+    if proc is None:
+        result.never_armed += 1
+        ask({"cmd": "disarm"})
+        return
     try:
-        deadline = time.monotonic() + ARM_WAIT_S
-        while _state(ask) != "ARMED":
-            if proc.poll() is not None or time.monotonic() > deadline:
-                result.never_armed += 1
-                return
-            time.sleep(0.05)
         time.sleep(STALL_EVERY_S)
         for _ in range(MAX_STALLS):
             if proc.poll() is not None:

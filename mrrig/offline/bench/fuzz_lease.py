@@ -45,6 +45,27 @@ def _state(ask: Ask) -> str | None:
     return ((ask({"cmd": "status"}) or {}).get("status") or {}).get("state")
 
 
+def client_arms(ask: Ask, cmd: list[str], wait_s: float) -> subprocess.Popen | None:
+    """From IDLE: the client `cmd` (an mrrig command) started; it once the rig is ARMED
+    within `wait_s`, else None (the client ended or did not arm it: killed, waited for)."""
+    ask({"cmd": "disarm"})
+    ask({"cmd": "reset"})
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "mrrig", "-q", *cmd],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+    )
+    deadline = time.monotonic() + wait_s
+    while _state(ask) != "ARMED":
+        if proc.poll() is not None or time.monotonic() > deadline:
+            if proc.poll() is None:
+                proc.kill()
+            proc.wait()
+            return None
+        time.sleep(POLL_S)
+    return proc
+
+
 def client_config(endpoints: list[str], work: Path) -> Path:
     """A Zenoh client config file (127.0.0.1, scouting off) for the killed clients."""
     import json
@@ -69,18 +90,12 @@ def kill_a_client(
 ) -> None:
     """From IDLE: `mrrig arm --hold` arms the rig and renews its lease; SIGKILL after a random
     HOLD_S; then how long the rig stays ARMED."""
-    ask({"cmd": "disarm"})
-    ask({"cmd": "reset"})
-    cmd = [sys.executable, "-m", "mrrig", "-q", "arm", "--rig", rig, "--hold"]
-    cmd += ["--zenoh-config", str(zenoh_config)]
-    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    cmd = ["arm", "--rig", rig, "--hold", "--zenoh-config", str(zenoh_config)]
+    proc = client_arms(ask, cmd, ARM_WAIT_S)
+    if proc is None:
+        result.never_armed += 1
+        return
     try:
-        deadline = time.monotonic() + ARM_WAIT_S
-        while _state(ask) != "ARMED":
-            if proc.poll() is not None or time.monotonic() > deadline:
-                result.never_armed += 1
-                return
-            time.sleep(POLL_S)
         time.sleep(rng.uniform(*HOLD_S))
         proc.kill()
         t_kill = time.monotonic()
