@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# The README's commands after the two (quick start, three-terminal start, send-force, viewing
+# The commands of the README and docs/guide.md after the two (quick start, three-terminal start, send-force, viewing
 # recordings, bus logs), run as written on this machine: the terminals' commands in the
 # background, every other command in turn with its exit code. Run after
 # `bash scripts/bootstrap.sh`; needs the ports the README uses (54701 and 7447) free.

@@ -821,9 +821,9 @@ def test_a_stalled_control_plane_is_waited_for_not_fatal_to_the_plan(rig, tmp_pa
     assert cases["impossible Et"].is_failure, stdout
 
 
-def test_the_readme_lists_the_controllers_by_name():
+def test_the_guide_lists_the_controllers_by_name():
     from mrrig.loop.controllers import CONTROLLERS
 
-    text = (REPO / "README.md").read_text()
+    text = (REPO / "docs" / "guide.md").read_text()
     listed = text.split("A step's `controller.name` is one of the registry's: ")[1].split(" (")[0]
     assert re.findall(r"`([a-z_]+)`", listed) == list(CONTROLLERS)
