@@ -271,15 +271,27 @@ def prove(
     ws = windows(sim_stats)
     et, n = None, 0
     if samples is not None:
-        armed = samples["state"] == RigState.ARMED
-        kept = armed & ~set_aside(samples["t"], ws, explained, clock_t0_s)
-        n = int(kept.sum())
-        if n:
-            et = error_norm(samples["f_des"][kept], samples["f_meas"][kept])
-        print(
-            f"  tracking: Et {et} over {n} armed frames outside the windows "
-            f"({int(armed.sum()) - n} set aside)"
-        )
-        if et_bound is not None:
-            assert et is not None and et <= et_bound, (et, et_bound)
+        et, n = tracking(samples, ws, explained, clock_t0_s, et_bound)
     return Proof(ws, explained, et, n)
+
+
+def tracking(
+    samples: np.ndarray,
+    ws: Sequence[Window],
+    explained: Iterable[tuple[dict, Window]],
+    clock_t0_s: float,
+    et_bound: float | None = None,
+) -> tuple[float | None, int]:
+    """Rule 3: Et (eqs 41-43) over the armed frames outside the windows, `et_bound` asserted;
+    returns it (None without such a frame) and the number of frames it is over."""
+    armed = samples["state"] == RigState.ARMED
+    kept = armed & ~set_aside(samples["t"], ws, explained, clock_t0_s)
+    n = int(kept.sum())
+    et = error_norm(samples["f_des"][kept], samples["f_meas"][kept]) if n else None
+    print(
+        f"  tracking: Et {et} over {n} armed frames outside the windows "
+        f"({int(armed.sum()) - n} set aside)"
+    )
+    if et_bound is not None:
+        assert et is not None and et <= et_bound, (et, et_bound)
+    return et, n

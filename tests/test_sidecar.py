@@ -565,3 +565,45 @@ def test_recording_only_sidecar_needs_no_zenoh(tmp_path: Path):
     finally:
         loop.close()
     assert read_recording(path).samples.tobytes() == arr.tobytes()
+
+
+def test_a_disarm_that_waited_past_the_answer_timeout_is_still_passed_on(tmp_path: Path):
+    """The sidecar's main thread held up (a loaded machine: three rigs and their plans on two
+    CPUs) past the answer timeout while an arm and a disarm wait in its inbox: the arm is
+    answered busy, unread, but the disarm reaches the loop (CI: a plan's step aborted on
+    `disarm: busy: the control plane is overloaded`)."""
+    _, _, port = zenoh_configs(tmp_path)
+    fds = make_channel(pipe_bytes=None)
+    loop = LoopEnd(fds.loop_rx, fds.loop_tx)
+    end = SidecarEnd(fds.sidecar_rx, fds.sidecar_tx)
+    session = zenoh.open(local_config("peer", listen=[f"tcp/127.0.0.1:{port}"]))
+    observer = zenoh.open(local_config("client", connect=[f"tcp/127.0.0.1:{port}"]))
+    sidecar = Sidecar(RIG, session, end, None, 50.0)
+    # the queries reach the inbox while the main loop is not serving yet: held up
+    early = session.declare_queryable(keys(RIG)["control"], sidecar._on_query)
+    thread = threading.Thread(target=sidecar.run)
+    try:
+        control = keys(RIG)["control"]
+        arm = observer.get(control, payload='{"cmd": "arm"}', timeout=5.0)
+        disarm = observer.get(control, payload='{"cmd": "disarm"}', timeout=5.0)
+        time.sleep(1.5)  # past CONTROL_TIMEOUT_S (1 s) in the inbox
+        thread.start()
+        requests = wait_until(
+            lambda: [json.loads(p[1]) for m, p in loop.poll() if m == Msg.REQUEST], 5.0
+        )
+        assert requests == [{"cmd": "disarm"}]
+        replies = loop.reply_writer()
+        replies.send_reply({"id": 1, "ok": True, "state": "IDLE"})
+        replies.close()
+        assert json.loads(next(iter(arm)).ok.payload.to_bytes()) == {
+            "ok": False,
+            "error": "busy: the control plane is overloaded",
+        }
+        assert json.loads(next(iter(disarm)).ok.payload.to_bytes())["ok"] is True
+    finally:
+        early.undeclare()
+        loop.send_stop()
+        thread.join(10)
+        observer.close()
+        session.close()
+        loop.close()

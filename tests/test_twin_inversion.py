@@ -29,9 +29,10 @@ from mrrig.loop.daemon import build_controller
 from mrrig.loop.mlp import ModelError
 from mrrig.loop.model_fit import COST_BUDGET_S, frame_cost_s
 from mrrig.loop.twin_model import SUBSTEP_S, TwinModel, TwinTracker, load_forward_model
+from mrrig.offline.review import read_recording
 from tests.conftest import REPO, _toml, rig_config, zenoh_configs
 from tests.rig_harness import ScriptedRig
-from tests.stall_proof import explain
+from tests.stall_proof import explain, tracking, windows
 
 DT_S = 0.002
 # the process test's answered Et at most: measured 0.0164 over its 20 s here (load 0.4 on 2
@@ -211,7 +212,7 @@ def test_the_daemon_inverting_the_twin_that_firmware_sim_runs_tracks_its_force(t
     rig["controller"]["model"] = str(twin)
     rig["reference"]["preset"] = str(twin)
     rig["telemetry"].update(enabled=True, zenoh_config=str(zdaemon))
-    rig["recording"]["enabled"] = False
+    rig["recording"].update(enabled=True, directory=str(tmp_path / "rec"))
     (tmp_path / "rig.toml").write_text(_toml(rig))
     sim = (REPO / "configs/sim-dyke-twin.toml").read_text()
     sim = sim.replace('file = "models/dyke-twin.json"', f'file = "{twin}"')
@@ -236,6 +237,13 @@ def test_the_daemon_inverting_the_twin_that_firmware_sim_runs_tracks_its_force(t
         f"answered Et {summary['et_answered']:.4f}, faults {len(summary['faults'])},"
         f" work p99 {work['p99']:.0f} us"
     )
-    explain(stats, summary["faults"], summary["clock_t0_s"], summary["kernel_stalls"])
+    print(
+        f"simulator: {stats['answers']} answers, {stats['answers_on_time']} on time,"
+        f" {stats['late_commands']} late (not applied)"
+    )
+    (rrd,) = (tmp_path / "rec").glob("*.rrd")
+    samples = read_recording(rrd).samples
     assert summary["controller"] == "network_inversion"
-    assert summary["et_answered"] <= BOUND
+    # the demo's daemon is not up for all of the simulator's frames: rules 2 and 3 alone
+    explained = explain(stats, summary["faults"], summary["clock_t0_s"], summary["kernel_stalls"])
+    tracking(samples, windows(stats), explained, summary["clock_t0_s"], BOUND)

@@ -200,6 +200,15 @@ def telemetry_json(rig: str, batch: np.ndarray) -> str:
     return json.dumps({"rig": rig, "fields": fields}, separators=(",", ":"))
 
 
+def _is_disarm(query: zenoh.Query) -> bool:
+    """Whether a queued control query is a well-formed disarm."""
+    try:
+        raw = query.payload.to_bytes() if query.payload else b""
+        return len(raw) <= MAX_REQUEST_PAYLOAD and parse_request(raw)["cmd"] == "disarm"
+    except (RequestError, AttributeError):
+        return False
+
+
 def parse_force_ref(payload: bytes) -> float:
     """A force_ref payload (JSON number or {"force_n": x}) -> finite force in N.
 
@@ -394,7 +403,9 @@ class Sidecar:
     def _handle_inbox(self) -> None:
         """At most INBOX_BATCH items: a burst of requests does not hold up the loop's
         messages, the heartbeat or the telemetry. A query that waited longer than the
-        daemon's answer timeout is answered busy, unread."""
+        daemon's answer timeout is answered busy, unread, except a disarm: it only makes
+        the rig safer, so it is always passed on (a client that sees `busy` to a disarm would
+        believe the rig still armed)."""
         for _ in range(INBOX_BATCH):
             try:
                 kind, item, t_rx_s = self._inbox.get_nowait()
@@ -402,7 +413,7 @@ class Sidecar:
                 return
             now = time.monotonic()
             self._heartbeat(now)
-            if kind == "query" and now - t_rx_s > CONTROL_TIMEOUT_S:
+            if kind == "query" and now - t_rx_s > CONTROL_TIMEOUT_S and not _is_disarm(item):
                 self._reply(item, {"ok": False, "error": "busy: the control plane is overloaded"})
                 continue
             try:
