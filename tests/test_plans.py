@@ -26,6 +26,7 @@ from mrrig.plans.criteria import Criteria, failures, measure
 from mrrig.plans.plan import MAX_PLAN_BYTES, MAX_STEPS, PlanError, load_plan
 from mrrig.plans.report import Identity, write_html, write_junit
 from mrrig.plans.runner import StepResult
+from mrrig.rigio.run_identity import file_sha256
 from tests.conftest import REPO, OutputWatch, rig_config, start, stop, zenoh_configs
 from tests.live_rig import live_rig
 from tests.test_lifecycle_errors import NO_MODEL
@@ -543,7 +544,7 @@ def test_a_double_ctrl_c_still_writes_the_reports_and_the_catalog_rows(tmp_path)
         tmp_path,
         "ws://127.0.0.1:1/",  # --sim gives the daemon its bridge's channel
         None,
-        rig={"name": "plans-ctrl-c"},
+        rig={"name": "plans-ctrl-c", "specimen": "SN-MR-042"},
         telemetry={"enabled": True, "zenoh_config": str(daemon_z)},
         **NO_MODEL,
     )
@@ -577,6 +578,10 @@ def test_a_double_ctrl_c_still_writes_the_reports_and_the_catalog_rows(tmp_path)
     assert "constant current" in html.read_text()
     (row,) = find_runs(catalog)
     assert (row.plan, row.step, row.verdict) == ("two steps", "constant current", "aborted")
+    # issue 42: traceable to the specimen, the settings and the files in force at its start
+    assert (row.specimen, row.config_sha256) == ("SN-MR-042", file_sha256(cfg))
+    assert row.dbc_sha256 == file_sha256(REPO / "configs" / "mrrig.dbc")
+    assert row.controller_params["current_a"] == 0.5, row.controller_params
 
 
 @pytest.mark.process

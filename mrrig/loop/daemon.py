@@ -78,7 +78,7 @@ from mrrig.rigio.control import (
     settings_in_force,
 )
 from mrrig.rigio.ipc import LoopEnd, Msg, ReplyWriter, make_channel
-from mrrig.rigio.run_identity import run_identity
+from mrrig.rigio.run_identity import IN_FORCE, STATUS_IDENTITY, run_identity
 from mrrig.rigio.zenoh_config import check_secure, load_zenoh_config
 from mrrig.typed_config import ConfigError
 
@@ -286,6 +286,7 @@ class Daemon:
         self.codec = self.profile.codec
         # who runs what, where and when: into the recording and the run catalog (the sidecar)
         self.identity = run_identity(cfg, self.codec.dbc_path)
+        self.in_force = {k: self.identity[k] for k in IN_FORCE}  # set_model / set_controller
         self.packer = self.profile.packer()
         self._own_messages = frozenset(self.packer.messages)
         self._sensor_msg = self.profile.sensor_message
@@ -429,6 +430,7 @@ class Daemon:
             "firmware_blocking": s.firmware_blocking,
             "recording": "failed: " + self.recording_failed if self.recording_failed else None,
             "telemetry_restarts": self._sidecar_restarts,
+            "identity": {k: self.identity[k] for k in STATUS_IDENTITY} | self.in_force,
             "t": self.now(),
             **self.counters,
         }
@@ -1000,6 +1002,7 @@ class Daemon:
             self.controller.reset(1)
             self.reset_reference(self.now(), self.last_x)  # its desired forces ahead, if any
             self.cfg = replace(self.cfg, controller=c.controller_section)
+            self.in_force = c.in_force or self.in_force
             self._send_status(force=True)
             settings = settings_in_force(c.controller_section, c.controller)
             return {"controller": self.controller.name, "settings": settings}

@@ -52,6 +52,7 @@ from mrrig.config import (
 from mrrig.errors import MrrigError
 from mrrig.loop.controllers import CONTROLLER_NAMES, CONTROLLERS
 from mrrig.loop.samples import RigState
+from mrrig.rigio.run_identity import controller_in_force
 from mrrig.typed_config import ConfigError, parse
 
 log = logging.getLogger(__name__)
@@ -200,6 +201,7 @@ class Change:
     cmd: str
     controller_section: ControllerSection | None = None
     controller: Any = None
+    in_force: dict[str, Any] | None = None  # set_controller: `run_identity.controller_in_force`
     reference_section: ReferenceSection | None = None
     reference: Any = None
     actuator: ActuatorSection | None = None
@@ -390,7 +392,12 @@ class Preparer:
             controller = self._build_controller(self.cfg, section, model)
         except (ValueError, OSError) as exc:
             raise RequestError(str(exc)) from None
-        return Change("set_controller", controller_section=section, controller=controller)
+        return Change(
+            "set_controller",
+            controller_section=section,
+            controller=controller,
+            in_force=controller_in_force(section),  # the model's sha256 read here, off the loop
+        )
 
     def _set_model(self, req: dict) -> Change:
         path = req.get("path")
