@@ -368,6 +368,32 @@ def test_html_holds_the_identity_the_table_and_one_plot_per_step(tmp_path):
     assert "<h1>mrrig test: two steps: failed</h1>" in text
 
 
+def test_html_is_a_test_record_criteria_limits_values_rig_operator_and_model(tmp_path):
+    """Issue 42: the plan's HTML named the operator `root` where the daemon ran with
+    `--operator walk`, printed Et as `nan` or `0.0116904`, and showed no criterion."""
+    plan, results = results_of(tmp_path)
+    for r in results:
+        r.identity = {"operator": "walk", "specimen": "SN-MR-042", "run_id": "r-1",
+                      "model_path": "models/m.json", "model_sha256": "cd" * 32}  # fmt: skip
+    results[0].numbers = dataclasses.replace(results[0].numbers, et=math.nan)
+    path = tmp_path / "report.html"
+    ident = Identity.of(plan.path, "rig1", "1.2.3", "2026-12-04T20:00:00+00:00")
+    write_html(path, plan.name, ident, results)
+    text = path.read_text()
+    operator = html.escape(f"walk (the rig's run; the plan run by {ident.operator})")
+    assert f"<td>{operator}</td>" in text
+    assert "<td>SN-MR-042</td>" in text and f"models/m.json ({'cd' * 6})" in text
+    assert ">nan<" not in text and "<td>n/a</td>" in text
+    et = results[1].numbers.et
+    assert f"<td>{et:.4f}</td>" in text and f"{et:.6g}" not in text
+    # the failed step's criteria: Et against its limit, not met; faults met
+    assert (
+        f"<tr class='failed'><td>Et</td><td>&lt;= 0.0001</td><td>{et:.4f}</td>"
+        "<td>not met</td></tr>" in text
+    )
+    assert text.count("<td>faults</td>") == 2 and "<th>criterion</th>" in text
+
+
 def _renamed(results: list[StepResult], names: list[str]) -> list[StepResult]:
     return [
         dataclasses.replace(r, step=dataclasses.replace(r.step, name=n))
