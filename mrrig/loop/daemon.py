@@ -177,7 +177,12 @@ def build_controller(cfg: DaemonConfig, section=None, model: MLP | None = None) 
     if model is not None:
         check_units(model, c.model, rig_units())
         check_period(model, c.model, dt)
-    settings = ControllerSettings(i_max, dt_s=dt, model=model, current_a=c.current_a)
+    if c.on_current_a is not None and c.on_current_a > i_max:
+        raise ConfigError(f"{cfg.source}: controller.on_current_a: above loop.i_max_a {i_max} A")
+    settings = ControllerSettings(
+        i_max, dt_s=dt, model=model, current_a=c.current_a, gain=c.gain, b=c.b,
+        on_current_a=c.on_current_a,
+    )  # fmt: skip
     if c.name == "network_inversion":
         continuity = c.continuity
         if continuity is None:

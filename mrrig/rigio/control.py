@@ -73,7 +73,10 @@ JOB_PUT_TIMEOUT_S = 5.0
 MAX_MARK_CHARS = 200
 MAX_MARK_DATA_CHARS = 1200
 # a controller's settings in a request, besides its name and model
-CONTROLLER_SETTINGS = ("method", "ahead", "feedback", "feedback_tau_s", "continuity", "current_a")
+CONTROLLER_SETTINGS = (
+    "method", "ahead", "feedback", "feedback_tau_s", "continuity", "current_a", "gain", "b",
+    "on_current_a",
+)  # fmt: skip
 
 
 class RequestError(MrrigError, ValueError):
@@ -272,6 +275,10 @@ def settings_in_force(section: ControllerSection, controller: Any) -> dict[str, 
         }
     if section.name == "constant":
         out["current_a"] = controller.current
+    if section.name == "continuous_state":
+        out |= {"gain": controller.gain, "b": controller.b}
+    if section.name == "heaviside":
+        out["on_current_a"] = controller.on_current_a
     return out
 
 
