@@ -228,3 +228,34 @@ def test_the_firmware_follows_the_setpoint_stream_answering_each_sensor_frame():
 def test_the_shipped_contract_dbc_is_version_1_1():
     db = cantools.database.load_file(str(REPO / "configs" / "mrrig.dbc"))
     assert db.version == "mrrig CAN contract 1.1"
+
+
+def test_dbc_show_names_the_setpoint_message_or_none(capsys):
+    from mrrig.cli import dbc as dbc_cli
+
+    assert dbc_cli.main(["show", "--config", str(REPO / "configs" / "rig.toml")]) == 0
+    out = capsys.readouterr().out
+    assert "actuator_setpoint    ActuatorSetpoint.PositionSetpoint" in out
+    assert (
+        "setpoint (sent): ActuatorSetpoint, 8 bytes, 11-bit, 2 ms, E2E profile 2 (Data ID 99)"
+        in out
+    )
+    assert dbc_cli.main(["show", "--config", str(PROFILES / "lab-1khz.toml")]) == 0
+    out = capsys.readouterr().out
+    assert "actuator_setpoint    absent" in out and "setpoint (sent): none" in out
+
+
+def test_a_plan_step_on_a_stream_is_not_judged_as_a_damper_at_rest(tmp_path):
+    from mrrig.plans.feasibility import before_arming
+    from tests.test_feasibility import step_of
+
+    step = step_of(
+        tmp_path,
+        "streamed",
+        """
+        actuator = { waveform = "stream", amplitude_m = 0.02 }
+        reference = { kind = "sine", amplitude_n = 300.0, freq_hz = 1.0 }
+        """,
+    )
+    p = before_arming(step)
+    assert p.low is None and "STREAM stroke" in p.text()
