@@ -13,6 +13,7 @@ from firmware_sim.firmware import Firmware
 from mrrig.config import load_config
 from mrrig.loop.daemon import Daemon, build_controller, build_reference
 from mrrig.rigio.canbus.profile import ProfileError, check_profile, contract_profile
+from mrrig.rigio.canbus.profile_limits import daemon_limits
 from mrrig.rigio.canbus.setpoint import SetpointError, SetpointStream
 from mrrig.rigio.control import Preparer, RequestError
 from tests.conftest import REPO, rig_config
@@ -130,17 +131,18 @@ def test_a_setpoint_role_the_layout_cannot_stream_with_is_named(
     assert len(problems) == 1 and problems[0].endswith(expected), problems
 
 
-def test_a_lab_setpoint_in_mm_streams_in_metres(tmp_path):
-    motion = 'VAL_ 771 Waveform 3 "HOLD"'
+def _lab_streaming(tmp_path, target_mm: float = 50.0):
+    """lab-1khz with a setpoint message of its own (HostSetpoint.Target, mm, no echo) and
+    STREAM in its waveform table."""
     dbc = (PROFILES / "lab-1khz.dbc").read_text()
     dbc = dbc.replace(
         "BO_ 771 HostMotion: 8 HOST",
         "BO_ 772 HostSetpoint: 8 HOST\n SG_ Target :"
-        ' 0|24@1- (0.001,0) [-50|50] "mm" LABRIG\n\nBO_ 771 HostMotion: 8 HOST',
+        f' 0|24@1- (0.001,0) [-{target_mm:g}|{target_mm:g}] "mm" LABRIG\n\n'
+        "BO_ 771 HostMotion: 8 HOST",
     )
-    dbc = dbc.replace(motion, 'VAL_ 771 Waveform 4 "STREAM" 3 "HOLD"').replace(
-        "SG_ Waveform : 0|4@1+ (1,0) [0|3]", "SG_ Waveform : 0|4@1+ (1,0) [0|4]"
-    )
+    dbc = dbc.replace('VAL_ 771 Waveform 3 "HOLD"', 'VAL_ 771 Waveform 4 "STREAM" 3 "HOLD"')
+    dbc = dbc.replace("SG_ Waveform : 0|4@1+ (1,0) [0|3]", "SG_ Waveform : 0|4@1+ (1,0) [0|4]")
     config = _lab(
         tmp_path,
         toml_edit=(
@@ -151,13 +153,31 @@ def test_a_lab_setpoint_in_mm_streams_in_metres(tmp_path):
         ),
     )
     (config.parent / "lab-1khz.dbc").write_text(dbc)
+    return config
+
+
+def test_a_lab_setpoint_in_mm_streams_in_metres(tmp_path):
+    config = _lab_streaming(tmp_path)
     profile = _profile(config)
     assert profile.stream_refusal() is None
+    assert "the setpoint's counter echo (late setpoints)" in profile.protections_off
     msg = SetpointStream(profile, profile.packer(), 0.02).message(3, 0.012345, 0.1)
     decoded = cantools.database.load_file(str(config.parent / "lab-1khz.dbc")).decode_message(
         msg.arbitration_id, msg.data
     )
     assert decoded["Target"] == pytest.approx(12.345)  # mm on the wire
+
+
+def test_a_setpoint_signal_narrower_than_the_displacement_range_is_refused(tmp_path):
+    cfg = load_config(_lab_streaming(tmp_path, target_mm=10.0))
+    profile, problems = check_profile(
+        cfg.can.dbc, cfg.can.signals, cfg.loop.period_s, cfg.source, daemon_limits(cfg)
+    )
+    assert profile is None
+    assert problems == [
+        "lab-1khz.dbc: HostSetpoint.Target (actuator_setpoint) carries [-0.01, 0.01] m, but"
+        f" {cfg.source}'s loop.x_range_m needs [-0.045, 0.045] m"
+    ]
 
 
 # ---- SetpointStream ----------------------------------------------------------------------
