@@ -113,12 +113,27 @@ def test_a_stream_request_carries_its_envelope_and_no_frequency(tmp_path, reques
             ),
             (
                 'actuator_frequency = "HostMotion.Frequency"\n',
-                'actuator_frequency = "HostMotion'
-                '.Frequency"\nactuator_setpoint = "HostSetpoint.Target"\n',
+                'actuator_frequency = "HostMotion.Frequency"\n'
+                'actuator_setpoint = "HostSetpoint.Target"\n',
             ),
             "lab-1khz.dbc: HostMotion.Waveform: value table lacks STREAM (actuator_setpoint"
             " streams)",
             id="no STREAM in the waveform table",
+        ),
+        pytest.param(
+            (
+                "BO_ 771 HostMotion: 8 HOST",
+                'BO_ 772 HostSetpoint: 8 HOST\n SG_ Rate : 0|16@1- (1,0) [-1000|1000] "mm/s"'
+                " LABRIG\n\nBO_ 771 HostMotion: 8 HOST",
+            ),
+            (
+                'actuator_frequency = "HostMotion.Frequency"\n',
+                'actuator_frequency = "HostMotion.Frequency"\n'
+                'setpoint_velocity = "HostSetpoint.Rate"\n',
+            ),
+            "can.signals: HostSetpoint carries the setpoint's velocity or echo without"
+            ' actuator_setpoint (map it, or declare every setpoint role "absent")',
+            id="a velocity without its setpoint",
         ),
     ],
 )
@@ -177,6 +192,26 @@ def test_a_setpoint_signal_narrower_than_the_displacement_range_is_refused(tmp_p
     assert problems == [
         "lab-1khz.dbc: HostSetpoint.Target (actuator_setpoint) carries [-0.01, 0.01] m, but"
         f" {cfg.source}'s loop.x_range_m needs [-0.045, 0.045] m"
+    ]
+
+
+def test_a_setpoint_echo_without_an_e2e_counter_to_echo_is_refused(tmp_path):
+    config = _lab_streaming(tmp_path)
+    dbc = config.parent / "lab-1khz.dbc"
+    dbc.write_text(
+        dbc.read_text().replace(
+            '[-50|50] "mm" LABRIG\n',
+            '[-50|50] "mm" LABRIG\n SG_ Echo : 24|4@1+ (1,0) [0|15] "" LABRIG\n',
+        )
+    )
+    toml = config.read_text()
+    mapped = 'setpoint_counter_echo = "HostSetpoint.Echo"\n'
+    config.write_text(toml.replace('setpoint_counter_echo = "absent"\n', mapped))
+    cfg = load_config(config)
+    profile, problems = check_profile(cfg.can.dbc, cfg.can.signals, cfg.loop.period_s, cfg.source)
+    assert profile is None
+    assert problems == [
+        f"{cfg.source}: can.signals.setpoint_counter_echo: LabSensors has no E2E counter to echo"
     ]
 
 
