@@ -246,6 +246,12 @@ class Actuator:
         self._tau_s = 0.0
         self._amp_rand.set(peak_m, self._cfg.ramp_s)
 
+    @property
+    def stream_setpoint_m(self) -> float:
+        """The position STREAM heads for: the latest setpoint applied (clamped), or the
+        position it holds."""
+        return self._stream_target_m
+
     def stream_to(self, setpoint_m: float) -> None:
         """The position STREAM heads for from the next step on (clamped by the firmware)."""
         self._stream_target_m = setpoint_m

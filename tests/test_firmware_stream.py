@@ -95,16 +95,14 @@ def test_a_setpoint_beyond_the_envelope_or_the_stroke_is_clamped_with_fault_code
     assert QUIET.actuator.stroke_m == 0.04
     rig = _streaming(envelope_m)
     rig.stream([0.5 * limit_m, setpoint_m])
-    rig.run(1)
-    assert rig.fw.actuator.x_m == pytest.approx(limit_m)
+    assert rig.fw.actuator.stream_setpoint_m == pytest.approx(limit_m)
     assert rig.fw.fault_code == "STROKE_LIMIT" and rig.fw.clamped_setpoints == 1
     n = len(rig.status)
     while len(rig.status) == n:
         rig.stream([setpoint_m])
     assert rig.status[-1].values["FaultCode"] == STROKE_LIMIT
     rig.stream([0.5 * limit_m])
-    rig.run(1)
-    assert rig.fw.actuator.x_m == pytest.approx(0.5 * limit_m)
+    assert rig.fw.actuator.stream_setpoint_m == pytest.approx(0.5 * limit_m)
     assert rig.fw.fault_code == "NONE"
 
 
@@ -112,14 +110,18 @@ def test_no_setpoint_for_20_ms_holds_where_it_is_then_500_ms_ramps_to_rest_fault
     rig = _streaming()
     rig.stream([0.002, 0.004, 0.006])
     last_setpoint_s = rig.t_s + ANSWER_DELAY_S
-    held = []
+    held, x_at_trip = [], None
     while rig.k * T - last_setpoint_s <= ACTUATOR_TIMEOUT_S:
+        x_before = rig.fw.actuator.x_m
         rig.run(1)
         quiet_s = rig.t_s - last_setpoint_s
         want = "NONE" if quiet_s <= WATCHDOG_TIMEOUT_S else "ACTUATOR_SETPOINT_TIMEOUT"
         assert rig.fw.fault_code == want, quiet_s
-        held.append(rig.fw.actuator.x_m)
-    assert set(held) == {0.006}  # HOLD where it was: the last setpoint
+        if want != "NONE":
+            x_at_trip = x_before if x_at_trip is None else x_at_trip
+            held.append(rig.fw.actuator.stream_setpoint_m)
+    assert set(held) == {x_at_trip}  # HOLD where it was when the watchdog tripped
+    assert rig.fw.actuator.x_m == pytest.approx(0.006)  # the last setpoint
     assert rig.status[-1].values["FaultCode"] == SETPOINT_TIMEOUT
     xs = []
     for _ in range(RAMP_TICKS + 1):
@@ -138,8 +140,7 @@ def test_no_setpoint_for_20_ms_holds_where_it_is_then_500_ms_ramps_to_rest_fault
     rig.actuator("STREAM", 0.03)
     assert rig.fw.fault_code == "NONE"
     rig.stream([0.003])
-    rig.run(1)
-    assert rig.fw.actuator.x_m == pytest.approx(0.003)
+    assert rig.fw.actuator.stream_setpoint_m == pytest.approx(0.003)
 
 
 def test_a_setpoint_within_500_ms_resumes_the_held_stream():
@@ -148,8 +149,8 @@ def test_a_setpoint_within_500_ms_resumes_the_held_stream():
     rig.run(round(0.1 / T))
     assert rig.fw.fault_code == "ACTUATOR_SETPOINT_TIMEOUT"
     rig.stream([0.006])
-    rig.run(1)
-    assert rig.fw.actuator.x_m == pytest.approx(0.006) and rig.fw.fault_code == "NONE"
+    assert rig.fw.actuator.stream_setpoint_m == pytest.approx(0.006)
+    assert rig.fw.fault_code == "NONE"
 
 
 def test_the_setpoint_watchdog_starts_with_the_stream():
@@ -166,12 +167,13 @@ def test_a_late_setpoint_is_dropped_and_counted():
     rig.run(1)
     older = rig.sensors[-2].counter
     assert rig.setpoint(0.009, echo=older).ok  # valid frame, answering the frame before
-    rig.run(1)
-    assert rig.fw.actuator.x_m == pytest.approx(0.002) and rig.fw.late_setpoints == 1
+    assert rig.fw.actuator.stream_setpoint_m == pytest.approx(0.002)
+    assert rig.fw.late_setpoints == 1
     # on time by its echo but after the next frame was due: late too
-    assert rig.setpoint(0.009, delay_s=1.5 * T).ok
     rig.run(1)
-    assert rig.fw.actuator.x_m == pytest.approx(0.002) and rig.fw.late_setpoints == 2
+    assert rig.setpoint(0.009, delay_s=1.5 * T).ok
+    assert rig.fw.actuator.stream_setpoint_m == pytest.approx(0.002)
+    assert rig.fw.late_setpoints == 2
 
 
 def test_late_setpoints_alone_do_not_feed_the_setpoint_watchdog():
@@ -189,10 +191,12 @@ def test_stop_ramps_a_stream_to_rest_from_where_it_is():
     rig = _streaming()
     rig.stream([0.004, 0.008])
     rig.run(1)
+    x0 = rig.fw.actuator.x_m
+    assert x0 > 0.004
     rig.actuator("STOP")
     xs = []
     for _ in range(RAMP_TICKS + 1):
         rig.run(1)
         xs.append(rig.fw.actuator.x_m)
-    assert xs[0] == pytest.approx(0.008 - 0.008 / RAMP_TICKS) and xs[-1] == 0.0
+    assert xs[0] == pytest.approx(x0 - x0 / RAMP_TICKS) and xs[-1] == 0.0
     assert rig.fw.actuator.at_rest and rig.fw.fault_code == "NONE"
