@@ -267,7 +267,10 @@ class ReferenceSection:
 
 @dataclass(frozen=True)
 class ActuatorSection:
-    waveform: Literal["stop", "sine", "random", "hold"] = "stop"
+    """The ActuatorCommand. `stream` (contract 1.1) follows ActuatorSetpoint frames, one per
+    sensor frame: its amplitude_m is the envelope |x| the stream may use, its frequency 0."""
+
+    waveform: Literal["stop", "sine", "random", "hold", "stream"] = "stop"
     amplitude_m: float = 0.0
     frequency_hz: float = 0.0
 
@@ -276,6 +279,10 @@ class ActuatorSection:
             raise ValueError(f"amplitude_m: must be in [0, {ACTUATOR_AMPLITUDE_MAX_M:g}] m")
         if not 0 <= self.frequency_hz <= ACTUATOR_FREQUENCY_MAX_HZ:
             raise ValueError(f"frequency_hz: must be in [0, {ACTUATOR_FREQUENCY_MAX_HZ:g}] Hz")
+        if self.waveform == "stream" and self.frequency_hz != 0:
+            raise ValueError("frequency_hz: must be 0 for stream (the setpoints set the motion)")
+        if self.waveform == "stream" and self.amplitude_m == 0:
+            raise ValueError("amplitude_m: stream needs its envelope (the largest |x| it uses)")
 
 
 @dataclass(frozen=True)

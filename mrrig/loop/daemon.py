@@ -66,7 +66,7 @@ from mrrig.loop.twin_model import TwinModel, load_forward_model
 from mrrig.rigio import sdnotify
 from mrrig.rigio.canbus.bus import open_bus
 from mrrig.rigio.canbus.codec import Codec
-from mrrig.rigio.canbus.profile import load_profile
+from mrrig.rigio.canbus.profile import ProfileError, load_profile
 from mrrig.rigio.canbus.profile_limits import daemon_limits
 from mrrig.rigio.control import (
     Change,
@@ -93,7 +93,7 @@ SIDECAR_START_S = 20.0  # a new telemetry process's first heartbeat may take thi
 MAX_SIDECAR_RESTARTS = 1
 MAX_REPLAYED_EVENTS = 20  # events a restarted telemetry process is told again
 CLOCK_SANE_S = 60.0  # a frame timestamp further off than this is not on this machine's clock
-WAVEFORMS = {"stop": "STOP", "sine": "SINE", "random": "RANDOM", "hold": "HOLD"}
+WAVEFORMS = {"stop": "STOP", "sine": "SINE", "random": "RANDOM", "hold": "HOLD", "stream": "STREAM"}
 # importing rerun and zenoh and opening both, on a loaded 2-core machine; a live_url that
 # nothing listens on alone blocks the recorder about 6 s
 SIDECAR_START_TIMEOUT_S = 30.0
@@ -288,6 +288,8 @@ class Daemon:
         )
         if self.profile.protections_off:
             log.warning("%s", self.profile.startup_line())
+        if cfg.actuator.waveform == "stream" and (why := self.profile.stream_refusal()):
+            raise ProfileError(why)
         self.codec = self.profile.codec
         # who runs what, where and when: into the recording and the run catalog (the sidecar)
         self.identity = run_identity(cfg, self.codec.dbc_path)

@@ -451,6 +451,8 @@ class Preparer:
         table = {k: v for k, v in req.items() if k not in ("cmd", "id")}
         section = _section(ActuatorSection, table, "actuator")
         d = self._d
+        if section.waveform == "stream" and (why := d.profile.stream_refusal()):
+            raise RequestError(why)
         check_actuator_step(d.supervisor.state, d.actuator, section, self.cfg, d.actuator_at_arm)
         return Change("actuator", actuator=section)
 
