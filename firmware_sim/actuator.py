@@ -1,9 +1,11 @@
 """The servo-hydraulic actuator: the piston follows a position setpoint, not ideally.
 
 Pure numerics, no CAN: `ServoActuator.step(setpoint_m, velocity_ff_m_s, dt_s)` takes the
-setpoint of one period and returns the piston's position and velocity at its end. The
-firmware feeds it the motion generator's waveform (`[actuator.servo] waveforms`) or a STREAM's
-ActuatorSetpoint frames.
+setpoint of one period (the servo's setpoint at the period's end, joined to the previous one by
+a straight line) and returns the piston's position and velocity at its end. The firmware feeds
+it the motion generator's waveform (`[actuator.servo] waveforms`) or a STREAM's
+ActuatorSetpoint frames; a caller that hands the piston over from the motion generator starts
+it where that left it (`reset(x_m)`).
 
 The model (`spec/hil.md`, "Actuator delay"; the RTHS benchmark of Silva, Dyke et al. 2020):
 a servo-valve of first-order lag 1/b1 driving an actuator (an integrator) in a proportional
