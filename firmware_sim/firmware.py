@@ -64,6 +64,7 @@ import numpy as np
 from damper.plant import BoucWenDamper, BoucWenParams, params_at_temperature
 from damper.plant_file import load_plant
 from damper.signals import bandlimited_noise
+from firmware_sim.actuator import ServoActuator
 from firmware_sim.config import ActuatorConfig, FaultSpec, SimConfig
 from mrrig.rigio.canbus.codec import EncodeError, MessageLayout, Packer, Parsed, frame_key
 from mrrig.rigio.canbus.profile import RigProfile
@@ -358,6 +359,19 @@ class Firmware:
         self._gauss = random.Random(config.seed).gauss
         self.actuator = Actuator(config.actuator, self.period_s, np.random.default_rng(config.seed))
         act = config.actuator
+        # the piston behind the motion generator (`[actuator.servo] waveforms`) or a STREAM
+        servo = act.servo.actual()
+        self.servo = ServoActuator(servo, act.stroke_m)
+        logger.info(
+            "servo actuator: b1 %.1f 1/s, b2 %.4g 1/s^2, transport delay %.2f ms "
+            "(spread %g of nominal, seed %d)%s",
+            servo.b1_per_s,
+            servo.b2_per_s2,
+            servo.transport_delay_s * 1e3,
+            act.servo.spread,
+            act.servo.seed,
+            ", the waveforms through it" if act.servo.waveforms else "",
+        )
         if act.autostart != "STOP":
             self.actuator.command(
                 act.autostart, act.autostart_amplitude_m, act.autostart_frequency_hz
@@ -768,6 +782,8 @@ class Firmware:
         x, xd = (
             self.actuator.advance(dt_s) if dt_s > 0.0 else (self.actuator.x_m, self.actuator.xd_m_s)
         )
+        if self._cfg.actuator.servo.waveforms:
+            x, xd = self.servo.step(x, xd, dt_s)
         self._watch_motion()
         on = self.active_faults
         halted = self._tripped or self.unsendable is not None or self._halted_by_injection()
