@@ -362,6 +362,8 @@ class Firmware:
         # the piston behind the motion generator (`[actuator.servo] waveforms`) or a STREAM
         servo = act.servo.actual()
         self.servo = ServoActuator(servo, act.stroke_m)
+        self._servo_streaming = False  # whether the last tick's STREAM went through the servo
+        self._x_prev_m = 0.0  # the piston's position at the last tick
         logger.info(
             "servo actuator: b1 %.1f 1/s, b2 %.4g 1/s^2, transport delay %.2f ms "
             "(spread %g of nominal, seed %d)%s",
@@ -782,8 +784,15 @@ class Firmware:
         x, xd = (
             self.actuator.advance(dt_s) if dt_s > 0.0 else (self.actuator.x_m, self.actuator.xd_m_s)
         )
-        if self._cfg.actuator.servo.waveforms:
+        # the servo-hydraulic actuator follows a STREAM's setpoints always (contract 1.1: the
+        # daemon's computed stroke), the motion generator's waveforms where configured
+        streaming = self.actuator.waveform == "STREAM"
+        if streaming and not self._servo_streaming and not self._cfg.actuator.servo.waveforms:
+            self.servo.reset(self._x_prev_m)  # from where the piston was
+        self._servo_streaming = streaming
+        if streaming or self._cfg.actuator.servo.waveforms:
             x, xd = self.servo.step(x, xd, dt_s)
+        self._x_prev_m = x
         self._watch_motion()
         on = self.active_faults
         halted = self._tripped or self.unsendable is not None or self._halted_by_injection()
