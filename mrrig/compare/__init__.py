@@ -19,6 +19,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from mrrig.errors import MrrigError
+
 # the paper's controllers in its Table 6 order, and the passive extremes
 PASSIVE_OFF = "passive off (0 A)"
 PASSIVE_ON = "passive on"
@@ -36,7 +38,7 @@ DEFAULT_REFERENCE = {
 }
 
 
-class CompareError(ValueError):
+class CompareError(MrrigError, ValueError):
     """A comparison that cannot be made; one line naming what was wrong."""
 
 
