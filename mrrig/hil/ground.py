@@ -20,7 +20,8 @@ from mrrig.hil.substructure import zoh
 @dataclass(frozen=True)
 class GroundMotion:
     """Kanai-Tajimi ground motion. The defaults fit the 1:10 scale model of Dyke et al. (1996)
-    (first mode 5.8 Hz; El Centro was played 5 times faster there): a ground frequency of 5 Hz."""
+    (its first mode about 5.4 Hz from these matrices; El Centro was played 5 times faster
+    there): a ground frequency of 5 Hz."""
 
     pga_m_s2: float = 1.5
     ground_frequency_hz: float = 5.0
