@@ -48,6 +48,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "dbc": ("mrrig.cli.dbc", "check a rig profile (DBC + [can.signals]); show its mapping"),
     "test": ("mrrig.cli.test", "run a test plan (TOML steps with criteria) on a live rig"),
     "tune": ("mrrig.cli.tune", "tune the controller's free parameters by closed-loop trials"),
+    "hil": ("mrrig.cli.hil", "a hybrid simulation scenario (quarter car, building): --reference"),
 }
 
 

@@ -69,6 +69,7 @@ class ReferenceRun:
     stroke_m: np.ndarray  # the commanded stroke x_c (what the model asked)
     stroke_velocity_m_s: np.ndarray
     force_n: np.ndarray  # the damper's force at each frame
+    desired_force_n: np.ndarray  # the law's force for the frame after (nan: a current asked)
     current_a: np.ndarray
     # quarter car: body acceleration, suspension travel, dynamic tyre load
     # building: storey drifts and absolute floor accelerations, one column per storey
@@ -103,7 +104,7 @@ def run_reference(scenario: Scenario, law: str | None = None) -> ReferenceRun:
     inverse = BoucWenInverse(params, i_max, dt)
     n = sub.steps
     quarter_car = isinstance(sub, QuarterCar)
-    stroke, velocity, force, current = (np.empty(n) for _ in range(4))
+    stroke, velocity, force, desired, current = (np.empty(n) for _ in range(5))
     outputs = (
         {k: np.empty(n) for k in ("body_acceleration_m_s2", "suspension_travel_m", "tyre_load_n")}
         if quarter_car
@@ -129,13 +130,16 @@ def run_reference(scenario: Scenario, law: str | None = None) -> ReferenceRun:
             outputs["acceleration_m_s2"][k] = sub.accelerations_m_s2
         x1, v1 = sub.stroke_m, sub.stroke_velocity_m_s
         if demand.current_a is not None:
-            i_a = demand.current_a
+            i_a, desired[k] = demand.current_a, math.nan
         else:
             i_a = inverse.current_a(damper, x1, v1, demand.force_n)
+            desired[k] = demand.force_n
         f = damper.step(x1, v1, i_a, dt)
         if not math.isfinite(f):
             raise FloatingPointError(f"the reference's damper force is not finite at step {k}")
-    return ReferenceRun(scenario, np.arange(n) * dt, stroke, velocity, force, current, outputs)
+    return ReferenceRun(
+        scenario, np.arange(n) * dt, stroke, velocity, force, desired, current, outputs
+    )
 
 
 @dataclass(frozen=True)
@@ -144,11 +148,12 @@ class LawRow:
     rms_body_acceleration_m_s2: float
     rms_suspension_travel_m: float
     rms_tyre_load_n: float
+    max_abs_stroke_m: float
 
 
 def law_table(scenario: Scenario, laws: tuple[str, ...] = LAWS) -> list[LawRow]:
     """Every law on the scenario's road (quarter car): each law's RMS body acceleration,
-    suspension travel and dynamic tyre load."""
+    suspension travel and dynamic tyre load, and its peak stroke (does it fit the rig?)."""
     rows = []
     for name in laws:
         fig = run_reference(scenario, name).figures()
@@ -158,6 +163,7 @@ def law_table(scenario: Scenario, laws: tuple[str, ...] = LAWS) -> list[LawRow]:
                 fig["rms_body_acceleration_m_s2"],
                 fig["rms_suspension_travel_m"],
                 fig["rms_tyre_load_n"],
+                fig["max_abs_stroke_m"],
             )
         )
     return rows
