@@ -241,3 +241,15 @@ def test_a_building_with_a_vehicle_law_is_refused_in_one_line(tmp_path: Path) ->
     with pytest.raises(ConfigError, match=r"law: 'skyhook' needs a quarter car"):
         load_scenario("configs/hil/building.toml", law="skyhook")
     assert dataclasses.replace(load_scenario("configs/hil/building.toml")).law == "clipped-optimal"
+
+
+def test_the_delay_estimate_holds_while_the_setpoint_rests() -> None:
+    """A setpoint that moves only by rounding (1 nm) and a noisy measured stroke say nothing of
+    the delay: the estimate stays where it was."""
+    from mrrig.hil.compensation import DelayEstimator
+
+    rng = np.random.default_rng(4)
+    est = DelayEstimator(max_lag=21, window_frames=1000.0, initial_frames=4.0)
+    for _ in range(3000):
+        est.update(1e-9 * rng.standard_normal(), 2e-6 * rng.standard_normal())
+    assert est.delay_frames == 4.0

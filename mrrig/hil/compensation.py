@@ -24,6 +24,11 @@ from collections import deque
 
 import numpy as np
 
+# The least setpoint excitation the delay estimate is updated on: the weighted sum of squared
+# second differences of the sent setpoint, per frame of the window, (0.1 um)^2. A setpoint at
+# rest (or one that moves by rounding) says nothing of the delay; noise would move it.
+_MIN_EXCITATION_M2 = 1e-14
+
 
 def extrapolation_weights(order: int, lead_frames: float) -> tuple[np.ndarray, np.ndarray]:
     """Lagrange weights on x_k, x_(k-1), ..., x_(k-order) (nodes t_j = -j frames) for the value
@@ -62,6 +67,7 @@ class DelayEstimator:
     def __init__(self, max_lag: int, window_frames: float, initial_frames: float) -> None:
         self.max_lag = max_lag
         self._forget = 1.0 - 1.0 / window_frames
+        self._min_s_dd = _MIN_EXCITATION_M2 * window_frames
         # _sent[j]: the setpoint sent j + 1 frames before the frame being measured
         self._sent = deque([0.0] * (max_lag + 2), maxlen=max_lag + 2)
         self._s_aa = np.zeros(max_lag)
@@ -92,7 +98,7 @@ class DelayEstimator:
         f = np.clip(-self._s_ad / s_dd, 0.0, 1.0)
         residual = self._s_aa + 2.0 * f * self._s_ad + f * f * self._s_dd
         best = int(np.argmin(residual))
-        if self._s_dd[best] > 0.0:
+        if self._s_dd[best] > self._min_s_dd:
             self.delay_frames = best + 1 + float(f[best])
 
 
