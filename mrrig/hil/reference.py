@@ -17,8 +17,9 @@ from dataclasses import astuple, dataclass
 import numpy as np
 
 from damper.plant import BoucWenDamper, BoucWenParams, bouc_wen_force
-from mrrig.hil.laws import LAWS, Law
+from mrrig.hil.laws import LAWS
 from mrrig.hil.scenario import Scenario
+from mrrig.hil.stepper import HybridStep
 from mrrig.hil.substructure import QuarterCar
 
 # firmware_sim's plant preset (firmware_sim/firmware.py, PLANT_PRESET)
@@ -94,14 +95,15 @@ class ReferenceRun:
 
 
 def run_reference(scenario: Scenario, law: str | None = None) -> ReferenceRun:
-    """The scenario (with `law` in place of its own, if given) all-numerically."""
+    """The scenario (with `law` in place of its own, if given) all-numerically: the hybrid
+    loop's own step (`HybridStep`) with an ideal actuator (the stroke as the model computed it,
+    no compensation) and the simulator's damper in place of the rig."""
     dt = scenario.period_s
-    sub = scenario.substructure()
+    loop = HybridStep(scenario, law, compensate=False)
+    sub = loop.substructure
     params = BoucWenParams.preset(SIM_PLANT_PRESET)
-    i_max = scenario.damper.i_max_a
-    the_law = Law(law or scenario.law, scenario.laws, sub, i_max)
     damper = BoucWenDamper(params, scenario.damper.substep_s)
-    inverse = BoucWenInverse(params, i_max, dt)
+    inverse = BoucWenInverse(params, scenario.damper.i_max_a, dt)
     n = sub.steps
     quarter_car = isinstance(sub, QuarterCar)
     stroke, velocity, force, desired, current = (np.empty(n) for _ in range(5))
@@ -119,8 +121,7 @@ def run_reference(scenario: Scenario, law: str | None = None) -> ReferenceRun:
             f,
             i_a,
         )
-        demand = the_law.demand(f)
-        sub.step(f)
+        frame = loop.step(f, stroke[k])
         if quarter_car:
             outputs["body_acceleration_m_s2"][k] = sub.body_acceleration_m_s2
             outputs["suspension_travel_m"][k] = stroke[k]
@@ -128,12 +129,12 @@ def run_reference(scenario: Scenario, law: str | None = None) -> ReferenceRun:
         else:
             outputs["drift_m"][k] = sub.drifts_m
             outputs["acceleration_m_s2"][k] = sub.accelerations_m_s2
-        x1, v1 = sub.stroke_m, sub.stroke_velocity_m_s
-        if demand.current_a is not None:
-            i_a, desired[k] = demand.current_a, math.nan
+        x1, v1 = frame.target_m, frame.target_velocity_m_s
+        if frame.demand.current_a is not None:
+            i_a, desired[k] = frame.demand.current_a, math.nan
         else:
-            i_a = inverse.current_a(damper, x1, v1, demand.force_n)
-            desired[k] = demand.force_n
+            i_a = inverse.current_a(damper, x1, v1, frame.demand.force_n)
+            desired[k] = frame.demand.force_n
         f = damper.step(x1, v1, i_a, dt)
         if not math.isfinite(f):
             raise FloatingPointError(f"the reference's damper force is not finite at step {k}")

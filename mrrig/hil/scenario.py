@@ -58,9 +58,10 @@ class DamperConfig:
 class CompensationConfig:
     """Actuator delay compensation (mrrig.hil.compensation): `polynomial` extrapolates the
     setpoint over the delay estimated on line, `adaptive` adapts its lead to the measured
-    tracking error; `none` sends the model's stroke as it is."""
+    tracking error, `model` sends the model's own prediction over the estimated delay; `none`
+    sends the model's stroke as it is."""
 
-    method: Literal["none", "polynomial", "adaptive"] = "polynomial"
+    method: Literal["none", "polynomial", "adaptive", "model"] = "model"
     order: int = 3
     initial_delay_s: float = 0.006
     max_delay_s: float = 0.04

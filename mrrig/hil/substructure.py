@@ -31,6 +31,47 @@ def zoh(a: np.ndarray, b: np.ndarray, dt_s: float) -> tuple[np.ndarray, np.ndarr
     return phi[:n, :n], phi[:n, n:]
 
 
+class _Predicting:
+    """The model's own prediction of its stroke `lead_frames` ahead (whole and fractional
+    frames): the exact step with the last measured force held and the excitation record ahead
+    (known: the road, the ground motion). The model-based delay compensation sends it."""
+
+    a: np.ndarray
+    b: np.ndarray
+    x: np.ndarray
+    k: int
+    period_s: float
+    force_n: float
+    _ad: np.ndarray
+    _bd: np.ndarray
+    _excitation: np.ndarray
+    _fraction_cache: dict[int, tuple[np.ndarray, np.ndarray]]
+
+    def _fraction_step(self, fraction: float) -> tuple[np.ndarray, np.ndarray]:
+        # the lead moves by small amounts: quantised to 1 % of a frame, the steps cached
+        key = round(fraction * 100.0)
+        cache = self._fraction_cache
+        if key not in cache:
+            if len(cache) > 100:
+                cache.clear()
+            cache[key] = zoh(self.a, self.b, key / 100.0 * self.period_s)
+        return cache[key]
+
+    def predicted_state(self, lead_frames: float) -> np.ndarray:
+        whole = int(lead_frames)
+        x = self.x
+        last = self._excitation.size - 1
+        for j in range(whole):
+            x = self._ad @ x + self._bd @ np.array(
+                [self.force_n, self._excitation[min(self.k + j, last)]]
+            )
+        fraction = lead_frames - whole
+        if fraction > 0.005:
+            ad, bd = self._fraction_step(fraction)
+            x = ad @ x + bd @ np.array([self.force_n, self._excitation[min(self.k + whole, last)]])
+        return x
+
+
 @dataclass(frozen=True)
 class QuarterCarParams:
     """A passenger car's corner (spec/hil.md: 250-400 kg, 35-45 kg, 16-25 kN/m, 160-230 kN/m)."""
@@ -46,7 +87,7 @@ class QuarterCarParams:
                 raise ValueError(f"{name}: must be positive, got {getattr(self, name)}")
 
 
-class QuarterCar:
+class QuarterCar(_Predicting):
     """Sprung and unsprung masses, suspension spring, tyre; the damper between them.
 
     State x = [z_s, z_s', z_u, z_u'] from the static equilibrium, input [F, z_r]:
@@ -57,7 +98,7 @@ class QuarterCar:
     def __init__(self, params: QuarterCarParams, road_m: np.ndarray, period_s: float) -> None:
         p = params
         self.params, self.period_s = p, period_s
-        self._road = np.asarray(road_m, dtype=float)
+        self._road = self._excitation = np.asarray(road_m, dtype=float)
         self.a = np.array(
             [
                 [0.0, 1.0, 0.0, 0.0],
@@ -75,6 +116,7 @@ class QuarterCar:
             ]
         )
         self._ad, self._bd = zoh(self.a, self.b, period_s)
+        self._fraction_cache = {}
         self.reset()
 
     @property
@@ -85,6 +127,7 @@ class QuarterCar:
     def reset(self) -> None:
         self.x = np.zeros(4)
         self.k = 0
+        self.force_n = 0.0
         self.body_acceleration_m_s2 = 0.0
         self.tyre_load_n = 0.0
 
@@ -95,6 +138,11 @@ class QuarterCar:
     @property
     def stroke_velocity_m_s(self) -> float:
         return float(self.x[1] - self.x[3])
+
+    def predicted_stroke(self, lead_frames: float) -> tuple[float, float]:
+        """(s, s') `lead_frames` ahead, the measured force held."""
+        x = self.predicted_state(lead_frames)
+        return float(x[0] - x[2]), float(x[1] - x[3])
 
     @property
     def body_velocity_m_s(self) -> float:
@@ -113,6 +161,7 @@ class QuarterCar:
         self.tyre_load_n = p.k_t_n_per_m * (z_r - self.x[2])
         self.x = self._ad @ self.x + self._bd @ np.array([force_n, z_r])
         self.k += 1
+        self.force_n = force_n
 
     def control_state(self) -> np.ndarray:
         """[s, z_s', z_u - z_r, z_u']: the coordinates the LQR of `control_model` uses."""
@@ -182,7 +231,7 @@ def _storey_matrix(values: tuple[float, ...]) -> np.ndarray:
     return k
 
 
-class ShearBuilding:
+class ShearBuilding(_Predicting):
     """M q'' + C q' + K q = -M 1 a_g - e_1 F  (q: floor displacements relative to the ground;
     the damper's stroke is the first storey's drift q_1, its tension pulls floor 1 down).
 
@@ -191,7 +240,7 @@ class ShearBuilding:
 
     def __init__(self, params: BuildingParams, ground_m_s2: np.ndarray, period_s: float) -> None:
         self.params, self.period_s = params, period_s
-        self._ground = np.asarray(ground_m_s2, dtype=float)
+        self._ground = self._excitation = np.asarray(ground_m_s2, dtype=float)
         n = len(params.masses_kg)
         m_inv = np.diag(1.0 / np.asarray(params.masses_kg))
         k = _storey_matrix(params.storey_stiffness_n_per_m)
@@ -204,6 +253,7 @@ class ShearBuilding:
         self.b[n:, 0] = -m_inv @ e1
         self.b[n:, 1] = -1.0
         self._ad, self._bd = zoh(self.a, self.b, period_s)
+        self._fraction_cache = {}
         self.reset()
 
     @property
@@ -213,6 +263,7 @@ class ShearBuilding:
     def reset(self) -> None:
         self.x = np.zeros(2 * self.n)
         self.k = 0
+        self.force_n = 0.0
         self.drifts_m = np.zeros(self.n)
         self.accelerations_m_s2 = np.zeros(self.n)
 
@@ -224,6 +275,11 @@ class ShearBuilding:
     def stroke_velocity_m_s(self) -> float:
         return float(self.x[self.n])
 
+    def predicted_stroke(self, lead_frames: float) -> tuple[float, float]:
+        """(s, s') `lead_frames` ahead, the measured force held."""
+        x = self.predicted_state(lead_frames)
+        return float(x[0]), float(x[self.n])
+
     def step(self, force_n: float) -> None:
         """Frame k's drifts and absolute accelerations with the measured force, then advance."""
         a_g = self._ground[self.k]
@@ -234,6 +290,7 @@ class ShearBuilding:
         self.accelerations_m_s2 = (self.a @ self.x + self.b @ u)[self.n :] + a_g
         self.x = self._ad @ self.x + self._bd @ u
         self.k += 1
+        self.force_n = force_n
 
     def control_state(self) -> np.ndarray:
         return self.x.copy()
