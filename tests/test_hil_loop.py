@@ -93,3 +93,14 @@ def test_without_compensation_the_actuator_lags_by_several_ms(scenario_and_refer
     x_c, x_m, *_ = _hil_run(scenario, "none")
     got = tracking(x_c, x_m, scenario.period_s)
     assert got.j1_ms > 5.0 and got.j2_pct > 10.0
+
+
+def test_the_adaptive_lead_starts_from_rest_and_tracks(scenario_and_reference) -> None:
+    """At the run's start the stroke barely moves: the lead's normalised gradient must not turn
+    the least error into a leap (it did: the setpoint went non-finite within a second)."""
+    scenario, _ = scenario_and_reference
+    x_c, x_m, _acc, _travel, finite = _hil_run(scenario, "adaptive")
+    assert finite
+    start = int(5.0 / scenario.period_s)
+    got = tracking(x_c[start:], x_m[start:], scenario.period_s)
+    assert abs(got.j1_ms) <= 0.5 and got.j2_pct <= 2.0, got
