@@ -267,3 +267,32 @@ def test_the_delay_estimate_holds_while_the_setpoint_rests() -> None:
     for _ in range(3000):
         est.update(1e-9 * rng.standard_normal(), 2e-6 * rng.standard_normal())
     assert est.delay_frames == 4.0
+
+
+def test_the_model_predicts_its_own_stroke_with_the_force_held() -> None:
+    """The model-based compensation's prediction L frames ahead is where the model goes when
+    the measured force stays as it is (the road ahead known); between frames, to 1 %."""
+    from mrrig.hil.road import road_input_m
+
+    road = road_input_m("C", 20.0, 2.0, DT, seed=9)
+    car = QuarterCar(QuarterCarParams(), road, DT)
+    for _ in range(300):
+        car.step(800.0 * car.stroke_velocity_m_s)
+    force = car.force_n
+    ahead = {lead: car.predicted_stroke(lead) for lead in (0.0, 3.0, 3.5, 4.0)}
+    twin = QuarterCar(QuarterCarParams(), road, DT)
+    twin.x, twin.k = car.x.copy(), car.k
+    strokes, states = [twin.stroke_m], [twin.x.copy()]
+    for _ in range(4):
+        twin.step(force)
+        strokes.append(twin.stroke_m)
+        states.append(twin.x.copy())
+    assert ahead[0.0][0] == car.stroke_m
+    assert ahead[3.0][0] == pytest.approx(strokes[3], rel=1e-12, abs=1e-15)
+    assert ahead[4.0][0] == pytest.approx(strokes[4], rel=1e-12, abs=1e-15)
+    # half a frame after the third: the ODE with the force and the road held
+    u = np.array([force, road[car.k + 3]])
+    half = solve_ivp(
+        lambda _t, x: car.a @ x + car.b @ u, (0, DT / 2), states[3], rtol=1e-11, atol=1e-14
+    ).y[:, -1]
+    assert ahead[3.5][0] == pytest.approx(half[0] - half[2], rel=1e-7)
