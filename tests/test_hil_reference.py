@@ -96,3 +96,22 @@ def test_mrrig_hil_with_a_bad_scenario_is_one_line(tmp_path: Path) -> None:
     assert done.stderr == f"error: {bad}: road.speed_m_s: expected a number, got 'fast'\n"
     done = _mrrig("hil", "configs/hil/building.toml", "--reference", "--table")
     assert done.returncode == 2 and "--table: the law table is the quarter car's" in done.stderr
+
+
+def test_a_scenario_whose_reference_strokes_past_the_rig_is_refused_in_one_line() -> None:
+    from mrrig.hil.reference import envelope_problem
+
+    fig = {"max_abs_stroke_m": 0.0422, "max_abs_force_n": 1259.0}
+    assert envelope_problem(fig, 0.045, 6000.0) is None
+    assert envelope_problem(fig, 0.04, 6000.0) == (
+        "the reference strokes 42.2 mm, beyond the rig's 40 mm"
+    )
+    assert envelope_problem(fig, 0.045, 1000.0) == (
+        "the reference's force reaches 1259 N, beyond the rig's 1000 N"
+    )
+    args = ("hil", "configs/hil/quarter-car.toml", "--reference", "--duration", "2")
+    done = _mrrig(*args, "--stroke-limit-mm", "0.5")
+    assert done.returncode == 2
+    assert done.stderr.startswith("error: configs/hil/quarter-car.toml: the reference strokes ")
+    assert done.stderr.endswith("beyond the rig's 0.5 mm: it does not fit the rig\n")
+    assert _mrrig(*args, "--stroke-limit-mm", "40").returncode == 0

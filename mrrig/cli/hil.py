@@ -19,8 +19,15 @@ import dataclasses
 from pathlib import Path
 
 from mrrig.cli_args import HelpFormatter, positive
+from mrrig.errors import MrrigError
 from mrrig.hil.laws import LAWS
-from mrrig.hil.reference import SIM_PLANT_PRESET, law_table, percent_change, run_reference
+from mrrig.hil.reference import (
+    SIM_PLANT_PRESET,
+    envelope_problem,
+    law_table,
+    percent_change,
+    run_reference,
+)
 from mrrig.hil.scenario import Scenario, load_scenario
 
 
@@ -110,6 +117,19 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument(
         "--table", action="store_true", help="every law on the scenario (quarter car), % change"
     )
+    ap.add_argument(
+        "--stroke-limit-mm",
+        type=positive,
+        metavar="MM",
+        help="exit 2 if the reference's stroke goes past it (firmware_sim's actuator: 40)",
+    )
+    ap.add_argument(
+        "--force-limit-n",
+        type=positive,
+        default=6000.0,
+        metavar="N",
+        help="with --stroke-limit-mm: the force the rig's load cell takes",
+    )
     args = ap.parse_args(argv)
     scenario = load_scenario(args.scenario, law=args.law)
     if args.duration is not None:
@@ -121,6 +141,11 @@ def main(argv: list[str] | None = None) -> int:
         print("\n".join(_table(scenario)))
         return 0
     run = run_reference(scenario)
+    figures = run.figures()
     print(_title(args.scenario, scenario, scenario.law))
-    print("\n".join(_summary(run.figures(), scenario)))
+    print("\n".join(_summary(figures, scenario)))
+    if args.stroke_limit_mm is not None:
+        problem = envelope_problem(figures, args.stroke_limit_mm * 1e-3, args.force_limit_n)
+        if problem is not None:
+            raise MrrigError(f"{args.scenario}: {problem}: it does not fit the rig")
     return 0

@@ -143,6 +143,22 @@ def run_reference(scenario: Scenario, law: str | None = None) -> ReferenceRun:
     )
 
 
+def envelope_problem(
+    figures: dict[str, float], stroke_limit_m: float, force_limit_n: float
+) -> str | None:
+    """Why the reference's stroke and force envelope does not fit a rig (spec/hil.md: refuse
+    before arming what exceeds the rig's limits), or None."""
+    stroke, force = figures["max_abs_stroke_m"], figures["max_abs_force_n"]
+    if stroke > stroke_limit_m:
+        return (
+            f"the reference strokes {stroke * 1e3:.1f} mm, beyond the rig's "
+            f"{stroke_limit_m * 1e3:g} mm"
+        )
+    if force > force_limit_n:
+        return f"the reference's force reaches {force:.0f} N, beyond the rig's {force_limit_n:g} N"
+    return None
+
+
 @dataclass(frozen=True)
 class LawRow:
     law: str
