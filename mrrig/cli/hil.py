@@ -7,6 +7,9 @@
                                               RMS body acceleration, suspension travel and tyre
                                               load, and their % change against passive-soft and
                                               passive-hard
+    mrrig hil SCENARIO --reference --stroke-limit-mm 40
+                                              exit 2 (one line) if the reference's stroke goes
+                                              past the rig's (or its force past --force-limit-n)
 
 The reference is what a HIL run of the same scenario should give: its stroke and force envelope
 say whether the scenario fits the rig before anything moves.
