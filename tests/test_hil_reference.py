@@ -115,3 +115,10 @@ def test_a_scenario_whose_reference_strokes_past_the_rig_is_refused_in_one_line(
     assert done.stderr.startswith("error: configs/hil/quarter-car.toml: the reference strokes ")
     assert done.stderr.endswith("beyond the rig's 0.5 mm: it does not fit the rig\n")
     assert _mrrig(*args, "--stroke-limit-mm", "40").returncode == 0
+
+
+def test_mrrig_hil_help_prints() -> None:
+    """argparse %-formats help strings: a bare '% change' made --help a traceback."""
+    done = _mrrig("hil", "--help")
+    assert done.returncode == 0, done.stderr
+    assert "--stroke-limit-mm" in done.stdout and "% change" in done.stdout

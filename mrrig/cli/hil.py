@@ -118,7 +118,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--law", choices=LAWS, help="this law in place of the scenario's")
     ap.add_argument("--duration", type=positive, metavar="S", help="seconds, for the file's")
     ap.add_argument(
-        "--table", action="store_true", help="every law on the scenario (quarter car), % change"
+        "--table", action="store_true", help="every law on the scenario (quarter car), %% change"
     )
     ap.add_argument(
         "--stroke-limit-mm",
