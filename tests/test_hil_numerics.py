@@ -296,3 +296,25 @@ def test_the_model_predicts_its_own_stroke_with_the_force_held() -> None:
         lambda _t, x: car.a @ x + car.b @ u, (0, DT / 2), states[3], rtol=1e-11, atol=1e-14
     ).y[:, -1]
     assert ahead[3.5][0] == pytest.approx(half[0] - half[2], rel=1e-7)
+
+
+def test_the_ground_motion_is_kanai_tajimi_shaped_seeded_and_scaled_to_its_pga() -> None:
+    from scipy.signal import welch
+
+    from mrrig.hil.ground import GroundMotion, envelope, ground_acceleration_m_s2
+
+    g = GroundMotion(pga_m_s2=2.0, ground_frequency_hz=5.0, strong_until_s=200.0, seed=3)
+    a = ground_acceleration_m_s2(g, 200.0, DT)
+    assert a.size == 100_001 and np.max(np.abs(a)) == pytest.approx(2.0)
+    assert np.array_equal(a, ground_acceleration_m_s2(g, 200.0, DT))
+    # the strong motion's PSD against Kanai-Tajimi's shape (the scale aside), per octave
+    f, psd = welch(a[1000:], fs=1.0 / DT, nperseg=4096)
+    w, wg, z = 2 * np.pi * f, 2 * np.pi * 5.0, 0.6
+    shape = (wg**4 + 4 * z**2 * wg**2 * w**2) / ((wg**2 - w**2) ** 2 + 4 * z**2 * wg**2 * w**2)
+    bands = [(0.5, 1.0), (1.0, 2.0), (2.0, 4.0), (4.0, 8.0), (8.0, 16.0), (16.0, 32.0)]
+    ratio = [
+        psd[(f >= lo) & (f < hi)].mean() / shape[(f >= lo) & (f < hi)].mean() for lo, hi in bands
+    ]
+    assert np.ptp(np.log(ratio)) < np.log(1.3), ratio
+    t = np.array([0.0, 0.5, 1.0, 6.0, 8.0])
+    assert envelope(t, GroundMotion()) == pytest.approx([0.0, 0.25, 1.0, 1.0, np.exp(-1.0)])
