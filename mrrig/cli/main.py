@@ -49,6 +49,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "test": ("mrrig.cli.test", "run a test plan (TOML steps with criteria) on a live rig"),
     "compare": ("mrrig.cli.compare", "the paper's controllers on your damper, Et side by side"),
     "tune": ("mrrig.cli.tune", "tune the controller's free parameters by closed-loop trials"),
+    "hil": ("mrrig.cli.hil", "a hybrid simulation scenario (quarter car, building): --reference"),
 }
 
 

@@ -1,0 +1,154 @@
+"""`mrrig hil`: a real-time hybrid simulation scenario (spec/hil.md; configs/hil/*.toml).
+
+    mrrig hil SCENARIO --reference            the scenario all-numerically: the simulator's own
+                                              damper model (Bouc-Wen) in place of the rig, the
+                                              law's force through that model's inverse
+    mrrig hil SCENARIO --reference --table    every law on the scenario's road (quarter car):
+                                              RMS body acceleration, suspension travel and tyre
+                                              load, and their % change against passive-soft and
+                                              passive-hard
+    mrrig hil SCENARIO --reference --stroke-limit-mm 40
+                                              exit 2 (one line) if the reference's stroke goes
+                                              past the rig's (or its force past --force-limit-n)
+
+The reference is what a HIL run of the same scenario should give: its stroke and force envelope
+say whether the scenario fits the rig before anything moves.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+from pathlib import Path
+
+from mrrig.cli_args import HelpFormatter, positive
+from mrrig.errors import MrrigError
+from mrrig.hil.laws import LAWS
+from mrrig.hil.reference import (
+    SIM_PLANT_PRESET,
+    envelope_problem,
+    law_table,
+    percent_change,
+    run_reference,
+)
+from mrrig.hil.scenario import Scenario, load_scenario
+
+
+def _title(path: Path, s: Scenario, law: str) -> str:
+    if s.kind == "quarter-car":
+        what = f"quarter car, class {s.road.iso_class} road at {s.road.speed_m_s:g} m/s"
+    else:
+        what = (
+            f"{len(s.building.masses_kg)}-storey building, Kanai-Tajimi ground motion "
+            f"(PGA {s.ground.pga_m_s2:g} m/s^2)"
+        )
+    return (
+        f"{path}: {what}, {law}, {s.duration_s:g} s ({s.steps} frames of {s.period_s * 1e3:g} ms); "
+        f"reference: firmware_sim's Bouc-Wen damper ({SIM_PLANT_PRESET}, 0-{s.damper.i_max_a:g} A)"
+    )
+
+
+def _summary(fig: dict[str, float], s: Scenario) -> list[str]:
+    lines = []
+    if s.kind == "quarter-car":
+        for label, key, scale, unit in (
+            ("body acceleration", "body_acceleration_m_s2", 1.0, "m/s^2"),
+            ("suspension travel", "suspension_travel_m", 1e3, "mm"),
+            ("dynamic tyre load", "tyre_load_n", 1.0, "N"),
+        ):
+            lines.append(
+                f"{label:<18} RMS {fig['rms_' + key] * scale:9.4g} {unit:<6}"
+                f"  peak {fig['peak_' + key] * scale:9.4g} {unit}"
+            )
+    else:
+        for j in range(1, len(s.building.masses_kg) + 1):
+            lines.append(
+                f"storey {j}  drift RMS {fig[f'rms_drift_m_{j}'] * 1e3:7.4g} mm"
+                f"  peak {fig[f'peak_drift_m_{j}'] * 1e3:7.4g} mm"
+                f"   acceleration RMS {fig[f'rms_acceleration_m_s2_{j}']:7.4g} m/s^2"
+                f"  peak {fig[f'peak_acceleration_m_s2_{j}']:7.4g} m/s^2"
+            )
+    lines.append(
+        f"envelope           |stroke| <= {fig['max_abs_stroke_m'] * 1e3:.4g} mm, "
+        f"|force| <= {fig['max_abs_force_n']:.4g} N; the damper took {fig['dissipated_j']:.4g} J"
+    )
+    return lines
+
+
+def _table(scenario: Scenario) -> list[str]:
+    rows = law_table(scenario)
+    by_name = {r.law: r for r in rows}
+    soft, hard = by_name["passive-soft"], by_name["passive-hard"]
+    head = (
+        f"{'law':<16} {'acc RMS m/s^2':>13} {'travel RMS mm':>13} {'tyre RMS N':>10}"
+        f" {'|s| max mm':>10}"
+        f"   % vs passive-soft (acc travel tyre)   % vs passive-hard (acc travel tyre)"
+    )
+    lines = [head]
+    for r in rows:
+        values = (r.rms_body_acceleration_m_s2, r.rms_suspension_travel_m, r.rms_tyre_load_n)
+        vs = []
+        for passive in (soft, hard):
+            against = (
+                passive.rms_body_acceleration_m_s2,
+                passive.rms_suspension_travel_m,
+                passive.rms_tyre_load_n,
+            )
+            pct = [percent_change(v, a) for v, a in zip(values, against, strict=True)]
+            vs.append(" ".join(f"{p:+7.1f}" for p in pct))
+        lines.append(
+            f"{r.law:<16} {values[0]:13.4f} {values[1] * 1e3:13.3f} {values[2]:10.1f}"
+            f" {r.max_abs_stroke_m * 1e3:10.1f}"
+            f"   {vs[0]:<35}   {vs[1]}"
+        )
+    return lines
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(
+        prog="mrrig hil", description=__doc__, formatter_class=HelpFormatter
+    )
+    ap.add_argument("scenario", type=Path, help="scenario file (configs/hil/*.toml)")
+    ap.add_argument(
+        "--reference",
+        action="store_true",
+        required=True,
+        help="run the scenario all-numerically (the simulator's damper model for the rig)",
+    )
+    ap.add_argument("--law", choices=LAWS, help="this law in place of the scenario's")
+    ap.add_argument("--duration", type=positive, metavar="S", help="seconds, for the file's")
+    ap.add_argument(
+        "--table", action="store_true", help="every law on the scenario (quarter car), %% change"
+    )
+    ap.add_argument(
+        "--stroke-limit-mm",
+        type=positive,
+        metavar="MM",
+        help="exit 2 if the reference's stroke goes past it (firmware_sim's actuator: 40)",
+    )
+    ap.add_argument(
+        "--force-limit-n",
+        type=positive,
+        default=6000.0,
+        metavar="N",
+        help="with --stroke-limit-mm: the force the rig's load cell takes",
+    )
+    args = ap.parse_args(argv)
+    scenario = load_scenario(args.scenario, law=args.law)
+    if args.duration is not None:
+        scenario = dataclasses.replace(scenario, duration_s=args.duration)
+    if args.table:
+        if scenario.kind != "quarter-car":
+            ap.error("--table: the law table is the quarter car's (skyhook, groundhook, ...)")
+        print(_title(args.scenario, scenario, "every law"))
+        print("\n".join(_table(scenario)))
+        return 0
+    run = run_reference(scenario)
+    figures = run.figures()
+    print(_title(args.scenario, scenario, scenario.law))
+    print("\n".join(_summary(figures, scenario)))
+    if args.stroke_limit_mm is not None:
+        problem = envelope_problem(figures, args.stroke_limit_mm * 1e-3, args.force_limit_n)
+        if problem is not None:
+            raise MrrigError(f"{args.scenario}: {problem}: it does not fit the rig")
+    return 0
