@@ -47,9 +47,17 @@ def main(argv: list[str] | None = None) -> int:
         help="a bus log of the same run (.blf, .asc, .log, ...): check its frames and counters"
         " against the recording (exit 1 on a mismatch)",
     )
+    ap.add_argument(
+        "--config",
+        type=Path,
+        help="--can-log: the daemon config of the run, whose [can] rig profile (the lab's DBC"
+        " and roles) decodes the log (default: the CAN contract's)",
+    )
     ap.add_argument("--verify", action="store_true", help="run `rerun rrd verify` first")
     ap.add_argument("--partial", action="store_true", help="review a truncated recording (exit 0)")
     args = ap.parse_args(argv)
+    if args.config is not None and args.can_log is None:
+        ap.error("--config: the rig profile decodes a --can-log; give one")
     if args.verify:
         verify_rrd(args.file)
     windowed = args.t_from is not None or args.t_to is not None
@@ -85,7 +93,14 @@ def main(argv: list[str] | None = None) -> int:
     if args.can_log is not None:
         from mrrig.rigio.canlog import check_bus_log
 
-        bus_log = check_bus_log(args.can_log, rec.samples, rec.summary)
+        profile = None
+        if args.config is not None:
+            from mrrig.config import load_config
+            from mrrig.rigio.canbus.profile import load_profile
+
+            cfg = load_config(args.config)
+            profile = load_profile(cfg.can.dbc, cfg.can.signals, cfg.loop.period_s, cfg.source)
+        bus_log = check_bus_log(args.can_log, rec.samples, rec.summary, profile)
     if windowed and not streamed:
         from mrrig.offline.review_report import window
 

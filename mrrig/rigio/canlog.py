@@ -15,14 +15,18 @@ from __future__ import annotations
 import dataclasses
 import importlib.util
 import logging
+import math
 import time
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from mrrig.errors import MrrigError
 from mrrig.pycan import can, with_mf4
+
+if TYPE_CHECKING:
+    from mrrig.rigio.canbus.profile import RigProfile
 
 log = logging.getLogger(__name__)
 
@@ -184,15 +188,31 @@ def read_bus_log(path: str | Path) -> list[can.Message]:
         raise BusLogError(f"{path}: cannot read it as a bus log: {exc}") from exc
 
 
-def check_bus_log(path: str | Path, samples: np.ndarray, summary: dict[str, Any] | None):
-    """Decode a bus log with the DBC and compare it with a recording: its frame counts with the
-    daemon's counters (frames received, commands sent), the sensor frames' E2E counters and
-    measurements with the recorded `counter`, `x` and `f_meas` series (in order, to the DBC's
-    resolution: two clean runs of one length have the same counts and counters), every
-    command's CRC."""
-    from mrrig.rigio.canbus.codec import Codec
+def check_bus_log(
+    path: str | Path,
+    samples: np.ndarray,
+    summary: dict[str, Any] | None,
+    profile: RigProfile | None = None,
+):
+    """Decode a bus log with the rig profile's DBC (`profile`, the run's `[can]`; None: the
+    contract's) and compare it with a recording: its frame counts with the daemon's counters
+    (frames received, commands sent), the sensor frames' E2E counters (where the layout has
+    them) and measurements (the profile's displacement and force, in SI) with the recorded
+    `counter`, `x` and `f_meas` series (in order, to the signals' resolution: two clean runs of
+    one length have the same counts and counters)."""
+    from mrrig.rigio.canbus.profile import load_profile
 
-    db = Codec().db
+    if profile is None:
+        profile = load_profile(None, {}, None, "the CAN contract")
+    db = profile.codec.db
+    x_role, f_role = profile.mapped["displacement"], profile.mapped["force"]
+    layout = profile.sensor_layout
+    resolution = {
+        role.role: float(db.get_message_by_name(role.message).get_signal_by_name(role.signal).scale)
+        * role.factor
+        for role in (x_role, f_role)
+    }
+    key = _SensorKey(layout.counter_signal, resolution["displacement"], resolution["force"])
     messages = read_bus_log(path)
     per: dict[str, int] = {}
     sensor_keys: list[tuple[int, int, int]] = []
@@ -210,12 +230,16 @@ def check_bus_log(path: str | Path, samples: np.ndarray, summary: dict[str, Any]
         except Exception:  # noqa: BLE001 - a frame the DBC cannot decode is counted
             bad_decode += 1
             continue
-        if spec.name == "RigSensors" and msg.is_rx:
+        if spec.name == profile.sensor_message and msg.is_rx:
             rx_sensor += 1
             sensor_keys.append(
-                _sensor_key(values["E2E_Counter"], values["Displacement"], values["Force"])
+                key.of(
+                    values.get(layout.counter_signal, 0),
+                    values[x_role.signal] * x_role.factor,
+                    values[f_role.signal] * f_role.factor,
+                )
             )
-        elif spec.name == "DamperCommand" and not msg.is_rx:
+        elif spec.name == profile.command_message and not msg.is_rx:
             tx_cmd += 1
     mismatches = []
     if bad_decode:
@@ -227,7 +251,7 @@ def check_bus_log(path: str | Path, samples: np.ndarray, summary: dict[str, Any]
     if summary is not None and tx_cmd != s.get("commands_sent"):
         mismatches.append(f"commands sent: log {tx_cmd}, daemon {s.get('commands_sent')}")
     recorded = [
-        _sensor_key(c, x, f)
+        key.of(c, x, f)
         for c, x, f in zip(samples["counter"], samples["x"], samples["f_meas"], strict=True)
     ]
     in_order = _subsequence(recorded, sensor_keys)
@@ -236,9 +260,18 @@ def check_bus_log(path: str | Path, samples: np.ndarray, summary: dict[str, Any]
     return BusLogCheck(Path(path), len(messages), per, rx_sensor, tx_cmd, in_order, mismatches)
 
 
-def _sensor_key(counter: float, x_m: float, f_n: float) -> tuple[int, int, int]:
-    """A sensor frame as raw DBC values: its counter, displacement (1 um) and force (0.01 N)."""
-    return int(counter), round(float(x_m) * 1e6), round(float(f_n) * 100)
+@dataclasses.dataclass(frozen=True)
+class _SensorKey:
+    """A sensor frame as raw DBC steps: its E2E counter (0 where the layout has none), its
+    displacement and force in steps of their signals' resolution (SI)."""
+
+    counter_signal: str
+    x_step: float
+    f_step: float
+
+    def of(self, counter: float, x_m: float, f_n: float) -> tuple[int, int, int]:
+        c = int(counter) if self.counter_signal and math.isfinite(counter) else 0
+        return c, round(float(x_m) / self.x_step), round(float(f_n) / self.f_step)
 
 
 def _subsequence(needle: list, hay: list) -> bool:
