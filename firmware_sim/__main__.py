@@ -24,6 +24,7 @@ from firmware_sim.firmware import Firmware
 from firmware_sim.runner import RunStats, run, tune_process
 from mrrig import json_text
 from mrrig.cli_args import HelpFormatter, add_bus_options, output_file, positive
+from mrrig.config import load_config as load_daemon_config
 from mrrig.loop.realtime import leave_realtime
 from mrrig.pycan import can
 from mrrig.rigio.canbus import BusError, open_bus
@@ -56,6 +57,13 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="KIND@START_S[:DUR_S]",
         help=f"inject a fault (repeatable); KIND: {', '.join(FAULT_KINDS)}",
     )
+    ap.add_argument(
+        "--rig-config",
+        type=Path,
+        metavar="DAEMON.toml",
+        help="speak the rig profile of this daemon config ([can]: the lab's DBC and roles),"
+        " not the simulator config's own [can]: one copy of the table for both",
+    )
     ap.add_argument("--duration", type=positive, metavar="S", help="stop after S seconds")
     ap.add_argument("--stats", type=output_file, metavar="FILE", help="write run statistics (JSON)")
     ap.add_argument(
@@ -79,9 +87,14 @@ def main(argv: list[str] | None = None) -> int:
     try:
         # the sensor period is the DBC's: the simulator has no other
         limits = firmware_limits(config.actuator.stroke_m)
-        profile = load_profile(config.can.dbc, config.can.signals, None, str(args.config), limits)
+        can_of, source = config.can, str(args.config)
+        if args.rig_config is not None:
+            rig = load_daemon_config(args.rig_config)
+            can_of, source = rig.can, rig.source
+            logger.info("rig profile: [can] of %s", source)
+        profile = load_profile(can_of.dbc, can_of.signals, None, source, limits)
         firmware = Firmware(config, profile, (*config.faults, *args.fault))
-    except (ProfileError, ValueError) as exc:  # the profile, a plant file, a sensor period
+    except (ProfileError, ConfigError, ValueError) as exc:  # the profile, a plant file, ...
         logger.error("%s", exc)
         return 2
     if profile.protections_off:

@@ -236,7 +236,9 @@ def test_the_simulator_applies_the_lab_command_in_its_units():
 @pytest.mark.long
 def test_the_demo_on_the_lab_profile_passes_and_names_the_protections_off(tmp_path, sim_model):
     """The daemon and firmware_sim as processes on the lab layout (1 kHz, no E2E, mm and kN)
-    through the bridge: the demo's verdict, and the start-up line of each."""
+    through the bridge: the demo's verdict, and the start-up line of each. The simulator's
+    config has no [can] of its own (issue 42: it needed a second copy of the table): the demo
+    gives it the daemon's (`firmware_sim --rig-config`)."""
     import subprocess
     import sys
 
@@ -248,9 +250,12 @@ def test_the_demo_on_the_lab_profile_passes_and_names_the_protections_off(tmp_pa
     text = text.replace('dbc = "lab-1khz.dbc"', f'dbc = "{PROFILES / "lab-1khz.dbc"}"')
     config = tmp_path / "lab.toml"
     config.write_text(text.replace('rig]\nname = "lab"', 'rig]\nname = "lab-test"'))
+    sim_text = (PROFILES / "lab-1khz-sim.toml").read_text()
+    sim_config = tmp_path / "lab-sim.toml"
+    sim_config.write_text(sim_text[: sim_text.index("\n[can]")] + "\n")  # no [can] table
     proc = subprocess.run(
         [sys.executable, "-m", "mrrig", "demo", "--config", str(config), "--model", str(sim_model)]
-        + ["--sim-config", str(PROFILES / "lab-1khz-sim.toml"), "--zenoh-config", str(zclient)]
+        + ["--sim-config", str(sim_config), "--zenoh-config", str(zclient)]
         + ["--duration", "8", "--record", str(tmp_path / "lab.rrd")],
         cwd=REPO,
         capture_output=True,

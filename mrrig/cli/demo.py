@@ -255,6 +255,8 @@ def main(argv: list[str] | None = None) -> int:
                 "firmware_sim",
                 "--config",
                 str(args.sim_config),
+                "--rig-config",  # the daemon's [can]: the simulator speaks its rig profile
+                str(args.config),
                 "--bus-channel",
                 channel,
                 "--stats",

@@ -75,7 +75,8 @@ def simulated_rig(
         # their own sessions: Ctrl-C reaches `mrrig test` alone, which disarms, ends the step,
         # writes the reports and then stops them
         sim = subprocess.Popen(
-            [sys.executable, "-m", "firmware_sim", "--config", str(sim_config), "-c", channel],
+            [sys.executable, "-m", "firmware_sim", "--config", str(sim_config), "-c", channel]
+            + ["--rig-config", str(config)],  # the daemon's [can]: its rig profile
             start_new_session=True,
         )
         procs.append((sim, "firmware_sim"))

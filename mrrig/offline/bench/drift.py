@@ -61,7 +61,7 @@ def _one_run(
     try:
         sim = subprocess.Popen(
             [sys.executable, "-m", "firmware_sim", "--config", str(sim_config)]
-            + ["--bus-channel", channel, "--stats", str(sim_stats)]
+            + ["--rig-config", str(rig_config), "--bus-channel", channel, "--stats", str(sim_stats)]
         )
         keep_off_cpu(bridge.pid, cfg.loop.cpu, "CAN bridge")
         keep_off_cpu(sim.pid, cfg.loop.cpu, "firmware_sim")
