@@ -577,6 +577,7 @@ def test_a_double_ctrl_c_still_writes_the_reports_and_the_catalog_rows(tmp_path)
     assert "constant current" in html.read_text()
     (row,) = find_runs(catalog)
     assert (row.plan, row.step, row.verdict) == ("two steps", "constant current", "aborted")
+    assert row.campaign is not None and row.campaign.startswith("two steps 20")  # its UTC start
 
 
 @pytest.mark.process

@@ -126,6 +126,11 @@ def main(argv: list[str] | None = None) -> int:
         help="register each step as a run in this catalog: an SQLite file or a postgresql://"
         " URL (default: $MRRIG_CATALOG, else recordings/catalog.sqlite)",
     )
+    ap.add_argument(
+        "--campaign",
+        help="the campaign the steps' runs belong to in the catalog (`mrrig runs --campaign`;"
+        " default: the plan's name and the UTC time it started)",
+    )
     ap.add_argument("--junit", type=Path, help="write a JUnit XML report here")
     ap.add_argument("--html", type=Path, help="write a self-contained HTML report here")
     add_sim_arguments(ap)
@@ -173,7 +178,11 @@ def _run(plan, rig_name: str, args: argparse.Namespace, mrrig_version: str) -> i
         # rows or the reports
         with PlanSignals().installed() as stops:
             results, interrupted = run_plan(
-                plan, rig, lambda line: print(line, flush=True), args.catalog or default_catalog()
+                plan,
+                rig,
+                lambda line: print(line, flush=True),
+                args.catalog or default_catalog(),
+                args.campaign or f"{plan.name} {started}",
             )
             interrupted = interrupted or stops.received > 0
             print(table(results))
