@@ -41,6 +41,7 @@ from mrrig.rigio.canbus.bus import find_free_port, start_bridge, stop_bridge
 from mrrig.rigio.lease import Lease
 from mrrig.rigio.rearm import REARM_WINDOW_S, RearmLimit
 from mrrig.rigio.sidecar import keys
+from mrrig.rigio.zenoh_config import write_loopback_configs
 
 log = logging.getLogger(__name__)
 
@@ -210,8 +211,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument(
         "--zenoh-config",
         type=Path,
-        default=client.DEFAULT_CONFIG,
-        help="Zenoh client config reaching the daemon (its status, re-arming)",
+        help="Zenoh client config reaching the daemon (its status, re-arming), which then uses"
+        " its config's telemetry.zenoh_config (default: both on a free port of 127.0.0.1)",
     )
     ap.add_argument(
         "--max-rearms",
@@ -230,8 +231,13 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
 
     cfg = load_config(args.config)
-    if cfg.telemetry.enabled:
-        _refuse_a_running_daemon(cfg.rig.name, args.zenoh_config)
+    work = Path(tempfile.mkdtemp(prefix="mrrig-demo-"))
+    zenoh_client, daemon_zenoh = args.zenoh_config or client.DEFAULT_CONFIG, None
+    if cfg.telemetry.enabled and args.zenoh_config is None:
+        # a port of its own: a second demo, or a rig's daemon, on this machine is not reached
+        daemon_zenoh, zenoh_client = write_loopback_configs(work, find_free_port())
+    elif cfg.telemetry.enabled:
+        _refuse_a_running_daemon(cfg.rig.name, zenoh_client)
     record = args.record
     if record is None and cfg.recording.enabled:
         from mrrig.rigio.recording import recording_path
@@ -239,7 +245,6 @@ def main(argv: list[str] | None = None) -> int:
         record = recording_path(cfg.recording.directory, cfg.rig.name)
     ensure_sim_model(args.model)
     port = find_free_port()
-    work = Path(tempfile.mkdtemp(prefix="mrrig-demo-"))
     channel = f"ws://127.0.0.1:{port}/"
     # SIGTERM (a service manager, a test's timeout) stops the demo as Ctrl-C does: through
     # the `finally` below, so that the bridge, the simulator and the daemon stop with it
@@ -285,6 +290,8 @@ def main(argv: list[str] | None = None) -> int:
             "--summary-json",
             str(summary_json),
         ]
+        if daemon_zenoh is not None:
+            cmd += ["--zenoh-config", str(daemon_zenoh)]
         if record is not None:
             cmd += ["--record", str(record)]
         else:
@@ -298,7 +305,7 @@ def main(argv: list[str] | None = None) -> int:
         limit = RearmLimit(max_rearms, args.rearm_window)
         progress = DemoProgress(args.duration) if cfg.telemetry.enabled else None
         rc, rearmed = watch_and_rearm(
-            daemon, cfg.rig.name, args.zenoh_config, limit, args.duration + 120, progress
+            daemon, cfg.rig.name, zenoh_client, limit, args.duration + 120, progress
         )
         # 1: it ended in FAULT, which the verdict below judges
         if rc not in (0, 1):

@@ -1433,6 +1433,9 @@ def main(argv: list[str] | None = None) -> int:
     add_bus_options(ap)
     ap.add_argument("--no-telemetry", action="store_true", help="no Zenoh telemetry")
     ap.add_argument(
+        "--zenoh-config", type=Path, help="the sidecar's Zenoh config (overrides the config's)"
+    )
+    ap.add_argument(
         "--adaptation",
         choices=("on", "off"),
         help="override adaptation.enabled: on-line gain and offset of the model's force",
@@ -1467,6 +1470,8 @@ def main(argv: list[str] | None = None) -> int:
         overrides["adaptation"] = {"enabled": args.adaptation == "on"}
     if args.insecure:
         overrides.setdefault("telemetry", {})["insecure"] = True
+    if args.zenoh_config is not None:
+        overrides.setdefault("telemetry", {})["zenoh_config"] = str(args.zenoh_config)
     loop = {}
     if args.duration is not None:
         loop["duration_s"] = args.duration
