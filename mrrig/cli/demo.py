@@ -33,6 +33,7 @@ from pathlib import Path
 from mrrig.cli.demo_report import DemoProgress, open_hint, verdict
 from mrrig.cli_args import HelpFormatter, int_at_least, positive
 from mrrig.config import load_config
+from mrrig.config_gaps import config_gaps
 from mrrig.errors import MrrigError
 from mrrig.loop.realtime import keep_off_cpu
 from mrrig.loop.safety import TRANSPORT_FAULTS
@@ -317,7 +318,7 @@ def main(argv: list[str] | None = None) -> int:
             f"demo: re-armed the daemon {len(rearmed)} times after a transport fault"
             + "".join(f"\n  {reason}" for reason in rearmed)
         )
-        ok, text = verdict(json.loads(summary_json.read_text()))
+        ok, text = verdict(json.loads(summary_json.read_text()), gaps=config_gaps(cfg))
         print(text)
         if record is not None:
             print(open_hint(record))

@@ -31,6 +31,7 @@ import numpy as np
 from mrrig import json_text
 from mrrig.cli_args import HelpFormatter, add_bus_options, output_file, positive
 from mrrig.config import DaemonConfig, ReferenceSection, load_config
+from mrrig.config_gaps import config_gaps
 from mrrig.errors import MrrigError
 from mrrig.loop import reference as ref
 from mrrig.loop.controllers import (
@@ -283,6 +284,8 @@ class Daemon:
         )
         if self.profile.protections_off:
             log.warning("%s", self.profile.startup_line())
+        for line in config_gaps(cfg):  # a constant reference, an actuator that does not move
+            log.warning("%s", line)
         self.codec = self.profile.codec
         # who runs what, where and when: into the recording and the run catalog (the sidecar)
         self.identity = run_identity(cfg, self.codec.dbc_path)
