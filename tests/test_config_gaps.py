@@ -59,15 +59,20 @@ def test_the_shipped_configs_name_only_what_they_leave_out():
     assert '[actuator] waveform = "stop" (the default' in actuator  # as can0.toml says
 
 
-def test_the_daemon_logs_each_gap_at_start(tmp_path, caplog):
-    from mrrig.loop.daemon import Daemon
+def test_the_daemon_logs_each_gap_once_its_loop_runs(tmp_path, caplog):
+    """Not before: a config that cannot start gets its one error line alone."""
+    from tests.rig_harness import ScriptedRig
 
-    cfg, path = _minimal(tmp_path)
-    with caplog.at_level(logging.INFO, "mrrig.loop.daemon"):
-        Daemon(cfg)
-    logged = [r for r in caplog.records if r.getMessage().startswith(f"{path}: [")]
-    assert [r.getMessage() for r in logged] == config_gaps(cfg)
-    assert {r.levelno for r in logged} == {logging.WARNING}
+    with caplog.at_level(logging.INFO, "mrrig.loop.daemon"), ScriptedRig(tmp_path) as rig:
+        rig.exchange()
+        gaps = config_gaps(rig.cfg)  # the harness's: a constant 300 N, no [actuator]
+    reference, actuator = gaps
+    assert reference.startswith(f'{rig.cfg.source}: [reference] kind = "constant" (300 N): ')
+    assert actuator.startswith(f'{rig.cfg.source}: [actuator] waveform = "stop" (the default')
+    messages = [r.getMessage() for r in caplog.records]
+    assert [m for m in messages if m in gaps] == gaps
+    assert messages.index(reference) > messages.index("loop running: one command per sensor frame")
+    assert {r.levelno for r in caplog.records if r.getMessage() in gaps} == {logging.WARNING}
 
 
 def test_the_demos_et_na_says_why(tmp_path):

@@ -284,8 +284,6 @@ class Daemon:
         )
         if self.profile.protections_off:
             log.warning("%s", self.profile.startup_line())
-        for line in config_gaps(cfg):  # a constant reference, an actuator that does not move
-            log.warning("%s", line)
         self.codec = self.profile.codec
         # who runs what, where and when: into the recording and the run catalog (the sidecar)
         self.identity = run_identity(cfg, self.codec.dbc_path)
@@ -1236,6 +1234,8 @@ class Daemon:
         self.started.set()
         self.notifier.ready(f"rig {cfg.rig.name}: listening on {cfg.bus.channel}")
         log.info("loop running: one command per sensor frame")
+        for line in config_gaps(cfg):  # a constant reference, an actuator that does not move
+            log.warning("%s", line)
         stop_deadline = None
         self.kernel_stalls.start(self.now())  # this thread's: the loop's
         while not self._safe_sent_at_stop:
