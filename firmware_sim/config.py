@@ -6,11 +6,12 @@ actuator timeout) are not configurable: they live in `firmware_sim.firmware` and
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Literal
 
 from damper.plant_file import load_plant
+from firmware_sim.actuator import ServoParams
 from mrrig.config import CanSection
 from mrrig.resources import resolve
 from mrrig.typed_config import ConfigError, load_toml, parse
@@ -141,8 +142,31 @@ class ThermalConfig:
 
 
 @dataclass(frozen=True)
+class ServoConfig(ServoParams):
+    """`[actuator.servo]`: the servo-hydraulic actuator's nominal parameters
+    (`firmware_sim.actuator.ServoParams`, the RTHS benchmark's by default) and the seeded
+    spread of the actuator the simulator runs around them. STREAM always goes through it;
+    `waveforms` sends SINE, RANDOM, HOLD and STOP through it too (off: the piston is the
+    motion generator itself, as before)."""
+
+    waveforms: bool = False
+    spread: float = 0.2  # b1, b2 and the transport delay each within +-20 % of nominal
+    seed: int = 1  # of the spread: the same seed, the same actuator
+
+    def check(self) -> None:
+        super().check()
+        if not 0.0 <= self.spread <= 0.5:
+            raise ValueError("spread: must be in [0, 0.5]")
+
+    def actual(self) -> ServoParams:
+        """The actuator the simulator runs: the nominal parameters with the seeded spread."""
+        nominal = ServoParams(**{f.name: getattr(self, f.name) for f in fields(ServoParams)})
+        return nominal.with_spread(self.spread, self.seed)
+
+
+@dataclass(frozen=True)
 class ActuatorConfig:
-    """The hydraulic actuator's motion generator."""
+    """The hydraulic actuator: its motion generator and its servo."""
 
     stroke_m: float = 0.04  # largest |displacement|; commanded amplitudes are clamped to it
     ramp_s: float = 0.5  # every change of amplitude or frequency takes this long
@@ -150,6 +174,7 @@ class ActuatorConfig:
     autostart: Literal["STOP", "SINE", "RANDOM"] = "STOP"  # STOP: wait for ActuatorCommand
     autostart_amplitude_m: float = 0.01
     autostart_frequency_hz: float = 2.0
+    servo: ServoConfig = field(default_factory=ServoConfig)
 
     def check(self) -> None:
         if not 0.0 < self.stroke_m <= 0.65535:
@@ -251,6 +276,7 @@ __all__ = [
     "FaultSpec",
     "PlantConfig",
     "SensorConfig",
+    "ServoConfig",
     "SimConfig",
     "ThermalConfig",
     "TimingConfig",

@@ -16,7 +16,8 @@ Choices the contract leaves open, made here:
 - The actuator timeout (500 ms) is armed by the first valid ActuatorCommand, so an autostart
   motion runs until a daemon takes over.
 - FaultCode shows the most important active condition: e-stop 5, stroke limit 3, watchdog 1,
-  sensor fault 4, actuator timeout 1, bad command frames 6, setpoint over limit 2.
+  sensor fault 4, actuator timeout 1, setpoint timeout 7, setpoint clamped 3, bad command
+  frames 6, setpoint over limit 2.
 - A frame the profile cannot encode (a value beyond its signal's range) is not sent: the
   firmware faults as for a sensor fault (coil to 0 A, State FAULT, FaultCode and SensorFault
   set in the next frame it can send) and goes on; 5 consecutive valid SAFE commands clear it
@@ -30,6 +31,16 @@ Choices the contract leaves open, made here:
   comes more than one period after the latest frame left is late too: the next frame is
   overdue because this process was held up, and a firmware on time would have sent it.
   A late command feeds the watchdog and neither adds to nor breaks a recovery count.
+- STREAM (contract 1.1): entering it, the piston stays where it is until the first setpoint;
+  then it follows the latest valid ActuatorSetpoint (`Actuator.follow`, one place), clamped
+  to the STREAM command's envelope and the stroke (FaultCode 3 while the latest is clamped).
+  A late setpoint (the same rule as a late command) is dropped, counted (`late_setpoints`)
+  and does not feed the setpoint watchdog. No valid setpoint for more than 20 ms (from the
+  last one, or from entering STREAM): HOLD where it is (FaultCode 7); a valid setpoint within
+  500 ms of the last one resumes the stream; else, at 500 ms, it ramps to rest (FaultCode 7
+  stays). A repeated STREAM command (the daemon's every 100 ms) does not restart a stream
+  that ramped to rest: only one after a command of another waveform does (which also clears
+  FaultCode 7). The daemon's ActuatorCommand timeout (500 ms) applies to STREAM as to SINE.
 
 A test instrument, not firmware: `armed_motion` lists the stretches of ACTIVE commands (from
 the first valid ACTIVE command after a SAFE one to the next SAFE one: the daemon's ARMED,
@@ -53,6 +64,7 @@ import numpy as np
 from damper.plant import BoucWenDamper, BoucWenParams, params_at_temperature
 from damper.plant_file import load_plant
 from damper.signals import bandlimited_noise
+from firmware_sim.actuator import ServoActuator
 from firmware_sim.config import ActuatorConfig, FaultSpec, SimConfig
 from mrrig.rigio.canbus.codec import EncodeError, MessageLayout, Packer, Parsed, frame_key
 from mrrig.rigio.canbus.profile import RigProfile
@@ -131,6 +143,10 @@ class Actuator:
     (rest at stroke centre), HOLD ramps the frequency and the noise rate to 0 (the motion
     slows to a standstill where it is), SINE and RANDOM cross-fade. A new RANDOM band fades
     the old record out before the new one fades in.
+
+    STREAM (contract 1.1) follows the position setpoints instead (`stream_to`, `follow`);
+    the position it leaves the stream at is an offset that STOP, SINE and RANDOM ramp to 0
+    over `ramp_s` (HOLD keeps it).
     """
 
     def __init__(self, cfg: ActuatorConfig, period_s: float, rng: np.random.Generator) -> None:
@@ -146,27 +162,27 @@ class Actuator:
         self._noise: tuple[list[float], list[float]] | None = None
         self._band_hz = -1.0
         self._pending: tuple[float, float] | None = None  # (peak, band) after the fade-out
+        self._offset = _Ramp()  # the streamed position; where STREAM left the piston
+        self._stream_target_m = 0.0  # the latest setpoint, clamped (`stream_to`)
+        self.envelope_m = 0.0  # the STREAM command's envelope, within the stroke
         self.waveform = "STOP"
         self.x_m = 0.0
         self.xd_m_s = 0.0
 
     @property
     def at_rest(self) -> bool:
-        return (
-            self._amp_sine.value == 0.0
-            and self._amp_rand.value == 0.0
-            and (self._amp_sine.target == 0.0 and self._amp_rand.target == 0.0)
-        )
+        ramps = (self._amp_sine, self._amp_rand, self._offset)
+        return self.waveform != "STREAM" and all(r.value == 0.0 and r.target == 0.0 for r in ramps)
 
     @property
     def moving(self) -> bool:
-        return self.waveform in ("SINE", "RANDOM") and not self.at_rest
+        return self.waveform in ("SINE", "RANDOM", "STREAM") and not self.at_rest
 
     def motion(self) -> tuple[float, float]:
         """The motion's amplitude and highest frequency now (|x| stays within the amplitude:
         a RANDOM record peaks at 1, a cross-fade sums to at most the larger)."""
         sine, rand = self._amp_sine, self._amp_rand
-        return sine.value + rand.value, max(
+        return sine.value + rand.value + abs(self._offset.value), max(
             self._freq.value if sine.value else 0.0, self._band_hz if rand.value else 0.0
         )
 
@@ -176,7 +192,8 @@ class Actuator:
         sine, rand = self._amp_sine, self._amp_rand
         peak, band = self._pending or (rand.target, self._band_hz)
         amplitude_m, frequency_hz = self.motion()
-        return max(amplitude_m, sine.target + peak), max(
+        streamed = self.envelope_m if self.waveform == "STREAM" else abs(self._offset.target)
+        return max(amplitude_m, sine.target + peak + streamed), max(
             frequency_hz,
             self._freq.target if sine.target or sine.value else 0.0,
             band if peak else 0.0,
@@ -186,12 +203,21 @@ class Actuator:
         """Apply an ActuatorCommand (amplitude clamped to the stroke)."""
         ramp_s = self._cfg.ramp_s
         amplitude_m = min(max(amplitude_m, 0.0), self._cfg.stroke_m)
+        if waveform == "STREAM":
+            self.envelope_m = amplitude_m
+            if self.waveform != "STREAM":  # the stream starts where the piston is
+                self._amp_sine, self._amp_rand, self._pending = _Ramp(), _Ramp(), None
+                self._offset.value = self._offset.target = self.x_m
+                self._stream_target_m = self.x_m
+            self.waveform = waveform
+            return
         self.waveform = waveform
         if waveform == "HOLD":
             self._freq.set(0.0, ramp_s)
             self._rate_rand.set(0.0, ramp_s)
             return
         self._pending = None
+        self._offset.set(0.0, ramp_s)
         if waveform == "SINE":
             self._amp_sine.set(amplitude_m, ramp_s)
             self._freq.set(frequency_hz, ramp_s)
@@ -221,8 +247,31 @@ class Actuator:
         self._tau_s = 0.0
         self._amp_rand.set(peak_m, self._cfg.ramp_s)
 
+    @property
+    def stream_setpoint_m(self) -> float:
+        """The position STREAM heads for: the latest setpoint applied (clamped), or the
+        position it holds."""
+        return self._stream_target_m
+
+    def stream_to(self, setpoint_m: float) -> None:
+        """The position STREAM heads for from the next step on (clamped by the firmware)."""
+        self._stream_target_m = setpoint_m
+
+    def follow(self, dt_s: float) -> tuple[float, float]:
+        """STREAM: (x_m, xd_m_s) after dt_s of following the setpoint. An instant follower
+        for now: the piston is at the setpoint by the end of the period, at the mean
+        velocity that took."""
+        x = self._stream_target_m
+        return x, (x - self.x_m) / dt_s
+
     def advance(self, dt_s: float) -> tuple[float, float]:
         """Move on by dt_s; returns (x_m, xd_m_s) at the end of the step."""
+        if self.waveform == "STREAM":
+            x, xd = self.follow(dt_s)
+            self._offset.value = self._offset.target = x
+            self.x_m, self.xd_m_s = x, xd
+            return x, xd
+        o_dot = self._offset.advance(dt_s)
         f0 = self._freq.value
         a_s_dot = self._amp_sine.advance(dt_s)
         self._freq.advance(dt_s)
@@ -235,8 +284,8 @@ class Actuator:
             self._load_noise(*pending)
         a_s = self._amp_sine.value
         s, c = math.sin(self._phase), math.cos(self._phase)
-        x = a_s * s
-        xd = a_s_dot * s + a_s * 2.0 * math.pi * self._freq.value * c
+        x = a_s * s + self._offset.value
+        xd = a_s_dot * s + a_s * 2.0 * math.pi * self._freq.value * c + o_dot
         if self._noise is not None:
             record_s = len(self._noise[0]) * self._period_s
             self._tau_s = (self._tau_s + 0.5 * (r0 + self._rate_rand.value) * dt_s) % record_s
@@ -293,6 +342,8 @@ class Firmware:
         self.damper_command_key = command.key
         actuator = profile.actuator_message
         self._actuator_key = codec.layout(actuator).key if actuator is not None else None
+        setpoint = profile.setpoint_message
+        self._setpoint_key = codec.layout(setpoint).key if setpoint is not None else None
         self._mode_labels = self._labels("command_mode")
         self._waveform_labels = self._labels("actuator_waveform")
         self._fault_labels = {v: k for k, v in self._labels("firmware_fault").items()}
@@ -308,6 +359,21 @@ class Firmware:
         self._gauss = random.Random(config.seed).gauss
         self.actuator = Actuator(config.actuator, self.period_s, np.random.default_rng(config.seed))
         act = config.actuator
+        # the piston behind the motion generator (`[actuator.servo] waveforms`) or a STREAM
+        servo = act.servo.actual()
+        self.servo = ServoActuator(servo, act.stroke_m)
+        self._servo_streaming = False  # whether the last tick's STREAM went through the servo
+        self._x_prev_m = 0.0  # the piston's position at the last tick
+        logger.info(
+            "servo actuator: b1 %.1f 1/s, b2 %.4g 1/s^2, transport delay %.2f ms "
+            "(spread %g of nominal, seed %d)%s",
+            servo.b1_per_s,
+            servo.b2_per_s2,
+            servo.transport_delay_s * 1e3,
+            act.servo.spread,
+            act.servo.seed,
+            ", the waveforms through it" if act.servo.waveforms else "",
+        )
         if act.autostart != "STOP":
             self.actuator.command(
                 act.autostart, act.autostart_amplitude_m, act.autostart_frequency_hz
@@ -344,6 +410,13 @@ class Firmware:
         self._act_seen = False
         self._last_act_s = 0.0
         self._act_timed_out = False
+        # actuator setpoint state (STREAM, contract 1.1)
+        self._last_setpoint_s = 0.0
+        self._setpoint_timed_out = False  # FaultCode 7
+        self._stream_ended = False  # ramped to rest: a repeated STREAM does not restart it
+        self._setpoint_clamped = False  # FaultCode 3
+        self.late_setpoints = 0
+        self.clamped_setpoints = 0
         # bad command frames within the budget window
         self._bad_times: deque[float] = deque()
         self._bad_over = False
@@ -390,12 +463,21 @@ class Firmware:
             echo = self._sent_counter if self._sent_counter is not None else 0
         return mode, setpoint, echo
 
+    def setpoint_of(self, v: dict[str, float]) -> tuple[float, int]:
+        """(position setpoint m, echoed sensor counter) of a valid ActuatorSetpoint's values;
+        a layout without its echo answers the latest sensor frame sent, as `command_of`."""
+        if "setpoint_counter_echo" in self._profile.mapped:
+            echo = int(v["SensorCounterEcho"])
+        else:
+            echo = self._sent_counter if self._sent_counter is not None else 0
+        return v["PositionSetpoint"], echo
+
     def on_frame(
         self, frame_id: int, data: bytes, t_s: float, is_extended: bool = False, is_fd: bool = False
     ) -> Parsed | None:
         """Check and apply one received frame; None for frames that are not commands."""
         key = frame_key(frame_id, is_extended)
-        if key != self.damper_command_key and key != self._actuator_key:
+        if key not in (self.damper_command_key, self._actuator_key, self._setpoint_key):
             return None
         parsed = self._parser.parse(frame_id, data, t_s, is_extended, is_fd)
         if not parsed.ok:
@@ -406,6 +488,8 @@ class Firmware:
         assert v is not None
         if key == self.damper_command_key:
             self.on_damper_command(*self.command_of(v), t_s)
+        elif key == self._setpoint_key:
+            self.on_actuator_setpoint(*self.setpoint_of(v), t_s)
         else:
             self.on_actuator_command(
                 self._waveform_labels[int(v["Waveform"])], v["Amplitude"], v["Frequency"], t_s
@@ -469,6 +553,34 @@ class Firmware:
             self.armed_motion[-1] = self.armed_motion[-1]._replace(end_s=t_s)
             self._stretch_open = False
 
+    def on_actuator_setpoint(self, position_m: float, echo: int, t_s: float) -> None:
+        """A valid ActuatorSetpoint answering the frame with counter `echo`: in STREAM, unless
+        late, feeds the setpoint watchdog and sets where the piston goes (clamped to the
+        envelope and the stroke); outside STREAM it moves nothing."""
+        act = self.actuator
+        if act.waveform != "STREAM":
+            return
+        if self.is_late(echo, t_s):
+            self.late_setpoints += 1
+            logger.debug("late setpoint echoing %d at t=%.4f s: dropped", echo, t_s)
+            return
+        self._last_setpoint_s = t_s
+        if self._setpoint_timed_out:
+            self._setpoint_timed_out = False
+            self._event(t_s, "actuator setpoint stream back")
+        limit_m = min(act.envelope_m, self._cfg.actuator.stroke_m)
+        clamped = abs(position_m) > limit_m
+        if clamped:
+            self.clamped_setpoints += 1
+            if not self._setpoint_clamped:
+                self._event(
+                    t_s,
+                    f"setpoint {position_m * 1e3:.3f} mm beyond the envelope"
+                    f" +-{limit_m * 1e3:g} mm: clamped",
+                )
+        self._setpoint_clamped = clamped
+        act.stream_to(max(-limit_m, min(limit_m, position_m)))
+
     def on_actuator_command(
         self, waveform: str, amplitude_m: float, frequency_hz: float, t_s: float
     ) -> None:
@@ -480,6 +592,14 @@ class Firmware:
             self._event(t_s, "actuator command stream back")
         if self._halted_by_injection():
             return
+        if waveform == "STREAM":
+            if self._stream_ended:
+                return  # a repeat of the STREAM that timed out: the ramp to rest goes on
+            if self.actuator.waveform != "STREAM":
+                self._last_setpoint_s = t_s  # the setpoint watchdog starts with the stream
+                self._setpoint_clamped = False
+        else:
+            self._stream_ended = self._setpoint_timed_out = False
         if amplitude_m > self._cfg.actuator.stroke_m and waveform in ("SINE", "RANDOM"):
             logger.warning(
                 "actuator amplitude %.5f m clamped to the stroke %.5f m",
@@ -540,6 +660,10 @@ class Firmware:
             return "SENSOR_FAULT"
         if self._act_timed_out:
             return "COMMAND_TIMEOUT"
+        if self._setpoint_timed_out:
+            return "ACTUATOR_SETPOINT_TIMEOUT"
+        if self._setpoint_clamped and self.actuator.waveform == "STREAM":
+            return "STROKE_LIMIT"
         if self._bad_over:
             return "BAD_COMMAND_FRAMES"
         if self._over_limit and self._active:
@@ -551,6 +675,7 @@ class Firmware:
         out = {
             "damper_valid": 0,
             "actuator_valid": 0,
+            "setpoint_valid": 0,
             "bad_crc": 0,
             "repeated_counter": 0,
             "other_rejected": 0,
@@ -559,6 +684,7 @@ class Firmware:
         for name, key in (
             (p.command_message, "damper_valid"),
             (p.actuator_message, "actuator_valid"),
+            (p.setpoint_message, "setpoint_valid"),
         ):
             if name is None:
                 continue
@@ -615,6 +741,7 @@ class Firmware:
             self._act_timed_out = True
             self.actuator.command("STOP", 0.0, 0.0)
             self._event(t_s, "no ActuatorCommand for 500 ms while moving: ramping to rest")
+        self._watch_setpoints(t_s)
         window = self._cfg.commands.bad_frame_window_s
         bad = self._bad_times
         while bad and t_s - bad[0] > window:
@@ -628,6 +755,25 @@ class Firmware:
                 f"({len(bad)} in {window:g} s)",
             )
 
+    def _watch_setpoints(self, t_s: float) -> None:
+        """The setpoint watchdog of STREAM: HOLD after 20 ms, the ramp to rest after 500 ms."""
+        act = self.actuator
+        if act.waveform != "STREAM":
+            return
+        quiet_s = t_s - self._last_setpoint_s
+        if not self._setpoint_timed_out and quiet_s > WATCHDOG_TIMEOUT_S:
+            self._setpoint_timed_out = True
+            act.stream_to(act.x_m)
+            self._event(
+                t_s,
+                f"no valid ActuatorSetpoint for {quiet_s * 1e3:.1f} ms: HOLD where it is",
+                logging.WARNING,
+            )
+        if self._setpoint_timed_out and quiet_s > ACTUATOR_TIMEOUT_S:
+            self._stream_ended = True
+            act.command("STOP", 0.0, 0.0)
+            self._event(t_s, "no valid ActuatorSetpoint for 500 ms: ramping to rest")
+
     def tick(self, t_s: float) -> list[Frame]:
         """Advance the rig to t_s (one RigSensors period after the last tick) and return the
         frames due: RigSensors, and RigStatus every status period (both subject to faults)."""
@@ -638,6 +784,15 @@ class Firmware:
         x, xd = (
             self.actuator.advance(dt_s) if dt_s > 0.0 else (self.actuator.x_m, self.actuator.xd_m_s)
         )
+        # the servo-hydraulic actuator follows a STREAM's setpoints always (contract 1.1: the
+        # daemon's computed stroke), the motion generator's waveforms where configured
+        streaming = self.actuator.waveform == "STREAM"
+        if streaming and not self._servo_streaming and not self._cfg.actuator.servo.waveforms:
+            self.servo.reset(self._x_prev_m)  # from where the piston was
+        self._servo_streaming = streaming
+        if streaming or self._cfg.actuator.servo.waveforms:
+            x, xd = self.servo.step(x, xd, dt_s)
+        self._x_prev_m = x
         self._watch_motion()
         on = self.active_faults
         halted = self._tripped or self.unsendable is not None or self._halted_by_injection()

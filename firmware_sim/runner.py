@@ -262,6 +262,9 @@ class RunStats:
             },
             # ACTIVE commands not applied: they answered an older frame than the latest sent
             "late_commands": firmware.late_commands,
+            # ActuatorSetpoints dropped as late, and those clamped to the envelope (STREAM)
+            "late_setpoints": firmware.late_setpoints,
+            "clamped_setpoints": firmware.clamped_setpoints,
             "applied_active_age_us": _percentiles(self.applied_active_age_us),
             "armed_motion": [
                 {k: round(v, 6) if math.isfinite(v) else None for k, v in m._asdict().items()}

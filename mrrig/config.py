@@ -6,6 +6,7 @@ beside the config file, else from the shipped configs (`mrrig.resources`).
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, Literal
@@ -187,8 +188,18 @@ class ControllerSection:
     # (`online_continuity`, chosen by `mrrig train` on its training rows), else 0 (the root)
     continuity: float | None = None
     current_a: float = 0.0  # for the constant controller
+    gain: float = 0.021  # continuous_state's G (A/N, eq. 39)
+    b: float = 1.0  # continuous_state's B (eq. 39)
+    on_current_a: float | None = None  # heaviside's current when on (eq. 37); absent: i_max_a
 
     def check(self) -> None:
+        for name in ("gain", "b"):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and 0 < value <= 1e3):
+                raise ValueError(f"{name}: {value!r} must be in (0, 1000]")
+        on = self.on_current_a
+        if on is not None and not (math.isfinite(on) and 0 < on <= 5.0):
+            raise ValueError(f"on_current_a: {on!r} must be in (0, 5] A")
         if self.name not in CONTROLLERS:
             raise ValueError(
                 f"name: unknown controller {self.name!r} (known: {', '.join(CONTROLLERS)})"
@@ -256,7 +267,10 @@ class ReferenceSection:
 
 @dataclass(frozen=True)
 class ActuatorSection:
-    waveform: Literal["stop", "sine", "random", "hold"] = "stop"
+    """The ActuatorCommand. `stream` (contract 1.1) follows ActuatorSetpoint frames, one per
+    sensor frame: its amplitude_m is the envelope |x| the stream may use, its frequency 0."""
+
+    waveform: Literal["stop", "sine", "random", "hold", "stream"] = "stop"
     amplitude_m: float = 0.0
     frequency_hz: float = 0.0
 
@@ -265,6 +279,10 @@ class ActuatorSection:
             raise ValueError(f"amplitude_m: must be in [0, {ACTUATOR_AMPLITUDE_MAX_M:g}] m")
         if not 0 <= self.frequency_hz <= ACTUATOR_FREQUENCY_MAX_HZ:
             raise ValueError(f"frequency_hz: must be in [0, {ACTUATOR_FREQUENCY_MAX_HZ:g}] Hz")
+        if self.waveform == "stream" and self.frequency_hz != 0:
+            raise ValueError("frequency_hz: must be 0 for stream (the setpoints set the motion)")
+        if self.waveform == "stream" and self.amplitude_m == 0:
+            raise ValueError("amplitude_m: stream needs its envelope (the largest |x| it uses)")
 
 
 @dataclass(frozen=True)

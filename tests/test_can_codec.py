@@ -88,6 +88,18 @@ VECTORS = [
         {"Waveform": 1, "Amplitude": 0.015, "Frequency": 2.0},
         "a6 11 dc 05 d0 07 00 00",
     ),
+    (  # contract 1.1
+        "ActuatorSetpoint",
+        5,
+        {"SensorCounterEcho": 4, "PositionSetpoint": 0.012345, "VelocityFeedforward": 0.1234},
+        "77 45 39 30 00 d2 04 00",
+    ),
+    (
+        "ActuatorSetpoint",
+        0,
+        {"SensorCounterEcho": 15, "PositionSetpoint": -0.0205, "VelocityFeedforward": -0.5},
+        "d4 f0 ec af ff 78 ec 00",
+    ),
 ]
 
 CONTRACT_IDS = {  # message: (CAN ID, Data ID, sender)
@@ -95,6 +107,7 @@ CONTRACT_IDS = {  # message: (CAN ID, Data ID, sender)
     "RigStatus": (0x111, 0x52, "RIG"),
     "DamperCommand": (0x210, 0x61, "DAEMON"),
     "ActuatorCommand": (0x211, 0x62, "DAEMON"),
+    "ActuatorSetpoint": (0x212, 0x63, "DAEMON"),
 }
 
 
@@ -443,6 +456,22 @@ def test_value_tables_come_from_the_dbc(codec: Codec) -> None:
     assert codec.choices("DamperCommand", "ControllerId")[1] == "NETWORK_INVERSION"
     assert codec.choices("ActuatorCommand", "Waveform")[2] == "RANDOM"
     assert codec.choices("RigSensors", "Force") == {}
+
+
+def test_contract_1_1_codes_stream_and_setpoint_timeout_round_trip(codec: Codec) -> None:
+    """Waveform 4 STREAM and FaultCode 7 (actuator setpoint timeout) are in the value tables
+    and inside their signals' ranges: a frame carrying either is sent and accepted."""
+    assert codec.choices("ActuatorCommand", "Waveform")[4] == "STREAM"
+    assert codec.choices("RigStatus", "FaultCode")[7] == "ACTUATOR_SETPOINT_TIMEOUT"
+    stream = {"Waveform": "STREAM", "Amplitude": 0.03, "Frequency": 0.0}
+    data = codec.packer("DAEMON").encode("ActuatorCommand", stream)
+    parsed = codec.parser().parse(0x211, data, 0.0)
+    assert parsed.ok, parsed.reason
+    assert parsed.values["Waveform"] == 4
+    status = dict(VECTORS[2][2], FaultCode="ACTUATOR_SETPOINT_TIMEOUT")
+    parsed = codec.parser().parse(0x111, codec.packer("RIG").encode("RigStatus", status), 0.0)
+    assert parsed.ok, parsed.reason
+    assert parsed.values["FaultCode"] == 7
 
 
 def test_codec_loads_with_cantools_strict(codec: Codec) -> None:

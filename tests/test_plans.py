@@ -26,6 +26,7 @@ from mrrig.plans.criteria import Criteria, failures, measure
 from mrrig.plans.plan import MAX_PLAN_BYTES, MAX_STEPS, PlanError, load_plan
 from mrrig.plans.report import Identity, write_html, write_junit
 from mrrig.plans.runner import StepResult
+from mrrig.rigio.run_identity import file_sha256
 from tests.conftest import REPO, OutputWatch, rig_config, start, stop, zenoh_configs
 from tests.live_rig import live_rig
 from tests.test_lifecycle_errors import NO_MODEL
@@ -367,6 +368,32 @@ def test_html_holds_the_identity_the_table_and_one_plot_per_step(tmp_path):
     assert "<h1>mrrig test: two steps: failed</h1>" in text
 
 
+def test_html_is_a_test_record_criteria_limits_values_rig_operator_and_model(tmp_path):
+    """Issue 42: the plan's HTML named the operator `root` where the daemon ran with
+    `--operator walk`, printed Et as `nan` or `0.0116904`, and showed no criterion."""
+    plan, results = results_of(tmp_path)
+    for r in results:
+        r.identity = {"operator": "walk", "specimen": "SN-MR-042", "run_id": "r-1",
+                      "model_path": "models/m.json", "model_sha256": "cd" * 32}  # fmt: skip
+    results[0].numbers = dataclasses.replace(results[0].numbers, et=math.nan)
+    path = tmp_path / "report.html"
+    ident = Identity.of(plan.path, "rig1", "1.2.3", "2026-12-04T20:00:00+00:00")
+    write_html(path, plan.name, ident, results)
+    text = path.read_text()
+    operator = html.escape(f"walk (the rig's run; the plan run by {ident.operator})")
+    assert f"<td>{operator}</td>" in text
+    assert "<td>SN-MR-042</td>" in text and f"models/m.json ({'cd' * 6})" in text
+    assert ">nan<" not in text and "<td>n/a</td>" in text
+    et = results[1].numbers.et
+    assert f"<td>{et:.4f}</td>" in text and f"{et:.6g}" not in text
+    # the failed step's criteria: Et against its limit, not met; faults met
+    assert (
+        f"<tr class='failed'><td>Et</td><td>&lt;= 0.0001</td><td>{et:.4f}</td>"
+        "<td>not met</td></tr>" in text
+    )
+    assert text.count("<td>faults</td>") == 2 and "<th>criterion</th>" in text
+
+
 def _renamed(results: list[StepResult], names: list[str]) -> list[StepResult]:
     return [
         dataclasses.replace(r, step=dataclasses.replace(r.step, name=n))
@@ -543,7 +570,7 @@ def test_a_double_ctrl_c_still_writes_the_reports_and_the_catalog_rows(tmp_path)
         tmp_path,
         "ws://127.0.0.1:1/",  # --sim gives the daemon its bridge's channel
         None,
-        rig={"name": "plans-ctrl-c"},
+        rig={"name": "plans-ctrl-c", "specimen": "SN-MR-042"},
         telemetry={"enabled": True, "zenoh_config": str(daemon_z)},
         **NO_MODEL,
     )
@@ -577,6 +604,10 @@ def test_a_double_ctrl_c_still_writes_the_reports_and_the_catalog_rows(tmp_path)
     assert "constant current" in html.read_text()
     (row,) = find_runs(catalog)
     assert (row.plan, row.step, row.verdict) == ("two steps", "constant current", "aborted")
+    # issue 42: traceable to the specimen, the settings and the files in force at its start
+    assert (row.specimen, row.config_sha256) == ("SN-MR-042", file_sha256(cfg))
+    assert row.dbc_sha256 == file_sha256(REPO / "configs" / "mrrig.dbc")
+    assert row.controller_params["current_a"] == 0.5, row.controller_params
     assert row.campaign is not None and row.campaign.startswith("two steps 20")  # its UTC start
 
 

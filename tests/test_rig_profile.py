@@ -120,7 +120,7 @@ def test_the_daemon_refuses_a_profile_with_its_first_problem_in_one_line(tmp_pat
             ('"mm" HOST', '"in" HOST'),
             ("", ""),
             "lab-1khz.dbc: LabSensors.Position: unit 'in' not in the unit table (m, mm, um, N,"
-            " kN, A, mA, V, degC, Hz)",
+            " kN, A, mA, V, degC, Hz, m/s, mm/s)",
             id="unknown unit",
         ),
         pytest.param(

@@ -190,8 +190,28 @@ def register_runs(url: str | Path, records: Iterable[RunRecord]) -> int:
             ids = [row["run_id"] for row in batch]
             there = set(conn.scalars(sa.select(runs.c.run_id).where(runs.c.run_id.in_(ids))))
             conn.execute(_upsert(catalog.dialect), batch)
+            _close_steps(conn, batch)
             new += len(set(ids) - there)
     return new
+
+
+def _close_steps(conn: sa.Connection, rows: list[dict[str, Any]]) -> None:
+    """A run registered with its recording's sha256 (the daemon's, once the file is closed)
+    gives it to the runs registered while that recording was still being written (a plan's
+    steps): from then on `check_recording` checks them too."""
+    for row in rows:
+        if row.get("recording_path") and row.get("recording_sha256"):
+            conn.execute(
+                sa.update(runs)
+                .where(
+                    runs.c.recording_path == row["recording_path"],
+                    runs.c.recording_sha256.is_(None),
+                )
+                .values(
+                    recording_sha256=row["recording_sha256"],
+                    recording_size_bytes=row["recording_size_bytes"],
+                )
+            )
 
 
 def find_runs(

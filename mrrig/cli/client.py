@@ -38,7 +38,9 @@ def _print_reply(reply: dict) -> int:
     return 0 if reply.get("ok") else 1
 
 
-_STATUS_HEAD = ("rig", "state", "armed", "controller", "reference", "fault", "fault_reason", "t")
+_STATUS_HEAD = (
+    "rig", "state", "armed", "controller", "reference", "fault", "fault_reason", "t", "identity",
+)  # fmt: skip
 
 
 def format_status(status: dict[str, Any]) -> str:
@@ -49,6 +51,14 @@ def format_status(status: dict[str, Any]) -> str:
         f"rig {status.get('rig')}: {state} ({mode.get(state, '?')}), up {status.get('t', 0):.1f} s",
         f"  controller {status.get('controller')}, force reference {status.get('reference')}",
     ]
+    ident = status.get("identity") or {}
+    if ident:
+        sha = ident.get("model_sha256")
+        model = f"{ident['model_path']} (sha256 {sha[:12] if sha else 'unreadable'})"
+        lines.append(
+            f"  model {model if ident.get('model_path') else 'none'}, specimen"
+            f" {ident.get('specimen') or 'not set'}, run {ident.get('run_id')}"
+        )
     if status.get("fault"):
         lines.append(f"  fault {status['fault']}: {status.get('fault_reason')}")
         rig = status.get("rig")

@@ -51,6 +51,7 @@ def _show(profile: RigProfile) -> str:
         ("status", profile.status_message),
         ("command (sent)", profile.command_message),
         ("actuator (sent)", profile.actuator_message),
+        ("setpoint (sent)", profile.setpoint_message),
     ):
         if message is None:
             lines.append(f"{group}: none")

@@ -47,6 +47,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "runs": ("mrrig.cli.runs", "the run catalog: find, show, compare, sync and register runs"),
     "dbc": ("mrrig.cli.dbc", "check a rig profile (DBC + [can.signals]); show its mapping"),
     "test": ("mrrig.cli.test", "run a test plan (TOML steps with criteria) on a live rig"),
+    "compare": ("mrrig.cli.compare", "the paper's controllers on your damper, Et side by side"),
     "tune": ("mrrig.cli.tune", "tune the controller's free parameters by closed-loop trials"),
 }
 

@@ -171,10 +171,12 @@ def main(argv: list[str] | None = None) -> int:
             rig_name = args.rig or plan.rig
             if rig_name is None:
                 ap.error("--rig: the plan names no rig ([plan] rig): give --rig NAME")
-        return _run(plan, rig_name, args, version())
+        return run_on(plan, rig_name, args, version())[0]
 
 
-def _run(plan, rig_name: str, args: argparse.Namespace, mrrig_version: str) -> int:
+def run_on(plan, rig_name: str, args: argparse.Namespace, mrrig_version: str) -> tuple[int, list]:
+    """Run `plan` on the rig and write the reports `args` asks for (`--junit`, `--html`,
+    `--catalog`, `--zenoh-config`); the exit code and the steps' results."""
     from mrrig.api import Rig, default_catalog
     from mrrig.plans.interrupts import PlanSignals
     from mrrig.plans.report import Identity, write_html, write_junit
@@ -211,4 +213,4 @@ def _run(plan, rig_name: str, args: argparse.Namespace, mrrig_version: str) -> i
             if args.html:
                 write_html(args.html, plan.name, ident, results)
                 print(f"HTML report: {args.html}")
-    return 0 if verdict == "passed" else 1
+    return (0 if verdict == "passed" else 1), results

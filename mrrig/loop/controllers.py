@@ -80,6 +80,9 @@ class ControllerSettings:
         None  # on-line gain and offset (mrrig/loop/adaptation.py)
     )
     current_a: float = 0.0  # the constant controller's
+    gain: float = 0.021  # continuous state's G, A/N (eq. 39)
+    b: float = 1.0  # continuous state's B (eq. 39)
+    on_current_a: float | None = None  # Heaviside's current when on (eq. 37); None: i_max
     gradient_iterations: int = 1000
     seed: int = 0
 
@@ -288,6 +291,17 @@ class Heaviside(Controller):
     name = "heaviside"
     controller_id = 2
 
+    @classmethod
+    def build(cls, s: ControllerSettings) -> Controller:
+        return cls(s.i_max, s.on_current_a)
+
+    def __init__(self, i_max: float, on_current_a: float | None = None) -> None:
+        super().__init__(i_max)
+        on = self.i_max if on_current_a is None else float(on_current_a)
+        if not 0 < on <= self.i_max:
+            raise ValueError(f"on_current_a: {on:g} A is outside (0, {self.i_max:g}] A")
+        self.on_current_a = on
+
     def reset(self, batch: int = 1) -> None:
         super().reset(batch)
         self._held = np.zeros(batch)
@@ -295,7 +309,7 @@ class Heaviside(Controller):
     def command(self, s: ControlInput) -> np.ndarray:
         prod = (s.f_des - s.f_meas) * s.f_meas
         # eq. 37-38; held at its previous value when the product is exactly 0
-        self._held = np.where(prod > 0, self.i_max, np.where(prod < 0, 0.0, self._held))
+        self._held = np.where(prod > 0, self.on_current_a, np.where(prod < 0, 0.0, self._held))
         return self._held.copy()
 
 
@@ -306,8 +320,16 @@ class ContinuousState(Controller):
     name = "continuous_state"
     controller_id = 3
 
+    @classmethod
+    def build(cls, s: ControllerSettings) -> Controller:
+        return cls(s.i_max, s.gain, s.b)
+
     def __init__(self, i_max: float, gain: float = 0.021, b: float = 1.0) -> None:
         super().__init__(i_max)
+        if not (math.isfinite(gain) and gain > 0):
+            raise ValueError(f"gain: {gain!r} must be a positive number (A/N)")
+        if not (math.isfinite(b) and b > 0):
+            raise ValueError(f"b: {b!r} must be a positive number")
         self.gain = gain
         self.b = b
 

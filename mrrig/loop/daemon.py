@@ -67,7 +67,7 @@ from mrrig.loop.twin_model import TwinModel, load_forward_model
 from mrrig.rigio import sdnotify
 from mrrig.rigio.canbus.bus import open_bus
 from mrrig.rigio.canbus.codec import Codec
-from mrrig.rigio.canbus.profile import load_profile
+from mrrig.rigio.canbus.profile import ProfileError, load_profile
 from mrrig.rigio.canbus.profile_limits import daemon_limits
 from mrrig.rigio.control import (
     Change,
@@ -79,7 +79,7 @@ from mrrig.rigio.control import (
     settings_in_force,
 )
 from mrrig.rigio.ipc import LoopEnd, Msg, ReplyWriter, make_channel
-from mrrig.rigio.run_identity import run_identity
+from mrrig.rigio.run_identity import IN_FORCE, STATUS_IDENTITY, run_identity
 from mrrig.rigio.zenoh_config import check_secure, load_zenoh_config
 from mrrig.typed_config import ConfigError
 
@@ -94,7 +94,7 @@ SIDECAR_START_S = 20.0  # a new telemetry process's first heartbeat may take thi
 MAX_SIDECAR_RESTARTS = 1
 MAX_REPLAYED_EVENTS = 20  # events a restarted telemetry process is told again
 CLOCK_SANE_S = 60.0  # a frame timestamp further off than this is not on this machine's clock
-WAVEFORMS = {"stop": "STOP", "sine": "SINE", "random": "RANDOM", "hold": "HOLD"}
+WAVEFORMS = {"stop": "STOP", "sine": "SINE", "random": "RANDOM", "hold": "HOLD", "stream": "STREAM"}
 # importing rerun and zenoh and opening both, on a loaded 2-core machine; a live_url that
 # nothing listens on alone blocks the recorder about 6 s
 SIDECAR_START_TIMEOUT_S = 30.0
@@ -178,7 +178,12 @@ def build_controller(cfg: DaemonConfig, section=None, model: MLP | None = None) 
     if model is not None:
         check_units(model, c.model, rig_units())
         check_period(model, c.model, dt)
-    settings = ControllerSettings(i_max, dt_s=dt, model=model, current_a=c.current_a)
+    if c.on_current_a is not None and c.on_current_a > i_max:
+        raise ConfigError(f"{cfg.source}: controller.on_current_a: above loop.i_max_a {i_max} A")
+    settings = ControllerSettings(
+        i_max, dt_s=dt, model=model, current_a=c.current_a, gain=c.gain, b=c.b,
+        on_current_a=c.on_current_a,
+    )  # fmt: skip
     if c.name == "network_inversion":
         continuity = c.continuity
         if continuity is None:
@@ -284,9 +289,12 @@ class Daemon:
         )
         if self.profile.protections_off:
             log.warning("%s", self.profile.startup_line())
+        if cfg.actuator.waveform == "stream" and (why := self.profile.stream_refusal()):
+            raise ProfileError(why)
         self.codec = self.profile.codec
         # who runs what, where and when: into the recording and the run catalog (the sidecar)
         self.identity = run_identity(cfg, self.codec.dbc_path)
+        self.in_force = {k: self.identity[k] for k in IN_FORCE}  # set_model / set_controller
         self.packer = self.profile.packer()
         self._own_messages = frozenset(self.packer.messages)
         self._sensor_msg = self.profile.sensor_message
@@ -430,6 +438,7 @@ class Daemon:
             "firmware_blocking": s.firmware_blocking,
             "recording": "failed: " + self.recording_failed if self.recording_failed else None,
             "telemetry_restarts": self._sidecar_restarts,
+            "identity": {k: self.identity[k] for k in STATUS_IDENTITY} | self.in_force,
             "t": self.now(),
             **self.counters,
         }
@@ -1001,6 +1010,7 @@ class Daemon:
             self.controller.reset(1)
             self.reset_reference(self.now(), self.last_x)  # its desired forces ahead, if any
             self.cfg = replace(self.cfg, controller=c.controller_section)
+            self.in_force = c.in_force or self.in_force
             self._send_status(force=True)
             settings = settings_in_force(c.controller_section, c.controller)
             return {"controller": self.controller.name, "settings": settings}

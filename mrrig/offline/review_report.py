@@ -175,6 +175,209 @@ def _rows(d: Mapping[str, Any], prefix: str = "") -> list[tuple[str, str]]:
     return rows
 
 
+# the run's identity as the record's header: (label, identity key)
+IDENTITY_ROWS = (
+    ("run id", "run_id"),
+    ("rig", "rig"),
+    ("specimen", "specimen"),
+    ("operator", "operator"),
+    ("started (UTC)", "started_utc"),
+    ("controller", "controller"),
+    ("model", "model_path"),
+    ("model sha256", "model_sha256"),
+    ("config sha256", "config_sha256"),
+    ("DBC sha256", "dbc_sha256"),
+    ("mrrig", "mrrig_version"),
+)
+# the numbers a reader looks for first: (label, path in the summary, unit, format)
+KEY_NUMBERS = (
+    ("Et (eqs 41-43)", ("et",), "", ".4f"),
+    ("Et where answered", ("et_answered",), "", ".4f"),
+    ("duration", ("duration_s",), "s", ".1f"),
+    ("armed frames", ("armed_frames",), "", "d"),
+    ("peak commanded current", ("i_cmd_a", "max"), "A", ".3f"),
+    ("latency p50", ("latency_us", "p50"), "us", ".0f"),
+    ("latency p99", ("latency_us", "p99"), "us", ".0f"),
+    ("tracking error p95", ("tracking_error_n", "p95"), "N", ".1f"),
+    ("force against the motion", ("force_against_motion", "share"), "", ".1%"),
+)
+
+
+def _get(d: Mapping[str, Any], path: tuple[str, ...]) -> Any:
+    for k in path:
+        d = d.get(k) if isinstance(d, Mapping) else None  # type: ignore[assignment]
+    return d
+
+
+def _number(v: Any, fmt: str) -> str:
+    if isinstance(v, bool) or not isinstance(v, int | float):
+        return "n/a"
+    if isinstance(v, float) and not np.isfinite(v):
+        return "n/a"
+    return format(int(v) if fmt == "d" else v, fmt)
+
+
+def verdict(rec: Recording, metrics: Mapping[str, Any]) -> str:
+    """The run's verdict as the catalog gives it (`mrrig.catalog.finished.verdict_of`), with
+    the number of faults."""
+    from mrrig.catalog.finished import verdict_of
+
+    n = len(metrics.get("faults", []))
+    return f"{verdict_of(rec.summary)}, {n} fault{'s' if n != 1 else ''}"
+
+
+def _png(draw, *args: Any) -> str:
+    buf = io.BytesIO()
+    draw(*args, buf)
+    return base64.b64encode(buf.getvalue()).decode("ascii")
+
+
+def _marks(rec: Recording) -> list[tuple[float, str]]:
+    """The plan's step boundaries and other marks in the recording (`mark` requests)."""
+    return [
+        (float(e["t"]), str(e.get("text")))
+        for e in rec.events
+        if e.get("kind") == "mark" and e.get("t") is not None
+    ]
+
+
+def plot_traces(rec: Recording, out_png: str | Path | io.BytesIO) -> None:
+    """Every channel over time, one panel each: displacement, velocity, force, current,
+    temperature; armed time shaded, the marks (a plan's step boundaries) as dashed lines."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    s = rec.samples
+    t = s["t"]
+    panels = (
+        ("displacement (mm)", (("x", 1e3, "x measured"), ("x_est", 1e3, "x estimated"))),
+        ("velocity (m/s)", (("xd", 1.0, "xd estimated"),)),
+        ("force (N)", (("f_meas", 1.0, "f_meas measured"), ("f_des", 1.0, "f_des desired"))),
+        ("current (A)", (("i_cmd", 1.0, "i_cmd commanded"), ("i_meas", 1.0, "i_meas measured"))),
+        ("temperature (degC)", (("temp_degc", 1.0, "damper"),)),
+    )
+    fig, axes = plt.subplots(len(panels), 1, figsize=(13, 13), sharex=True, layout="constrained")
+    spans = _armed_spans(s)
+    marks = _marks(rec)
+    for ax, (ylabel, lines) in zip(axes, panels, strict=True):
+        for field, scale, label in lines:
+            if np.isfinite(s[field]).any():
+                _line(ax, t, s[field] * scale, label=label)
+        for a, b in spans:
+            ax.axvspan(a, b, color="gold", alpha=0.15, lw=0)
+        for tm, _ in marks:
+            ax.axvline(tm, color="0.3", lw=0.8, ls="--")
+        ax.set_ylabel(ylabel)
+        if ax.lines:
+            ax.legend(loc="upper left", bbox_to_anchor=(1.0, 1.0), fontsize=9, frameon=False)
+    axes[-1].set_xlabel("sensor time (s); shaded: armed; dashed: a mark (a plan step's start/end)")
+    fig.suptitle(plot_literal(f"{rec.path.name}: every channel over time"))
+    fig.savefig(out_png, dpi=100, format="png")
+    plt.close(fig)
+
+
+def plot_cycles(cs: Sequence[Any], out_png: str | Path | io.BytesIO) -> None:
+    """Per cycle, coloured by test condition: peak force against peak velocity (extension and
+    compression), and the energy dissipated per cycle over time."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, (ax_fv, ax_e) = plt.subplots(1, 2, figsize=(13, 5.5), layout="constrained")
+    conditions = list(dict.fromkeys(c.condition() for c in cs))
+    for k, cond in enumerate(conditions):
+        g = [c for c in cs if c.condition() == cond]
+        label = f"{cond[0] * 1e3:g} mm, {cond[1]:g} Hz, {cond[2]:g} A"
+        v = [c.v_max_m_s for c in g] + [c.v_min_m_s for c in g]
+        f = [c.f_max_n for c in g] + [c.f_min_n for c in g]
+        ax_fv.plot(v, f, "o", ms=4, color=f"C{k % 10}", label=label)
+        ax_e.plot([c.t_start_s for c in g], [c.energy_j for c in g], "o", ms=4, color=f"C{k % 10}")
+    ax_fv.axhline(0.0, color="0.5", lw=0.5)
+    ax_fv.axvline(0.0, color="0.5", lw=0.5)
+    ax_fv.set(xlabel="peak velocity (m/s)", ylabel="peak force (N)",
+              title="Peak force against peak velocity, per cycle")  # fmt: skip
+    ax_e.set(xlabel="cycle start (s)", ylabel="energy dissipated (J)", title="Energy per cycle")
+    if conditions:
+        ax_fv.legend(fontsize=8, title="amplitude, frequency, current")
+    fig.savefig(out_png, dpi=100, format="png")
+    plt.close(fig)
+
+
+def _table(head: Sequence[str], rows: Sequence[Sequence[str]]) -> str:
+    esc = html.escape
+    th = "".join(f"<th>{esc(h)}</th>" for h in head)
+    body = "".join("<tr>" + "".join(f"<td>{esc(v)}</td>" for v in r) + "</tr>" for r in rows)
+    return f"<table><tr>{th}</tr>{body}</table>"
+
+
+def record_parts(rec: Recording, metrics: Mapping[str, Any]) -> list[str]:
+    """The test record's sections: identity, verdict and key numbers, the figures (review,
+    every channel over time, per cycle), the per-condition table, marks, faults, summary."""
+    from mrrig.offline.cycles import by_condition, cycles
+
+    esc = html.escape
+    ident = rec.identity or {}
+    id_rows = [(label, str(ident.get(key) or "not recorded")) for label, key in IDENTITY_ROWS]
+    numbers = [
+        (label, f"{_number(_get(metrics, path), fmt)} {unit}".strip())
+        for label, path, unit, fmt in KEY_NUMBERS
+    ]
+    cs = cycles(rec.samples)
+    rows = by_condition(cs)
+    cond = [
+        (f"{r.amplitude_m * 1e3:g}", f"{r.frequency_hz:g}", f"{r.current_a:g}", str(r.cycles),
+         f"{r.v_max_m_s:.3f}", f"{r.v_min_m_s:.3f}", f"{r.f_max_n:.1f}", f"{r.f_min_n:.1f}",
+         f"{r.energy_j:.2f}")
+        for r in rows
+    ]  # fmt: skip
+    faults = [(f"{f['t']:.3f}", str(f["reason"])) for f in metrics.get("faults", [])]
+    parts = [
+        f"<h1>{esc(title(rec, metrics))}</h1>",
+        f"<p class='verdict'>verdict: <b>{esc(verdict(rec, metrics))}</b></p>",
+        "<h2>Identity</h2>",
+        _table(("field", "value"), id_rows),
+        "<h2>Key numbers</h2>",
+        _table(("number", "value"), numbers),
+        "<h2>Review</h2>",
+        f"<img alt='review figure' src='data:image/png;base64,{_png(plot, rec, metrics)}'>",
+        "<h2>Time traces</h2>",
+        f"<img alt='time traces' src='data:image/png;base64,{_png(plot_traces, rec)}'>",
+        f"<h2>Per cycle ({len(cs)} cycles)</h2>",
+    ]
+    if cs:
+        parts += [
+            _table(
+                (
+                    "amplitude (mm)",
+                    "frequency (Hz)",
+                    "current (A)",
+                    "cycles",
+                    "v max (m/s)",
+                    "v min (m/s)",
+                    "F max (N)",
+                    "F min (N)",
+                    "energy (J)",
+                ),
+                cond,
+            ),  # fmt: skip
+            "<p>medians per test condition; the energy is the loop integral of the measured"
+            " force over the displacement (work done on the damper)</p>",
+            f"<img alt='per cycle' src='data:image/png;base64,{_png(plot_cycles, cs)}'>",
+        ]
+    else:
+        parts.append("<p>no complete stroke cycle in this recording</p>")
+    marks = _marks(rec)
+    if marks:
+        parts += ["<h2>Marks</h2>", _table(("t (s)", "mark"), [(f"{t:.3f}", m) for t, m in marks])]
+    parts += [f"<h2>Faults ({len(faults)})</h2>"]
+    if faults:
+        parts.append(_table(("t (s)", "reason"), faults))
+    return parts
+
+
 def write_html(
     rec: Recording,
     metrics: Mapping[str, Any],
@@ -182,31 +385,22 @@ def write_html(
     bus_log_text: str | None = None,
     window_text: str | None = None,
 ) -> Path:
-    """One self-contained HTML file: title, the figure (base64 PNG), summary, faults."""
-    png = io.BytesIO()
-    plot(rec, metrics, png)
-    image = base64.b64encode(png.getvalue()).decode("ascii")
+    """One self-contained HTML file, a test record: identity, verdict, key numbers, the
+    figures (base64 PNG), the per-cycle results, marks, faults and every summary number."""
     esc = html.escape
-    faults = "".join(
-        f"<tr><td>{f['t']:.3f}</td><td>{esc(str(f['reason']))}</td></tr>"
-        for f in metrics.get("faults", [])
-    )
     table = "".join(f"<tr><th>{esc(k)}</th><td>{esc(v)}</td></tr>" for k, v in _rows(metrics))
     parts = [
         "<!DOCTYPE html><html><head><meta charset='utf-8'>",
         f"<title>{esc(rec.path.name)}</title>",
         "<style>body{font-family:sans-serif;margin:2em}table{border-collapse:collapse}"
         "td,th{border:1px solid #ccc;padding:2px 8px;text-align:left}th{background:#f4f4f4}"
-        "img{max-width:100%}</style></head><body>",
-        f"<h1>{esc(title(rec, metrics))}</h1>",
+        "img{max-width:100%}.verdict{font-size:1.3em}</style></head><body>",
+        *record_parts(rec, metrics),
         f"<p>recording <code>{esc(str(rec.path))}</code>"
         + (f", window {esc(window_text)}" if window_text else "")
         + "</p>",
-        f"<img alt='review figure' src='data:image/png;base64,{image}'>",
-        f"<h2>Faults ({len(metrics.get('faults', []))})</h2>",
-        f"<table><tr><th>t (s)</th><th>reason</th></tr>{faults}</table>" if faults else "",
-        "<h2>Summary</h2>",
-        f"<table>{table}</table>",
+        "<details><summary>Every summary number</summary>",
+        f"<table>{table}</table></details>",
     ]
     if bus_log_text:
         parts += ["<h2>Bus log</h2>", f"<pre>{esc(bus_log_text)}</pre>"]

@@ -136,6 +136,51 @@ def failures(criteria: Criteria, numbers: Numbers, faults: list[str]) -> list[st
     return out
 
 
+def criteria_rows(
+    criteria: Criteria, numbers: Numbers | None, faults: list[str]
+) -> list[tuple[str, str, str, str]]:
+    """Each criterion of the step with its limit, the measured value and whether it was met
+    (`met`, `not met`, `not measured`): the test record's table (`failures` says why)."""
+    allowed = TRANSPORT_FAULTS if criteria.faults == "transport" else frozenset()
+    bad = [f for f in faults if f not in allowed]
+    rows = [
+        (
+            "faults",
+            "none" if criteria.faults == "none" else "transport faults only (re-armed)",
+            ", ".join(faults) or "none",
+            "not met" if bad else "met",
+        )
+    ]
+    measured = {
+        "et_max": ("Et", None if numbers is None else numbers.et, "", ".4f"),
+        "peak_current_a_max": (
+            "peak current", None if numbers is None else numbers.peak_current_a, " A", ".3f"
+        ),
+        "latency_p99_us_max": (
+            "latency p99", None if numbers is None else numbers.latency_p99_us, " us", ".0f"
+        ),
+        "temperature_max_degc": (
+            "temperature max", None if numbers is None else numbers.temperature_max_degc,
+            " degC", ".1f",
+        ),
+        "coverage_outside_max": (
+            "outside the training envelope", None if numbers is None else numbers.outside_share,
+            "", ".1%",
+        ),
+    }  # fmt: skip
+    for field, (what, value, unit, fmt) in measured.items():
+        limit = getattr(criteria, field)
+        if limit is None:
+            continue
+        limit_text = f"<= {limit:.1%}" if fmt == ".1%" else f"<= {limit:g}{unit}"
+        if value is None or math.isnan(value):
+            rows.append((what, limit_text, "n/a", "not measured"))
+        else:
+            met = "met" if value <= limit else "not met"
+            rows.append((what, limit_text, f"{value:{fmt}}{unit}", met))
+    return rows
+
+
 # an Et failure with at least this share of forces against the motion says so
 EXPLAIN_SHARE = 0.05
 

@@ -66,6 +66,8 @@ def before_arming(step: Step, dt_s: float = LoopSection.period_s) -> Prediction:
     a = step.actuator
     if a.waveform == "random":
         return Prediction(None, None, "a RANDOM stroke: the firmware's own record")
+    if a.waveform == "stream":
+        return Prediction(None, None, "a STREAM stroke: the setpoints' own, known as they come")
     try:
         make = _maker(step.reference, dt_s)
     except ref.ForceReferenceError as exc:

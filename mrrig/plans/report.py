@@ -13,6 +13,7 @@ import xml.etree.ElementTree as ET
 from dataclasses import dataclass
 from pathlib import Path
 
+from mrrig.plans.criteria import criteria_rows
 from mrrig.plans.runner import StepResult, overall
 from mrrig.safe_text import one_line, plot_literal
 
@@ -107,21 +108,28 @@ def write_junit(path: Path, plan_name: str, ident: Identity, results: list[StepR
     tree.write(path, encoding="utf-8", xml_declaration=True)
 
 
+def _shown(value: float, fmt: str) -> str:
+    """A number of the record: `n/a` where undefined, else to the figures that mean something."""
+    return "n/a" if math.isnan(value) else format(value, fmt)
+
+
 def _plot_png(r: StepResult) -> str:
-    """The step's desired and measured force against time, as base64 PNG."""
+    """The step's measured and desired force against time, as base64 PNG (the desired line
+    dashed over the measured one, so that neither hides the other)."""
     import matplotlib
 
     matplotlib.use("Agg")
     from matplotlib.figure import Figure
 
-    fig = Figure(figsize=(8, 2.6), dpi=90)
+    fig = Figure(figsize=(12, 4), dpi=100)
     ax = fig.add_subplot()
     s = r.samples
     if s.size:
         t = s["t"] - s["t"][0]
-        ax.plot(t, s["f_des"], label="f_des", lw=1)
-        ax.plot(t, s["f_meas"], label="f_meas", lw=1, alpha=0.8)
+        ax.plot(t, s["f_meas"], label="f_meas measured", lw=1.2, color="tab:blue")
+        ax.plot(t, s["f_des"], label="f_des desired", lw=1.2, color="tab:red", ls="--")
         ax.legend(loc="upper right")
+        ax.grid(alpha=0.3)
     ax.set_xlabel("t (s)")
     ax.set_ylabel("force (N)")
     ax.set_title(plot_literal(f"{r.step.name}: {r.verdict}"))
@@ -131,16 +139,45 @@ def _plot_png(r: StepResult) -> str:
     return base64.b64encode(buf.getvalue()).decode("ascii")
 
 
+def _criteria_table(r: StepResult) -> str:
+    """The step's criteria: each limit, the value measured, met or not."""
+    e = html.escape
+    rows = criteria_rows(r.step.criteria, r.numbers, r.faults) if r.verdict != "skipped" else []
+    if not rows:
+        return ""
+    body = "".join(
+        f"<tr class='{'passed' if met == 'met' else 'failed'}'><td>{e(what)}</td>"
+        f"<td>{e(limit)}</td><td>{e(value)}</td><td>{e(met)}</td></tr>"
+        for what, limit, value, met in rows
+    )
+    return (
+        "<table class='criteria'><tr><th>criterion</th><th>limit</th><th>measured</th>"
+        f"<th>result</th></tr>{body}</table>"
+    )
+
+
 def write_html(path: Path, plan_name: str, ident: Identity, results: list[StepResult]) -> None:
     e = html.escape
     controllers = ", ".join(sorted({r.controller for r in results if r.controller})) or "-"
+
+    def each(key: str) -> str:  # the rig's identity as in force over the steps
+        return ", ".join(sorted({str(r.identity[key]) for r in results if r.identity.get(key)}))
+
+    rig_operator = each("operator")
     ident_rows = [
         ("plan", f"{ident.plan} (sha256 {ident.plan_sha256})"),
         ("rig", ident.rig),
+        ("specimen", each("specimen") or "not set"),
         ("controller", controllers),
         ("mrrig version", ident.mrrig_version),
         ("started (UTC)", ident.started_utc),
-        ("operator", ident.operator),
+        (
+            "operator",
+            f"{rig_operator} (the rig's run; the plan run by {ident.operator})"
+            if rig_operator and rig_operator != ident.operator
+            else ident.operator,
+        ),
+        ("daemon run", each("run_id") or "-"),
         ("verdict", overall(results)),
     ]
     rows = []
@@ -148,25 +185,28 @@ def write_html(path: Path, plan_name: str, ident: Identity, results: list[StepRe
         n = r.numbers
         cells = (
             [
-                _number(n.et),
-                _number(n.peak_current_a),
-                _number(n.latency_p99_us),
-                _number(n.temperature_max_degc),
-                _number(n.opposed_share),
+                _shown(n.et, ".4f"),
+                _shown(n.peak_current_a, ".3f"),
+                _shown(n.latency_p99_us, ".0f"),
+                _shown(n.temperature_max_degc, ".1f"),
+                _shown(n.opposed_share, ".1%"),
             ]
             if n
             else ["-"] * 5
         )
         before = r.predicted.text() if r.predicted else "-"
+        sha = r.identity.get("model_sha256")
+        model = f"{r.identity.get('model_path')} ({sha[:12]})" if sha else "-"
         rows.append(
             f"<tr class='{r.verdict}'><td>{i}</td><td>{e(r.step.name)}</td><td>{r.verdict}</td>"
             + "".join(f"<td>{c}</td>" for c in cells)
             + f"<td>{e(before)}</td><td>{e(', '.join(r.faults) or '-')}</td>"
-            + f"<td>{e('; '.join(r.reasons))}</td></tr>"
+            + f"<td>{e(model)}</td><td>{e('; '.join(r.reasons))}</td></tr>"
         )
     plots = [
-        f"<h3>{i}. {e(r.step.name)}</h3><img alt='force of step {i}' "
-        f"src='data:image/png;base64,{_plot_png(r)}'>"
+        f"<h3>{i}. {e(r.step.name)}: {r.verdict}</h3>"
+        + _criteria_table(r)
+        + f"<img alt='force of step {i}' src='data:image/png;base64,{_plot_png(r)}'>"
         for i, r in enumerate(results, start=1)
     ]
     page = f"""<!DOCTYPE html>
@@ -178,9 +218,10 @@ table{{border-collapse:collapse}} .passed{{background:#dfd}}
 <table>{"".join(f"<tr><th>{e(k)}</th><td>{e(v)}</td></tr>" for k, v in ident_rows)}</table>
 <h2>Steps</h2><table><tr><th>#</th><th>step</th><th>verdict</th><th>Et</th><th>peak current (A)</th>
 <th>latency p99 (us)</th><th>temperature max (degC)</th><th>force against the motion (share)</th>
-<th>force against the motion, before arming</th><th>faults</th><th>reason</th></tr>
+<th>force against the motion, before arming</th><th>faults</th><th>model (sha256)</th>
+<th>reason</th></tr>
 {"".join(rows)}</table>
-<h2>Force per step</h2>
+<h2>Criteria and force per step</h2>
 {"".join(plots)}
 </body></html>
 """

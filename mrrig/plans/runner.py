@@ -57,8 +57,22 @@ class StepResult:
     samples: np.ndarray = field(default_factory=lambda: np.empty(0, SAMPLE_DTYPE))
     controller: str | None = None
     recording: str | None = None  # the daemon's recording the step is in
+    # the daemon's run identity as in force at the step's start (its status): specimen, the
+    # model's path and sha256 as deployed, controller parameters, config and DBC sha256
+    identity: dict = field(default_factory=dict)
     # the share of desired forces against the motion, as known before arming
     predicted: Prediction | None = None
+
+
+# what a step's catalog row takes from the daemon's identity in force (`StepResult.identity`)
+STEP_IDENTITY = (
+    "specimen",
+    "controller_params",
+    "model_path",
+    "model_sha256",
+    "config_sha256",
+    "dbc_sha256",
+)
 
 
 class StepAborted(MrrigError):
@@ -126,11 +140,13 @@ def _register(
             "latency_p99_us": n.latency_p99_us,
             "temp_max_degc": n.temperature_max_degc,
         }
+    traced = {k: r.identity[k] for k in STEP_IDENTITY if r.identity.get(k) is not None}
     try:
         register_run(
             rig.name,
             started_utc,
             ended_utc=dt.datetime.now(dt.UTC),
+            **traced,
             catalog=catalog,
             plan=plan.name,
             step=r.step.name,
@@ -244,6 +260,7 @@ def _run_step(
         _request(rig, req)
     status = _status(rig)
     result.controller = status.get("controller")
+    result.identity = status.get("identity") or {}  # a daemon from before it carried one: {}
     recording = status.get("recording")  # the sidecar's file, or the loop's "failed: ..."
     result.recording = recording.get("path") if isinstance(recording, dict) else None
     result.predicted = before_arming(step)

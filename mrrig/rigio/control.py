@@ -52,6 +52,7 @@ from mrrig.config import (
 from mrrig.errors import MrrigError
 from mrrig.loop.controllers import CONTROLLER_NAMES, CONTROLLERS
 from mrrig.loop.samples import RigState
+from mrrig.rigio.run_identity import controller_in_force
 from mrrig.typed_config import ConfigError, parse
 
 log = logging.getLogger(__name__)
@@ -72,7 +73,10 @@ JOB_PUT_TIMEOUT_S = 5.0
 MAX_MARK_CHARS = 200
 MAX_MARK_DATA_CHARS = 1200
 # a controller's settings in a request, besides its name and model
-CONTROLLER_SETTINGS = ("method", "ahead", "feedback", "feedback_tau_s", "continuity", "current_a")
+CONTROLLER_SETTINGS = (
+    "method", "ahead", "feedback", "feedback_tau_s", "continuity", "current_a", "gain", "b",
+    "on_current_a",
+)  # fmt: skip
 
 
 class RequestError(MrrigError, ValueError):
@@ -200,6 +204,7 @@ class Change:
     cmd: str
     controller_section: ControllerSection | None = None
     controller: Any = None
+    in_force: dict[str, Any] | None = None  # set_controller: `run_identity.controller_in_force`
     reference_section: ReferenceSection | None = None
     reference: Any = None
     actuator: ActuatorSection | None = None
@@ -270,6 +275,10 @@ def settings_in_force(section: ControllerSection, controller: Any) -> dict[str, 
         }
     if section.name == "constant":
         out["current_a"] = controller.current
+    if section.name == "continuous_state":
+        out |= {"gain": controller.gain, "b": controller.b}
+    if section.name == "heaviside":
+        out["on_current_a"] = controller.on_current_a
     return out
 
 
@@ -390,7 +399,12 @@ class Preparer:
             controller = self._build_controller(self.cfg, section, model)
         except (ValueError, OSError) as exc:
             raise RequestError(str(exc)) from None
-        return Change("set_controller", controller_section=section, controller=controller)
+        return Change(
+            "set_controller",
+            controller_section=section,
+            controller=controller,
+            in_force=controller_in_force(section),  # the model's sha256 read here, off the loop
+        )
 
     def _set_model(self, req: dict) -> Change:
         path = req.get("path")
@@ -437,6 +451,8 @@ class Preparer:
         table = {k: v for k, v in req.items() if k not in ("cmd", "id")}
         section = _section(ActuatorSection, table, "actuator")
         d = self._d
+        if section.waveform == "stream" and (why := d.profile.stream_refusal()):
+            raise RequestError(why)
         check_actuator_step(d.supervisor.state, d.actuator, section, self.cfg, d.actuator_at_arm)
         return Change("actuator", actuator=section)
 

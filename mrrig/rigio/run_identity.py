@@ -20,7 +20,7 @@ from importlib import metadata
 from pathlib import Path
 from typing import Any
 
-from mrrig.config import DaemonConfig
+from mrrig.config import ControllerSection, DaemonConfig
 
 # the catalog of a run whose config names none: beside the recordings
 DEFAULT_CATALOG_NAME = "catalog.sqlite"
@@ -111,10 +111,28 @@ def catalog_urls(cfg: DaemonConfig) -> tuple[str, str | None]:
     return url, str(cfg.catalog.spool) if cfg.catalog.spool else local
 
 
+# what the daemon's status carries of its run's identity, and what `set_controller` /
+# `set_model` change in it (a plan step registers the identity as in force at its start)
+STATUS_IDENTITY = ("run_id", "specimen", "operator", "config_sha256", "dbc_sha256", "mrrig_version")
+IN_FORCE = ("controller", "controller_params", "model_path", "model_sha256")
+
+
+def controller_in_force(c: ControllerSection) -> dict[str, Any]:
+    """The controller, its parameters and its model (path and sha256, read now) as in force:
+    at start, and after every `set_controller` / `set_model`."""
+    model = str(c.model) if c.model is not None and c.name != "constant" else None
+    return {
+        "controller": c.name,
+        "controller_params": {
+            k: _json_value(v) for k, v in dataclasses.asdict(c).items() if k not in ("name",)
+        },
+        "model_path": model,
+        "model_sha256": file_sha256(model) if model else None,
+    }
+
+
 def run_identity(cfg: DaemonConfig, dbc_path: Path) -> dict[str, Any]:
     """Who runs what, where, when and with which software: the run's identity (JSON values)."""
-    c = cfg.controller
-    model = str(c.model) if c.model is not None and c.name != "constant" else None
     url, spool = catalog_urls(cfg)
     return {
         "run_id": str(uuid.uuid4()),
@@ -125,12 +143,7 @@ def run_identity(cfg: DaemonConfig, dbc_path: Path) -> dict[str, Any]:
         "operator": cfg.rig.operator,
         "tags": list(cfg.rig.tags),
         "started_utc": dt.datetime.now(dt.UTC).isoformat(),
-        "controller": c.name,
-        "controller_params": {
-            k: _json_value(v) for k, v in dataclasses.asdict(c).items() if k not in ("name",)
-        },
-        "model_path": model,
-        "model_sha256": file_sha256(model) if model else None,
+        **controller_in_force(cfg.controller),
         "config_sha256": file_sha256(cfg.source) if Path(cfg.source).is_file() else None,
         "dbc_sha256": file_sha256(dbc_path),
         "mrrig_version": _version(),

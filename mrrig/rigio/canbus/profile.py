@@ -4,7 +4,10 @@
 "MESSAGE.SIGNAL", or declare it "absent"; a role left out keeps the contract's name
 (`DEFAULT_SIGNALS`) where the DBC has that signal, else it is absent (one log line names
 them all; a role the loop needs is an error). Without `dbc` the profile is the CAN
-contract's (`configs/mrrig.dbc`). The codec
+contract's (`configs/mrrig.dbc`). The roles contract 1.1 brought (`actuator_setpoint`, its
+velocity and echo: ActuatorSetpoint) are absent where a profile leaves them out and its DBC
+lacks them, without a word: a profile written for 1.0 loads as it did, and refuses the STREAM
+waveform in one line (`RigProfile.stream_refusal`). The codec
 decodes a mapped signal under the role's key (the contract's signal name) in SI units, so the
 loop reads `values["Displacement"]` in metres whatever the layout; a sensor role the layout
 lacks reads as the value that keeps its check quiet, and the start-up line names every
@@ -57,6 +60,8 @@ UNITS: dict[str, tuple[str, float]] = {
     "V": ("voltage", 1.0),
     "degC": ("temperature", 1.0),
     "Hz": ("frequency", 1.0),
+    "m/s": ("velocity", 1.0),
+    "mm/s": ("velocity", 1e-3),
     "": ("", 1.0),  # a flag, a code, a counter
 }
 # other spellings of UNITS' symbols, as DBCs from other tools write them (compared in lower
@@ -110,6 +115,7 @@ class Role(NamedTuple):
     required: bool
     absent_value: float = math.nan  # what the loop reads where the layout lacks the role
     protection: str = ""  # what is off without it (named at start-up)
+    contract: str = "1.0"  # the contract version that brought it; see `check_profile`
 
 
 ROLES: dict[str, Role] = {
@@ -136,17 +142,23 @@ ROLES: dict[str, Role] = {
     "actuator_waveform": Role("Waveform", "actuator", "", False),
     "actuator_amplitude": Role("Amplitude", "actuator", "length", False),
     "actuator_frequency": Role("Frequency", "actuator", "frequency", False),
+    # contract 1.1: the position setpoint a STREAM follows, one per sensor frame
+    "actuator_setpoint": Role("PositionSetpoint", "setpoint", "length", False, contract="1.1"),
+    "setpoint_velocity": Role("VelocityFeedforward", "setpoint", "velocity", False, contract="1.1"),
+    "setpoint_counter_echo": Role("SensorCounterEcho", "setpoint", "", False, contract="1.1"),
 }
 CONTRACT_MESSAGES = {
     "sensors": "RigSensors",
     "status": "RigStatus",
     "command": "DamperCommand",
     "actuator": "ActuatorCommand",
+    "setpoint": "ActuatorSetpoint",
 }
 DEFAULT_SIGNALS = {
     name: f"{CONTRACT_MESSAGES[role.group]}.{role.key}" for name, role in ROLES.items()
 }
 WAVEFORM_LABELS = ("STOP", "SINE", "RANDOM", "HOLD")
+STREAM_LABEL = "STREAM"  # contract 1.1: the waveform that follows ActuatorSetpoint frames
 WATCHDOG_LABEL = "COMMAND_TIMEOUT"  # the fault code that only the watchdog's FAULT carries
 
 
@@ -176,15 +188,28 @@ class RigProfile:
     status_message: str | None
     command_message: str
     actuator_message: str | None
+    setpoint_message: str | None = None  # contract 1.1's ActuatorSetpoint, if it has one
+    source: str = ""  # the config whose [can] this is
     protections_off: list[str] = field(default_factory=list)
     # the roles [can.signals] left out that the DBC has no contract signal for: absent
     unmapped: list[str] = field(default_factory=list)
 
     def packer(self) -> Packer:
-        """The daemon's packer: the command and actuator messages, unmapped signals at the
-        DBC's initial value."""
-        sends = (self.command_message, self.actuator_message)
+        """The daemon's packer: the command, actuator and setpoint messages, unmapped signals
+        at the DBC's initial value."""
+        sends = (self.command_message, self.actuator_message, self.setpoint_message)
         return Packer(self.codec, None, tuple(m for m in sends if m is not None))
+
+    def stream_refusal(self) -> str | None:
+        """Why this profile cannot run the STREAM waveform (one line), None where it can: a
+        profile of contract 1.0 has no ActuatorSetpoint to stream with."""
+        if "actuator_setpoint" in self.mapped:
+            return None
+        return (
+            f"waveform stream: the rig profile of {self.source} ({self.dbc_path.name}) has no"
+            " actuator_setpoint role (contract 1.1's ActuatorSetpoint); map"
+            " can.signals.actuator_setpoint to stream"
+        )
 
     @property
     def sensor_layout(self) -> MessageLayout:
@@ -307,6 +332,8 @@ def check_profile(
     for name, role in ROLES.items():
         where = f"{source}: can.signals.{name}"
         text = table.get(name)
+        if text is None and role.contract != "1.0":
+            continue  # a profile written for contract 1.0: absent
         if text is None and role.required:
             problems.append(
                 f"{where}: unmapped role, which the loop needs (map it to MESSAGE.SIGNAL of {dbc})"
@@ -350,7 +377,7 @@ def check_profile(
                 f" in {first} (one message per group)"
             )
     received = {groups.get("sensors"), groups.get("status")} - {None}
-    for group in ("command", "actuator"):
+    for group in ("command", "actuator", "setpoint"):
         if groups.get(group) in received:
             problems.append(
                 f"{source}: can.signals: {groups[group]} carries both what the rig sends and"
@@ -367,6 +394,7 @@ def check_profile(
                 f"{dbc}: {w.message}.{w.signal}: value table lacks {', '.join(missing)}"
                 " (actuator_waveform)"
             )
+    problems += _setpoint_problems(db, mapped, groups, dbc, source)
     actuator = [name for name in ROLES if ROLES[name].group == "actuator"]
     if mapped.keys() & set(actuator) and (missing := [n for n in actuator if n not in mapped]):
         problems.append(
@@ -392,17 +420,57 @@ def check_profile(
         status_message=groups.get("status"),
         command_message=groups["command"],
         actuator_message=groups.get("actuator"),
+        setpoint_message=groups.get("setpoint"),
+        source=source,
         unmapped=unmapped,
     )
     if limits is not None and (problems := carry_problems(codec, mapped, ROLES, limits, source)):
         return None, problems
     profile.protections_off = _protections_off(profile)
-    if mapped.get("counter_echo") is not None and not profile.sensor_layout.e2e:
-        return None, [
-            f"{source}: can.signals.counter_echo: {profile.sensor_message} has no E2E counter"
-            " to echo"
-        ]
+    for echo in ("counter_echo", "setpoint_counter_echo"):
+        if mapped.get(echo) is not None and not profile.sensor_layout.e2e:
+            return None, [
+                f"{source}: can.signals.{echo}: {profile.sensor_message} has no E2E counter to echo"
+            ]
     return profile, []
+
+
+def _setpoint_problems(
+    db: cantools.database.Database,
+    mapped: Mapping[str, Mapped],
+    groups: Mapping[str, str],
+    dbc: str,
+    source: str,
+) -> list[str]:
+    """Contract 1.1's setpoint: a message of its own, with the position, and a STREAM
+    waveform in the actuator command to start it."""
+    message = groups.get("setpoint")
+    if message is None:
+        return []
+    if "actuator_setpoint" not in mapped:
+        return [
+            f"{source}: can.signals: {message} carries the setpoint's velocity or echo without"
+            ' actuator_setpoint (map it, or declare every setpoint role "absent")'
+        ]
+    for group in ("command", "actuator"):
+        if groups.get(group) == message:
+            return [
+                f"{source}: can.signals.actuator_setpoint: {message} carries the {group} too"
+                " (the setpoint goes once per sensor frame, in a message of its own)"
+            ]
+    w = mapped.get("actuator_waveform")
+    if w is None:
+        return [
+            f"{source}: can.signals.actuator_setpoint: needs actuator_waveform (its STREAM"
+            " command starts the stream)"
+        ]
+    sig = db.get_message_by_name(w.message).get_signal_by_name(w.signal)
+    if STREAM_LABEL not in {str(v) for v in (sig.choices or {}).values()}:
+        return [
+            f"{dbc}: {w.message}.{w.signal}: value table lacks {STREAM_LABEL}"
+            " (actuator_setpoint streams)"
+        ]
+    return []
 
 
 def _period_problems(
@@ -447,6 +515,8 @@ def _protections_off(p: RigProfile) -> list[str]:
     for name, role in ROLES.items():
         if role.protection and name not in p.mapped:
             off.append(role.protection)
+    if p.setpoint_message is not None and "setpoint_counter_echo" not in p.mapped:
+        off.append("the setpoint's counter echo (late setpoints)")
     return off
 
 

@@ -3,7 +3,8 @@
 A signal carries the physical values its raw bits reach through its scale and offset, within
 the DBC's [min|max], in SI units after the profile's unit (`representable`). The daemon's
 limits (`daemon_limits`: the command current up to `loop.i_max_a`, the measured and desired
-force over `loop.f_range_n`, the displacement over `loop.x_range_m`, the actuator's amplitude
+force over `loop.f_range_n`, the displacement and the actuator's position setpoint over
+`loop.x_range_m`, the actuator's amplitude
 and frequency up to their bounds, every controller's id) and the simulator's
 (`firmware_limits`: the displacement over its stroke) are
 each a range the role's signal must cover; one that does not (a command signal that cannot
@@ -25,7 +26,14 @@ if TYPE_CHECKING:
     from mrrig.rigio.canbus.profile import Mapped, Role
 
 # the SI unit of each dimension of the unit table (mrrig.rigio.canbus.profile.UNITS)
-SI_UNIT = {"length": "m", "force": "N", "current": "A", "voltage": "V", "frequency": "Hz"}
+SI_UNIT = {
+    "length": "m",
+    "force": "N",
+    "current": "A",
+    "voltage": "V",
+    "frequency": "Hz",
+    "velocity": "m/s",
+}
 
 
 class Carry(NamedTuple):
@@ -64,6 +72,7 @@ def daemon_limits(cfg: DaemonConfig) -> dict[str, Carry]:
         "force": Carry(f_lo, f_hi, "loop.f_range_n"),
         "desired_force": Carry(f_lo, f_hi, "loop.f_range_n"),
         "displacement": Carry(x_lo, x_hi, "loop.x_range_m"),
+        "actuator_setpoint": Carry(x_lo, x_hi, "loop.x_range_m"),
         "actuator_amplitude": Carry(0.0, ACTUATOR_AMPLITUDE_MAX_M, "actuator.amplitude_m bound"),
         "actuator_frequency": Carry(0.0, ACTUATOR_FREQUENCY_MAX_HZ, "actuator.frequency_hz bound"),
         "controller_id": Carry(
