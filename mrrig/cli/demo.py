@@ -120,9 +120,12 @@ def watch_and_rearm(
     """Wait for the daemon to exit (at most `timeout_s`), re-arming it over Zenoh after each
     transport fault its published status shows, as long as `limit` allows. Returns its exit
     code and the faults' reasons. A refused arm (the firmware still in FAULT) is tried again
-    on a later status. `progress` prints its line a second from the telemetry."""
+    on a later status: a FAULT's, or IDLE's where another stall faulted the disarmed rig
+    between the reset and the arm and the daemon cleared it with the frames' return. `progress`
+    prints its line a second from the telemetry."""
     deadline = time.monotonic() + timeout_s
     rearmed: list[str] = []
+    refused: str | None = None  # the fault whose re-arm was refused: armed once IDLE again
     latest = _LatestStatus()
     held: list[Lease] = []  # the lease of the last re-arm, renewed while the demo runs
     with contextlib.ExitStack() as stack:
@@ -145,16 +148,19 @@ def watch_and_rearm(
                     if progress is not None:
                         tel = session.declare_subscriber(keys(rig)["telemetry"], progress.et)
                         stack.callback(tel.undeclare)
-                if limit.ended or st is None or st["state"] != "FAULT":
+                if limit.ended or st is None:
                     continue
-                if st["fault"] not in TRANSPORT_FAULTS:
+                idle_again = refused is not None and st["state"] == "IDLE"
+                transport = st["state"] == "FAULT" and st["fault"] in TRANSPORT_FAULTS
+                if not (idle_again or transport):
                     continue
+                reason = st["fault_reason"] if transport else refused
                 latest.status = None  # act on this fault once; the next status tells the rest
                 if not limit.allows(time.monotonic()):
                     log.warning(
                         "demo: not re-arming after the fault %r: %d re-arms in the last %g s;"
                         " the daemon stays in FAULT for the rest of the run",
-                        st["fault_reason"],
+                        reason,
                         limit.count,
                         limit.window_s,
                     )
@@ -172,16 +178,18 @@ def watch_and_rearm(
                 lease = Lease.of(functools.partial(client.query, session, rig), reply, rig)
                 held.extend([lease] if lease is not None else [])
                 limit.rearmed(time.monotonic())
-                rearmed.append(st["fault_reason"])
+                rearmed.append(reason)
+                refused = None
                 log.warning(
                     "demo: re-armed the daemon after its fault %r (%d in all; at most %d in"
                     " any %g s)",
-                    st["fault_reason"],
+                    reason,
                     len(rearmed),
                     limit.count,
                     limit.window_s,
                 )
             elif not reply.get("ok"):
+                refused = reason
                 log.info("demo: re-arming refused: %s", reply.get("error"))
     return daemon.returncode, rearmed
 
