@@ -140,3 +140,23 @@ def test_an_unclosed_rig_does_not_keep_the_interpreter_from_exiting(rig):
     )
     assert proc.returncode == 0, proc.stderr
     assert proc.stdout.strip() in ("IDLE", "ARMED", "FAULT")
+
+
+def test_the_module_lists_what_it_documents():
+    """Issue 42: `dir(mrrig.api)` did not list `Rig` (nor the other names it loads on first
+    use), and the docstring named a `RunRecord` the module did not give."""
+    import re
+
+    import mrrig.api as api
+
+    doc = api.__doc__ or ""
+    assert sorted(dir(api)) == sorted(api.__all__)
+    for name in api.__all__:
+        assert getattr(api, name) is not None
+        assert re.search(rf"`{name}[`(]", doc), f"{name} is exported but not documented"
+    classes = [getattr(api, n) for n in api.__all__ if isinstance(getattr(api, n), type)]
+    # every name the docstring calls is the module's, or a method of one of its classes
+    for called in set(re.findall(r"`(\w+)\(", doc)):
+        assert hasattr(api, called) or any(hasattr(c, called) for c in classes), called
+    for type_name in set(re.findall(r"`([A-Z]\w*)[`(]", doc)):
+        assert type_name in api.__all__, type_name

@@ -156,6 +156,7 @@ def test_a_run_reads_back_as_it_was_registered(url):
         recording_size_bytes=123456789012,
         recording_sha256="d" * 64,
         tags=["campaign 7", "cold start"],
+        campaign="SN1234 qualification",
     )
     register_run(url, full)
     back = get_run(url, full.run_id)
@@ -704,3 +705,90 @@ def test_runs_since_beyond_the_calendar_is_one_line_and_exit_2(tmp_path, since):
         proc.stderr == f"error: --since: {since!r} reaches back before the year 1; give a"
         " shorter span\n"
     )
+
+
+# issue 42: `mrrig runs` finds a specimen's campaign, and characterization runs (constant
+# currents: an Et that means nothing) stay out of the list unless asked for
+
+
+def _campaign_runs() -> list[RunRecord]:
+    return [
+        run(0, specimen="SN-MR-042", plan="qual", step="1", campaign="qual A"),
+        run(1, specimen="SN-MR-042", plan="qual", step="2", campaign="qual A"),
+        run(2, specimen="SN-MR-042", plan="qual", step="1", campaign="qual B"),
+        run(3, specimen="SN-MR-042", plan="characterize", step="run-001", campaign="m1"),
+        run(4, specimen="SN-MR-042", plan="characterize", step="run-002", campaign="m1"),
+        run(5, specimen="SN-OTHER"),  # no plan (a daemon's own run): never a characterization
+    ]
+
+
+def _listed(capsys, url, *args: str) -> list[int]:
+    code, out, _ = _cli(capsys, "--catalog", url, "--json", *args)
+    return [int(r["started_utc"][11:13]) - T0.hour for r in json.loads(out)] if code == 0 else []
+
+
+def test_runs_filter_by_campaign_and_leave_characterization_out_unless_asked(url, capsys):
+    register_runs(url, _campaign_runs())
+    assert _listed(capsys, url) == [0, 1, 2, 5]
+    assert _listed(capsys, url, "--specimen", "SN-MR-042") == [0, 1, 2]
+    assert _listed(capsys, url, "--campaign", "qual A") == [0, 1]
+    assert _listed(capsys, url, "--specimen", "SN-MR-042", "--all") == [0, 1, 2, 3, 4]
+    assert _listed(capsys, url, "--characterization") == [3, 4]
+    assert _listed(capsys, url, "--campaign", "m1", "--characterization") == [3, 4]
+    assert _listed(capsys, url, "--plan", "characterize") == [3, 4]
+    assert _listed(capsys, url, "--campaign", "m1") == []  # asked for, but not by --all
+    code, out, _ = _cli(capsys, "--catalog", url)
+    assert code == 0 and out.splitlines()[-1] == "4 runs"
+    # the Python API leaves nothing out unless told
+    assert len(find_runs(url)) == 6 and len(find_runs(url, characterization=False)) == 4
+    assert [r.campaign for r in find_runs(url, campaign="qual B")] == ["qual B"]
+
+
+def test_runs_with_only_characterization_runs_say_how_to_list_them(tmp_path):
+    catalog = tmp_path / "catalog.sqlite"
+    register_run(catalog, run(0, plan="characterize", step="run-001"))
+    proc = subprocess.run(
+        [*MRRIG, "runs", "--catalog", str(catalog)], capture_output=True, text=True
+    )
+    assert proc.returncode == 1 and proc.stdout == ""
+    assert proc.stderr == (
+        f"no run in the catalog {catalog} but characterization runs (--all lists them too)\n"
+    )
+    proc = subprocess.run(
+        [*MRRIG, "runs", "--catalog", str(catalog), "--all", "--characterization"],
+        capture_output=True,
+        text=True,
+    )
+    assert proc.returncode == 2 and "not allowed with argument" in proc.stderr
+
+
+def test_a_catalog_of_the_first_schema_is_migrated_with_its_runs_kept(tmp_path):
+    from alembic import command
+    from alembic.config import Config
+
+    import mrrig.catalog.store as store
+
+    path = tmp_path / "catalog.sqlite"
+    engine = sa.create_engine(f"sqlite:///{path}")
+    with engine.begin() as conn:
+        cfg = Config()
+        cfg.set_main_option("script_location", str(Path(store.__file__).with_name("migrations")))
+        cfg.attributes["connection"] = conn
+        command.upgrade(cfg, "0001")
+        row = run(0, specimen="SN1").to_row()
+        del row["campaign"]
+        conn.execute(
+            sa.text(
+                f"INSERT INTO runs ({', '.join(row)}, registered_utc)"
+                f" VALUES ({', '.join(':' + k for k in row)}, :registered_utc)"
+            ),
+            {
+                k: json.dumps(v) if isinstance(v, dict | list) else v
+                for k, v in (row | {"registered_utc": T0.replace(tzinfo=None)}).items()
+            },
+        )
+    engine.dispose()
+    (old,) = find_runs(path)
+    assert old == run(0, specimen="SN1") and old.campaign is None
+    register_run(path, run(1, campaign="c"))
+    assert [r.campaign for r in find_runs(path, campaign="c")] == ["c"]

@@ -380,3 +380,82 @@ def test_the_stop_answers_safe_and_disarms_from_that_frame(tmp_path):
     assert d.summary["armed_frames"] == d.counters["commands_active"] == 20
     assert d.summary["i_cmd_step_a"]["max"] == 0.0  # a constant 1.25 A until the stop
     assert any(e["text"] == "state: stopping: test stop (was ARMED)" for e in d.events), d.events
+
+
+# ---- issue 42: an idle rig's transport fault ends when valid frames resume ------------------
+VALID = {"EStop": 0, "LimitTripped": 0, "SensorFault": 0, "Displacement": 0.0, "Force": 0.0}
+
+
+def _supervisor() -> Supervisor:
+    return Supervisor(Limits((-0.05, 0.05), (-1e4, 1e4), 5, 5, 1.0))
+
+
+@pytest.mark.parametrize("fault", [Fault.SENSOR_TIMEOUT, Fault.LOST_FRAMES, Fault.STALE_FRAME])
+def test_a_transport_fault_of_an_idle_rig_clears_with_the_next_valid_frame(fault):
+    sup = _supervisor()
+    sup.trip(1.0, fault, "a stall")
+    (event,) = sup.sensors(1.1, VALID)
+    assert (sup.state, sup.fault, sup.reason) == (RigState.IDLE, None, "")
+    assert event["kind"] == "state" and event["cleared"] == fault.value
+    assert event["text"] == (
+        f"state: transport fault cleared: valid sensor frames again after {fault.value}: a"
+        " stall (not armed when it came: no reset needed)"
+    )
+    assert sup.arm(1.2)[0]  # no reset needed
+
+
+def test_a_transport_fault_of_an_armed_rig_stays_until_reset():
+    sup = _supervisor()
+    assert sup.arm(0.0)[0]
+    sup.trip(1.0, Fault.SENSOR_TIMEOUT, "a stall")
+    assert sup.disarm(1.05) == []  # a disarm acknowledges nothing
+    assert sup.sensors(1.1, VALID) == [] and sup.state is RigState.FAULT
+    sup.trip(1.2, Fault.LOST_FRAMES, "more")  # another transport fault over it: still armed's
+    assert sup.sensors(1.3, VALID) == [] and sup.state is RigState.FAULT
+    assert not sup.arm(1.4)[0]
+    sup.reset(1.5)
+    assert sup.arm(1.6)[0]
+
+
+def test_an_idle_transport_fault_that_another_fault_replaced_stays():
+    sup = _supervisor()
+    sup.trip(1.0, Fault.SENSOR_TIMEOUT, "a stall")
+    sup.foreign_command(1.1, "DamperCommand")  # not a stall: acknowledged by reset only
+    assert sup.sensors(1.2, VALID) == [] and sup.fault is Fault.FOREIGN_COMMAND
+
+
+def test_the_frame_that_ends_an_idle_transport_fault_is_checked_as_any_other():
+    sup = _supervisor()
+    sup.trip(1.0, Fault.SENSOR_TIMEOUT, "a stall")
+    cleared, estop = sup.sensors(1.1, VALID | {"EStop": 1})
+    assert cleared["kind"] == "state" and estop["fault"] == Fault.ESTOP.value
+    assert sup.state is RigState.FAULT and sup.fault is Fault.ESTOP
+    assert sup.sensors(1.2, VALID) == [] and sup.fault is Fault.ESTOP  # needs its reset
+
+
+def test_an_idle_rig_needs_no_reset_after_a_stall_but_an_armed_one_does(tmp_path):
+    """A ScriptedRig: the sensor frames stop past the sensor timeout, then come again. Idle,
+    the daemon is back to IDLE with an event and arms without a reset; armed, it stays in
+    FAULT, sending SAFE, until reset."""
+    idle = {"loop": {"arm_on_start": False}}
+    with ScriptedRig(tmp_path, overrides=idle) as rig:  # a 100 ms sensor timeout
+        rig.exchange()
+        time.sleep(0.3)
+        assert rig.daemon.supervisor.fault is Fault.SENSOR_TIMEOUT
+        rig.drain()  # its SAFE commands of its own
+        rig.exchange()
+        assert rig.daemon.supervisor.state is RigState.IDLE
+        assert any(
+            e["text"].startswith("state: transport fault cleared: valid sensor frames again after"
+                                 " sensor_timeout")
+            for e in rig.daemon.events
+        )  # fmt: skip
+        reply = rig.request({"cmd": "arm"})
+        assert reply["ok"], reply
+        time.sleep(0.3)
+        assert rig.daemon.supervisor.fault is Fault.SENSOR_TIMEOUT
+        rig.drain()
+        assert_safe(rig.exchange())
+        assert_safe(rig.exchange())
+        assert rig.daemon.supervisor.state is RigState.FAULT
+        assert not rig.request({"cmd": "arm"})["ok"]

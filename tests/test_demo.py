@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import re
+import socket
 import subprocess
 import sys
 import time
@@ -198,3 +199,38 @@ def test_a_terminated_demo_stops_its_bridge_simulator_and_daemon(tmp_path, sim_m
     out.join()
     left = [pid for pid in children if Path(f"/proc/{pid}").exists()]
     assert not left, f"still running after the demo: {left}\n{out.text()}"
+
+
+@pytest.mark.process
+def test_the_demo_takes_a_free_zenoh_port_not_7447(tmp_path, sim_model):
+    """Issue 42: the demo always took Zenoh port 7447 (configs/zenoh-daemon.json5): a second
+    rig or session on one PC collided. Here 7447 is held by another program, and a demo given
+    no --zenoh-config still runs, watched over Zenoh on a port of its own."""
+    held = socket.socket()
+    try:
+        held.bind(("127.0.0.1", 7447))
+        held.listen()
+    except OSError:  # someone else holds it already: the collision the test is about
+        pass
+    try:
+        cfg = rig_config(
+            tmp_path,
+            "ws://127.0.0.1:1/",  # the demo's own bridge replaces it
+            sim_model,
+            rig={"name": "demo-port"},
+            telemetry={"enabled": True, "rate_hz": 50.0},  # the shipped config's 7447
+        )
+        proc = subprocess.run(
+            [sys.executable, "-m", "mrrig", "demo", "--config", str(cfg), "--model",
+             str(sim_model), "--duration", "2", "--max-rearms", "0"],
+            cwd=REPO, capture_output=True, text=True, timeout=180,
+        )  # fmt: skip
+    finally:
+        held.close()
+    out = proc.stdout + proc.stderr
+    assert "state: armed (was " in out, out  # its status came over Zenoh
+    m = re.search(r"--zenoh-config (\S+)", out)
+    assert m, out
+    (endpoint,) = json.loads(Path(m[1]).read_text())["listen"]["endpoints"]
+    assert endpoint.startswith("tcp/127.0.0.1:") and not endpoint.endswith(":7447"), endpoint
+    assert "Traceback" not in out, out

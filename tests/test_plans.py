@@ -608,6 +608,7 @@ def test_a_double_ctrl_c_still_writes_the_reports_and_the_catalog_rows(tmp_path)
     assert (row.specimen, row.config_sha256) == ("SN-MR-042", file_sha256(cfg))
     assert row.dbc_sha256 == file_sha256(REPO / "configs" / "mrrig.dbc")
     assert row.controller_params["current_a"] == 0.5, row.controller_params
+    assert row.campaign is not None and row.campaign.startswith("two steps 20")  # its UTC start
 
 
 @pytest.mark.process

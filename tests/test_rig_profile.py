@@ -13,7 +13,7 @@ import pytest
 
 from mrrig.cli import dbc as dbc_cli
 from mrrig.config import load_config
-from mrrig.rigio.canbus.profile import ProfileError, check_profile, load_profile
+from mrrig.rigio.canbus.profile import ProfileError, check_profile, load_profile, unit_of
 from tests.conftest import REPO
 
 PROFILES = REPO / "configs" / "profiles"
@@ -125,9 +125,9 @@ def test_the_daemon_refuses_a_profile_with_its_first_problem_in_one_line(tmp_pat
         ),
         pytest.param(
             ("", ""),
-            ('estop = "LabSensors.EStop"\n', ""),
-            "can.signals.estop: unmapped role (map it to MESSAGE.SIGNAL of lab-1khz.dbc or"
-            ' declare it "absent")',
+            ('force = "LabSensors.Load"\n', ""),
+            "can.signals.force: unmapped role, which the loop needs (map it to MESSAGE.SIGNAL"
+            " of lab-1khz.dbc)",
             id="unmapped role",
         ),
         pytest.param(
@@ -271,3 +271,74 @@ def test_the_demo_on_the_lab_profile_passes_and_names_the_protections_off(tmp_pa
     ]
     assert len(starts) == 2, starts  # the simulator's and the daemon's
     assert "E2E on LabSensors" in starts[-1] and "the counter echo" in starts[-1]
+
+
+# ---- issue 42: a lab's first day (roles left out, UTF-8, the usual unit spellings) ----------
+def test_roles_left_out_are_absent_and_named_in_one_log_line(tmp_path, caplog, capsys):
+    """All 19 roles had to be spelled out, 7 of the lab's as "absent"."""
+    config = _lab(tmp_path)
+    text = config.read_text()
+    absent = [line for line in text.splitlines() if line.split("#")[0].strip().endswith('"absent"')]
+    assert len(absent) == 7
+    config.write_text("\n".join(x for x in text.splitlines() if x not in absent) + "\n")
+    with caplog.at_level(logging.INFO, "mrrig.rigio.canbus.profile"):
+        short = _profile(config)
+    (tmp_path / "full").mkdir()
+    full = _profile(_lab(tmp_path / "full"))
+    assert short.mapped == full.mapped and short.protections_off == full.protections_off
+    lines = [r.getMessage() for r in caplog.records if "not mapped" in r.getMessage()]
+    roles = [line.split(" = ")[0] for line in absent]
+    assert lines == [
+        f"CAN profile lab-1khz.dbc: not mapped in [can.signals], so absent: {', '.join(roles)}"
+    ]
+    assert full.unmapped_line() is None
+    assert dbc_cli.main(["check", "--config", str(config)]) == 0
+    out = capsys.readouterr().out.splitlines()
+    assert out[-1] == lines[0]
+
+
+@pytest.mark.parametrize(
+    ("unit", "si"),
+    [
+        ("N", ("force", 1.0)),
+        ("Newton", ("force", 1.0)),
+        ("newtons", ("force", 1.0)),
+        ("kilonewtons", ("force", 1e3)),
+        ("mm", ("length", 1e-3)),
+        ("millimetres", ("length", 1e-3)),
+        ("m", ("length", 1.0)),
+        ("Meter", ("length", 1.0)),
+        ("µm", ("length", 1e-6)),
+        ("°C", ("temperature", 1.0)),
+        ("deg C", ("temperature", 1.0)),
+        ("Celsius", ("temperature", 1.0)),
+        ("mA", ("current", 1e-3)),
+        ("Amps", ("current", 1.0)),
+        ("hertz", ("frequency", 1.0)),
+        (" V ", ("voltage", 1.0)),
+        ("MA", None),  # mega-amperes are not milliamperes: symbols keep their case
+        ("in", None),
+        ("s", None),
+    ],
+)
+def test_the_unit_table_takes_the_usual_spellings(unit, si):
+    assert unit_of(unit) == si
+
+
+@pytest.mark.parametrize("encoding", ["utf-8", "cp1252"])
+def test_a_dbc_with_degrees_celsius_and_newton_reads_in_either_encoding(tmp_path, encoding):
+    """A UTF-8 `°C` was read as Latin-1 (`Â°C`) and refused, and so was `Newton`."""
+    text = (REPO / "mrrig" / "configs" / "mrrig.dbc").read_text(encoding="utf-8")
+    for old, new in (
+        ('(0.01,0) [-327.68|327.67] "degC"', '(0.01,0) [-327.68|327.67] "°C"'),
+        ('[-83886.08|83886.07] "N" DAEMON', '[-83886.08|83886.07] "Newton" DAEMON'),
+    ):
+        assert text.count(old) == 1
+        text = text.replace(old, new)
+    dbc = tmp_path / "lab.dbc"
+    dbc.write_bytes(text.encode(encoding))
+    profile, problems = check_profile(dbc, {}, 0.002, "lab.toml")
+    assert problems == []
+    temperature, force = profile.mapped["damper_temperature"], profile.mapped["force"]
+    assert (temperature.unit, temperature.factor) == ("°C", 1.0)
+    assert (force.unit, force.factor) == ("Newton", 1.0)

@@ -4,14 +4,17 @@
   structured array, SI units: `t` s, `x` m, `xd` m/s, `f_meas` N, `i_cmd` A, ...), `events`,
   `summary`, `identity`, `to_pandas()` (columns named with their units, and `utc`).
 - `runs(**filters)`: the run catalog (`mrrig runs`) as a pandas DataFrame (`run_records`:
-  the same as `RunRecord`s); `get_run(id)`, `check_recording(run)`, `compare_figure(a, b,
-  png)`, `sync_runs(src, dst)`, `unregistered_recordings()`, `register_recording(rrd)` (a
-  run from the identity its recording carries), `replay_journals()` (runs journalled while
-  their catalog could not take them) (`mrrig.api.catalog`).
+  the same as `RunRecord`s), from `default_catalog()` ($MRRIG_CATALOG, else
+  recordings/catalog.sqlite) unless given one; `get_run(id)`, `check_recording(run)`,
+  `compare_figure(a, b, png)`, `sync_runs(src, dst)`, `unregistered_recordings()`,
+  `register_recording(rrd)` (a run from the identity its recording carries),
+  `replay_journals()` (runs journalled while their catalog could not take them)
+  (`mrrig.api.catalog`).
 - `register_run(rig, started_utc, ...)`: one run into the catalog (what a plan step,
   characterize and validate call; the daemon's sidecar registers its own runs).
 - `Rig(name)`: a running daemon over Zenoh: `status()`, `arm()`, `disarm()`, `reset()`,
-  `stream_force(...)`, `telemetry(...)`. Use it as a context manager (`with Rig("rig1") as
+  `stream_force(...)`, `telemetry(...)` (a `Telemetry`: its `samples`, `to_pandas()`); a
+  refused request raises `RigError`. Use it as a context manager (`with Rig("rig1") as
   rig:`) or call `close()`: it holds one Zenoh session, and an open session keeps the
   interpreter from exiting (a finalizer closes it at exit as a last resort).
 
@@ -22,6 +25,7 @@ second client.
 
 from __future__ import annotations
 
+import importlib
 from typing import TYPE_CHECKING, Any
 
 from mrrig.api.catalog import (
@@ -40,11 +44,13 @@ from mrrig.api.catalog import (
 
 if TYPE_CHECKING:
     from mrrig.api.live import Recording, Rig, RigError, Telemetry
+    from mrrig.catalog import RunRecord
 
 __all__ = [
     "Recording",
     "Rig",
     "RigError",
+    "RunRecord",
     "Telemetry",
     "check_recording",
     "compare_figure",
@@ -58,13 +64,23 @@ __all__ = [
     "sync_runs",
     "unregistered_recordings",
 ]
-_LIVE = frozenset({"Recording", "Rig", "RigError", "Telemetry"})
+# imported on first use: `mrrig runs` (the catalog alone) starts without numpy
+_LAZY = {
+    "Recording": "mrrig.api.live",
+    "Rig": "mrrig.api.live",
+    "RigError": "mrrig.api.live",
+    "Telemetry": "mrrig.api.live",
+    "RunRecord": "mrrig.catalog",
+}
 
 
 def __getattr__(name: str) -> Any:
-    # the live half on first use: `mrrig runs` (the catalog alone) starts without numpy
-    if name in _LIVE:
-        from mrrig.api import live
-
-        return getattr(live, name)
+    if name in _LAZY:
+        return getattr(importlib.import_module(_LAZY[name]), name)
     raise AttributeError(f"module 'mrrig.api' has no attribute {name!r}")
+
+
+def __dir__() -> list[str]:
+    # what the module documents, the lazy names too (a module's own dir() lists neither
+    # those nor leaves out its imports)
+    return sorted(__all__)

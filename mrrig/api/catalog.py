@@ -40,15 +40,19 @@ def run_records(
     specimen: str | None = None,
     plan: str | None = None,
     controller: str | None = None,
+    campaign: str | None = None,
+    characterization: bool | None = None,
     since: str | datetime | None = None,
     until: datetime | None = None,
     where: str | None = None,
     limit: int | None = None,
 ) -> list[RunRecord]:
     """The catalog's runs matching every filter, oldest first (with `limit`: the newest
-    `limit`), as `RunRecord`s. `since`: a datetime, or a span as `mrrig runs --since` (`"7d"`,
-    `"12h"`) or an ISO date; `where`: `"et < 0.01 and faults_count == 0"` (the catalog's
-    numeric columns)."""
+    `limit`), as `RunRecord`s. `campaign`: the runs it groups (a plan's steps, a
+    characterization matrix); `characterization`: True for the characterization runs only
+    (`mrrig characterize`'s constant currents), False for all but those, None for both.
+    `since`: a datetime, or a span as `mrrig runs --since` (`"7d"`, `"12h"`) or an ISO date;
+    `where`: `"et < 0.01 and faults_count == 0"` (the catalog's numeric columns)."""
     from mrrig.catalog import find_runs, parse_since
 
     return find_runs(
@@ -57,6 +61,8 @@ def run_records(
         specimen=specimen,
         plan=plan,
         controller=controller,
+        campaign=campaign,
+        characterization=characterization,
         since=parse_since(since) if isinstance(since, str) else since,
         until=until,
         where=where,
@@ -71,6 +77,8 @@ def runs(
     specimen: str | None = None,
     plan: str | None = None,
     controller: str | None = None,
+    campaign: str | None = None,
+    characterization: bool | None = None,
     since: str | datetime | None = None,
     until: datetime | None = None,
     where: str | None = None,
@@ -88,6 +96,8 @@ def runs(
         specimen=specimen,
         plan=plan,
         controller=controller,
+        campaign=campaign,
+        characterization=characterization,
         since=since,
         until=until,
         where=where,

@@ -1,6 +1,6 @@
 """The run catalog: every run's identity and numbers in one table, in SQLite (a rig's
 `recordings/catalog.sqlite`) or PostgreSQL (a lab's shared catalog), found again by rig,
-specimen, plan, controller, time and numbers (`mrrig runs`).
+specimen, campaign, plan, controller, time and numbers (`mrrig runs`).
 
     from mrrig.catalog import RunRecord, register_run, find_runs, get_run, sync
 
@@ -10,7 +10,13 @@ specimen, plan, controller, time and numbers (`mrrig runs`).
 """
 
 from mrrig.catalog.query import QueryError, parse_since, parse_where
-from mrrig.catalog.record import NUMERIC_COLUMNS, RecordError, RunRecord, summary_numbers
+from mrrig.catalog.record import (
+    CHARACTERIZATION_PLAN,
+    NUMERIC_COLUMNS,
+    RecordError,
+    RunRecord,
+    summary_numbers,
+)
 from mrrig.catalog.store import (
     DEFAULT_PATH,
     CatalogError,
@@ -25,6 +31,7 @@ from mrrig.catalog.store import (
 )
 
 __all__ = [
+    "CHARACTERIZATION_PLAN",
     "DEFAULT_PATH",
     "NUMERIC_COLUMNS",
     "CatalogError",

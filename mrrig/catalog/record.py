@@ -22,6 +22,10 @@ from typing import Any
 from mrrig.errors import MrrigError
 from mrrig.safe_text import one_line
 
+# the plan name of characterization runs (`mrrig characterize`: constant currents, whose Et
+# means nothing): `mrrig runs` leaves them out unless asked
+CHARACTERIZATION_PLAN = "characterize"
+
 
 class RecordError(MrrigError, ValueError):
     """A run record that the catalog cannot keep (a naive time, a bad sha256, ...)."""
@@ -30,7 +34,17 @@ class RecordError(MrrigError, ValueError):
 _SHA256 = re.compile(r"[0-9a-fA-F]{64}")
 # who and what, as given or claimed (a host, a user, a plan's step name): kept as one printable,
 # bounded line (`safe_text.one_line`), for `mrrig runs` prints them on a terminal
-_TEXT_FIELDS = ("rig", "host", "specimen", "operator", "plan", "step", "controller", "verdict")
+_TEXT_FIELDS = (
+    "rig",
+    "host",
+    "specimen",
+    "operator",
+    "plan",
+    "step",
+    "controller",
+    "verdict",
+    "campaign",
+)
 
 # the summary numbers a query may compare (`mrrig runs --where "et < 0.01"`): column -> unit
 NUMERIC_COLUMNS: dict[str, str] = {
@@ -70,7 +84,8 @@ class RunRecord:
     hex digits. `et` is the normalized tracking error (eqs 41-43, dimensionless),
     `latency_p50_us`/`latency_p99_us` the daemon's receive-to-send latency (us),
     `peak_current_a` the largest commanded current (A), `temp_max_degc` the damper's highest
-    temperature (degC); None where the run has no such number (NaN in a summary).
+    temperature (degC); None where the run has no such number (NaN in a summary). `campaign`
+    names the test campaign the run is part of (a plan's steps, a characterization matrix).
     """
 
     run_id: uuid.UUID
@@ -101,6 +116,7 @@ class RunRecord:
     recording_size_bytes: int | None = None
     recording_sha256: str | None = None
     tags: list[str] = field(default_factory=list)
+    campaign: str | None = None
 
     def __post_init__(self) -> None:
         if not isinstance(self.run_id, uuid.UUID):

@@ -7,7 +7,7 @@ from __future__ import annotations
 import sqlalchemy as sa
 
 # the newest migration's revision: a catalog at this revision needs no migration
-SCHEMA_REVISION = "0001"
+SCHEMA_REVISION = "0002"
 
 metadata = sa.MetaData()
 
@@ -45,9 +45,12 @@ runs = sa.Table(
     sa.Column("tags", sa.JSON(), nullable=False),
     # when this row was last written (UTC): sync brings a newer registration of a run over
     sa.Column("registered_utc", sa.DateTime(), nullable=False),
+    # the test campaign the run belongs to (migration 0002: after the columns of 0001)
+    sa.Column("campaign", sa.String(200)),
     sa.Index("ix_runs_started_utc", "started_utc"),
     sa.Index("ix_runs_rig", "rig"),
     sa.Index("ix_runs_specimen", "specimen"),
     sa.Index("ix_runs_plan", "plan"),
     sa.Index("ix_runs_controller", "controller"),
+    sa.Index("ix_runs_campaign", "campaign"),
 )

@@ -27,7 +27,7 @@ import sqlalchemy as sa
 from sqlalchemy import event
 
 from mrrig.catalog.query import parse_where
-from mrrig.catalog.record import RunRecord
+from mrrig.catalog.record import CHARACTERIZATION_PLAN, RunRecord
 from mrrig.catalog.schema import SCHEMA_REVISION, runs
 from mrrig.errors import MrrigError
 
@@ -221,23 +221,31 @@ def find_runs(
     specimen: str | None = None,
     plan: str | None = None,
     controller: str | None = None,
+    campaign: str | None = None,
+    characterization: bool | None = None,
     since: datetime | None = None,
     until: datetime | None = None,
     where: str | None = None,
     limit: int | None = None,
 ) -> list[RunRecord]:
     """The runs that match every filter given, oldest first (with `limit`: the newest
-    `limit` of them). `since`/`until` bound the run's wall-clock start (aware datetimes);
-    `where` is the expression language of `mrrig.catalog.query` (`"et < 0.01"`)."""
+    `limit` of them). `characterization`: True for the characterization runs only
+    (CHARACTERIZATION_PLAN), False for all but those, None for both. `since`/`until` bound
+    the run's wall-clock start (aware datetimes); `where` is the expression language of
+    `mrrig.catalog.query` (`"et < 0.01"`)."""
     stmt = sa.select(runs)
     for column, value in (
         ("rig", rig),
         ("specimen", specimen),
         ("plan", plan),
         ("controller", controller),
+        ("campaign", campaign),
     ):
         if value is not None:
             stmt = stmt.where(runs.c[column] == value)
+    if characterization is not None:
+        is_one = sa.func.coalesce(runs.c.plan, "") == CHARACTERIZATION_PLAN
+        stmt = stmt.where(is_one if characterization else sa.not_(is_one))
     if since is not None:
         stmt = stmt.where(runs.c.started_utc >= _naive_utc(since, "since"))
     if until is not None:

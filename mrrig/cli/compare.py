@@ -63,9 +63,17 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--no-passive", action="store_true", help="leave out the passive extremes")
     ap.add_argument("--plan-out", type=output_file, help="where the plan is written")
     ap.add_argument(
-        "--zenoh-config", type=Path, default=client.DEFAULT_CONFIG, help="Zenoh client config"
+        "--zenoh-config",
+        type=Path,
+        help=f"Zenoh client config (default: {client.DEFAULT_CONFIG}; with --sim, both the"
+        " client's and the daemon's on a free port of 127.0.0.1)",
     )
     ap.add_argument("--catalog", help="the catalog the steps go to (as mrrig test)")
+    ap.add_argument(
+        "--campaign",
+        help="the campaign the steps' runs belong to in the catalog (default: the plan's name"
+        " and the UTC time it started)",
+    )
     ap.add_argument("--junit", type=Path, help="write a JUnit XML report here")
     ap.add_argument("--html", type=Path, help="write a self-contained HTML report here")
     add_sim_arguments(ap)
@@ -111,7 +119,7 @@ def main(argv: list[str] | None = None) -> int:
     plan = load_plan(out)
     with contextlib.ExitStack() as stack:
         if args.sim:
-            rig_name = stack.enter_context(
+            rig_name, args.zenoh_config = stack.enter_context(
                 simulated_rig(args.config, args.sim_config, args.zenoh_config)
             )
         else:

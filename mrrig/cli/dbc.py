@@ -62,6 +62,8 @@ def _show(profile: RigProfile) -> str:
         e2e = f"E2E profile 2 (Data ID {lay.data_id})" if lay.e2e else "no E2E"
         lines.append(f"{group}: {message}, {lay.length} bytes, {fmt}, {period}, {e2e}")
     lines.append(profile.startup_line())
+    if (unmapped := profile.unmapped_line()) is not None:
+        lines.append(unmapped)
     return "\n".join(lines)
 
 
@@ -87,4 +89,6 @@ def main(argv: list[str] | None = None) -> int:
         print(_show(profile))
     else:
         print(f"{dbc}: ok; {profile.startup_line()}")
+        if (unmapped := profile.unmapped_line()) is not None:
+            print(unmapped)
     return 0

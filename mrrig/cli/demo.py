@@ -33,6 +33,7 @@ from pathlib import Path
 from mrrig.cli.demo_report import DemoProgress, open_hint, verdict
 from mrrig.cli_args import HelpFormatter, int_at_least, positive
 from mrrig.config import load_config
+from mrrig.config_gaps import config_gaps
 from mrrig.errors import MrrigError
 from mrrig.loop.realtime import keep_off_cpu
 from mrrig.loop.safety import TRANSPORT_FAULTS
@@ -41,6 +42,7 @@ from mrrig.rigio.canbus.bus import find_free_port, start_bridge, stop_bridge
 from mrrig.rigio.lease import Lease
 from mrrig.rigio.rearm import REARM_WINDOW_S, RearmLimit
 from mrrig.rigio.sidecar import keys
+from mrrig.rigio.zenoh_config import write_loopback_configs
 
 log = logging.getLogger(__name__)
 
@@ -118,9 +120,12 @@ def watch_and_rearm(
     """Wait for the daemon to exit (at most `timeout_s`), re-arming it over Zenoh after each
     transport fault its published status shows, as long as `limit` allows. Returns its exit
     code and the faults' reasons. A refused arm (the firmware still in FAULT) is tried again
-    on a later status. `progress` prints its line a second from the telemetry."""
+    on a later status: a FAULT's, or IDLE's where another stall faulted the disarmed rig
+    between the reset and the arm and the daemon cleared it with the frames' return. `progress`
+    prints its line a second from the telemetry."""
     deadline = time.monotonic() + timeout_s
     rearmed: list[str] = []
+    refused: str | None = None  # the fault whose re-arm was refused: armed once IDLE again
     latest = _LatestStatus()
     held: list[Lease] = []  # the lease of the last re-arm, renewed while the demo runs
     with contextlib.ExitStack() as stack:
@@ -143,16 +148,19 @@ def watch_and_rearm(
                     if progress is not None:
                         tel = session.declare_subscriber(keys(rig)["telemetry"], progress.et)
                         stack.callback(tel.undeclare)
-                if limit.ended or st is None or st["state"] != "FAULT":
+                if limit.ended or st is None:
                     continue
-                if st["fault"] not in TRANSPORT_FAULTS:
+                idle_again = refused is not None and st["state"] == "IDLE"
+                transport = st["state"] == "FAULT" and st["fault"] in TRANSPORT_FAULTS
+                if not (idle_again or transport):
                     continue
+                reason = st["fault_reason"] if transport else refused
                 latest.status = None  # act on this fault once; the next status tells the rest
                 if not limit.allows(time.monotonic()):
                     log.warning(
                         "demo: not re-arming after the fault %r: %d re-arms in the last %g s;"
                         " the daemon stays in FAULT for the rest of the run",
-                        st["fault_reason"],
+                        reason,
                         limit.count,
                         limit.window_s,
                     )
@@ -170,16 +178,18 @@ def watch_and_rearm(
                 lease = Lease.of(functools.partial(client.query, session, rig), reply, rig)
                 held.extend([lease] if lease is not None else [])
                 limit.rearmed(time.monotonic())
-                rearmed.append(st["fault_reason"])
+                rearmed.append(reason)
+                refused = None
                 log.warning(
                     "demo: re-armed the daemon after its fault %r (%d in all; at most %d in"
                     " any %g s)",
-                    st["fault_reason"],
+                    reason,
                     len(rearmed),
                     limit.count,
                     limit.window_s,
                 )
             elif not reply.get("ok"):
+                refused = reason
                 log.info("demo: re-arming refused: %s", reply.get("error"))
     return daemon.returncode, rearmed
 
@@ -210,8 +220,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument(
         "--zenoh-config",
         type=Path,
-        default=client.DEFAULT_CONFIG,
-        help="Zenoh client config reaching the daemon (its status, re-arming)",
+        help="Zenoh client config reaching the daemon (its status, re-arming), which then uses"
+        " its config's telemetry.zenoh_config (default: both on a free port of 127.0.0.1)",
     )
     ap.add_argument(
         "--max-rearms",
@@ -230,8 +240,13 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
 
     cfg = load_config(args.config)
-    if cfg.telemetry.enabled:
-        _refuse_a_running_daemon(cfg.rig.name, args.zenoh_config)
+    work = Path(tempfile.mkdtemp(prefix="mrrig-demo-"))
+    zenoh_client, daemon_zenoh = args.zenoh_config or client.DEFAULT_CONFIG, None
+    if cfg.telemetry.enabled and args.zenoh_config is None:
+        # a port of its own: a second demo, or a rig's daemon, on this machine is not reached
+        daemon_zenoh, zenoh_client = write_loopback_configs(work, find_free_port())
+    elif cfg.telemetry.enabled:
+        _refuse_a_running_daemon(cfg.rig.name, zenoh_client)
     record = args.record
     if record is None and cfg.recording.enabled:
         from mrrig.rigio.recording import recording_path
@@ -239,7 +254,6 @@ def main(argv: list[str] | None = None) -> int:
         record = recording_path(cfg.recording.directory, cfg.rig.name)
     ensure_sim_model(args.model)
     port = find_free_port()
-    work = Path(tempfile.mkdtemp(prefix="mrrig-demo-"))
     channel = f"ws://127.0.0.1:{port}/"
     # SIGTERM (a service manager, a test's timeout) stops the demo as Ctrl-C does: through
     # the `finally` below, so that the bridge, the simulator and the daemon stop with it
@@ -287,6 +301,8 @@ def main(argv: list[str] | None = None) -> int:
             "--summary-json",
             str(summary_json),
         ]
+        if daemon_zenoh is not None:
+            cmd += ["--zenoh-config", str(daemon_zenoh)]
         if record is not None:
             cmd += ["--record", str(record)]
         else:
@@ -300,7 +316,7 @@ def main(argv: list[str] | None = None) -> int:
         limit = RearmLimit(max_rearms, args.rearm_window)
         progress = DemoProgress(args.duration) if cfg.telemetry.enabled else None
         rc, rearmed = watch_and_rearm(
-            daemon, cfg.rig.name, args.zenoh_config, limit, args.duration + 120, progress
+            daemon, cfg.rig.name, zenoh_client, limit, args.duration + 120, progress
         )
         # 1: it ended in FAULT, which the verdict below judges
         if rc not in (0, 1):
@@ -312,7 +328,7 @@ def main(argv: list[str] | None = None) -> int:
             f"demo: re-armed the daemon {len(rearmed)} times after a transport fault"
             + "".join(f"\n  {reason}" for reason in rearmed)
         )
-        ok, text = verdict(json.loads(summary_json.read_text()))
+        ok, text = verdict(json.loads(summary_json.read_text()), gaps=config_gaps(cfg))
         print(text)
         if record is not None:
             print(open_hint(record))

@@ -13,7 +13,7 @@ import json
 import math
 import threading
 import time
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -98,8 +98,12 @@ def progress_line(t_s: float, duration_s: float, et: RunningEt, faults: int, rea
     )
 
 
-def verdict(summary: Mapping[str, Any], bounds: DemoBounds = DemoBounds()) -> tuple[bool, str]:
-    """PASS/FAIL of the daemon's summary against `bounds`, with every number."""
+def verdict(
+    summary: Mapping[str, Any], bounds: DemoBounds = DemoBounds(), gaps: Sequence[str] = ()
+) -> tuple[bool, str]:
+    """PASS/FAIL of the daemon's summary against `bounds`, with every number; an Et that is
+    n/a with its reason: the config's `gaps` (`mrrig.config_gaps`), else what the summary
+    shows."""
     et = summary.get("et")
     frames, armed = summary.get("frames") or 0, summary.get("armed_frames") or 0
     share = armed / frames if frames else 0.0
@@ -126,6 +130,8 @@ def verdict(summary: Mapping[str, Any], bounds: DemoBounds = DemoBounds()) -> tu
     lines = [f"demo: {'PASS' if ok else 'FAIL'}"] + [
         f"  {'ok  ' if c else 'FAIL'} {text}" for c, text in checks
     ]
+    if et is None or not math.isfinite(et):
+        lines.append(f"  why Et is n/a: {_et_missing(summary, armed, gaps)}")
     transport = [f for f in summary.get("faults", []) if f.get("fault") in TRANSPORT_FAULTS]
     if transport and not checks[0][0]:
         times = ", ".join(f"{f['t']:.1f}" for f in transport)
@@ -135,6 +141,19 @@ def verdict(summary: Mapping[str, Any], bounds: DemoBounds = DemoBounds()) -> tu
             " the recording shows it there"
         )
     return ok, "\n".join(lines)
+
+
+def _et_missing(summary: Mapping[str, Any], armed: int, gaps: Sequence[str]) -> str:
+    """Why the summary has no Et, in one line."""
+    if armed < 2:
+        return "the daemon was armed for fewer than 2 frames (see its faults above)"
+    reference = next((g for g in gaps if "[reference]" in g), None)
+    if reference is not None:
+        return reference
+    return (
+        f"the desired force (reference {summary.get('reference', '?')}) did not vary over the"
+        " armed frames: eqs 41-43 divide by its spread"
+    )
 
 
 def open_hint(recording: Path) -> str:

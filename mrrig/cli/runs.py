@@ -1,7 +1,8 @@
 """`mrrig runs`: the run catalog (mrrig.catalog) on the command line.
 
-    mrrig runs [--rig R] [--specimen S] [--since 7d] [--plan P] [--controller C]
-               [--where "et < 0.01"] [--limit N] [--json]
+    mrrig runs [--rig R] [--specimen S] [--campaign C] [--since 7d] [--plan P]
+               [--controller C] [--where "et < 0.01"] [--all | --characterization]
+               [--limit N] [--json]
     mrrig runs show ID [--json]       everything about a run; is its recording still unchanged?
     mrrig runs compare A B [--plot F] two runs' numbers side by side, and one figure of both
     mrrig runs sync --from URL --to URL
@@ -9,6 +10,8 @@
 
 The catalog: --catalog URL, else $MRRIG_CATALOG, else recordings/catalog.sqlite (a path is an
 SQLite file; postgresql://user@host/db a lab's server). An ID may be the first 4+ digits.
+The list leaves out characterization runs (`mrrig characterize`'s constant currents: their Et
+means nothing) unless --all, --characterization or `--plan characterize` asks for them.
 `show` exits 1 where the run's recording is missing or no longer what was registered; the
 list exits 1 where no run matches (one line on stderr). Runs journalled while their catalog
 could not take them (locked, corrupt, unreachable: `REC.rrd.journal`) are registered first.
@@ -24,7 +27,7 @@ from pathlib import Path
 
 from mrrig import api
 from mrrig.api.catalog import ENV_CATALOG
-from mrrig.catalog import DEFAULT_PATH, NUMERIC_COLUMNS, RunRecord
+from mrrig.catalog import CHARACTERIZATION_PLAN, DEFAULT_PATH, NUMERIC_COLUMNS, RunRecord
 from mrrig.catalog.store import catalog_url
 from mrrig.cli_args import HelpFormatter, int_at_least
 
@@ -54,6 +57,9 @@ def _list(argv: list[str]) -> int:
     ap = _parser("mrrig runs", __doc__)
     ap.add_argument("--rig", help="only this rig's runs")
     ap.add_argument("--specimen", help="only runs of this specimen (the damper's serial number)")
+    ap.add_argument(
+        "--campaign", help="only the runs of this campaign (`mrrig test --campaign`, a matrix)"
+    )
     ap.add_argument("--plan", help="only the steps of this plan")
     ap.add_argument("--controller", help="only runs with this controller")
     ap.add_argument("--since", help="runs started since: a span (90s, 30m, 12h, 7d, 2w) or a date")
@@ -61,6 +67,13 @@ def _list(argv: list[str]) -> int:
         "--where",
         help="a condition on the numbers: COLUMN < <= > >= == != NUMBER, and, or, not, ( );"
         " columns: " + ", ".join(NUMERIC_COLUMNS),
+    )
+    shown = ap.add_mutually_exclusive_group()
+    shown.add_argument(
+        "--all", action="store_true", help="the characterization runs too (left out by default)"
+    )
+    shown.add_argument(
+        "--characterization", action="store_true", help="only the characterization runs"
     )
     ap.add_argument("--limit", type=int_at_least(1), help="only the newest N of them")
     ap.add_argument("--json", action="store_true", help="print the runs as one JSON list")
@@ -78,6 +91,8 @@ def _list(argv: list[str]) -> int:
         specimen=args.specimen,
         plan=args.plan,
         controller=args.controller,
+        campaign=args.campaign,
+        characterization=_characterization(args),
         since=args.since,
         where=args.where,
         limit=args.limit,
@@ -95,13 +110,31 @@ def _list(argv: list[str]) -> int:
     return 0
 
 
-_FILTERS = ("rig", "specimen", "plan", "controller", "since", "where")
+def _characterization(args: argparse.Namespace) -> bool | None:
+    """Which runs the list shows as to characterization: only those, all, or (by default)
+    all but those."""
+    if args.characterization:
+        return True
+    if args.all or args.plan == CHARACTERIZATION_PLAN:
+        return None
+    return False
+
+
+_FILTERS = ("rig", "specimen", "campaign", "plan", "controller", "since", "where")
 
 
 def _matching(args: argparse.Namespace) -> str:
     """What the list asked for, as its options: `matches --rig nosuch`, else `at all`."""
     given = [f"--{k} {getattr(args, k)!r}" for k in _FILTERS if getattr(args, k) is not None]
-    return f"matches {' '.join(given)}" if given else "at all: the catalog is empty"
+    if args.characterization:
+        given.append("--characterization")
+    if given:
+        return f"matches {' '.join(given)}"
+    if _characterization(args) is False and api.run_records(
+        args.catalog, characterization=True, limit=1
+    ):
+        return "but characterization runs (--all lists them too)"
+    return "at all: the catalog is empty"
 
 
 def _name(catalog: str) -> str:
@@ -195,6 +228,7 @@ _COMPARED = (
     "host",
     "specimen",
     "operator",
+    "campaign",
     "plan",
     "step",
     "started_utc",

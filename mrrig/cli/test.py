@@ -16,8 +16,10 @@ import argparse
 import contextlib
 import datetime as dt
 import logging
+import shutil
 import subprocess
 import sys
+import tempfile
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -53,20 +55,28 @@ def add_sim_arguments(ap: argparse.ArgumentParser) -> None:
 
 @contextlib.contextmanager
 def simulated_rig(
-    config: Path, sim_config: Path, zenoh_config: Path, adaptation: str | None = None
-) -> Iterator[str]:
+    config: Path, sim_config: Path, zenoh_config: Path | None, adaptation: str | None = None
+) -> Iterator[tuple[str, Path]]:
     """The CAN bridge, firmware_sim and a daemon (`config`, on the bridge's channel, no
     recording, `adaptation` "on"/"off" over the config's), as `mrrig demo` starts them; yields
-    the rig's name once it answers."""
+    the rig's name and the client's Zenoh config once it answers. `zenoh_config`: the client's
+    (the daemon then on its config's); None: both on a free port of 127.0.0.1."""
     from mrrig.cli.demo import _stop, ensure_sim_model
     from mrrig.config import load_config
     from mrrig.rigio.canbus.bus import find_free_port, start_bridge, stop_bridge
+    from mrrig.rigio.zenoh_config import write_loopback_configs
 
     cfg = load_config(config)
     if not cfg.telemetry.enabled:
         raise SimError(f"{config}: telemetry.enabled = false: a plan needs the rig's telemetry")
     if cfg.controller.model is not None:
         ensure_sim_model(cfg.controller.model)
+    own_zenoh: list[str] = []
+    if zenoh_config is None:
+        # a port of its own: a second simulated rig, or a rig's daemon, here is not reached
+        work = Path(tempfile.mkdtemp(prefix="mrrig-sim-"))
+        daemon_zenoh, zenoh_config = write_loopback_configs(work, find_free_port())
+        own_zenoh = ["--zenoh-config", str(daemon_zenoh)]
     port = find_free_port()
     channel = f"ws://127.0.0.1:{port}/"
     bridge = start_bridge(port)
@@ -83,7 +93,7 @@ def simulated_rig(
         time.sleep(1.0)  # the simulator connects and starts streaming
         if sim.poll() is not None:
             raise SimError(f"firmware_sim exited at start (code {sim.returncode})")
-        cmd = [sys.executable, "-m", "mrrig", "run", "--config", str(config)]
+        cmd = [sys.executable, "-m", "mrrig", "run", "--config", str(config), *own_zenoh]
         if adaptation is not None:
             cmd += ["--adaptation", adaptation]
         daemon = subprocess.Popen(
@@ -101,11 +111,13 @@ def simulated_rig(
                 if time.monotonic() > deadline:
                     raise SimError(f"the daemon did not answer within {SIM_START_S:g} s") from None
                 time.sleep(0.5)
-        yield cfg.rig.name
+        yield cfg.rig.name, zenoh_config
     finally:
         for proc, name in reversed(procs):
             _stop(proc, name)
         stop_bridge(bridge)
+        if own_zenoh:
+            shutil.rmtree(Path(own_zenoh[1]).parent, ignore_errors=True)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -120,12 +132,20 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("plan", type=Path, help="the plan (TOML: [plan], [[step]]s)")
     ap.add_argument("--rig", help="the rig's name (default: the plan's [plan] rig)")
     ap.add_argument(
-        "--zenoh-config", type=Path, default=client.DEFAULT_CONFIG, help="Zenoh client config"
+        "--zenoh-config",
+        type=Path,
+        help=f"Zenoh client config (default: {client.DEFAULT_CONFIG}; with --sim, both the"
+        " client's and the daemon's on a free port of 127.0.0.1)",
     )
     ap.add_argument(
         "--catalog",
         help="register each step as a run in this catalog: an SQLite file or a postgresql://"
         " URL (default: $MRRIG_CATALOG, else recordings/catalog.sqlite)",
+    )
+    ap.add_argument(
+        "--campaign",
+        help="the campaign the steps' runs belong to in the catalog (`mrrig runs --campaign`;"
+        " default: the plan's name and the UTC time it started)",
     )
     ap.add_argument("--junit", type=Path, help="write a JUnit XML report here")
     ap.add_argument("--html", type=Path, help="write a self-contained HTML report here")
@@ -143,7 +163,7 @@ def main(argv: list[str] | None = None) -> int:
     plan = load_plan(args.plan)  # a PlanError: one line, exit 2 (mrrig.cli.main)
     with contextlib.ExitStack() as stack:
         if args.sim:
-            rig_name = stack.enter_context(
+            rig_name, args.zenoh_config = stack.enter_context(
                 simulated_rig(args.config, args.sim_config, args.zenoh_config, args.adaptation)
             )
             if args.rig and args.rig != rig_name:
@@ -176,7 +196,11 @@ def run_on(plan, rig_name: str, args: argparse.Namespace, mrrig_version: str) ->
         # rows or the reports
         with PlanSignals().installed() as stops:
             results, interrupted = run_plan(
-                plan, rig, lambda line: print(line, flush=True), args.catalog or default_catalog()
+                plan,
+                rig,
+                lambda line: print(line, flush=True),
+                args.catalog or default_catalog(),
+                args.campaign or f"{plan.name} {started}",
             )
             interrupted = interrupted or stops.received > 0
             print(table(results))

@@ -44,7 +44,10 @@ def main(argv: list[str] | None = None) -> int:
     )
     ap.add_argument("--rig", help="the rig's name (with --sim: the simulated rig's)")
     ap.add_argument(
-        "--zenoh-config", type=Path, default=client.DEFAULT_CONFIG, help="Zenoh client config"
+        "--zenoh-config",
+        type=Path,
+        help=f"Zenoh client config (default: {client.DEFAULT_CONFIG}; with --sim, both the"
+        " client's and the daemon's on a free port of 127.0.0.1)",
     )
     ap.add_argument(
         "--model",
@@ -86,7 +89,7 @@ def main(argv: list[str] | None = None) -> int:
         if args.sim:
             from mrrig.cli.test import SimError, simulated_rig
 
-            rig_name = stack.enter_context(
+            rig_name, args.zenoh_config = stack.enter_context(
                 simulated_rig(args.config, args.sim_config, args.zenoh_config)
             )
             if args.rig and args.rig != rig_name:

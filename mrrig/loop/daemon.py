@@ -31,6 +31,7 @@ import numpy as np
 from mrrig import json_text
 from mrrig.cli_args import HelpFormatter, add_bus_options, output_file, positive
 from mrrig.config import DaemonConfig, ReferenceSection, load_config
+from mrrig.config_gaps import config_gaps
 from mrrig.errors import MrrigError
 from mrrig.loop import reference as ref
 from mrrig.loop.controllers import (
@@ -1243,6 +1244,8 @@ class Daemon:
         self.started.set()
         self.notifier.ready(f"rig {cfg.rig.name}: listening on {cfg.bus.channel}")
         log.info("loop running: one command per sensor frame")
+        for line in config_gaps(cfg):  # a constant reference, an actuator that does not move
+            log.warning("%s", line)
         stop_deadline = None
         self.kernel_stalls.start(self.now())  # this thread's: the loop's
         while not self._safe_sent_at_stop:
@@ -1443,6 +1446,9 @@ def main(argv: list[str] | None = None) -> int:
     add_bus_options(ap)
     ap.add_argument("--no-telemetry", action="store_true", help="no Zenoh telemetry")
     ap.add_argument(
+        "--zenoh-config", type=Path, help="the sidecar's Zenoh config (overrides the config's)"
+    )
+    ap.add_argument(
         "--adaptation",
         choices=("on", "off"),
         help="override adaptation.enabled: on-line gain and offset of the model's force",
@@ -1477,6 +1483,8 @@ def main(argv: list[str] | None = None) -> int:
         overrides["adaptation"] = {"enabled": args.adaptation == "on"}
     if args.insecure:
         overrides.setdefault("telemetry", {})["insecure"] = True
+    if args.zenoh_config is not None:
+        overrides.setdefault("telemetry", {})["zenoh_config"] = str(args.zenoh_config)
     loop = {}
     if args.duration is not None:
         loop["duration_s"] = args.duration

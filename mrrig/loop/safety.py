@@ -4,7 +4,10 @@ Pure: it is told what happened (a bad frame, a sensor frame's values, a firmware
 non-finite number, a stale reference) and answers with the events it causes. Any fault puts it
 in FAULT at once; the loop then sends SAFE 0 A for this and every following frame until the
 fault is acknowledged (`reset`, to IDLE) and the rig armed again: two explicit acts, as a rig
-controller separates the interlock reset from the run. Errors are returned as events, never
+controller separates the interlock reset from the run. One exception: a transport fault
+(TRANSPORT_FAULTS: a stall of the bus or the machine) of a rig that was not armed ends by
+itself with the next valid sensor frame, back to IDLE with an event saying so; nothing was
+running that it interrupted. An armed rig's never does. Errors are returned as events, never
 raised: the loop keeps running.
 """
 
@@ -76,7 +79,8 @@ class Supervisor:
     """IDLE -> (arm) -> ARMED -> (disarm) -> IDLE; any fault -> FAULT; FAULT -> (reset) -> IDLE.
 
     `arm` in FAULT is refused and `disarm` leaves FAULT as it is (commands are SAFE there
-    already): only `reset` acknowledges a fault."""
+    already): only `reset` acknowledges a fault, but for a transport fault that came while
+    IDLE, which the next valid sensor frame ends (`sensors`)."""
 
     def __init__(self, limits: Limits) -> None:
         self.limits = limits
@@ -90,6 +94,8 @@ class Supervisor:
         self._timeouts: int | None = None  # the firmware's CommandTimeouts, last seen
         self._foreign_t = -math.inf  # when another sender's command was last seen
         self._foreign_name = ""
+        # the fault is a transport fault that came while IDLE: valid frames end it
+        self._clears_itself = False
 
     @property
     def active(self) -> bool:
@@ -118,6 +124,10 @@ class Supervisor:
 
     def trip(self, t_s: float, fault: Fault, reason: str) -> list[dict]:
         """Enter FAULT (or stay there, recording the new reason). Returns the events."""
+        if fault.value not in TRANSPORT_FAULTS:
+            self._clears_itself = False
+        elif self.state is not RigState.FAULT:
+            self._clears_itself = self.state is RigState.IDLE
         self.fault, self.reason = fault, reason
         self.state = RigState.FAULT
         return [self._event(t_s, "fault", reason, fault=fault.value)]
@@ -194,9 +204,24 @@ class Supervisor:
         return []
 
     def sensors(self, t_s: float, v: dict[str, float]) -> list[dict]:
-        """Flags and ranges of a valid RigSensors frame."""
-        if self.state is RigState.FAULT:
+        """Flags and ranges of a valid RigSensors frame; it ends a transport fault that came
+        while IDLE (an event saying so), and is then checked as any other."""
+        if self.state is RigState.FAULT and not self._clears_itself:
             return []
+        events = self._frames_resumed(t_s) if self.state is RigState.FAULT else []
+        return events + self._check_sensors(t_s, v)
+
+    def _frames_resumed(self, t_s: float) -> list[dict]:
+        fault, reason = self.fault, self.reason
+        self.state, self.fault, self.reason = RigState.IDLE, None, ""
+        self._clears_itself = False
+        text = (
+            f"transport fault cleared: valid sensor frames again after {fault.value}: {reason}"
+            " (not armed when it came: no reset needed)"
+        )
+        return [self._event(t_s, "state", text, cleared=fault.value)]
+
+    def _check_sensors(self, t_s: float, v: dict[str, float]) -> list[dict]:
         if v["EStop"]:
             return self.trip(t_s, Fault.ESTOP, "e-stop reported by the rig")
         if v["LimitTripped"]:

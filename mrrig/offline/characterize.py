@@ -31,6 +31,7 @@ from typing import Any, TextIO
 import numpy as np
 
 from mrrig import json_text
+from mrrig.catalog.record import CHARACTERIZATION_PLAN
 from mrrig.cli_args import HelpFormatter
 from mrrig.config import DaemonConfig, load_config
 from mrrig.errors import MrrigError
@@ -386,8 +387,9 @@ def characterize(
             register_tool_run(
                 session.cfg,
                 started_utc,
-                plan="characterize",
+                plan=CHARACTERIZATION_PLAN,
                 step=f"run-{run.run_id:03d}",
+                campaign=store.dir.name,
                 controller="constant",
                 controller_params=asdict(run),
                 summary=summarize(s, []),

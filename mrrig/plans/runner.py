@@ -83,11 +83,15 @@ Progress = Callable[[str], None]
 
 
 def run_plan(
-    plan: Plan, rig: Rig, progress: Progress, catalog: str | None = None
+    plan: Plan,
+    rig: Rig,
+    progress: Progress,
+    catalog: str | None = None,
+    campaign: str | None = None,
 ) -> tuple[list[StepResult], bool]:
     """Every step in order, and whether Ctrl-C ended the plan (the step it came in aborted,
     the rig disarmed, the rest `skipped`). With `catalog`, each step run is registered there
-    as a run (plan, step, verdict, numbers) when it ends."""
+    as a run (plan, step, verdict, numbers; `campaign`, which groups them) when it ends."""
     results: list[StepResult] = []
     interrupted = False
     for index, step in enumerate(plan.steps, start=1):
@@ -114,11 +118,18 @@ def run_plan(
         results.append(result)
         progress(_step_line(index, len(plan.steps), result))
         if catalog is not None:
-            _register(catalog, plan, rig, result, started_utc)
+            _register(catalog, plan, rig, result, started_utc, campaign)
     return results, interrupted
 
 
-def _register(catalog: str, plan: Plan, rig: Rig, r: StepResult, started_utc: dt.datetime) -> None:
+def _register(
+    catalog: str,
+    plan: Plan,
+    rig: Rig,
+    r: StepResult,
+    started_utc: dt.datetime,
+    campaign: str | None,
+) -> None:
     """The step's run into the catalog; a catalog that cannot take it does not stop the plan."""
     n = r.numbers
     numbers = {}
@@ -139,6 +150,7 @@ def _register(catalog: str, plan: Plan, rig: Rig, r: StepResult, started_utc: dt
             catalog=catalog,
             plan=plan.name,
             step=r.step.name,
+            campaign=campaign,
             verdict=r.verdict,
             controller=r.controller or "",
             faults=[{"fault": f} for f in r.faults],

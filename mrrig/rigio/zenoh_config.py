@@ -180,6 +180,23 @@ def load_zenoh_config(path: str | Path) -> zenoh.Config:
         raise ZenohConfigError(f"{source}: cannot read Zenoh config: {_one_line(exc)}") from exc
 
 
+def write_loopback_configs(folder: Path, port: int) -> tuple[Path, Path]:
+    """A sidecar's (a peer listening) and a client's (connecting) Zenoh config on
+    127.0.0.1:`port`, multicast scouting off, written in `folder`: (sidecar's file, client's
+    file). What `mrrig demo` and `mrrig test --sim` run on unless given a config, on a free
+    port: a second simulated rig, or a daemon on 7447, on this machine is not reached."""
+    endpoints = [f"tcp/127.0.0.1:{port}"]
+    scouting = {"multicast": {"enabled": False}}
+    sidecar, client = folder / "zenoh-daemon.json5", folder / "zenoh-client.json5"
+    sidecar.write_text(
+        json.dumps({"mode": "peer", "listen": {"endpoints": endpoints}, "scouting": scouting})
+    )
+    client.write_text(
+        json.dumps({"mode": "client", "connect": {"endpoints": endpoints}, "scouting": scouting})
+    )
+    return sidecar, client
+
+
 def local_config(
     mode: str, listen: list[str] | None = None, connect: list[str] | None = None
 ) -> zenoh.Config:

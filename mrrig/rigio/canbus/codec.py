@@ -46,6 +46,17 @@ CRC8H2F_INIT = 0xFF
 CRC8H2F_XOR_OUT = 0xFF
 
 
+def load_dbc(path: str | Path, strict: bool = True) -> cantools.database.Database:
+    """The DBC at `path`, read as UTF-8 where it is valid UTF-8 (a DBC from a text editor or
+    cantools: `°C`), else as Windows-1252 (Vector's tools), never the one as the other."""
+    try:
+        Path(path).read_bytes().decode("utf-8")
+        encoding = "utf-8-sig"
+    except UnicodeDecodeError:
+        encoding = "cp1252"
+    return cantools.database.load_file(str(path), encoding=encoding, strict=strict)
+
+
 class CodecError(MrrigError, ValueError):
     """The DBC does not describe a layout this codec supports."""
 
@@ -331,7 +342,7 @@ class Codec:
     ) -> None:
         self.dbc_path = Path(dbc_path)
         try:
-            self.db = cantools.database.load_file(str(self.dbc_path), strict=True)
+            self.db = load_dbc(self.dbc_path)
         except (OSError, cantools.database.UnsupportedDatabaseFormatError, ValueError) as exc:
             text = " ".join(str(exc).split())
             raise CodecError(f"{self.dbc_path}: cannot read the DBC: {text}") from None

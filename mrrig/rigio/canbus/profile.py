@@ -2,18 +2,21 @@
 
 `[can] dbc = "FILE"` (found beside the config file) and `[can.signals]` map each role to
 "MESSAGE.SIGNAL", or declare it "absent"; a role left out keeps the contract's name
-(`DEFAULT_SIGNALS`) where the DBC has that signal. Without `dbc` the profile is the CAN
+(`DEFAULT_SIGNALS`) where the DBC has that signal, else it is absent (one log line names
+them all; a role the loop needs is an error). Without `dbc` the profile is the CAN
 contract's (`configs/mrrig.dbc`). The roles contract 1.1 brought (`actuator_setpoint`, its
 velocity and echo: ActuatorSetpoint) are absent where a profile leaves them out and its DBC
-lacks them: a profile written for 1.0 loads as it did, and refuses the STREAM waveform in one
-line (`RigProfile.stream_refusal`). The codec
+lacks them, without a word: a profile written for 1.0 loads as it did, and refuses the STREAM
+waveform in one line (`RigProfile.stream_refusal`). The codec
 decodes a mapped signal under the role's key (the contract's signal name) in SI units, so the
 loop reads `values["Displacement"]` in metres whatever the layout; a sensor role the layout
 lacks reads as the value that keeps its check quiet, and the start-up line names every
 protection that is off (README: Safety, "A rig profile without E2E").
 
-Units: the DBC's unit of each mapped signal, converted by `UNITS`; a unit the table does not
-know, or one of another dimension than the role's, is a one-line error naming the signal.
+Units: the DBC's unit of each mapped signal, converted by `UNITS` (its symbols, and their usual
+spellings: `Newton`, `newtons`, `°C`, `µm`, `millimetres`, ...: `unit_of`); a unit the table
+does not know, or one of another dimension than the role's, is a one-line error naming the
+signal.
 """
 
 from __future__ import annotations
@@ -35,6 +38,7 @@ from mrrig.rigio.canbus.codec import (
     MessageLayout,
     Packer,
     Rename,
+    load_dbc,
     scaling_problem,
 )
 from mrrig.rigio.canbus.profile_limits import Limits, carry_problems
@@ -60,6 +64,48 @@ UNITS: dict[str, tuple[str, float]] = {
     "mm/s": ("velocity", 1e-3),
     "": ("", 1.0),  # a flag, a code, a counter
 }
+# other spellings of UNITS' symbols, as DBCs from other tools write them (compared in lower
+# case, a plural's "s" dropped); symbols themselves are case-sensitive (mA is not MA)
+UNIT_SPELLINGS: dict[str, str] = {
+    "meter": "m",
+    "metre": "m",
+    "millimeter": "mm",
+    "millimetre": "mm",
+    "micrometer": "um",
+    "micrometre": "um",
+    "micron": "um",
+    "µm": "um",  # micro sign
+    "μm": "um",  # Greek mu
+    "newton": "N",
+    "kilonewton": "kN",
+    "ampere": "A",
+    "amp": "A",
+    "milliampere": "mA",
+    "milliamp": "mA",
+    "volt": "V",
+    "°c": "degC",
+    "℃": "degC",
+    "deg c": "degC",
+    "degc": "degC",
+    "celsius": "degC",
+    "degree celsius": "degC",
+    "degrees celsius": "degC",
+    "hertz": "Hz",
+    "hz": "Hz",
+}
+
+
+def unit_of(text: str) -> tuple[str, float] | None:
+    """(dimension, factor to SI) of a DBC's unit `text`: a symbol of UNITS or one of its
+    UNIT_SPELLINGS; None where it is neither."""
+    text = text.strip()
+    if text in UNITS:
+        return UNITS[text]
+    word = text.lower()
+    symbol = UNIT_SPELLINGS.get(word)
+    if symbol is None and len(word) > 2 and word.endswith("s"):
+        symbol = UNIT_SPELLINGS.get(word[:-1])
+    return None if symbol is None else UNITS[symbol]
 
 
 class Role(NamedTuple):
@@ -145,6 +191,8 @@ class RigProfile:
     setpoint_message: str | None = None  # contract 1.1's ActuatorSetpoint, if it has one
     source: str = ""  # the config whose [can] this is
     protections_off: list[str] = field(default_factory=list)
+    # the roles [can.signals] left out that the DBC has no contract signal for: absent
+    unmapped: list[str] = field(default_factory=list)
 
     def packer(self) -> Packer:
         """The daemon's packer: the command, actuator and setpoint messages, unmapped signals
@@ -192,6 +240,16 @@ class RigProfile:
         if not self.protections_off:
             return f"CAN profile {name}: E2E, counter echo and the firmware's flags all on"
         return f"CAN profile {name}: protections off: " + "; ".join(self.protections_off)
+
+    def unmapped_line(self) -> str | None:
+        """The roles taken as absent because [can.signals] does not map them, in one line;
+        None where it maps or declares every one."""
+        if not self.unmapped:
+            return None
+        return (
+            f"CAN profile {self.dbc_path.name}: not mapped in [can.signals], so absent:"
+            f" {', '.join(self.unmapped)}"
+        )
 
 
 def _message_of(codec_db: cantools.database.Database, text: str) -> tuple[str, str] | str:
@@ -257,7 +315,7 @@ def check_profile(
     dbc = path.name
     try:
         # not strict: an overflowing signal is a problem to report, not a refusal to read
-        db = cantools.database.load_file(str(path), strict=False)
+        db = load_dbc(path, strict=False)
     except (OSError, cantools.database.UnsupportedDatabaseFormatError, ValueError) as exc:
         return None, [f"{path}: cannot read the DBC: {' '.join(str(exc).split())}"]
     problems = layout_problems(db, dbc)
@@ -270,16 +328,19 @@ def check_profile(
     for name in sorted(set(table) - set(ROLES)):
         problems.append(f"{source}: can.signals.{name}: unknown role (known: {', '.join(ROLES)})")
     mapped: dict[str, Mapped] = {}
+    unmapped: list[str] = []
     for name, role in ROLES.items():
         where = f"{source}: can.signals.{name}"
         text = table.get(name)
         if text is None and role.contract != "1.0":
             continue  # a profile written for contract 1.0: absent
-        if text is None:
+        if text is None and role.required:
             problems.append(
-                f"{where}: unmapped role (map it to MESSAGE.SIGNAL of {dbc} or"
-                f' declare it "{ABSENT}")'
+                f"{where}: unmapped role, which the loop needs (map it to MESSAGE.SIGNAL of {dbc})"
             )
+            continue
+        if text is None:
+            unmapped.append(name)
             continue
         if text == ABSENT:
             if role.required:
@@ -291,13 +352,13 @@ def check_profile(
             continue
         message, signal = found
         unit = db.get_message_by_name(message).get_signal_by_name(signal).unit or ""
-        if unit not in UNITS:
+        if (si := unit_of(unit)) is None:
             known = ", ".join(u for u in UNITS if u)
             problems.append(
                 f"{dbc}: {message}.{signal}: unit {unit!r} not in the unit table ({known})"
             )
             continue
-        dimension, factor = UNITS[unit]
+        dimension, factor = si
         if dimension != role.dimension:
             want = role.dimension or "no unit"
             problems.append(
@@ -361,6 +422,7 @@ def check_profile(
         actuator_message=groups.get("actuator"),
         setpoint_message=groups.get("setpoint"),
         source=source,
+        unmapped=unmapped,
     )
     if limits is not None and (problems := carry_problems(codec, mapped, ROLES, limits, source)):
         return None, problems
@@ -475,4 +537,6 @@ def load_profile(
     if profile is None:
         more = f" (and {len(problems) - 1} more: mrrig dbc check)" if len(problems) > 1 else ""
         raise ProfileError(problems[0] + more)
+    if (line := profile.unmapped_line()) is not None:
+        logger.info("%s", line)
     return profile
