@@ -48,7 +48,8 @@ SEARCH_EPOCHS = 120
 INVERSION_BUDGET_US = 20.0
 INVERSION_REPEATS = 7  # each row's inversion timed so often, its smallest time kept
 INVERSION_ROUNDS = 3  # rounds of repeats at most before a candidate is over the budget
-HISTORY_SPANS_S = (0.01, 0.02, 0.03, 0.04)  # history depth in time: taps over this span
+# history depth in time, taps over this span (the longer ones for slow data: 100 Hz sines)
+HISTORY_SPANS_S = (0.01, 0.02, 0.04, 0.08, 0.16)
 HISTORY_TAPS = 4
 HISTORY_SIGNAL_SETS = (("x", "xd"), ("x", "xd", "current"))
 HIDDEN_SIZES = (20, 30, 40)
@@ -236,12 +237,14 @@ def choose_features(
     base = Candidate()
     # all candidates' depths are known up front: the folds exclude every one's hold-out
     strides = {s: max(1, round(s / HISTORY_TAPS / dt)) for s in HISTORY_SPANS_S}
-    hist = [
-        (HISTORY_TAPS, sig, strides[s])
-        for s in HISTORY_SPANS_S
-        for sig in HISTORY_SIGNAL_SETS
-        if varies or "current" not in sig
-    ]
+    hist = list(  # spans that give the same taps at this rate are one candidate
+        dict.fromkeys(
+            (HISTORY_TAPS, sig, strides[s])
+            for s in HISTORY_SPANS_S
+            for sig in HISTORY_SIGNAL_SETS
+            if varies or "current" not in sig
+        )
+    )
     deepest = max(
         [base]
         + [Candidate(history_samples=h, history_signals=g, history_stride=st) for h, g, st in hist],
