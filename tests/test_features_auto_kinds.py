@@ -61,7 +61,7 @@ def test_features_auto_lists_every_kind_and_writes_the_lowest_et_within_budget(t
     assert "kind of model, chosen by the other tests estimate: leave-one-test-out over 3" in text
     rows = {}  # kind: (Et, within the budget)
     for line in text.splitlines():
-        m = re.match(r"  Et (\S+)  block hold-out .+ optimistic\)  work per frame +\d+ us  ([^:]+): ", line)
+        m = re.match(r"  Et (\S+)  block hold-out .+\)  work per frame +\d+ us  ([^:]+): ", line)
         if m:
             rows[m[2]] = (float(m[1]), "(over the" not in line)
     assert set(rows) == set(KIND_NAMES) == {STATIC_MLP, HISTORY_MLP, GRU, TWIN}, text

@@ -414,7 +414,8 @@ def choose_kind(
     kind's Et, per test, block hold-out, work per frame and why the winner won. `deadline`
     (`time.perf_counter()`'s; default `CHOICE_BUDGET_S` from now): a kind that would not be
     scored by then is not tried (the first kind is scored whatever the budget); `started`: when
-    the budget began (the report's budget and time spent count from it; default now). `not_built`: kinds left out and why (listed in the report)."""
+    the budget began (the report's budget and time spent count from it; default now).
+    `not_built`: kinds left out and why (listed in the report)."""
     t_start = time.perf_counter() if started is None else started
     end = t_start + CHOICE_BUDGET_S if deadline is None else deadline
     several = len(names) >= 2
