@@ -16,7 +16,7 @@ from mrrig.offline.evaluate import main as evaluate_main
 from mrrig.offline.metrics import error_norm
 from mrrig.offline.training import features, train_forward
 from mrrig.offline.training.crossval import (
-    SEGMENTS,
+    SEGMENT_GROUPS,
     cross_validate,
     fold_of_groups,
     subset,
@@ -94,7 +94,7 @@ def test_one_test_is_cut_into_segments_and_called_optimistic(lab):
     series, tests, names = lab
     one = subset(series, tests == 0)
     cv = cross_validate(one, np.zeros(len(one), int), names[:1], OPTIONS, max_epochs=20)
-    assert cv["kind"] == "segment" and cv["optimistic"] and cv["folds"] == SEGMENTS
+    assert cv["kind"] == "segment" and cv["optimistic"] and cv["folds"] == SEGMENT_GROUPS
     assert all(g["n"] > 0 for g in cv["per_group"])
     assert "optimistic" in "\n".join(format_other_tests(cv))
 

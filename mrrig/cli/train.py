@@ -48,7 +48,12 @@ from mrrig.offline.training import (
     check_history,
     train_and_validate,
 )
-from mrrig.offline.training.crossval import MAX_FOLDS, SEGMENTS, cross_validate
+from mrrig.offline.training.crossval import (
+    MAX_FOLDS,
+    SEGMENT_GROUPS,
+    SEGMENTS,
+    cross_validate,
+)
 from mrrig.offline.training.gru import DEFAULT_HIDDEN as GRU_HIDDEN
 from mrrig.offline.training.kinds import (
     GRU,
@@ -476,7 +481,8 @@ def _parser(cfg: TrainConfig) -> argparse.ArgumentParser:
         metavar="K",
         help="the other-test estimate: leave-one-test-out over the tests (files) given, up to"
         " K tests; K folds of tests beyond (default %(default)s; 0: none). One test: its"
-        f" {SEGMENTS} segments left out in turn (the same test: optimistic)",
+        f" {SEGMENTS} segments dealt by character into {SEGMENT_GROUPS} groups, each left out in"
+        " turn, its neighbours not trained on (the same test: optimistic)",
     )
     return ap
 

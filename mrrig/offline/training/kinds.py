@@ -7,7 +7,7 @@ tests are given (a file is a test), leave one test out (up to `max_folds` tests,
 tests beyond); on one test, its segments dealt by character (amplitude, frequency, command
 level) into groups, each left out in turn with its neighbours kept out of training. Each fold
 is fitted on the rest by the kind's fold fit: the final model's procedure cut down to fit the
-time budget (an MLP: `FOLD_ROWS` LM rows, at most `FOLD_EPOCHS` epochs, one start; a GRU: the
+time budget (an MLP: `fold_rows` LM rows, at most `FOLD_EPOCHS` epochs, one start; a GRU: the
 seconds a fold may take). Beside it, each kind's block hold-out (the fold fit on the training
 blocks, scored on the last part of each run) is printed, the optimistic alternative, and the
 kind it would have chosen. The choice (search and folds) runs within `budget_s`
@@ -49,19 +49,21 @@ from mrrig.offline.training.crossval import (
 )
 from mrrig.offline.training.data import run_ids, sample_period, stretch_bounds, stretches
 from mrrig.offline.training.features import COIL_LAG_TAU_S, feature_rows, features
-from mrrig.offline.training.fit import HOLDOUT_FRACTION, block_split, train_forward
+from mrrig.offline.training.fit import FIT_ROWS, HOLDOUT_FRACTION, block_split, train_forward
 from mrrig.offline.training.gru import DEFAULT_HIDDEN as GRU_HIDDEN
 from mrrig.offline.training.gru import fit_gru, gru_forces
 from mrrig.offline.training.report import EtSum, predict
-from mrrig.offline.training.select import Candidate, command_varies
+from mrrig.offline.training.select import Candidate, command_varies, equal_work_rows
 
 log = logging.getLogger(__name__)
 
 STATIC_MLP, HISTORY_MLP, GRU, TWIN = "static MLP", "history MLP", "GRU", "Bouc-Wen twin"
-KIND_NAMES = (STATIC_MLP, HISTORY_MLP, TWIN, GRU)  # what `model_kinds` builds, in this order
+KIND_NAMES = (STATIC_MLP, HISTORY_MLP, TWIN, GRU)  # what `model_kinds` builds
 CHOICE_BUDGET_S = 300.0  # the choice's time (search and folds) by default, s
 SEARCH_SHARE = 0.3  # of the budget, the MLP structure search's at most
-FOLD_ROWS = 3000  # an MLP fold fit's LM rows
+FOLD_ROWS = 3000  # an MLP fold fit's LM rows at least; more for a smaller network, the same
+FOLD_WORK = 8000 * 281**2  # LM work (rows x weights^2: 8000 rows of a 12-20-1 MLP), up to
+FOLD_MAX_ROWS = FIT_ROWS  # the final fit's rows
 FOLD_EPOCHS = 150  # an MLP fold fit's LM epochs at most
 GRU_MIN_FOLD_S = 20.0  # the GRU is not tried where its folds would get less each
 TWIN_MIN_FOLD_S = 3.0  # nor the twin (its least-squares fit: seconds even on little data)
@@ -140,7 +142,7 @@ def mlp_kind(
             split="blocks",
             holdout_fraction=holdout_fraction,
             hidden=cand.hidden,
-            max_fit_rows=FOLD_ROWS,
+            max_fit_rows=fold_rows(cand),
             rows_per_weight=0,
             **feat,
         )
@@ -154,6 +156,12 @@ def mlp_kind(
     return ModelKind(
         name, label, fit_mlp, forces, lambda m: _network_controller(m, i_max, ahead), fold_mlp
     )
+
+
+def fold_rows(cand: Candidate) -> int:
+    """An MLP fold fit's LM rows: the same work (`FOLD_WORK`) whatever its size, within
+    `FOLD_ROWS` and `FOLD_MAX_ROWS`."""
+    return equal_work_rows(cand, FOLD_WORK, FOLD_ROWS, FOLD_MAX_ROWS)
 
 
 def _stretch_runs(series: Series) -> tuple[list[Run], list[np.ndarray]]:
@@ -464,7 +472,8 @@ def choose_kind(
     report = {
         "method": method,
         "estimate": "other tests" if several else "segments of different character",
-        "fold_fit": f"MLPs {FOLD_ROWS} LM rows, <= {FOLD_EPOCHS} epochs, one start; the GRU"
+        "fold_fit": f"MLPs {FOLD_ROWS}-{FOLD_MAX_ROWS} LM rows (the same work whatever the"
+        f" size), <= {FOLD_EPOCHS} epochs, one start; the GRU"
         " the seconds a fold may take; the twin as fitted",
         "optimistic": not several,
         "budget_s": end - t_start,
@@ -529,11 +538,12 @@ def model_kinds(
     i_max: float,
 ) -> tuple[list[ModelKind], dict[str, Candidate], dict[str, str]]:
     """The kinds to choose among, the MLP structures of the two MLP kinds, and the kinds left
-    out with why: the static and history MLPs of the structure search (`search`), the twin and
-    the GRU (the slowest to fit: last, so that the search's time cuts it first)."""
+    out with why: the static and history MLPs of the structure search (`search`; the one it
+    found better first: the first kind is scored whatever the budget), the twin and the GRU
+    (the slowest to fit: last, so that the budget cuts them first)."""
     cands = best_candidates(search)
     kinds, left_out = [], {}
-    for name in (STATIC_MLP, HISTORY_MLP):
+    for name in sorted((STATIC_MLP, HISTORY_MLP), key=lambda n: _search_et(search, n)):
         if name in cands:
             kinds.append(
                 mlp_kind(
@@ -554,6 +564,16 @@ def model_kinds(
         gru_kind(seed=seed, holdout_fraction=holdout_fraction, lag_tau_s=lag["tau_s"], i_max=i_max)
     )
     return kinds, cands, left_out
+
+
+def _search_et(search: dict[str, Any], name: str) -> float:
+    """The structure search's lowest CV Et of the MLP kind `name` (inf where it tried none)."""
+    ets = [
+        c["cv_et"]
+        for c in search["candidates"]
+        if bool(c["history_samples"]) == (name == HISTORY_MLP)
+    ]
+    return min(ets, default=math.inf)
 
 
 def _period(series: Series) -> float:
