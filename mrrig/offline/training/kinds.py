@@ -49,7 +49,7 @@ from mrrig.offline.training.crossval import (
 )
 from mrrig.offline.training.data import run_ids, sample_period, stretch_bounds, stretches
 from mrrig.offline.training.features import COIL_LAG_TAU_S, feature_rows, features
-from mrrig.offline.training.fit import FIT_ROWS, HOLDOUT_FRACTION, block_split, train_forward
+from mrrig.offline.training.fit import HOLDOUT_FRACTION, block_split, train_forward
 from mrrig.offline.training.gru import DEFAULT_HIDDEN as GRU_HIDDEN
 from mrrig.offline.training.gru import fit_gru, gru_forces
 from mrrig.offline.training.report import EtSum, predict
@@ -63,7 +63,7 @@ CHOICE_BUDGET_S = 300.0  # the choice's time (search and folds) by default, s
 SEARCH_SHARE = 0.3  # of the budget, the MLP structure search's at most
 FOLD_ROWS = 3000  # an MLP fold fit's LM rows at least; more for a smaller network, the same
 FOLD_WORK = 8000 * 281**2  # LM work (rows x weights^2: 8000 rows of a 12-20-1 MLP), up to
-FOLD_MAX_ROWS = FIT_ROWS  # the final fit's rows
+FOLD_MAX_ROWS = 6000  # at most (a static MLP at its equal-work rows, 12771, took 97 s for 38 folds)
 FOLD_EPOCHS = 150  # an MLP fold fit's LM epochs at most
 GRU_MIN_FOLD_S = 20.0  # the GRU is not tried where its folds would get less each
 TWIN_MIN_FOLD_S = 3.0  # nor the twin (its least-squares fit: seconds even on little data)
