@@ -55,6 +55,7 @@ def test_the_lowest_et_within_the_loops_budget_wins_and_the_reason_says_so():
 def test_features_auto_lists_every_kind_and_writes_the_lowest_et_within_budget(tmp_path, capsys):
     out, report = tmp_path / "model.json", tmp_path / "report.json"
     args = [*map(str, FILES), "--features", "auto", "--out", str(out), "--report", str(report)]
+    args += ["--budget-s", "900"]  # every kind tried
     assert train_main([*args, "--epochs", "30", "--restarts", "1", "--no-supervised"]) == 0
     text = capsys.readouterr().out
     print(text)
