@@ -201,11 +201,13 @@ def cross_validate_with(
     max_folds: int = MAX_FOLDS,
     seed: int = 0,
     deadline: float | None = None,
+    how: str = "as the model is (one start)",
 ) -> dict[str, Any]:
     """`cross_validate` of any forward model: `train(series)` fits one on the other tests,
     `forces(model, held)` gives the (measured, predicted) force of a left-out test's rows.
     `deadline` (`time.perf_counter()`'s): after each fold, OverBudget is raised where the
-    folds left, at the mean time of those done, would end after it."""
+    folds left, at the mean time of those done, would end after it. `how`: how each fold is
+    trained, for the report."""
     t0 = time.perf_counter()
     group, labels, kind = leave_out_groups(series, tests, names)
     gap = round(GUARD_FRACTION * len(series) / SEGMENTS)
@@ -251,8 +253,7 @@ def cross_validate_with(
         else f"{n_folds}-fold over {len(labels)} {kind}s (dealt at random, seed {seed})"
     )
     method = (
-        folds_text + ": each fold trained on the others as the model is (one start), scored"
-        f" on the {kind}s it left out"
+        folds_text + f": each fold trained on the others {how}, scored on the {kind}s it left out"
     )
     if kind == "segment":
         method += (

@@ -386,7 +386,15 @@ def _score_kind(
         return y, f
 
     cv = cross_validate_with(
-        series, tests, names, train, held, max_folds=max_folds, seed=seed, deadline=deadline
+        series,
+        tests,
+        names,
+        train,
+        held,
+        max_folds=max_folds,
+        seed=seed,
+        deadline=deadline,
+        how="cut down to the time budget (the kind choice says how)",
     )
     model = last[0]
     block = _block_et(kind, series, holdout_fraction, fold_s)
