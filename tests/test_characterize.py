@@ -347,7 +347,8 @@ def test_characterize_train_validate_from_the_command_line(tmp_path, bridge, pro
     log_char, _ = p.communicate(timeout=120)
     assert p.returncode == 0, log_char
     t1 = time.monotonic()
-    p = _mrrig(procs, "train", str(out / "matrix.csv"), "--out", str(model), "--no-supervised")
+    p = _mrrig(procs, "train", str(out / "matrix.csv"), "--out", str(model), "--no-supervised",
+               "--features", "manual")  # fmt: skip
     log_train, _ = p.communicate(timeout=120)
     assert p.returncode == 0, log_train
     t2 = time.monotonic()

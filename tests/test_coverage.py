@@ -76,7 +76,7 @@ def zero_volt_model(tmp_path_factory):
     out = tmp_path_factory.mktemp("coverage") / "m.json"
     files = [LAB / "ensaio1.1.csv", LAB / "ensaio2.1.csv", LAB / "ensaio1.2.2.csv"]
     args = [*map(str, files), "--out", str(out), "--no-supervised", "--restarts", "1"]
-    assert train_main([*args, "--epochs", "30", "--cv-folds", "0"]) == 0
+    assert train_main([*args, "--epochs", "30", "--cv-folds", "0", "--features", "manual"]) == 0
     return out
 
 

@@ -16,7 +16,7 @@ from mrrig.offline.evaluate import main as evaluate_main
 from mrrig.offline.metrics import error_norm
 from mrrig.offline.training import features, train_forward
 from mrrig.offline.training.crossval import (
-    SEGMENTS,
+    SEGMENT_GROUPS,
     cross_validate,
     fold_of_groups,
     subset,
@@ -94,7 +94,7 @@ def test_one_test_is_cut_into_segments_and_called_optimistic(lab):
     series, tests, names = lab
     one = subset(series, tests == 0)
     cv = cross_validate(one, np.zeros(len(one), int), names[:1], OPTIONS, max_epochs=20)
-    assert cv["kind"] == "segment" and cv["optimistic"] and cv["folds"] == SEGMENTS
+    assert cv["kind"] == "segment" and cv["optimistic"] and cv["folds"] == SEGMENT_GROUPS
     assert all(g["n"] > 0 for g in cv["per_group"])
     assert "optimistic" in "\n".join(format_other_tests(cv))
 
@@ -124,6 +124,7 @@ def test_train_reports_et_per_test_and_keeps_validation_tests_out(tmp_path, caps
     held = LAB / "ensaio3.1.csv"
     args = [*map(str, FILES[:3]), "--validate", str(held), "--out", str(model)]
     args += ["--report", str(report), "--no-supervised", "--restarts", "1", "--epochs", "30"]
+    args += ["--features", "manual"]
     assert train_main(args) == 0
     out = capsys.readouterr().out
     print(out)
@@ -156,6 +157,7 @@ def test_a_validation_test_that_is_also_trained_on_is_refused_with_one_line(tmp_
 def test_evaluate_prints_et_per_test_and_the_pooled_overall(tmp_path, capsys, lab):
     model = tmp_path / "m.json"
     args = [str(FILES[0]), str(FILES[2]), "--out", str(model), "--no-supervised"]
+    args += ["--features", "manual"]
     assert train_main([*args, "--restarts", "1", "--epochs", "20", "--cv-folds", "0"]) == 0
     assert "other-test estimate" not in capsys.readouterr().out  # --cv-folds 0: none
     e = tmp_path / "e.json"

@@ -120,7 +120,7 @@ def test_config_csv_column_map_and_units_load_a_foreign_csv(tmp_path, tiny):
         '[csv]\ncolumns = { t = "time_ms", x = "Pos", current = "I", force = "F" }\n'
         'units = { t = "ms", x = "cm", current = "mA", force = "kN" }\n',
     )
-    m = _train(other, tmp_path / "fwd.json", "--config", str(cfg), *FAST)
+    m = _train(other, tmp_path / "fwd.json", "--config", str(cfg), "--features", "manual", *FAST)
     expected = load_training_data([other], columns, units)
     assert m.meta["data_fingerprint"] == series_fingerprint(expected)
 
@@ -157,6 +157,7 @@ def test_supervised_flag_wins_over_a_config_without_it(tmp_path, data):
     cfg = _config(tmp_path, "[training]\nsupervised = false\nepochs = 3\n")
     sup = tmp_path / "sup.json"
     argv = ["--config", str(cfg), "--supervised", "--supervised-out", str(sup)]
+    argv += ["--features", "manual"]
     _train(data, tmp_path / "fwd.json", *argv)
     assert MLP.load(sup).output_name == "current"
 

@@ -4,11 +4,13 @@ DATA are tidy characterization CSVs, daemon recordings (.rrd) or other CSVs with
 (`--columns x=Pos,force=F,current=I,t=time`) and units (`--units x=cm,force=kN`), or headers
 that name field and unit (`x_cm`, `command_v`). Bad stretches (saturation, idle, transients)
 are excluded unless `--keep-all`; the end of each run is held out (`--split blocks`);
-`--features auto` (default where the command changes within runs) chooses the inputs and the
-hidden size by cross-validation on the training blocks: over whole tests where several are
-given (a file is a test), else over time blocks; then the kind of model among the static MLP,
-the history MLP, the GRU and the Bouc-Wen twin, by leaving whole tests out (the block hold-out of a
-single test, labelled optimistic), within the loop's work per frame. A twin chosen is written
+`--features auto` (the default) chooses the inputs and the hidden size by cross-validation on
+the training blocks: over whole tests where several are given (a file is a test), else over
+time blocks; then the kind of model among the static MLP, the history MLP, the GRU and the
+Bouc-Wen twin by the other-test estimate: leaving whole tests out, or on a single test its
+segments of different character (amplitude, frequency, command level), never their
+neighbours; within the loop's work per frame and `--budget-s` (the block hold-out of each kind
+printed beside, optimistic). A twin chosen is written
 as a plant file (network inversion inverts it, firmware_sim runs it), a GRU as its file. The
 block hold-out is optimistic (its neighbours were trained on): the report puts the
 other-test estimate beside it (leave one test out, `--cv-folds`) and the Et of tests kept out
@@ -24,6 +26,7 @@ from __future__ import annotations
 import argparse
 import logging
 import sys
+import time
 from dataclasses import replace
 from pathlib import Path
 from typing import Any
@@ -45,10 +48,16 @@ from mrrig.offline.training import (
     check_history,
     train_and_validate,
 )
-from mrrig.offline.training.crossval import MAX_FOLDS, SEGMENTS, cross_validate
+from mrrig.offline.training.crossval import (
+    MAX_FOLDS,
+    SEGMENT_GROUPS,
+    SEGMENTS,
+    cross_validate,
+)
 from mrrig.offline.training.gru import DEFAULT_HIDDEN as GRU_HIDDEN
 from mrrig.offline.training.kinds import (
     GRU,
+    SEARCH_SHARE,
     TWIN,
     ModelKind,
     choose_kind,
@@ -56,7 +65,7 @@ from mrrig.offline.training.kinds import (
     model_kinds,
 )
 from mrrig.offline.training.report import MetricError, check_finite
-from mrrig.offline.training.select import choose_features, command_varies
+from mrrig.offline.training.select import choose_features
 from mrrig.offline.training.stream import sample_tests, training_subset
 
 log = logging.getLogger(__name__)
@@ -171,16 +180,24 @@ def format_kinds(k: dict[str, Any] | None) -> list[str]:
     """The kind of model chosen (`kinds.choose_kind`): every kind's Et and work per frame."""
     if k is None:
         return []
-    lines = [f"kind of model: {k['method']}"]
+    lines = [
+        f"kind of model, chosen by the {k['estimate']} estimate: {k['method']}",
+        f"  folds fitted cut down: {k['fold_fit']}; time budget {k['budget_s']:.0f} s"
+        f" (search and folds), spent {k['seconds']:.0f} s",
+    ]
     for c in k["kinds"]:
         budget = "" if c["in_budget"] else f" (over the {k['budget_us']:.0f} us budget)"
+        ratio = c["et"] / c["block_et"] if c["block_et"] > 0 else float("nan")
         lines.append(
-            f"  Et {c['et']:.4f}  work per frame {c['frame_cost_us']:5.0f} us"
+            f"  Et {c['et']:.4f}  block hold-out {c['block_et']:.4f} ({ratio:.1f}x optimistic)"
+            f"  work per frame {c['frame_cost_us']:5.0f} us"
             f"  {c['kind']}: {c['label']}{budget} ({c['seconds']:.0f} s)"
         )
     lines += [f"  not tried: {name} ({why})" for name, why in k["not_tried"].items()]
     ch = k["chosen"]
     lines.append(f"  chosen: {ch['kind']}, {ch['why']}")
+    if k["block_holdout_would_choose"] != ch["kind"]:
+        lines.append(f"  (the block hold-out would have chosen {k['block_holdout_would_choose']})")
     return lines
 
 
@@ -332,10 +349,18 @@ def _parser(cfg: TrainConfig) -> argparse.ArgumentParser:
         default=f.mode,
         help="auto: choose the command input (lag fitted), history and hidden size by blocked "
         "cross-validation on the training blocks, then the kind of model (static MLP, history "
-        "MLP, Bouc-Wen twin, GRU) by its Et on tests left out; manual: the flags below. "
-        "Default: auto where the command changes within runs, manual where it is held per run (the "
-        "characterization matrix) or where --current-input or --history is given; gru: a GRU "
-        "forward model (--gru-hidden units, --current-input, --lag-tau-s)",
+        "MLP, Bouc-Wen twin, GRU) by its other-test Et (tests left out; on one test, segments "
+        "of different character) within --budget-s; manual: the flags below. Default: auto, "
+        "manual where --current-input or --history is given; gru: a GRU forward model "
+        "(--gru-hidden units, --current-input, --lag-tau-s)",
+    )
+    ap.add_argument(
+        "--budget-s",
+        type=positive,
+        default=t.choice_budget_s,
+        help="features auto: the time of the structure search and the kinds' other-test folds,"
+        " s (a kind whose folds would not end within it is not tried, with why;"
+        " default %(default)g)",
     )
     ap.add_argument(
         "--gru-hidden",
@@ -456,7 +481,8 @@ def _parser(cfg: TrainConfig) -> argparse.ArgumentParser:
         metavar="K",
         help="the other-test estimate: leave-one-test-out over the tests (files) given, up to"
         " K tests; K folds of tests beyond (default %(default)s; 0: none). One test: its"
-        f" {SEGMENTS} segments left out in turn (the same test: optimistic)",
+        f" {SEGMENTS} segments dealt by character into {SEGMENT_GROUPS} groups, each left out in"
+        " turn, its neighbours not trained on (the same test: optimistic)",
     )
     return ap
 
@@ -584,14 +610,22 @@ def main(argv: list[str] | None = None) -> int:
                 f"{files}: {name} does not vary over the {len(series)} samples trained on"
                 f" (standard deviation {spread:.3g}): no model can be fitted to it"
             )
-    mode = args.features or ("manual" if manual_flags or not command_varies(series) else "auto")
+    mode = args.features or ("manual" if manual_flags else "auto")
     if mode == "gru":
         return write_gru(
             args, series, excluded, tests, test_names, columns, units, format_other_tests
         )
     search = kinds_report = cv = None
     if mode == "auto":
-        cand, search = choose_features(series, args.seed, args.holdout_fraction, tests=tests)
+        started = time.perf_counter()
+        deadline = started + args.budget_s
+        cand, search = choose_features(
+            series,
+            args.seed,
+            args.holdout_fraction,
+            budget_s=SEARCH_SHARE * args.budget_s,
+            tests=tests,
+        )
         i_max = args.i_max or max(float(np.max(series.current)), MIN_SCALE)
         kinds, cands, left_out = model_kinds(
             series,
@@ -609,6 +643,8 @@ def main(argv: list[str] | None = None) -> int:
             holdout_fraction=args.holdout_fraction,
             max_folds=args.cv_folds or MAX_FOLDS,
             seed=args.seed,
+            deadline=deadline,
+            started=started,
             not_built=left_out,
         )
         if best.name in (TWIN, GRU):

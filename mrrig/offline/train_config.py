@@ -6,7 +6,7 @@ Every section and field is optional; absent ones keep the command line's built-i
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 from mrrig.offline.datasets import CSV_UNITS
@@ -42,7 +42,8 @@ class FeaturesSection:
     history_signals: tuple[str, ...] = DEFAULT_HISTORY_SIGNALS
     history_stride: int = 1  # samples between history taps
     hidden: int = 30  # hidden neurons
-    mode: str | None = None  # "auto" | "manual"; absent: auto where the command varies in runs
+    mode: str | None = None  # "auto" | "manual"; absent: auto (manual where the file gives the
+    # structure, STRUCTURE_FIELDS, or --current-input or --history is given)
 
     def check(self) -> None:
         if self.mode not in (None, "auto", "manual"):
@@ -82,8 +83,11 @@ class TrainingSection:
     holdout_fraction: float = HOLDOUT_FRACTION
     i_max_a: float | None = None  # the inversion bound; absent: the data's largest current
     supervised: bool = True  # also train the supervised inverse MLP
+    choice_budget_s: float = 300.0  # features auto: the time of the search and the kinds' folds
 
     def check(self) -> None:
+        if not self.choice_budget_s > 0:
+            raise ValueError(f"choice_budget_s: must be positive, got {self.choice_budget_s}")
         if self.epochs < 1:
             raise ValueError(f"epochs: must be >= 1, got {self.epochs}")
         if self.seed < 0:
@@ -130,6 +134,23 @@ class TrainConfig:
     csv: CsvSection = field(default_factory=CsvSection)
 
 
+# a [features] table that gives any of these and no mode gives the structure: mode "manual"
+STRUCTURE_FIELDS = (
+    "current_input",
+    "lag_tau_s",
+    "history_samples",
+    "history_signals",
+    "history_stride",
+    "hidden",
+)
+
+
 def load_train_config(path: str | Path) -> TrainConfig:
-    """Load and check a training config; a one-line ConfigError naming file and field."""
-    return parse(TrainConfig, load_toml(path), str(path))
+    """Load and check a training config; a one-line ConfigError naming file and field. A
+    [features] table that gives the structure (`STRUCTURE_FIELDS`) and no mode is manual."""
+    raw = load_toml(path)
+    cfg = parse(TrainConfig, raw, str(path))
+    given = raw.get("features")
+    if cfg.features.mode is None and isinstance(given, dict) and set(given) & {*STRUCTURE_FIELDS}:
+        cfg = replace(cfg, features=replace(cfg.features, mode="manual"))
+    return cfg

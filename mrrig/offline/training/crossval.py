@@ -8,9 +8,14 @@ on its block; one start, where the final model keeps the best of its restarts by
 not by the force) and scored by forward Et (eqs 41-43) on each left-out test.
 
 A single test has no other test to judge on: it is cut into `SEGMENTS` contiguous segments,
-each left out whole in turn. That is still the same test, its signals and its conditions, so
-the figure is optimistic too; only another test (`mrrig train --validate FILE`) tells how a
-model holds elsewhere, and the report says so.
+each described by its character (`segment_character`: the displacement's amplitude, its
+frequency, the command's level), and the segments are dealt into `SEGMENT_GROUPS` groups of
+like character (ranked along the character's main direction), each group left out in turn: a
+model is judged on a character it was not fitted on. Training never takes the neighbours of a
+left-out segment: `GUARD_FRACTION` of a segment on each side of it is left out of that fold's
+training too (`guard`). That is still the same test, its sensors and its conditions, so the
+figure is optimistic too, if less than a block hold-out; only another test (`mrrig train
+--validate FILE`) tells how a model holds elsewhere, and the report says so.
 """
 
 from __future__ import annotations
@@ -34,7 +39,9 @@ from mrrig.offline.training.report import EtSum, predict
 log = logging.getLogger(__name__)
 
 MAX_FOLDS = 40  # leave-one-test-out up to so many tests; k-fold over tests beyond
-SEGMENTS = 4  # a single test is cut into so many segments, each left out in turn
+SEGMENTS = 8  # a single test is cut into so many segments,
+SEGMENT_GROUPS = 4  # dealt by character into so many groups, each left out in turn
+GUARD_FRACTION = 0.25  # of a segment, on each side of a left-out one, kept out of training
 
 
 def subset(series: Series, mask: np.ndarray) -> Series:
@@ -46,21 +53,85 @@ def subset(series: Series, mask: np.ndarray) -> Series:
     return replace(select(series, idx), run_id=(np.cumsum(new) - 1).astype(int))
 
 
+def segment_character(series: Series, group: np.ndarray, n: int) -> np.ndarray:
+    """Each of the `n` segments' character (rows): the displacement's amplitude (standard
+    deviation), its frequency (the velocity's RMS over the displacement's, rad/s) and the
+    command's mean level."""
+    out = np.zeros((n, 3))
+    for j in range(n):
+        m = group == j
+        if not m.any():
+            continue
+        amp = float(np.std(series.x[m]))
+        freq = float(np.sqrt(np.mean((series.xd[m] - series.xd[m].mean()) ** 2)))
+        out[j] = (amp, freq / amp if amp > 0 else 0.0, float(np.mean(series.current[m])))
+    return out
+
+
+def character_groups(character: np.ndarray, groups: int) -> np.ndarray:
+    """The group of each segment: ranked along the main direction of the standardized
+    character (its first principal component) and dealt in runs of like character, so that a
+    group left out differs from the segments trained on."""
+    z = character - character.mean(axis=0)
+    sd = z.std(axis=0)
+    z = z[:, sd > 0] / sd[sd > 0]
+    if z.shape[1] == 0:
+        score = np.arange(len(character), dtype=float)
+    else:
+        score = z @ np.linalg.svd(z, full_matrices=False)[2][0]
+    group = np.empty(len(character), dtype=int)
+    group[np.argsort(score, kind="stable")] = np.arange(len(character)) * groups // len(character)
+    return group
+
+
 def leave_out_groups(
     series: Series, tests: np.ndarray, names: Sequence[str]
 ) -> tuple[np.ndarray, list[str], str]:
     """(group of each sample, the groups' labels, "test" or "segment"): the tests, or for a
-    single test its `SEGMENTS` contiguous segments."""
+    single test its `SEGMENTS` contiguous segments dealt by character into `SEGMENT_GROUPS`."""
     if len(names) >= 2:
         return np.asarray(tests, dtype=int), [str(n) for n in names], "test"
     n = len(series)
-    group = np.arange(n) * SEGMENTS // max(n, 1)
+    segment = np.arange(n) * SEGMENTS // max(n, 1)
+    char = segment_character(series, segment, SEGMENTS)
+    by = character_groups(char, SEGMENT_GROUPS)
     labels = []
-    for j in range(SEGMENTS):
-        t = series.t[group == j]
-        span = f"{t[0]:.2f}-{t[-1]:.2f} s" if t.size else "empty"
-        labels.append(f"{names[0] if names else series.name} segment {j + 1} ({span})")
-    return group, labels, "segment"
+    for g in range(SEGMENT_GROUPS):
+        parts = []
+        for j in np.flatnonzero(by == g).tolist():
+            t = series.t[segment == j]
+            a, w, c = char[j]
+            parts.append(
+                f"{t[0]:.2f}-{t[-1]:.2f} s (amplitude {a:.3g}, {w / (2 * np.pi):.2f} Hz,"
+                f" command {c:.3g})"
+                if t.size
+                else "empty"
+            )
+        labels.append(f"{names[0] if names else series.name} segments {'; '.join(parts)}")
+    return by[segment], labels, "segment"
+
+
+def guard(out: np.ndarray, width: int) -> np.ndarray:
+    """`out` (a mask over samples in time order) widened by `width` samples on each side: the
+    neighbours of the left-out rows, kept out of training."""
+    if width <= 0 or not out.any():
+        return out
+    edge = np.flatnonzero(np.diff(np.concatenate([[0], out.astype(np.int8), [0]])))
+    wide = np.zeros(out.size + 1, dtype=np.int64)
+    for a, b in zip(edge[0::2].tolist(), edge[1::2].tolist(), strict=True):
+        wide[max(a - width, 0)] += 1
+        wide[min(b + width, out.size)] -= 1
+    return np.cumsum(wide[:-1]) > 0
+
+
+class OverBudget(Exception):
+    """A cross-validation whose folds would not end within its deadline (the message: the
+    projection from the folds so far)."""
+
+
+def fold_count(n_tests: int, max_folds: int = MAX_FOLDS) -> int:
+    """The folds of `cross_validate_with` over `n_tests` tests (one: its segment groups)."""
+    return min(n_tests, max_folds) if n_tests >= 2 else min(SEGMENT_GROUPS, max_folds)
 
 
 def fold_of_groups(n_groups: int, max_folds: int = MAX_FOLDS, seed: int = 0) -> np.ndarray:
@@ -129,11 +200,17 @@ def cross_validate_with(
     *,
     max_folds: int = MAX_FOLDS,
     seed: int = 0,
+    deadline: float | None = None,
+    how: str = "as the model is (one start)",
 ) -> dict[str, Any]:
     """`cross_validate` of any forward model: `train(series)` fits one on the other tests,
-    `forces(model, held)` gives the (measured, predicted) force of a left-out test's rows."""
+    `forces(model, held)` gives the (measured, predicted) force of a left-out test's rows.
+    `deadline` (`time.perf_counter()`'s): after each fold, OverBudget is raised where the
+    folds left, at the mean time of those done, would end after it. `how`: how each fold is
+    trained, for the report."""
     t0 = time.perf_counter()
     group, labels, kind = leave_out_groups(series, tests, names)
+    gap = round(GUARD_FRACTION * len(series) / SEGMENTS)
     fold = fold_of_groups(len(labels), max_folds, seed)
     n_folds = int(fold.max()) + 1 if fold.size else 0
     per = [EtSum() for _ in labels]
@@ -142,7 +219,10 @@ def cross_validate_with(
         out = np.isin(group, np.flatnonzero(fold == k))
         if out.all() or not out.any():
             continue
-        model = train(subset(series, ~out))
+        kept_out = guard(out, gap) if kind == "segment" else out
+        if kept_out.all():
+            continue
+        model = train(subset(series, ~kept_out))
         for j in np.flatnonzero(fold == k).tolist():
             held = subset(series, group == j)
             if len(held) == 0:
@@ -157,6 +237,14 @@ def cross_validate_with(
             ", ".join(labels[j] for j in np.flatnonzero(fold == k)),
             " ".join(f"{per[j].numbers()['et']:.4f}" for j in np.flatnonzero(fold == k)),
         )
+        spent, left = time.perf_counter() - t0, n_folds - k - 1
+        each = spent / (k + 1)
+        if deadline is not None and left and time.perf_counter() + each * left > deadline:
+            raise OverBudget(
+                f"its {n_folds} folds would take about {each * n_folds:.0f} s"
+                f" ({each:.0f} s each), over the budget"
+                f" ({max(deadline - t0, 0.0):.0f} s were left for it)"
+            )
     rows = [{kind: label, **s.numbers()} for label, s in zip(labels, per, strict=True)]
     ets = [r["et"] for r in rows if r["n"] and math.isfinite(r["et"])]
     folds_text = (
@@ -164,11 +252,18 @@ def cross_validate_with(
         if n_folds == len(labels)
         else f"{n_folds}-fold over {len(labels)} {kind}s (dealt at random, seed {seed})"
     )
+    method = (
+        folds_text + f": each fold trained on the others {how}, scored on the {kind}s it left out"
+    )
+    if kind == "segment":
+        method += (
+            f" ({SEGMENTS} segments dealt by character, amplitude, frequency and command"
+            f" level, into {len(labels)} groups; {GUARD_FRACTION:.0%} of a segment each side"
+            " of the left-out ones not trained on)"
+        )
     return {
         "kind": kind,
-        "method": folds_text
-        + ": each fold trained on the others as the model is (one start), scored on the"
-        f" {kind}s it left out",
+        "method": method,
         "optimistic": kind == "segment",
         "folds": n_folds,
         "per_group": rows,

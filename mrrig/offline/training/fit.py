@@ -210,9 +210,10 @@ def _fit_forward(
     description,
     hidden,
     max_rows,
+    rows_per_weight=ROWS_PER_WEIGHT,
 ):
     weights = hidden * (X.shape[1] + 2) + 1
-    rows = max(max_rows, min(MAX_FIT_ROWS, ROWS_PER_WEIGHT * weights))
+    rows = max(max_rows, min(MAX_FIT_ROWS, rows_per_weight * weights))
     fit, stop = fit_rows(X, split, rows, seed)
     log.info("training the forward network (MSE in N^2) on %d rows: %s", fit.size, split.rule)
     return train_lm(
@@ -249,9 +250,11 @@ def train_forward(
     history_stride: int = 1,
     hidden: int = DEFAULT_HIDDEN,
     max_fit_rows: int = FIT_ROWS,
+    rows_per_weight: int = ROWS_PER_WEIGHT,
 ) -> tuple[MLP, dict[str, Any]]:
     """The (4 + history)-hidden-1 forward network by Levenberg-Marquardt on the `split` of the
-    `features` rows (`fit_rows`), early-stopped on its stopping rows. `seed` draws the split
+    `features` rows (`fit_rows`: `max_fit_rows`, or `rows_per_weight` rows per weight where
+    more), early-stopped on its stopping rows. `seed` draws the split
     (random) or the subsample (blocks) and, unless `init_seed` is given, the initial
     weights. The model's meta records the options, the split and the data's fingerprint;
     the returned report has the training numbers and the split's rule."""
@@ -264,7 +267,19 @@ def train_forward(
     sp = make_split(split, stretches(run_ids(series))[rows], n_train, n_val, seed, holdout_fraction)
     init = seed if init_seed is None else init_seed
     model, tr = _fit_forward(
-        X, y, sp, names, units, seed, init, max_epochs, progress, series.name, hidden, max_fit_rows
+        X,
+        y,
+        sp,
+        names,
+        units,
+        seed,
+        init,
+        max_epochs,
+        progress,
+        series.name,
+        hidden,
+        max_fit_rows,
+        rows_per_weight,
     )
     model.meta.update(
         init_seed=init,

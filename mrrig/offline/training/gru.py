@@ -119,10 +119,13 @@ def fit_gru(
     window_s: float = WINDOW_S,
     burn_in_s: float = BURN_IN_S,
     u_in_cell: bool = False,
+    max_seconds: float | None = None,
 ) -> tuple[GRUModel, dict[str, Any]]:
     """A GRU forward model of `hidden` units fitted to the training blocks of `series` (module
     docstring); the report: epochs, best epoch, seconds, the split's rule, and `holdout_et`,
-    the block hold-out's Et (the optimistic figure: the same tests, later in time)."""
+    the block hold-out's Et (the optimistic figure: the same tests, later in time).
+    `max_seconds`: the training stops after the epoch that spends it (the best epoch kept;
+    the report's `time_limited` says so)."""
     import torch  # the offline work alone imports torch (import-linter)
 
     t0 = time.perf_counter()
@@ -193,6 +196,7 @@ def fit_gru(
         stop_t = tuple(torch.from_numpy(a) for a in (Xs, ys_, ms))
     best = (np.inf, 0, [p.detach().clone() for p in params])
     epoch = fails = 0
+    time_limited = False
     for epoch in range(1, max_epochs + 1):
         opt.zero_grad()
         loss = loss_of(*fit_t)
@@ -208,6 +212,9 @@ def fit_gru(
             fails += 1
             if fails >= MAX_FAIL:
                 break
+        if max_seconds is not None and time.perf_counter() - t0 > max_seconds:
+            time_limited = epoch < max_epochs
+            break
     with torch.no_grad():
         for p, b in zip(params, best[2], strict=True):
             p.copy_(b)
@@ -259,6 +266,7 @@ def fit_gru(
         "stop_windows": len(stop_starts),
         "epochs": epoch,
         "best_epoch": best[1],
+        "time_limited": time_limited,
         "stop_loss": best[0],
         "seconds": time.perf_counter() - t0,
         "holdout_et": holdout_et,

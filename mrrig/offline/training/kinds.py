@@ -1,21 +1,26 @@
-"""Choosing the kind of forward model (`mrrig train --features auto`): the static MLP, the
-history MLP, the GRU and the Bouc-Wen twin, by how each holds on tests it never saw.
+"""Choosing the kind of forward model (`mrrig train`'s default, `--features auto`): the static
+MLP, the history MLP, the GRU and the Bouc-Wen twin, by how each holds on data it never saw,
+for every kind of data.
 
-Where several tests are given (a file is a test), each kind is judged by leaving whole tests
-out (`crossval.cross_validate_with`: leave-one-test-out up to `max_folds` tests, k-fold over
-tests beyond), each fold fitted on the other tests as the final model is (its own time-block
-hold-out kept out). With one test there is no other test: each kind is fitted on the training
-blocks and scored on the block hold-out (the last part of each run), a figure that looks
-better than another test would, and labelled so (it also chooses, so it is no longer a clean
-figure for the chosen kind). The MLP structures come from `select.choose_features`: the
-static MLP is its best candidate without history inputs, the history MLP its best with them.
-The GRU is `training.gru.fit_gru` with its defaults. The twin is `mrrig identify`'s fit
+Each kind is judged by the other-test estimate (`crossval.cross_validate_with`): where several
+tests are given (a file is a test), leave one test out (up to `max_folds` tests, k-fold over
+tests beyond); on one test, its segments dealt by character (amplitude, frequency, command
+level) into groups, each left out in turn with its neighbours kept out of training. Each fold
+is fitted on the rest by the kind's fold fit: the final model's procedure cut down to fit the
+time budget (an MLP: `fold_rows` LM rows, at most `FOLD_EPOCHS` epochs, one start; a GRU: the
+seconds a fold may take). Beside it, each kind's block hold-out (the fold fit on the training
+blocks, scored on the last part of each run) is printed, the optimistic alternative, and the
+kind it would have chosen. The choice (search and folds) runs within `budget_s`
+(`CHOICE_BUDGET_S` by default): a kind whose folds would not end within what is left (projected
+from its first folds, or from the least a fold of it needs: `GRU_MIN_FOLD_S`,
+`TWIN_MIN_FOLD_S`) is not tried, with why; the first kind is scored whatever the budget.
+The MLP structures come from `select.choose_features`: the static MLP is its best candidate
+without history inputs, the history MLP its best with them. The twin is `mrrig identify`'s fit
 (`offline.identify.fit`) on the training rows, at most `TWIN_FIT_WINDOWS` windows of them;
 eq. 36's eta stays at the start's where the command is held per run (such data cannot tell
 the lag, and the fit would take it anywhere). A kind whose daemon controller's work per frame
 (`model_fit.frame_cost_s`, the check the daemon makes when it loads the model) is over the
-loop's budget is not chosen; among the others the lowest Et wins. A kind that cannot be built
-here, or for which the search time was spent, is listed as not tried, with why.
+loop's budget is not chosen; among the others the lowest other-test Et wins.
 """
 
 from __future__ import annotations
@@ -36,20 +41,32 @@ from mrrig.loop.twin_model import SUBSTEP_S, TwinModel
 from mrrig.offline.datasets import Series
 from mrrig.offline.identify.fit import FREE, Run, fit, run_force
 from mrrig.offline.identify.identify import start_plant
-from mrrig.offline.training.crossval import MAX_FOLDS, cross_validate_with
+from mrrig.offline.training.crossval import (
+    MAX_FOLDS,
+    OverBudget,
+    cross_validate_with,
+    fold_count,
+)
 from mrrig.offline.training.data import run_ids, sample_period, stretch_bounds, stretches
 from mrrig.offline.training.features import COIL_LAG_TAU_S, feature_rows, features
 from mrrig.offline.training.fit import HOLDOUT_FRACTION, block_split, train_forward
 from mrrig.offline.training.gru import DEFAULT_HIDDEN as GRU_HIDDEN
 from mrrig.offline.training.gru import fit_gru, gru_forces
 from mrrig.offline.training.report import EtSum, predict
-from mrrig.offline.training.select import Candidate, command_varies
+from mrrig.offline.training.select import Candidate, command_varies, equal_work_rows
 
 log = logging.getLogger(__name__)
 
 STATIC_MLP, HISTORY_MLP, GRU, TWIN = "static MLP", "history MLP", "GRU", "Bouc-Wen twin"
-KIND_NAMES = (STATIC_MLP, HISTORY_MLP, TWIN, GRU)  # what `model_kinds` builds, in this order
-KINDS_BUDGET_S = 1800.0  # kinds left when this is spent are not tried (the report says)
+KIND_NAMES = (STATIC_MLP, HISTORY_MLP, TWIN, GRU)  # what `model_kinds` builds
+CHOICE_BUDGET_S = 300.0  # the choice's time (search and folds) by default, s
+SEARCH_SHARE = 0.3  # of the budget, the MLP structure search's at most
+FOLD_ROWS = 3000  # an MLP fold fit's LM rows at least; more for a smaller network, the same
+FOLD_WORK = 8000 * 281**2  # LM work (rows x weights^2: 8000 rows of a 12-20-1 MLP), up to
+FOLD_MAX_ROWS = 6000  # at most (a static MLP at its equal-work rows, 12771, took 97 s for 38 folds)
+FOLD_EPOCHS = 150  # an MLP fold fit's LM epochs at most
+GRU_MIN_FOLD_S = 20.0  # the GRU is not tried where its folds would get less each
+TWIN_MIN_FOLD_S = 3.0  # nor the twin (its least-squares fit: seconds even on little data)
 COST_DT_S = 0.002  # the rig's period, at which the work per frame is measured
 # the twin's fit: at most so many windows of its training rows (each 0.5 s scored after 0.2 s
 # from rest: `identify.fit.windows`), spread evenly, and so many least-squares evaluations
@@ -61,13 +78,20 @@ TWIN_MAX_EVALUATIONS = 60
 @dataclass(frozen=True)
 class ModelKind:
     """A kind of forward model: how to fit one to a Series (its own block hold-out kept out),
-    the (rows, measured, predicted) force of a Series' rows, and the daemon's controller."""
+    the (rows, measured, predicted) force of a Series' rows, the daemon's controller, and the
+    fit of a cross-validation fold (given the seconds it may take; cut down from `fit` to fit
+    the choice's budget), with the least seconds a fold of it needs (0: no floor)."""
 
     name: str
     label: str
     fit: Callable[[Series], Any]
     forces: Callable[[Any, Series], tuple[np.ndarray, np.ndarray, np.ndarray]]
     controller: Callable[[Any], Controller]
+    fold_fit: Callable[[Series, float], Any] | None = None
+    min_fold_s: float = 0.0
+
+    def fit_fold(self, series: Series, seconds: float) -> Any:
+        return self.fit(series) if self.fold_fit is None else self.fold_fit(series, seconds)
 
 
 def _network_controller(model: Any, i_max: float, ahead: bool) -> Controller:
@@ -110,12 +134,34 @@ def mlp_kind(
         )
         return model
 
+    def fold_mlp(series: Series, _seconds: float) -> Any:
+        model, _ = train_forward(
+            series,
+            seed=seed,
+            max_epochs=min(max_epochs, FOLD_EPOCHS),
+            split="blocks",
+            holdout_fraction=holdout_fraction,
+            hidden=cand.hidden,
+            max_fit_rows=fold_rows(cand),
+            rows_per_weight=0,
+            **feat,
+        )
+        return model
+
     def forces(model: Any, series: Series) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         X, y = features(series, **feat)
         return feature_rows(series, cand.history_samples, cand.history_stride), y, predict(model, X)
 
     ahead = cand.history_samples == 0
-    return ModelKind(name, label, fit_mlp, forces, lambda m: _network_controller(m, i_max, ahead))
+    return ModelKind(
+        name, label, fit_mlp, forces, lambda m: _network_controller(m, i_max, ahead), fold_mlp
+    )
+
+
+def fold_rows(cand: Candidate) -> int:
+    """An MLP fold fit's LM rows: the same work (`FOLD_WORK`) whatever its size, within
+    `FOLD_ROWS` and `FOLD_MAX_ROWS`."""
+    return equal_work_rows(cand, FOLD_WORK, FOLD_ROWS, FOLD_MAX_ROWS)
 
 
 def _stretch_runs(series: Series) -> tuple[list[Run], list[np.ndarray]]:
@@ -229,6 +275,7 @@ def twin_kind(
         fit_twin,
         forces,
         lambda p: _network_controller(TwinModel(p), i_max, True),
+        min_fold_s=TWIN_MIN_FOLD_S,
     )
 
 
@@ -237,20 +284,33 @@ def gru_kind(*, seed: int, holdout_fraction: float, lag_tau_s: float, i_max: flo
     (`lag_tau_s`: the structure search's fitted lag where it fitted one), run over each
     stretch from the zero state (`gru_forces`)."""
 
-    def fit(series: Series) -> Any:
+    def fit(series: Series, seconds: float | None = None) -> Any:
         model, report = fit_gru(
-            series, seed=seed, holdout_fraction=holdout_fraction, lag_tau_s=lag_tau_s
+            series,
+            seed=seed,
+            holdout_fraction=holdout_fraction,
+            lag_tau_s=lag_tau_s,
+            max_seconds=seconds,
         )
         log.info(
-            "GRU fitted: best epoch %d of %d, %.0f s",
+            "GRU fitted: best epoch %d of %d%s, %.0f s",
             report["best_epoch"],
             report["epochs"],
+            " (time limit)" if report["time_limited"] else "",
             report["seconds"],
         )
         return model
 
     label = f"{GRU_HIDDEN} units, the command lagged {lag_tau_s * 1e3:.2f} ms"
-    return ModelKind(GRU, label, fit, gru_forces, lambda m: _network_controller(m, i_max, True))
+    return ModelKind(
+        GRU,
+        label,
+        fit,
+        gru_forces,
+        lambda m: _network_controller(m, i_max, True),
+        fit,
+        GRU_MIN_FOLD_S,
+    )
 
 
 def best_candidates(search: dict[str, Any]) -> dict[str, Candidate]:
@@ -272,13 +332,25 @@ def best_candidates(search: dict[str, Any]) -> dict[str, Candidate]:
 class KindScore:
     name: str
     label: str
-    et: float
+    et: float  # the other-test estimate (pooled over the left-out rows)
     per_group: list[dict[str, Any]]
     frame_cost_us: float
     in_budget: bool
     seconds: float
-    model: Any = None  # the last model fitted (a fold's, or the block fit's)
+    model: Any = None  # the last model fitted (a fold's)
     other_tests: dict[str, Any] | None = None  # the cross-validation's own report
+    block_et: float = math.nan  # the fold fit on the training blocks, on the block hold-out
+
+
+def _block_et(kind: ModelKind, series: Series, holdout_fraction: float, seconds: float) -> float:
+    """The kind's block hold-out Et: its fold fit on the training blocks (the last part of
+    each run kept out), scored on that last part."""
+    model = kind.fit_fold(series, seconds)
+    rows, y, f = kind.forces(model, series)
+    val = block_holdout(series, rows, holdout_fraction)
+    s = EtSum()
+    s.add(y[val], f[val])
+    return float(s.numbers()["et"])
 
 
 def _score_kind(
@@ -290,42 +362,54 @@ def _score_kind(
     holdout_fraction: float,
     max_folds: int,
     seed: int,
+    deadline: float,
 ) -> KindScore:
+    """The kind's other-test estimate within `deadline` (OverBudget where it would not end),
+    then its block hold-out."""
     t0 = time.perf_counter()
+    n_folds = fold_count(len(names), max_folds)
+    fold_s = (deadline - t0) / (n_folds + 1)
+    if fold_s < kind.min_fold_s:
+        raise OverBudget(
+            f"its {n_folds} folds and the block fit need at least {kind.min_fold_s:.0f} s each,"
+            f" {kind.min_fold_s * (n_folds + 1):.0f} s; {max(deadline - t0, 0.0):.0f} s of the"
+            " budget were left"
+        )
     last: list[Any] = []
-    if len(names) >= 2:
 
-        def train(part: Series) -> Any:
-            last[:] = [kind.fit(part)]
-            return last[0]
+    def train(part: Series) -> Any:
+        last[:] = [kind.fit_fold(part, fold_s)]
+        return last[0]
 
-        def held(model: Any, part: Series) -> tuple[np.ndarray, np.ndarray]:
-            _, y, f = kind.forces(model, part)
-            return y, f
+    def held(model: Any, part: Series) -> tuple[np.ndarray, np.ndarray]:
+        _, y, f = kind.forces(model, part)
+        return y, f
 
-        cv = cross_validate_with(series, tests, names, train, held, max_folds=max_folds, seed=seed)
-        et, per, model = cv["overall"]["et"], cv["per_group"], last[0]
-    else:
-        cv = None
-        model = kind.fit(series)
-        rows, y, f = kind.forces(model, series)
-        val = block_holdout(series, rows, holdout_fraction)
-        s = EtSum()
-        s.add(y[val], f[val])
-        et = s.numbers()["et"]
-        label = names[0] if names else series.name
-        per = [{"test": f"{label} (block hold-out)", **s.numbers()}]
+    cv = cross_validate_with(
+        series,
+        tests,
+        names,
+        train,
+        held,
+        max_folds=max_folds,
+        seed=seed,
+        deadline=deadline,
+        how="cut down to the time budget (the kind choice says how)",
+    )
+    model = last[0]
+    block = _block_et(kind, series, holdout_fraction, fold_s)
     cost_s, _ = frame_cost_s(kind.controller(model), COST_DT_S)
     return KindScore(
         kind.name,
         kind.label,
-        float(et),
-        per,
+        float(cv["overall"]["et"]),
+        cv["per_group"],
         cost_s * 1e6,
         cost_s <= COST_BUDGET_S,
         time.perf_counter() - t0,
         model,
         cv,
+        block,
     )
 
 
@@ -338,58 +422,76 @@ def choose_kind(
     holdout_fraction: float = HOLDOUT_FRACTION,
     max_folds: int = MAX_FOLDS,
     seed: int = 0,
-    budget_s: float = KINDS_BUDGET_S,
+    deadline: float | None = None,
+    started: float | None = None,
     not_built: dict[str, str] | None = None,
 ) -> tuple[KindScore, dict[str, Any]]:
     """Each kind's other-test Et (module docstring), and the chosen one with the report: every
-    kind's Et, per test, work per frame and why the winner won. `not_built`: kinds left out
-    and why (listed in the report)."""
-    t_start = time.perf_counter()
+    kind's Et, per test, block hold-out, work per frame and why the winner won. `deadline`
+    (`time.perf_counter()`'s; default `CHOICE_BUDGET_S` from now): a kind that would not be
+    scored by then is not tried (the first kind is scored whatever the budget); `started`: when
+    the budget began (the report's budget and time spent count from it; default now).
+    `not_built`: kinds left out and why (listed in the report)."""
+    t_start = time.perf_counter() if started is None else started
+    end = t_start + CHOICE_BUDGET_S if deadline is None else deadline
     several = len(names) >= 2
     scores: list[KindScore] = []
     not_tried = dict(not_built or {})
     for kind in kinds:
-        if time.perf_counter() - t_start > budget_s:
-            not_tried[kind.name] = f"the search's {budget_s:.0f} s were spent"
-            log.info("kind %s: not tried (search time spent)", kind.name)
-            continue
         log.info("kind %s (%s): fitting and scoring", kind.name, kind.label)
-        sc = _score_kind(
-            kind,
-            series,
-            tests,
-            names,
-            holdout_fraction=holdout_fraction,
-            max_folds=max_folds,
-            seed=seed,
-        )
+        try:
+            sc = _score_kind(
+                kind,
+                series,
+                tests,
+                names,
+                holdout_fraction=holdout_fraction,
+                max_folds=max_folds,
+                seed=seed,
+                deadline=end if scores else math.inf,  # the first kind is always scored
+            )
+        except OverBudget as exc:
+            not_tried[kind.name] = f"not within the time budget: {exc}"
+            log.info("kind %s: not tried (%s)", kind.name, exc)
+            continue
         log.info(
-            "kind %s: Et %.4f on %s, work per frame %.0f us, %.0f s",
+            "kind %s: Et %.4f on the %s left out (block hold-out %.4f), work per frame %.0f us,"
+            " %.0f s",
             sc.name,
             sc.et,
-            "the tests left out" if several else "the block hold-out",
+            "tests" if several else "segments",
+            sc.block_et,
             sc.frame_cost_us,
             sc.seconds,
         )
         scores.append(sc)
     best, why = pick_kind(scores, several)
+    by_block, _ = pick_kind(scores, several, key="block_et") if scores else (best, "")
+    folds = fold_count(len(names), max_folds)
     method = (
         f"{'leave-one-test-out' if len(names) <= max_folds else f'{max_folds}-fold over tests'}"
         f" over {len(names)} tests: each kind fitted on the other tests, scored on the test"
         " left out"
         if several
-        else "one test: each kind fitted on the training blocks, scored on the block hold-out"
-        " (the last part of each run; optimistic: neighbours of the fitted rows, and it chooses)"
+        else f"one test: its segments of different character (amplitude, frequency, command"
+        f" level) in {folds} groups, each left out in turn with its neighbours not trained on;"
+        " each kind fitted on the rest (optimistic still: the same test)"
     )
     report = {
         "method": method,
+        "estimate": "other tests" if several else "segments of different character",
+        "fold_fit": f"MLPs {FOLD_ROWS}-{FOLD_MAX_ROWS} LM rows (the same work whatever the"
+        f" size), <= {FOLD_EPOCHS} epochs, one start; the GRU"
+        " the seconds a fold may take; the twin as fitted",
         "optimistic": not several,
+        "budget_s": end - t_start,
         "budget_us": COST_BUDGET_S * 1e6,
         "kinds": [
             {
                 "kind": s.name,
                 "label": s.label,
                 "et": s.et,
+                "block_et": s.block_et,
                 "per_group": s.per_group,
                 "frame_cost_us": s.frame_cost_us,
                 "in_budget": s.in_budget,
@@ -399,24 +501,25 @@ def choose_kind(
         ],
         "not_tried": not_tried,
         "chosen": {"kind": best.name, "label": best.label, "et": best.et, "why": why},
+        "block_holdout_would_choose": by_block.name,
         "seconds": time.perf_counter() - t_start,
     }
     return best, report
 
 
-def pick_kind(scores: list[KindScore], several: bool) -> tuple[KindScore, str]:
-    """The kind of the lowest Et among those within the loop's budget (of all, where none is),
-    and why it won."""
-    scored = [s for s in scores if math.isfinite(s.et)]
+def pick_kind(scores: list[KindScore], several: bool, key: str = "et") -> tuple[KindScore, str]:
+    """The kind of the lowest Et (`key`: the other-test estimate, or "block_et") among those
+    within the loop's budget (of all, where none is), and why it won."""
+    scored = [s for s in scores if math.isfinite(getattr(s, key))]
     if not scored:
         raise ValueError("no kind of model could be scored")
     pool = [s for s in scored if s.in_budget] or scored
-    best = min(pool, key=lambda s: s.et)
+    best = min(pool, key=lambda s: getattr(s, key))
     return best, _why(best, scored, several)
 
 
 def _why(best: KindScore, scored: list[KindScore], several: bool) -> str:
-    where = "on the tests left out" if several else "on the block hold-out"
+    where = "on the tests left out" if several else "on the segments left out"
     others = sorted((s for s in scored if s is not best), key=lambda s: s.et)
     text = f"the lowest Et {where} ({best.et:.4f})"
     in_budget = [s for s in others if s.in_budget]
@@ -443,11 +546,12 @@ def model_kinds(
     i_max: float,
 ) -> tuple[list[ModelKind], dict[str, Candidate], dict[str, str]]:
     """The kinds to choose among, the MLP structures of the two MLP kinds, and the kinds left
-    out with why: the static and history MLPs of the structure search (`search`), the twin and
-    the GRU (the slowest to fit: last, so that the search's time cuts it first)."""
+    out with why: the static and history MLPs of the structure search (`search`; the one it
+    found better first: the first kind is scored whatever the budget), the twin and the GRU
+    (the slowest to fit: last, so that the budget cuts them first)."""
     cands = best_candidates(search)
     kinds, left_out = [], {}
-    for name in (STATIC_MLP, HISTORY_MLP):
+    for name in sorted((STATIC_MLP, HISTORY_MLP), key=lambda n: _search_et(search, n)):
         if name in cands:
             kinds.append(
                 mlp_kind(
@@ -468,6 +572,16 @@ def model_kinds(
         gru_kind(seed=seed, holdout_fraction=holdout_fraction, lag_tau_s=lag["tau_s"], i_max=i_max)
     )
     return kinds, cands, left_out
+
+
+def _search_et(search: dict[str, Any], name: str) -> float:
+    """The structure search's lowest CV Et of the MLP kind `name` (inf where it tried none)."""
+    ets = [
+        c["cv_et"]
+        for c in search["candidates"]
+        if bool(c["history_samples"]) == (name == HISTORY_MLP)
+    ]
+    return min(ets, default=math.inf)
 
 
 def _period(series: Series) -> float:

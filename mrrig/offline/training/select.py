@@ -4,7 +4,9 @@ Cross-validation on the TRAINING rows only: the hold-out of every candidate (the
 of each run, `fit.block_split`) is set aside first; with several tests each fold is whole
 tests (`crossval.fold_of_groups`: a structure is judged on tests it never saw), with one test
 the rest of each run is cut into `FOLDS` contiguous blocks. Each candidate is fitted on the
-other folds (a coverage subsample of `SEARCH_FIT_ROWS`, at most `SEARCH_EPOCHS` LM epochs)
+other folds (a coverage subsample of `equal_work_rows`: the LM work of `SEARCH_FIT_ROWS` rows
+of a 12-30-1 network whatever the candidate's size, so that a larger one is not favoured by
+more work; at most `SEARCH_EPOCHS` LM epochs)
 and scored by Et on each fold in turn. The search is staged, each stage keeping the best so
 far: the command input (as commanded, or lagged with the time constant `features.fit_lag_tau`
 finds), then the history (depth in time, and its signals; then twice the taps over the best
@@ -44,11 +46,14 @@ log = logging.getLogger(__name__)
 
 FOLDS = 3
 SEARCH_FIT_ROWS = 3000
+SEARCH_WORK = SEARCH_FIT_ROWS * 421**2  # LM work, rows x weights^2 (a 12-30-1 MLP has 421)
+SEARCH_MIN_ROWS, SEARCH_MAX_ROWS = 1500, 12771
 SEARCH_EPOCHS = 120
 INVERSION_BUDGET_US = 20.0
 INVERSION_REPEATS = 7  # each row's inversion timed so often, its smallest time kept
 INVERSION_ROUNDS = 3  # rounds of repeats at most before a candidate is over the budget
-HISTORY_SPANS_S = (0.01, 0.02, 0.03, 0.04)  # history depth in time: taps over this span
+# history depth in time, taps over this span (the longer ones for slow data: 100 Hz sines)
+HISTORY_SPANS_S = (0.01, 0.02, 0.04, 0.08, 0.16)
 HISTORY_TAPS = 4
 HISTORY_SIGNAL_SETS = (("x", "xd"), ("x", "xd", "current"))
 HIDDEN_SIZES = (20, 30, 40)
@@ -82,6 +87,13 @@ class Candidate:
 
     def depth(self) -> int:
         return self.history_samples * self.history_stride
+
+
+def equal_work_rows(cand: Candidate, work: float, low: int, high: int) -> int:
+    """LM rows for the candidate's network that cost `work` (rows x weights^2, an LM epoch's
+    cost), within [low, high]."""
+    weights = cand.hidden * (4 + cand.history_samples * len(cand.history_signals) + 2) + 1
+    return int(np.clip(work // weights**2, low, high))
 
 
 def command_varies(series: Series) -> bool:
@@ -193,7 +205,8 @@ def _score(series: Series, cand: Candidate, fold: np.ndarray, seed: int) -> dict
     for k in range(int(fold.max()) + 1):
         test = np.flatnonzero(f_of == k)
         train = np.flatnonzero((f_of >= 0) & (f_of != k))
-        fit = coverage_subsample(X, train, SEARCH_FIT_ROWS, seed)
+        rows = equal_work_rows(cand, SEARCH_WORK, SEARCH_MIN_ROWS, SEARCH_MAX_ROWS)
+        fit = coverage_subsample(X, train, rows, seed)
         stop = test[np.linspace(0, test.size - 1, min(test.size, 2000)).astype(int)]
         model, _ = train_lm(
             X[fit],
@@ -236,12 +249,14 @@ def choose_features(
     base = Candidate()
     # all candidates' depths are known up front: the folds exclude every one's hold-out
     strides = {s: max(1, round(s / HISTORY_TAPS / dt)) for s in HISTORY_SPANS_S}
-    hist = [
-        (HISTORY_TAPS, sig, strides[s])
-        for s in HISTORY_SPANS_S
-        for sig in HISTORY_SIGNAL_SETS
-        if varies or "current" not in sig
-    ]
+    hist = list(  # spans that give the same taps at this rate are one candidate
+        dict.fromkeys(
+            (HISTORY_TAPS, sig, strides[s])
+            for s in HISTORY_SPANS_S
+            for sig in HISTORY_SIGNAL_SETS
+            if varies or "current" not in sig
+        )
+    )
     deepest = max(
         [base]
         + [Candidate(history_samples=h, history_signals=g, history_stride=st) for h, g, st in hist],
@@ -313,7 +328,8 @@ def choose_features(
             if tests is not None and np.unique(tests).size >= 2
             else f"blocked {n_folds}-fold cross-validation"
         )
-        + f" on the training blocks ({SEARCH_FIT_ROWS} LM rows, <= {SEARCH_EPOCHS} epochs"
+        + f" on the training blocks ({SEARCH_MIN_ROWS}-{SEARCH_MAX_ROWS} LM rows, the work of"
+        f" {SEARCH_FIT_ROWS} of a 12-30-1 network, <= {SEARCH_EPOCHS} epochs"
         " per fit); hold-out unused",
         "command_varies": varies,
         "lag_fit": lag,
