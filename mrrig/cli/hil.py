@@ -109,11 +109,36 @@ def main(argv: list[str] | None = None) -> int:
         prog="mrrig hil", description=__doc__, formatter_class=HelpFormatter
     )
     ap.add_argument("scenario", type=Path, help="scenario file (configs/hil/*.toml)")
-    ap.add_argument(
+    where = ap.add_mutually_exclusive_group(required=True)
+    where.add_argument(
         "--reference",
         action="store_true",
-        required=True,
         help="run the scenario all-numerically (the simulator's damper model for the rig)",
+    )
+    where.add_argument(
+        "--sim",
+        action="store_true",
+        help="on the simulated rig (bridge, firmware_sim, a daemon running the scenario)",
+    )
+    where.add_argument(
+        "--rig", help="on this live rig, whose daemon runs the scenario ([hil] scenario)"
+    )
+    ap.add_argument(
+        "--compensation",
+        choices=("none", "polynomial", "adaptive", "model"),
+        help="--sim: this delay compensation in place of the scenario's",
+    )
+    ap.add_argument(
+        "--config", type=Path, default=Path("configs/rig.toml"), help="--sim: the daemon's config"
+    )
+    ap.add_argument(
+        "--sim-config", type=Path, default=Path("configs/sim.toml"), help="--sim: the simulator's"
+    )
+    ap.add_argument(
+        "--zenoh-config",
+        type=Path,
+        default=Path("configs/zenoh-client.json5"),
+        help="--sim/--rig: the Zenoh client config",
     )
     ap.add_argument("--law", choices=LAWS, help="this law in place of the scenario's")
     ap.add_argument("--duration", type=positive, metavar="S", help="seconds, for the file's")
@@ -143,7 +168,13 @@ def main(argv: list[str] | None = None) -> int:
         print(_title(args.scenario, scenario, "every law"))
         print("\n".join(_table(scenario)))
         return 0
+    if args.compensation is not None and not args.sim:
+        ap.error("--compensation: only with --sim (a live rig's daemon keeps its own [hil])")
+    if args.table and not args.reference:
+        ap.error("--table: only with --reference")
     run = run_reference(scenario)
+    if args.sim or args.rig:
+        return _live(args, scenario, run)
     figures = run.figures()
     print(_title(args.scenario, scenario, scenario.law))
     print("\n".join(_summary(figures, scenario)))
@@ -152,3 +183,54 @@ def main(argv: list[str] | None = None) -> int:
         if problem is not None:
             raise MrrigError(f"{args.scenario}: {problem}: it does not fit the rig")
     return 0
+
+
+def _live(args: argparse.Namespace, scenario: Scenario, reference) -> int:
+    """The scenario on the simulated or a live rig, judged against `reference`."""
+    import contextlib
+
+    from mrrig.api.hil import run_on_rig
+    from mrrig.cli.test import simulated_rig
+
+    problem = envelope_problem(reference.figures(), 0.04, args.force_limit_n)
+    if problem is not None:  # the simulator's stroke; a live rig's daemon checks its own
+        raise MrrigError(f"{args.scenario}: {problem}: it does not fit the rig")
+    where = "the simulated rig" if args.sim else f"rig {args.rig}"
+    print(_title(args.scenario, scenario, scenario.law) + f"; on {where}", flush=True)
+    with contextlib.ExitStack() as stack:
+        rig_name = args.rig
+        if args.sim:
+            daemon_args = ["--hil", str(args.scenario), "--hil-duration", repr(scenario.duration_s)]
+            daemon_args += ["--hil-law", scenario.law]
+            if args.compensation is not None:
+                daemon_args += ["--hil-compensation", args.compensation]
+            rig_name = stack.enter_context(
+                simulated_rig(
+                    args.config, args.sim_config, args.zenoh_config, daemon_args=tuple(daemon_args)
+                )
+            )
+        result = run_on_rig(
+            rig_name, scenario, reference, args.zenoh_config, lambda s: print(s, flush=True)
+        )
+    end = result.end
+    h = end["hil"]
+    t = result.tracking
+    print(
+        f"run: {result.frames} frames streamed ({result.missing} missing from the telemetry), "
+        f"compensation {h['compensation']}, delay estimate {result.delay_s * 1e3:.2f} ms; "
+        f"ended: {h['ended'] or '-'}"
+    )
+    print(f"J1 {t.j1_ms:.2f} ms   J2 {t.j2_pct:.2f} %   J3 {t.j3_pct:.2f} %")
+    for name, e in result.errors.items():
+        hil_rms, ref_rms = result.figures[name]
+        print(
+            f"{name:<24} RMS {hil_rms:9.4g} (reference {ref_rms:9.4g}): RMS error "
+            f"{e.rms_of_rms_pct:+.2f} %, sample-wise {e.rms_pct:.2f} % RMS, {e.peak_pct:.2f} % peak"
+        )
+    fault = end.get("fault")
+    print(
+        f"rig: {end['state']}, fault {fault or 'none'}"
+        + (f" ({end.get('fault_reason')})" if fault else "")
+        + f"; sensor frames {end['sensor_frames_valid']}, commands {end['commands_sent']}"
+    )
+    return 1 if fault else 0

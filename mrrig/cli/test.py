@@ -53,11 +53,15 @@ def add_sim_arguments(ap: argparse.ArgumentParser) -> None:
 
 @contextlib.contextmanager
 def simulated_rig(
-    config: Path, sim_config: Path, zenoh_config: Path, adaptation: str | None = None
+    config: Path,
+    sim_config: Path,
+    zenoh_config: Path,
+    adaptation: str | None = None,
+    daemon_args: tuple[str, ...] = (),
 ) -> Iterator[str]:
     """The CAN bridge, firmware_sim and a daemon (`config`, on the bridge's channel, no
-    recording, `adaptation` "on"/"off" over the config's), as `mrrig demo` starts them; yields
-    the rig's name once it answers."""
+    recording, `adaptation` "on"/"off" over the config's, `daemon_args` added to its `mrrig
+    run`), as `mrrig demo` starts them; yields the rig's name once it answers."""
     from mrrig.cli.demo import _stop, ensure_sim_model
     from mrrig.config import load_config
     from mrrig.rigio.canbus.bus import find_free_port, start_bridge, stop_bridge
@@ -85,6 +89,7 @@ def simulated_rig(
         cmd = [sys.executable, "-m", "mrrig", "run", "--config", str(config)]
         if adaptation is not None:
             cmd += ["--adaptation", adaptation]
+        cmd += daemon_args
         daemon = subprocess.Popen(
             [*cmd, "--bus-channel", channel, "--no-record"], start_new_session=True
         )
