@@ -43,6 +43,10 @@ log = logging.getLogger(__name__)
 SAMPLE_FIELDS = ("hil_k", "hil_x_c", "hil_setpoint", "hil_delay_s", "hil_acc", "hil_load_n")
 
 
+# a run starts with the piston this close to 0 (the model's equilibrium): else a fault
+REST_TOLERANCE_M = 0.002
+
+
 class HilDemand(ref.ForceReference):
     """The law's desired force of the present frame, set by `HilLoop.on_frame` (0 N while no
     run streams); not known ahead: the next one needs the next measured force."""
@@ -123,6 +127,8 @@ class HilLoop:
         self._stop_at: float | None = None  # HOLD sent: STOP (ramp to rest) at this time
         self._row: dict[str, float] = dict.fromkeys(SAMPLE_FIELDS, math.nan)
         self.runs = 0
+        self.rest_tolerance_m = REST_TOLERANCE_M
+        self._at_rest_sent = False
         self.last_end = ""
 
     # ---- the frame ---------------------------------------------------------------------
@@ -131,7 +137,16 @@ class HilLoop:
         events: list[dict] = []
         self._setpoint, self.current = None, None
         self._row = dict.fromkeys(SAMPLE_FIELDS, math.nan)
+        if not self._at_rest_sent:  # the first frame: the piston to rest (the model's zero)
+            self._at_rest_sent = True
+            self._set_waveform("stop", 0.0)
         if sup.active and not self.streaming:
+            if abs(x_meas) > self.rest_tolerance_m:
+                why = (
+                    f"the piston is at {x_meas * 1e3:.2f} mm, not at rest (within "
+                    f"+-{self.rest_tolerance_m * 1e3:g} mm): the model starts at its equilibrium"
+                )
+                return sup.trip(t, Fault.HIL_SAFETY, f"hil: {why}")
             self._start(t)
         elif not sup.active and self.streaming:
             self._end(t, sup.reason or "disarmed")
