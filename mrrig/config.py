@@ -285,6 +285,12 @@ class ActuatorSection:
             raise ValueError("amplitude_m: stream needs its envelope (the largest |x| it uses)")
 
 
+HilLaw = Literal[
+    "skyhook", "groundhook", "hybrid", "clipped-optimal", "passive-soft", "passive-hard"
+]
+HilCompensation = Literal["none", "polynomial", "adaptive", "model"]
+
+
 @dataclass(frozen=True)
 class HilSection:
     """A hybrid simulation in the loop (spec/hil.md; mrrig/loop/hil_loop.py): the scenario
@@ -292,19 +298,14 @@ class HilSection:
     are the safety checks' (mrrig/hil/watch.py): a fault, HOLD, then STOP after hold_s."""
 
     scenario: Path | None = None  # configs/hil/*.toml; none: no hybrid simulation
-    law: (
-        Literal[
-            "skyhook", "groundhook", "hybrid", "clipped-optimal", "passive-soft", "passive-hard"
-        ]
-        | None
-    ) = None  # the scenario's, if none
-    compensation: Literal["none", "polynomial", "adaptive", "model"] | None = None
+    law: HilLaw | None = None  # the scenario's, if none
+    compensation: HilCompensation | None = None  # the scenario's, if none
     duration_s: float | None = None  # the scenario's, if none
-    envelope_m: float = 0.04
+    envelope_m: float = 0.04  # the STREAM's: no setpoint beyond +-envelope_m
     tracking_limit_m: float = 0.02  # |x_m - x_c|
     max_setpoint_velocity_m_s: float = 3.0  # a setpoint's step per frame / period
     energy_limit_j: float = 0.1  # the damper's delivered energy (-F s' dt) over the window
-    energy_window_s: float = 0.25
+    energy_window_s: float = 0.25  # s
     hold_s: float = 0.5  # HOLD after a run ends, then STOP (the firmware ramps to rest)
 
     def check(self) -> None:

@@ -7,6 +7,7 @@ calls; `judge(samples, reference)` is pure numerics on the samples."""
 
 from __future__ import annotations
 
+import dataclasses
 import threading
 import time
 from collections.abc import Callable
@@ -33,11 +34,12 @@ class HilRunError(MrrigError, RuntimeError):
 class HilResult:
     frames: int  # streamed frames received
     missing: int  # frames of the run not in the telemetry
-    tracking: Tracking
+    tracking: Tracking | None  # None: a run that faulted too soon to judge
     errors: dict[str, ResponseError]  # per output, against the reference (the same frames)
     figures: dict[str, float]  # RMS of the HIL run's outputs
     delay_s: float  # the last delay estimate
     end: dict[str, Any]  # the rig's status at the end
+    retried: tuple[str, ...] = ()  # the transport faults of the runs before this one
 
 
 def judge(samples: np.ndarray, reference: ReferenceRun) -> tuple[int, int, Tracking, dict, dict]:
@@ -77,9 +79,37 @@ def run_on_rig(
     reference: ReferenceRun,
     zenoh_config: Path,
     progress: Callable[[str], None],
+    tries: int = 1,
 ) -> HilResult:
     """Arm the rig (its daemon runs the scenario), follow it once a second until the run
-    ends, disarm, and judge the telemetry."""
+    ends, disarm, and judge the telemetry. A run ended by a transport fault (a stall of the
+    bus or a process: `TRANSPORT_FAULTS`) is run again after a `reset`, up to `tries` runs in
+    all, as `mrrig demo` re-arms after one; each such fault is in `HilResult.retried`."""
+    from mrrig.loop.safety import TRANSPORT_FAULTS
+
+    retried: list[str] = []
+    while True:
+        result = _run_once(rig_name, scenario, reference, zenoh_config, progress)
+        fault = result.end.get("fault")
+        if fault not in TRANSPORT_FAULTS or len(retried) + 1 >= tries:
+            return dataclasses.replace(result, retried=tuple(retried))
+        why = f"{fault}: {result.end.get('fault_reason')}"
+        retried.append(why)
+        progress(f"the run ended by a transport fault ({why}): reset, and run it again")
+        from mrrig.api import Rig
+
+        with Rig(rig_name, zenoh_config=zenoh_config) as rig:
+            rig.reset()
+            time.sleep(1.0)  # HOLD, then STOP: the piston back at rest
+
+
+def _run_once(
+    rig_name: str,
+    scenario: Scenario,
+    reference: ReferenceRun,
+    zenoh_config: Path,
+    progress: Callable[[str], None],
+) -> HilResult:
     from mrrig.api import Rig
 
     with Rig(rig_name, zenoh_config=zenoh_config) as rig:
@@ -133,5 +163,11 @@ def run_on_rig(
             done.set()
             reader.join(timeout=5.0)
         end = rig.status()
-    frames, missing, t, errors, figures = judge(telemetry.samples, reference)
+    try:
+        frames, missing, t, errors, figures = judge(telemetry.samples, reference)
+    except HilRunError as exc:
+        if end.get("fault") is None:
+            raise
+        frames, missing, t, errors, figures = 0, 0, None, {}, {}
+        progress(f"not judged: {exc}")
     return HilResult(frames, missing, t, errors, figures, end["hil"]["delay_s"] or 0.0, end)

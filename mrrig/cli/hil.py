@@ -132,6 +132,13 @@ def main(argv: list[str] | None = None) -> int:
         "--config", type=Path, default=Path("configs/rig.toml"), help="--sim: the daemon's config"
     )
     ap.add_argument(
+        "--tries",
+        type=int,
+        default=3,
+        metavar="N",
+        help="--sim/--rig: runs in all where a run ends by a transport fault (a stall)",
+    )
+    ap.add_argument(
         "--sim-config", type=Path, default=Path("configs/sim.toml"), help="--sim: the simulator's"
     )
     ap.add_argument(
@@ -210,17 +217,22 @@ def _live(args: argparse.Namespace, scenario: Scenario, reference) -> int:
                 )
             )
         result = run_on_rig(
-            rig_name, scenario, reference, args.zenoh_config, lambda s: print(s, flush=True)
-        )
+            rig_name, scenario, reference, args.zenoh_config, lambda s: print(s, flush=True),
+            tries=args.tries,
+        )  # fmt: skip
     end = result.end
     h = end["hil"]
     t = result.tracking
     print(
-        f"run: {result.frames} frames streamed ({result.missing} missing from the telemetry), "
+        f"run: {h['k']} model frames, {h['setpoints_sent']} setpoints sent; "
+        f"{result.frames} frames in the telemetry ({result.missing} missing), "
         f"compensation {h['compensation']}, delay estimate {result.delay_s * 1e3:.2f} ms; "
         f"ended: {h['ended'] or '-'}"
     )
-    print(f"J1 {t.j1_ms:.2f} ms   J2 {t.j2_pct:.2f} %   J3 {t.j3_pct:.2f} %")
+    for why in result.retried:
+        print(f"run again after a transport fault: {why}")
+    if t is not None:
+        print(f"J1 {t.j1_ms:.2f} ms   J2 {t.j2_pct:.2f} %   J3 {t.j3_pct:.2f} %")
     for name, e in result.errors.items():
         hil_rms, ref_rms = result.figures[name]
         print(

@@ -127,6 +127,7 @@ class HilLoop:
         self._stop_at: float | None = None  # HOLD sent: STOP (ramp to rest) at this time
         self._row: dict[str, float] = dict.fromkeys(SAMPLE_FIELDS, math.nan)
         self.runs = 0
+        self.setpoints_sent = 0  # of the present (last) run
         self.rest_tolerance_m = REST_TOLERANCE_M
         self._at_rest_sent = False
         self.last_end = ""
@@ -199,7 +200,8 @@ class HilLoop:
         except SetpointError as exc:
             self._end(t, str(exc))
             return sup.trip(t, Fault.HIL_SAFETY, f"hil: {exc}") if sup.active else []
-        send(msg)
+        if send(msg):
+            self.setpoints_sent += 1
         return []
 
     def record(self, row) -> None:
@@ -213,6 +215,7 @@ class HilLoop:
         self.streaming = True
         self._stop_at = None
         self.runs += 1
+        self.setpoints_sent = 0
         self.last_end = ""
         self._set_waveform("stream", self.envelope_m)
         log.info("hil: run %d of %s started (%d frames)", self.runs, self.scenario.kind,
@@ -241,6 +244,7 @@ class HilLoop:
             "streaming": self.streaming,
             "runs": self.runs,
             "k": sub.k if sub is not None else 0,
+            "setpoints_sent": self.setpoints_sent,
             "steps": self.scenario.steps,
             "delay_s": self.step.compensator.delay_s if self.step is not None else None,
             "ended": self.last_end,
