@@ -10,6 +10,11 @@
     mrrig hil SCENARIO --reference --stroke-limit-mm 40
                                               exit 2 (one line) if the reference's stroke goes
                                               past the rig's (or its force past --force-limit-n)
+    mrrig hil SCENARIO --sim [--compensation none]
+                                              on the simulated rig (bridge, firmware_sim, a
+                                              daemon running the scenario): J1-J3, the
+                                              response errors against the reference, figures
+    mrrig hil SCENARIO --rig NAME             the same on a rig whose daemon runs [hil]
 
 The reference is what a HIL run of the same scenario should give: its stroke and force envelope
 say whether the scenario fits the rig before anything moves.
