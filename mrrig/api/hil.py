@@ -23,7 +23,8 @@ from mrrig.hil.reference import ReferenceRun
 from mrrig.hil.scenario import Scenario
 
 STATUS_EVERY_S = 1.0
-START_S = 5.0  # the run's first streamed frame within this long of the arm
+START_S = 5.0
+REST_WAIT_S = 1.5  # the run's first streamed frame within this long of the arm
 
 
 class HilRunError(MrrigError, RuntimeError):
@@ -134,7 +135,10 @@ def _run_once(
 
         reader = threading.Thread(target=collect, name="hil-telemetry", daemon=True)
         reader.start()
-        time.sleep(0.5)  # the subscriber is declared before the run starts
+        # the subscriber declared, and the piston at rest: a daemon just started sent STOP
+        # (its config's motion ramps out over the firmware's 0.5 s); a run armed while it still
+        # moved gave the delay estimator motion no setpoint made (26 ms at frame 15: a trip)
+        time.sleep(REST_WAIT_S)
         runs0 = hil["runs"]
         reply = rig.arm()
         if not reply.get("ok", True) and reply.get("state") != "ARMED":
