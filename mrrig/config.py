@@ -285,6 +285,43 @@ class ActuatorSection:
             raise ValueError("amplitude_m: stream needs its envelope (the largest |x| it uses)")
 
 
+HilLaw = Literal[
+    "skyhook", "groundhook", "hybrid", "clipped-optimal", "passive-soft", "passive-hard"
+]
+HilCompensation = Literal["none", "polynomial", "adaptive", "model"]
+
+
+@dataclass(frozen=True)
+class HilSection:
+    """A hybrid simulation in the loop (spec/hil.md; mrrig/loop/hil_loop.py): the scenario
+    runs each time the rig is armed, the actuator in STREAM within +-envelope_m. The limits
+    are the safety checks' (mrrig/hil/watch.py): a fault, HOLD, then STOP after hold_s."""
+
+    scenario: Path | None = None  # configs/hil/*.toml; none: no hybrid simulation
+    law: HilLaw | None = None  # the scenario's, if none
+    compensation: HilCompensation | None = None  # the scenario's, if none
+    duration_s: float | None = None  # the scenario's, if none
+    envelope_m: float = 0.04  # the STREAM's: no setpoint beyond +-envelope_m
+    tracking_limit_m: float = 0.02  # |x_m - x_c|
+    max_setpoint_velocity_m_s: float = 3.0  # a setpoint's step per frame / period
+    energy_limit_j: float = 0.1  # the damper's delivered energy (-F s' dt) over the window
+    energy_window_s: float = 0.25  # s
+    hold_s: float = 0.5  # HOLD after a run ends, then STOP (the firmware ramps to rest)
+
+    def check(self) -> None:
+        if not 0 < self.envelope_m <= ACTUATOR_AMPLITUDE_MAX_M:
+            raise ValueError(f"envelope_m: must be in (0, {ACTUATOR_AMPLITUDE_MAX_M:g}] m")
+        if self.duration_s is not None and not self.duration_s > 0:
+            raise ValueError("duration_s: must be positive")
+        for name in ("tracking_limit_m", "max_setpoint_velocity_m_s", "energy_limit_j"):
+            if not getattr(self, name) > 0:
+                raise ValueError(f"{name}: must be positive")
+        if not 0.01 <= self.energy_window_s <= 10:
+            raise ValueError("energy_window_s: must be in [0.01, 10] s")
+        if not 0 <= self.hold_s <= 10:
+            raise ValueError("hold_s: must be in [0, 10] s")
+
+
 @dataclass(frozen=True)
 class TelemetrySection:
     enabled: bool = True
@@ -372,6 +409,7 @@ class DaemonConfig:
     adaptation: AdaptationSection = field(default_factory=AdaptationSection)
     reference: ReferenceSection = field(default_factory=ReferenceSection)
     actuator: ActuatorSection = field(default_factory=ActuatorSection)
+    hil: HilSection = field(default_factory=HilSection)
     telemetry: TelemetrySection = field(default_factory=TelemetrySection)
     recording: RecordingSection = field(default_factory=RecordingSection)
     control: ControlSection = field(default_factory=ControlSection)

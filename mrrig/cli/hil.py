@@ -10,6 +10,11 @@
     mrrig hil SCENARIO --reference --stroke-limit-mm 40
                                               exit 2 (one line) if the reference's stroke goes
                                               past the rig's (or its force past --force-limit-n)
+    mrrig hil SCENARIO --sim [--compensation none]
+                                              on the simulated rig (bridge, firmware_sim, a
+                                              daemon running the scenario): J1-J3, the
+                                              response errors against the reference, figures
+    mrrig hil SCENARIO --rig NAME             the same on a rig whose daemon runs [hil]
 
 The reference is what a HIL run of the same scenario should give: its stroke and force envelope
 say whether the scenario fits the rig before anything moves.
@@ -109,11 +114,43 @@ def main(argv: list[str] | None = None) -> int:
         prog="mrrig hil", description=__doc__, formatter_class=HelpFormatter
     )
     ap.add_argument("scenario", type=Path, help="scenario file (configs/hil/*.toml)")
-    ap.add_argument(
+    where = ap.add_mutually_exclusive_group(required=True)
+    where.add_argument(
         "--reference",
         action="store_true",
-        required=True,
         help="run the scenario all-numerically (the simulator's damper model for the rig)",
+    )
+    where.add_argument(
+        "--sim",
+        action="store_true",
+        help="on the simulated rig (bridge, firmware_sim, a daemon running the scenario)",
+    )
+    where.add_argument(
+        "--rig", help="on this live rig, whose daemon runs the scenario ([hil] scenario)"
+    )
+    ap.add_argument(
+        "--compensation",
+        choices=("none", "polynomial", "adaptive", "model"),
+        help="--sim: this delay compensation in place of the scenario's",
+    )
+    ap.add_argument(
+        "--config", type=Path, default=Path("configs/rig.toml"), help="--sim: the daemon's config"
+    )
+    ap.add_argument(
+        "--tries",
+        type=int,
+        default=3,
+        metavar="N",
+        help="--sim/--rig: runs in all where a run ends by a transport fault (a stall)",
+    )
+    ap.add_argument(
+        "--sim-config", type=Path, default=Path("configs/sim.toml"), help="--sim: the simulator's"
+    )
+    ap.add_argument(
+        "--zenoh-config",
+        type=Path,
+        help="--rig: the Zenoh client config (default configs/zenoh-client.json5); --sim: the"
+        " client's, the daemon then on its config's (default: both on a free 127.0.0.1 port)",
     )
     ap.add_argument("--law", choices=LAWS, help="this law in place of the scenario's")
     ap.add_argument("--duration", type=positive, metavar="S", help="seconds, for the file's")
@@ -143,7 +180,13 @@ def main(argv: list[str] | None = None) -> int:
         print(_title(args.scenario, scenario, "every law"))
         print("\n".join(_table(scenario)))
         return 0
+    if args.compensation is not None and not args.sim:
+        ap.error("--compensation: only with --sim (a live rig's daemon keeps its own [hil])")
+    if args.table and not args.reference:
+        ap.error("--table: only with --reference")
     run = run_reference(scenario)
+    if args.sim or args.rig:
+        return _live(args, scenario, run)
     figures = run.figures()
     print(_title(args.scenario, scenario, scenario.law))
     print("\n".join(_summary(figures, scenario)))
@@ -152,3 +195,63 @@ def main(argv: list[str] | None = None) -> int:
         if problem is not None:
             raise MrrigError(f"{args.scenario}: {problem}: it does not fit the rig")
     return 0
+
+
+def _live(args: argparse.Namespace, scenario: Scenario, reference) -> int:
+    """The scenario on the simulated or a live rig, judged against `reference`."""
+    import contextlib
+
+    from mrrig.api.hil import run_on_rig
+    from mrrig.cli.test import simulated_rig
+
+    problem = envelope_problem(reference.figures(), 0.04, args.force_limit_n)
+    if problem is not None:  # the simulator's stroke; a live rig's daemon checks its own
+        raise MrrigError(f"{args.scenario}: {problem}: it does not fit the rig")
+    where = "the simulated rig" if args.sim else f"rig {args.rig}"
+    print(_title(args.scenario, scenario, scenario.law) + f"; on {where}", flush=True)
+    with contextlib.ExitStack() as stack:
+        rig_name = args.rig
+        if args.sim:
+            daemon_args = ["--hil", str(args.scenario), "--hil-duration", repr(scenario.duration_s)]
+            daemon_args += ["--hil-law", scenario.law]
+            if args.compensation is not None:
+                daemon_args += ["--hil-compensation", args.compensation]
+            rig_name, args.zenoh_config = stack.enter_context(
+                simulated_rig(
+                    args.config, args.sim_config, args.zenoh_config, daemon_args=tuple(daemon_args)
+                )
+            )
+        elif args.zenoh_config is None:
+            from mrrig.rigio.client import DEFAULT_CONFIG
+
+            args.zenoh_config = DEFAULT_CONFIG
+        result = run_on_rig(
+            rig_name, scenario, reference, args.zenoh_config, lambda s: print(s, flush=True),
+            tries=args.tries,
+        )  # fmt: skip
+    end = result.end
+    h = end["hil"]
+    t = result.tracking
+    print(
+        f"run: {h['k']} model frames, {h['setpoints_sent']} setpoints sent; "
+        f"{result.frames} frames in the telemetry ({result.missing} missing), "
+        f"compensation {h['compensation']}, delay estimate {result.delay_s * 1e3:.2f} ms; "
+        f"ended: {h['ended'] or '-'}"
+    )
+    for why in result.retried:
+        print(f"run again after a transport fault: {why}")
+    if t is not None:
+        print(f"J1 {t.j1_ms:.2f} ms   J2 {t.j2_pct:.2f} %   J3 {t.j3_pct:.2f} %")
+    for name, e in result.errors.items():
+        hil_rms, ref_rms = result.figures[name]
+        print(
+            f"{name:<24} RMS {hil_rms:9.4g} (reference {ref_rms:9.4g}): RMS error "
+            f"{e.rms_of_rms_pct:+.2f} %, sample-wise {e.rms_pct:.2f} % RMS, {e.peak_pct:.2f} % peak"
+        )
+    fault = end.get("fault")
+    print(
+        f"rig: {end['state']}, fault {fault or 'none'}"
+        + (f" ({end.get('fault_reason')})" if fault else "")
+        + f"; sensor frames {end['sensor_frames_valid']}, commands {end['commands_sent']}"
+    )
+    return 1 if fault else 0

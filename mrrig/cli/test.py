@@ -55,12 +55,17 @@ def add_sim_arguments(ap: argparse.ArgumentParser) -> None:
 
 @contextlib.contextmanager
 def simulated_rig(
-    config: Path, sim_config: Path, zenoh_config: Path | None, adaptation: str | None = None
+    config: Path,
+    sim_config: Path,
+    zenoh_config: Path | None,
+    adaptation: str | None = None,
+    daemon_args: tuple[str, ...] = (),
 ) -> Iterator[tuple[str, Path]]:
     """The CAN bridge, firmware_sim and a daemon (`config`, on the bridge's channel, no
-    recording, `adaptation` "on"/"off" over the config's), as `mrrig demo` starts them; yields
-    the rig's name and the client's Zenoh config once it answers. `zenoh_config`: the client's
-    (the daemon then on its config's); None: both on a free port of 127.0.0.1."""
+    recording, `adaptation` "on"/"off" over the config's, `daemon_args` added to its `mrrig
+    run`), as `mrrig demo` starts them; yields the rig's name and the client's Zenoh config
+    once it answers. `zenoh_config`: the client's (the daemon then on its config's); None:
+    both on a free port of 127.0.0.1."""
     from mrrig.cli.demo import _stop, ensure_sim_model
     from mrrig.config import load_config
     from mrrig.rigio.canbus.bus import find_free_port, start_bridge, stop_bridge
@@ -96,6 +101,7 @@ def simulated_rig(
         cmd = [sys.executable, "-m", "mrrig", "run", "--config", str(config), *own_zenoh]
         if adaptation is not None:
             cmd += ["--adaptation", adaptation]
+        cmd += daemon_args
         daemon = subprocess.Popen(
             [*cmd, "--bus-channel", channel, "--no-record"], start_new_session=True
         )

@@ -76,6 +76,12 @@ COLUMNS: tuple[Column, ...] = (
     Column("temp_degc", "temp_degc", "degC", "damper temperature (latest RigStatus)"),
     Column("state", "state", "", f"the daemon's safety state ({_STATES})"),
     Column("outside", "outside", "", "inputs outside the model's envelope (NaN: none kept)"),
+    Column("hil_k", "hil_k", "", "hybrid simulation: the model's frame index (NaN: none)"),
+    Column("hil_x_c", "hil_x_c_m", "m", "hybrid simulation: the model's stroke x_c"),
+    Column("hil_setpoint", "hil_setpoint_m", "m", "hybrid simulation: the setpoint sent"),
+    Column("hil_delay_s", "hil_delay_s", "s", "hybrid simulation: the delay estimate"),
+    Column("hil_acc", "hil_acc_m_s2", "m/s^2", "hybrid simulation: body (roof) acceleration"),
+    Column("hil_load_n", "hil_load_n", "N", "hybrid simulation: dynamic tyre load"),
 )
 UTC_DESCRIPTION = "absolute time, UTC: the run's UTC start plus t_s"
 _NAME_UTC = re.compile(r"-(\d{8}T\d{6}Z)$")

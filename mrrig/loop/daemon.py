@@ -33,6 +33,7 @@ from mrrig.cli_args import HelpFormatter, add_bus_options, output_file, positive
 from mrrig.config import DaemonConfig, ReferenceSection, load_config
 from mrrig.config_gaps import config_gaps
 from mrrig.errors import MrrigError
+from mrrig.loop import hil_loop
 from mrrig.loop import reference as ref
 from mrrig.loop.controllers import (
     CONTROLLERS,
@@ -309,6 +310,11 @@ class Daemon:
             ref.check_in_range(self.reference, cfg.loop.f_range_n)
         except ref.ForceReferenceError as exc:
             raise ref.ForceReferenceError(f"{cfg.source}: {exc}") from None
+        # a hybrid simulation ([hil]): its law's desired force is the force reference
+        self.hil = None
+        if cfg.hil.scenario is not None:
+            self.hil = hil_loop.HilLoop(cfg, self.profile, self.packer, self._set_waveform)
+            self.reference = self.hil.reference
         self.kf = RealtimeKalman(self.period_s, q=cfg.estimator.q, r0=cfg.estimator.r0_m2)
         self.supervisor = Supervisor(
             Limits(
@@ -433,6 +439,7 @@ class Daemon:
             "controller": self.controller.name,
             "adaptation": self.controller.adaptation_state(),
             "reference": self.reference.kind,
+            "hil": self.hil.status() if self.hil is not None else None,
             "fault": s.fault.value if s.fault else None,
             "fault_reason": s.reason,
             "firmware_blocking": s.firmware_blocking,
@@ -487,6 +494,26 @@ class Daemon:
         elif active:  # in FAULT now: the frame is answered SAFE, if that can be sent
             self._send_command(False, 0.0, 0.0, echo)
 
+    def _send_frame(self, msg) -> bool:
+        """Send a frame already encoded (the HIL's ActuatorSetpoint); a failure is a
+        BUS_ERROR fault, as in `_send`."""
+        try:
+            self.bus.send(msg, timeout=self.cfg.bus.send_timeout_s)
+            if self.tap is not None:
+                self.tap.tx(msg)
+            return True
+        except Exception as exc:  # noqa: BLE001 - any bus failure is a BUS_ERROR fault
+            self.counters["send_failures"] += 1
+            self._emit(self.supervisor.trip(self.now(), Fault.BUS_ERROR, f"send setpoint: {exc}"))
+            return False
+
+    def _set_waveform(self, waveform: str, amplitude_m: float) -> None:
+        """The HIL's actuator changes (STREAM, HOLD, STOP): sent after this pass's frame."""
+        self.actuator = replace(
+            self.actuator, waveform=waveform, amplitude_m=amplitude_m, frequency_hz=0.0
+        )
+        self._last_actuator_sent = -math.inf
+
     def _send_actuator(self) -> None:
         a = self.actuator
         if self.profile.actuator_message is None:  # the lab's firmware drives its actuator
@@ -525,6 +552,8 @@ class Daemon:
             if self._last_sensor_t is None:
                 self.reset_reference(t, x)
             events += sup.finite(t, "the Kalman estimate", x, xd, xdd)
+            if self.hil is not None:  # the model steps on the measured force and stroke
+                events += self.hil.on_frame(t, f_meas, x_meas, sup)
             f_next = None
             try:
                 if self._pipelined():
@@ -555,6 +584,8 @@ class Daemon:
                 events += sup.finite(t, f"the {self.controller.name} controller's command", i)
                 if sup.active:
                     i_cmd = self._slew_limit(min(max(i, 0.0), self.cfg.loop.i_max_a))
+                if self.hil is not None and self.hil.current is not None:  # a law's current
+                    i_cmd = min(max(self.hil.current, 0.0), self.cfg.loop.i_max_a)
         except Exception as exc:  # noqa: BLE001 - a bug must not leave a frame unanswered
             log.exception("cycle failed")
             events += sup.trip(t, Fault.INTERNAL_ERROR, f"{type(exc).__name__}: {exc}")
@@ -577,6 +608,8 @@ class Daemon:
         safe_f = f_des if math.isfinite(f_des) else 0.0
         self._send_command(active, i_cmd if active else 0.0, safe_f, counter)
         active = active and sup.active  # a send that failed faulted it: answered SAFE
+        if self.hil is not None:  # the frame's ActuatorSetpoint, after its command
+            events += self.hil.after_command(self._send_frame, counter, t, sup)
         f_record = f_des
         if self._stop:
             self._safe_sent_at_stop = True
@@ -616,6 +649,7 @@ class Daemon:
         row["temp_degc"] = self._temp_degc
         env = self.envelope  # off the latency path: the command is sent
         row["outside"] = math.nan if env is None else env.outside(x, xd, xdd, i_cmd)
+        (hil_loop.record_nan if self.hil is None else self.hil.record)(row)
         adapt = getattr(self.controller, "adapt", None)
         if adapt is None:
             row["adapt_gain"] = row["adapt_offset_n"] = math.nan
@@ -1459,6 +1493,14 @@ def main(argv: list[str] | None = None) -> int:
         help="allow a Zenoh config off loopback without authentication and access control "
         "(a closed lab network only); warned in every status and recording",
     )
+    ap.add_argument("--hil", help="a hybrid simulation: this scenario (configs/hil/*.toml)")
+    ap.add_argument("--hil-law", help="--hil: this law in place of the scenario's")
+    ap.add_argument(
+        "--hil-compensation",
+        choices=("none", "polynomial", "adaptive", "model"),
+        help="--hil: this delay compensation in place of the scenario's",
+    )
+    ap.add_argument("--hil-duration", type=positive, help="--hil: seconds, for the scenario's")
     ap.add_argument("--specimen", help="the damper under test (its serial number), for the catalog")
     ap.add_argument("--operator", help="who runs the test (default: the local user)")
     ap.add_argument("--tag", action="append", default=[], help="a free-text tag (repeatable)")
@@ -1485,6 +1527,11 @@ def main(argv: list[str] | None = None) -> int:
         overrides.setdefault("telemetry", {})["insecure"] = True
     if args.zenoh_config is not None:
         overrides.setdefault("telemetry", {})["zenoh_config"] = str(args.zenoh_config)
+    hil = {k: v for k, v in (("scenario", args.hil), ("law", args.hil_law),
+                             ("compensation", args.hil_compensation),
+                             ("duration_s", args.hil_duration)) if v is not None}  # fmt: skip
+    if hil:
+        overrides["hil"] = hil
     loop = {}
     if args.duration is not None:
         loop["duration_s"] = args.duration

@@ -51,6 +51,8 @@ class Fault(enum.Enum):
     TRACKING_ERROR = "tracking_error"
     OVER_VELOCITY = "over_velocity"
     OVER_TEMPERATURE = "over_temperature"
+    # the hybrid loop's checks (mrrig/hil/watch.py): unstable, out of envelope, not tracking
+    HIL_SAFETY = "hil_safety"
 
 
 # The faults a transport stall causes (a bus or a process held up past the sensor timeout or

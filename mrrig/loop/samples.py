@@ -42,6 +42,16 @@ SAMPLE_DTYPE = np.dtype(
         # the frame against the model's training envelope (mrrig/loop/coverage.py): 0 inside,
         # else a bit per input outside its range; NaN where the model keeps no envelope
         ("outside", "f8"),
+        # the hybrid simulation's (mrrig/loop/hil_loop.py; NaN without one): the model's frame
+        # index, x_c (its stroke for this frame, m), the setpoint sent (m), the delay
+        # estimate (s), the body's (building: roof's) absolute acceleration (m/s^2), the
+        # dynamic tyre load (N)
+        ("hil_k", "f8"),
+        ("hil_x_c", "f8"),
+        ("hil_setpoint", "f8"),
+        ("hil_delay_s", "f8"),
+        ("hil_acc", "f8"),
+        ("hil_load_n", "f8"),
     ]
 )
 

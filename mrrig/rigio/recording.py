@@ -101,10 +101,18 @@ FIELD_ENTITIES: dict[str, str] = {
     "temp_degc": "temperature/temp_degc",
     "state": "state/state",
     "outside": "coverage/outside",
+    "hil_k": "hil/k",
+    "hil_x_c": "displacement/hil_x_c",
+    "hil_setpoint": "displacement/hil_setpoint",
+    "hil_delay_s": "hil/delay_s",
+    "hil_acc": "hil/acc",
+    "hil_load_n": "hil/load_n",
 }
 
 # fields that recordings made before them lack: `mrrig review` reads those as NaN
-LATER_FIELDS = ("adapt_gain", "adapt_offset_n", "temp_degc", "outside")
+LATER_FIELDS = ("adapt_gain", "adapt_offset_n", "temp_degc", "outside") + tuple(
+    f for f in FIELD_ENTITIES if f.startswith("hil_")
+)
 
 # legend names: what each series is, not only its field name
 _SERIES_NAMES: dict[str, str] = {

@@ -1,0 +1,177 @@
+"""A hybrid simulation on a live (or simulated) rig whose daemon runs `[hil]`: arm, let the
+scenario play out, disarm, then judge the run from its telemetry (every frame's x_c, x_m and
+the model's outputs) against the all-numerical reference (spec/hil.md, Metrics).
+
+`run_on_rig(rig_name, scenario, zenoh_config, progress)` is what `mrrig hil --sim | --rig`
+calls; `judge(samples, reference)` is pure numerics on the samples."""
+
+from __future__ import annotations
+
+import dataclasses
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from mrrig.errors import MrrigError
+from mrrig.hil.metrics import ResponseError, Tracking, response_error, tracking
+from mrrig.hil.reference import ReferenceRun
+from mrrig.hil.scenario import Scenario
+
+STATUS_EVERY_S = 1.0
+START_S = 5.0
+REST_WAIT_S = 1.5  # the run's first streamed frame within this long of the arm
+
+
+class HilRunError(MrrigError, RuntimeError):
+    """The rig runs no hybrid simulation, or the run could not be judged."""
+
+
+@dataclass(frozen=True)
+class HilResult:
+    frames: int  # streamed frames received
+    missing: int  # frames of the run not in the telemetry
+    tracking: Tracking | None  # None: a run that faulted too soon to judge
+    errors: dict[str, ResponseError]  # per output, against the reference (the same frames)
+    figures: dict[str, float]  # RMS of the HIL run's outputs
+    delay_s: float  # the last delay estimate
+    end: dict[str, Any]  # the rig's status at the end
+    retried: tuple[str, ...] = ()  # the transport faults of the runs before this one
+
+
+def judge(samples: np.ndarray, reference: ReferenceRun) -> tuple[int, int, Tracking, dict, dict]:
+    """(frames, missing, J1-J3, response errors, RMS figures) of a run's streamed samples."""
+    rows = samples[np.isfinite(samples["hil_k"])]
+    if rows.size <= 60:
+        raise HilRunError(f"{rows.size} streamed frames: too few to judge")
+    k = rows["hil_k"].astype(int)
+    k, first = np.unique(k, return_index=True)
+    rows = rows[first]
+    missing = int(k[-1] + 1 - k.size)
+    period = reference.scenario.period_s
+    t = tracking(rows["hil_x_c"], rows["x"], period)
+    outputs = {"suspension_travel_m": (rows["hil_x_c"], reference.stroke_m[k])}
+    if "body_acceleration_m_s2" in reference.outputs:
+        outputs["body_acceleration_m_s2"] = (
+            rows["hil_acc"],
+            reference.outputs["body_acceleration_m_s2"][k],
+        )
+        outputs["tyre_load_n"] = (rows["hil_load_n"], reference.outputs["tyre_load_n"][k])
+    else:
+        outputs["roof_acceleration_m_s2"] = (
+            rows["hil_acc"],
+            reference.outputs["acceleration_m_s2"][k, -1],
+        )
+    errors = {name: response_error(y, y_ref) for name, (y, y_ref) in outputs.items()}
+    figures = {
+        name: (float(np.sqrt(np.mean(y**2))), float(np.sqrt(np.mean(y_ref**2))))
+        for name, (y, y_ref) in outputs.items()
+    }
+    return int(k.size), missing, t, errors, figures
+
+
+def run_on_rig(
+    rig_name: str,
+    scenario: Scenario,
+    reference: ReferenceRun,
+    zenoh_config: Path,
+    progress: Callable[[str], None],
+    tries: int = 1,
+) -> HilResult:
+    """Arm the rig (its daemon runs the scenario), follow it once a second until the run
+    ends, disarm, and judge the telemetry. A run ended by a transport fault (a stall of the
+    bus or a process: `TRANSPORT_FAULTS`) is run again after a `reset`, up to `tries` runs in
+    all, as `mrrig demo` re-arms after one; each such fault is in `HilResult.retried`."""
+    from mrrig.loop.safety import TRANSPORT_FAULTS
+
+    retried: list[str] = []
+    while True:
+        result = _run_once(rig_name, scenario, reference, zenoh_config, progress)
+        fault = result.end.get("fault")
+        if fault not in TRANSPORT_FAULTS or len(retried) + 1 >= tries:
+            return dataclasses.replace(result, retried=tuple(retried))
+        why = f"{fault}: {result.end.get('fault_reason')}"
+        retried.append(why)
+        progress(f"the run ended by a transport fault ({why}): reset, and run it again")
+        from mrrig.api import Rig
+
+        with Rig(rig_name, zenoh_config=zenoh_config) as rig:
+            rig.reset()
+            time.sleep(1.0)  # HOLD, then STOP: the piston back at rest
+
+
+def _run_once(
+    rig_name: str,
+    scenario: Scenario,
+    reference: ReferenceRun,
+    zenoh_config: Path,
+    progress: Callable[[str], None],
+) -> HilResult:
+    from mrrig.api import Rig
+
+    with Rig(rig_name, zenoh_config=zenoh_config) as rig:
+        status = rig.status()
+        hil = status.get("hil")
+        if not hil:
+            raise HilRunError(
+                f"rig {rig_name} runs no hybrid simulation (its daemon has no [hil] scenario)"
+            )
+        if hil["kind"] != scenario.kind or hil["steps"] != scenario.steps:
+            raise HilRunError(
+                f"rig {rig_name} runs a {hil['kind']} of {hil['steps']} frames, not this "
+                f"{scenario.kind} of {scenario.steps}"
+            )
+        telemetry = rig.telemetry(quiet_s=scenario.duration_s + 60.0)
+        done = threading.Event()
+
+        def collect() -> None:
+            for _ in telemetry:
+                if done.is_set():
+                    break
+
+        reader = threading.Thread(target=collect, name="hil-telemetry", daemon=True)
+        reader.start()
+        # the subscriber declared, and the piston at rest: a daemon just started sent STOP
+        # (its config's motion ramps out over the firmware's 0.5 s); a run armed while it still
+        # moved gave the delay estimator motion no setpoint made (26 ms at frame 15: a trip)
+        time.sleep(REST_WAIT_S)
+        runs0 = hil["runs"]
+        reply = rig.arm()
+        if not reply.get("ok", True) and reply.get("state") != "ARMED":
+            raise HilRunError(f"arm refused: {reply.get('error', reply)}")
+        t0 = time.monotonic()
+        try:
+            while True:
+                time.sleep(STATUS_EVERY_S)
+                status = rig.status()
+                h = status["hil"]
+                started = h["runs"] > runs0
+                delay = h["delay_s"]
+                progress(
+                    f"{time.monotonic() - t0:6.1f} s  frame {h['k']:>6}/{h['steps']}  "
+                    f"{status['state']:<5}  delay "
+                    + (f"{delay * 1e3:.2f} ms" if delay is not None else "-")
+                )
+                if started and not h["streaming"]:
+                    break
+                if status["state"] != "ARMED" and (started or time.monotonic() - t0 > START_S):
+                    break
+        finally:
+            if rig.status()["state"] == "ARMED":
+                rig.disarm()
+            time.sleep(0.5)  # the last batches
+            done.set()
+            reader.join(timeout=5.0)
+        end = rig.status()
+    try:
+        frames, missing, t, errors, figures = judge(telemetry.samples, reference)
+    except HilRunError as exc:
+        if end.get("fault") is None:
+            raise
+        frames, missing, t, errors, figures = 0, 0, None, {}, {}
+        progress(f"not judged: {exc}")
+    return HilResult(frames, missing, t, errors, figures, end["hil"]["delay_s"] or 0.0, end)

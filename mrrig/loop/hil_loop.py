@@ -1,0 +1,262 @@
+"""The daemon's hybrid-simulation mode (spec/hil.md; `[hil]` in the daemon's config): the
+numerical substructure in the loop, one step per valid sensor frame while armed.
+
+Per frame the daemon calls `HilLoop.on_frame` before its force reference is read: the
+measured force and stroke go into `HybridStep`; the law's desired force becomes the force
+reference's value (`HilDemand`, a reference like any other, so it goes through the daemon's
+controller, network inversion by default); a law that asks a current (passive-soft/hard,
+Dyke's on-off) has it sent as it is (`current`). After the DamperCommand, `after_command`
+sends the frame's ActuatorSetpoint, echoing that sensor frame's counter.
+
+Arming starts a run: a fresh substructure and excitation, the actuator in STREAM. Any end of
+streaming (a disarm, a fault of any kind, the scenario played out, a safety check of
+`mrrig.hil.watch`) stops the setpoints and sends HOLD; `hold_s` later STOP, from which the
+firmware ramps the piston to rest. A daemon that dies mid-run leaves the firmware's own
+setpoint watchdog to do the same (HOLD after 20 ms, ramp after 500 ms).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import math
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+
+from mrrig.config import DaemonConfig
+from mrrig.hil.scenario import Scenario, load_scenario
+from mrrig.hil.stepper import HybridStep
+from mrrig.hil.substructure import QuarterCar
+from mrrig.hil.watch import HilWatch, WatchLimits
+from mrrig.loop import reference as ref
+from mrrig.loop.safety import Fault, Supervisor
+from mrrig.rigio.canbus.profile import ProfileError, RigProfile
+from mrrig.rigio.canbus.setpoint import SetpointError, SetpointStream
+from mrrig.typed_config import ConfigError
+
+log = logging.getLogger(__name__)
+
+# the sample fields this mode fills (NaN without it): x_c, the setpoint, the delay estimate,
+# the model's frame index, the body's (roof's) absolute acceleration and the tyre load
+SAMPLE_FIELDS = ("hil_k", "hil_x_c", "hil_setpoint", "hil_delay_s", "hil_acc", "hil_load_n")
+
+
+# a run starts with the piston this close to 0 (the model's equilibrium): else a fault
+REST_TOLERANCE_M = 0.002
+
+
+class HilDemand(ref.ForceReference):
+    """The law's desired force of the present frame, set by `HilLoop.on_frame` (0 N while no
+    run streams); not known ahead: the next one needs the next measured force."""
+
+    kind = "hil"
+    known_ahead = False
+
+    def __init__(self) -> None:
+        self.force_n = 0.0
+
+    def reset(self, t_s: float, x_m: float) -> None:
+        self.force_n = 0.0
+
+    def force(self, t_s: float, x_m: float, xd_m_s: float) -> float:
+        return self.force_n
+
+
+def build_scenario(cfg: DaemonConfig) -> Scenario:
+    """The `[hil]` section's scenario with its overrides, checked against the loop."""
+    h = cfg.hil
+    where = f"{cfg.source}: hil"
+    try:
+        scenario = load_scenario(h.scenario, law=h.law)
+    except OSError as exc:
+        raise ConfigError(f"{where}.scenario: {h.scenario}: {exc.strerror or exc}") from None
+    if h.compensation is not None:
+        c = dataclasses.replace(scenario.compensation, method=h.compensation)
+        scenario = dataclasses.replace(scenario, compensation=c)
+    if h.duration_s is not None:
+        scenario = dataclasses.replace(scenario, duration_s=h.duration_s)
+    if not math.isclose(scenario.period_s, cfg.loop.period_s, rel_tol=1e-9):
+        raise ConfigError(
+            f"{where}.scenario: {h.scenario}: period_s {scenario.period_s:g} s is not the "
+            f"loop's {cfg.loop.period_s:g} s (one model step per sensor frame)"
+        )
+    if scenario.damper.i_max_a > cfg.loop.i_max_a:
+        raise ConfigError(
+            f"{where}.scenario: {h.scenario}: damper.i_max_a {scenario.damper.i_max_a:g} A "
+            f"above loop.i_max_a {cfg.loop.i_max_a:g} A"
+        )
+    return scenario
+
+
+class HilLoop:
+    """One scenario, run each time the rig is armed."""
+
+    def __init__(
+        self,
+        cfg: DaemonConfig,
+        profile: RigProfile,
+        packer,
+        set_waveform: Callable[[str, float], None],
+    ) -> None:
+        """`set_waveform(waveform, amplitude_m)`: the daemon's ActuatorCommand, sent at once."""
+        if (why := profile.stream_refusal()) is not None:
+            raise ProfileError(f"hil: {why}")
+        h = cfg.hil
+        self.scenario = build_scenario(cfg)
+        self.envelope_m = h.envelope_m
+        self.hold_s = h.hold_s
+        self.reference = HilDemand()
+        self._stream = SetpointStream(profile, packer, h.envelope_m)
+        self._set_waveform = set_waveform
+        self._watch = HilWatch(
+            WatchLimits(
+                h.envelope_m,
+                h.tracking_limit_m,
+                h.max_setpoint_velocity_m_s,
+                h.energy_limit_j,
+                h.energy_window_s,
+            ),
+            self.scenario.period_s,
+        )
+        self.step: HybridStep | None = None
+        self.streaming = False
+        self.current: float | None = None  # a law's current for this frame (sent as it is)
+        self._setpoint: tuple[float, float] | None = None  # this frame's, to send
+        self._stop_at: float | None = None  # HOLD sent: STOP (ramp to rest) at this time
+        self._row: dict[str, float] = dict.fromkeys(SAMPLE_FIELDS, math.nan)
+        self.runs = 0
+        self.setpoints_sent = 0  # of the present (last) run
+        self.rest_tolerance_m = REST_TOLERANCE_M
+        self._at_rest_sent = False
+        self.last_end = ""
+
+    # ---- the frame ---------------------------------------------------------------------
+    def on_frame(self, t: float, f_meas: float, x_meas: float, sup: Supervisor) -> list[dict]:
+        """Before the force reference is read: start, step or end the run."""
+        events: list[dict] = []
+        self._setpoint, self.current = None, None
+        self._row = dict.fromkeys(SAMPLE_FIELDS, math.nan)
+        if not self._at_rest_sent:  # the first frame: the piston to rest (the model's zero)
+            self._at_rest_sent = True
+            self._set_waveform("stop", 0.0)
+        if sup.active and not self.streaming:
+            if abs(x_meas) > self.rest_tolerance_m:
+                why = (
+                    f"the piston is at {x_meas * 1e3:.2f} mm, not at rest (within "
+                    f"+-{self.rest_tolerance_m * 1e3:g} mm): the model starts at its equilibrium"
+                )
+                return sup.trip(t, Fault.HIL_SAFETY, f"hil: {why}")
+            self._start(t)
+        elif not sup.active and self.streaming:
+            self._end(t, sup.reason or "disarmed")
+        if self._stop_at is not None and t >= self._stop_at:
+            self._stop_at = None
+            self._set_waveform("stop", 0.0)  # the firmware ramps the piston to rest
+        if not self.streaming:
+            self.reference.force_n = 0.0
+            return events
+        step = self.step
+        sub = step.substructure
+        x_c, v_c, k = sub.stroke_m, sub.stroke_velocity_m_s, sub.k
+        frame = step.step(f_meas, x_meas)
+        why = self._watch.check(
+            x_c, x_meas, f_meas, v_c, frame.target_m, frame.setpoint_m,
+            frame.setpoint_velocity_m_s, sub.x,
+        )  # fmt: skip
+        row = self._row
+        row["hil_k"], row["hil_x_c"], row["hil_delay_s"] = k, x_c, frame.delay_s
+        if isinstance(sub, QuarterCar):
+            row["hil_acc"], row["hil_load_n"] = sub.body_acceleration_m_s2, sub.tyre_load_n
+        else:
+            row["hil_acc"] = float(sub.accelerations_m_s2[-1])
+        if why is not None:
+            events += sup.trip(t, Fault.HIL_SAFETY, f"hil: {why}")
+            self._end(t, why)
+            return events
+        demand = frame.demand
+        self.reference.force_n = demand.force_n if demand.force_n is not None else 0.0
+        self.current = demand.current_a
+        self._setpoint = (frame.setpoint_m, frame.setpoint_velocity_m_s)
+        row["hil_setpoint"] = frame.setpoint_m
+        if step.done:
+            events += sup.disarm(t, "hil: the scenario is played out")
+            self._end(t, "the scenario is played out")
+        return events
+
+    def after_command(
+        self, send: Callable[[Any], bool], counter: int, t: float, sup: Supervisor
+    ) -> list[dict]:
+        """After the DamperCommand: this frame's ActuatorSetpoint, if the run streams and the
+        command went out ACTIVE (`send`: the daemon's, False when the bus refused it)."""
+        if self.streaming and not sup.active:  # faulted or stopped after `on_frame`
+            self._end(t, sup.reason or "disarmed")
+            return []
+        if self._setpoint is None:
+            return []
+        try:
+            msg = self._stream.message(counter, *self._setpoint)
+        except SetpointError as exc:
+            self._end(t, str(exc))
+            return sup.trip(t, Fault.HIL_SAFETY, f"hil: {exc}") if sup.active else []
+        if send(msg):
+            self.setpoints_sent += 1
+        return []
+
+    def record(self, row) -> None:
+        for name, value in self._row.items():
+            row[name] = value
+
+    # ---- start and end -----------------------------------------------------------------
+    def _start(self, t: float) -> None:
+        self.step = HybridStep(self.scenario)
+        self._watch.reset()
+        self.streaming = True
+        self._stop_at = None
+        self.runs += 1
+        self.setpoints_sent = 0
+        self.last_end = ""
+        self._set_waveform("stream", self.envelope_m)
+        log.info("hil: run %d of %s started (%d frames)", self.runs, self.scenario.kind,
+                 self.step.substructure.steps)  # fmt: skip
+
+    def _end(self, t: float, why: str) -> None:
+        """No setpoint from this frame on; HOLD now, STOP (ramp to rest) `hold_s` later."""
+        if not self.streaming:
+            return
+        self.streaming = False
+        self._setpoint = None
+        self.current = None
+        self.reference.force_n = 0.0
+        self.last_end = why
+        self._set_waveform("hold", 0.0)
+        self._stop_at = t + self.hold_s
+        k = self.step.substructure.k if self.step is not None else 0
+        log.info("hil: run %d ended at frame %d: %s", self.runs, k, why)
+
+    def status(self) -> dict[str, Any]:
+        sub = self.step.substructure if self.step is not None else None
+        return {
+            "kind": self.scenario.kind,
+            "law": self.scenario.law if self.step is None else self.step.law.name,
+            "compensation": self.scenario.compensation.method,
+            "streaming": self.streaming,
+            "runs": self.runs,
+            "k": sub.k if sub is not None else 0,
+            "setpoints_sent": self.setpoints_sent,
+            "steps": self.scenario.steps,
+            "delay_s": self.step.compensator.delay_s if self.step is not None else None,
+            "ended": self.last_end,
+        }
+
+
+def record_nan(row) -> None:
+    """A sample of a daemon without `[hil]`."""
+    for name in SAMPLE_FIELDS:
+        row[name] = math.nan
+
+
+def hil_row_values(samples: np.ndarray) -> np.ndarray:
+    """The streamed frames of a recording or telemetry (those with a model frame index)."""
+    return samples[np.isfinite(samples["hil_k"])]
