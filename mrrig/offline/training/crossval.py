@@ -29,6 +29,7 @@ from typing import Any
 
 import numpy as np
 
+from mrrig.errors import MrrigError
 from mrrig.loop.mlp import MLP
 from mrrig.offline.datasets import Series
 from mrrig.offline.training.data import run_ids, select
@@ -124,7 +125,7 @@ def guard(out: np.ndarray, width: int) -> np.ndarray:
     return np.cumsum(wide[:-1]) > 0
 
 
-class OverBudget(Exception):
+class OverBudget(MrrigError):
     """A cross-validation whose folds would not end within its deadline (the message: the
     projection from the folds so far)."""
 
