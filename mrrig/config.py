@@ -293,7 +293,7 @@ HilCompensation = Literal["none", "polynomial", "adaptive", "model"]
 
 @dataclass(frozen=True)
 class HilSection:
-    """A hybrid simulation in the loop (spec/hil.md; mrrig/loop/hil_loop.py): the scenario
+    """A hybrid simulation in the loop (the HIL specification; mrrig/loop/hil_loop.py): the scenario
     runs each time the rig is armed, the actuator in STREAM within +-envelope_m. The limits
     are the safety checks' (mrrig/hil/watch.py): a fault, HOLD, then STOP after hold_s."""
 

@@ -1,4 +1,4 @@
-"""`mrrig hil`: a real-time hybrid simulation scenario (spec/hil.md; configs/hil/*.toml).
+"""`mrrig hil`: a real-time hybrid simulation scenario (the HIL specification; configs/hil/*.toml).
 
     mrrig hil SCENARIO --reference            the scenario all-numerically: the simulator's own
                                               damper model (Bouc-Wen) in place of the rig, the

@@ -1,4 +1,4 @@
-"""`mrrig characterize`: the characterization test matrix (spec/modeling.md 4 B) on the rig.
+"""`mrrig characterize`: the characterization test matrix (modeling spec 4 B) on the rig.
 
 For each run (amplitude x frequency x current, paper Table 1): constant current, actuator sine,
 arm, wait `settle_s` (actuator ramp, coil lag), keep `duration_s` of ARMED samples, disarm.
