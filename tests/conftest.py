@@ -75,6 +75,23 @@ def sim_model(tmp_path_factory) -> Path:
     return path
 
 
+@pytest.fixture(scope="session")
+def sim_gru(tmp_path_factory) -> Path:
+    """A GRU forward model trained on the simulated characterization matrix, once per run,
+    under the machine's shared hold (about 100 s of training: a process module that trained
+    it itself held the machine alone meanwhile)."""
+    from filelock import FileLock
+
+    from mrrig.offline.training.gru import simulated_matrix_gru
+
+    root = _shared_base(tmp_path_factory)
+    path = root / "sim-gru.json"
+    with _Machine.hold(root, alone=False), FileLock(f"{path}.lock"):
+        if not path.is_file():
+            simulated_matrix_gru(path)
+    return path
+
+
 # the two file locks every test run on this machine shares ($MRRIG_TEST_MACHINE to move them)
 MACHINE_LOCKS = Path(os.environ.get("MRRIG_TEST_MACHINE", "/tmp/mrrig-test-machine"))
 

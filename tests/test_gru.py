@@ -32,7 +32,6 @@ from mrrig.offline.training.gru import (
     fit_gru,
     gru_forces,
     model_inputs,
-    simulated_matrix_gru,
 )
 from tests.conftest import REPO, _toml, rig_config, zenoh_configs
 from tests.stall_proof import explain
@@ -225,11 +224,11 @@ def test_model_inputs_are_causal(small_series):
 
 @pytest.mark.process
 @pytest.mark.long
-def test_the_daemon_inverting_a_gru_tracks_the_simulators_force(tmp_path):
+def test_the_daemon_inverting_a_gru_tracks_the_simulators_force(tmp_path, sim_gru):
     """The demo's rig (configs/rig.toml, configs/sim.toml) with a GRU of 12 units trained on
-    the simulated matrix (the demo network's data) as network inversion's model."""
-    path = tmp_path / "sim-gru.json"
-    simulated_matrix_gru(path)
+    the simulated matrix (the demo network's data) as network inversion's model (`sim_gru`:
+    trained before this module holds the machine alone)."""
+    path = sim_gru
     zdaemon, zclient, _ = zenoh_configs(tmp_path)
     rig = tomllib.loads((REPO / "configs/rig.toml").read_text())
     rig["rig"]["name"] = "gru-inversion-test"
