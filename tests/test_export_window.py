@@ -5,8 +5,6 @@ from __future__ import annotations
 
 import datetime as dt
 import json
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -16,22 +14,10 @@ import pytest
 from mrrig.api.catalog import register_run
 from mrrig.export import META_KEY
 from mrrig.rigio.recording import Recorder
-from tests.conftest import REPO
-from tests.test_lifecycle_errors import one_error_line
+from tests.test_lifecycle_errors import mrrig, one_error_line
 from tests.test_recording import run_events, synthetic_run
 
 T0 = dt.datetime(2026, 12, 6, 3, 0, 0, tzinfo=dt.UTC)
-
-
-def _mrrig(*args: str) -> subprocess.CompletedProcess:
-    return subprocess.run(
-        [sys.executable, "-m", "mrrig", *args],
-        cwd=REPO,
-        capture_output=True,
-        text=True,
-        timeout=120,
-        check=False,
-    )
 
 
 @pytest.fixture
@@ -65,7 +51,7 @@ def test_a_run_of_the_catalog_exports_its_own_rows_only(recorded, tmp_path):
         step="sine 2 Hz",
     )
     out = tmp_path / "step.parquet"
-    proc = _mrrig(
+    proc = mrrig(
         "export", "--run", str(step.run_id)[:8], "--catalog", str(catalog), "--to", "parquet",
         "--out", str(out),
     )  # fmt: skip
@@ -88,10 +74,10 @@ def test_a_run_of_the_catalog_exports_its_own_rows_only(recorded, tmp_path):
 def test_a_time_window_exports_its_rows_and_an_empty_one_is_one_error_line(recorded, tmp_path):
     path, s, _ = recorded
     out = tmp_path / "w.csv"
-    proc = _mrrig("export", str(path), "--to", "csv", "--out", str(out), "--from", "2.5")
+    proc = mrrig("export", str(path), "--to", "csv", "--out", str(out), "--from", "2.5")
     assert proc.returncode == 0, proc.stdout + proc.stderr
     assert f"{(s['t'] >= 2.5).sum()} samples" in proc.stdout
-    proc = _mrrig("export", str(path), "--to", "csv", "--out", str(out), "--force",
+    proc = mrrig("export", str(path), "--to", "csv", "--out", str(out), "--force",
                   "--from", "5", "--until", "6")  # fmt: skip
     assert "no sample between 5 s and 6 s (the recording has 0.100-3." in one_error_line(proc)
 
@@ -102,9 +88,9 @@ def test_a_run_outside_its_recording_or_unknown_is_one_error_line(recorded, tmp_
     late = register_run(
         "rig1", T0 + dt.timedelta(hours=1), catalog=catalog, recording=path, plan="p", step="s"
     )
-    proc = _mrrig("export", "--run", str(late.run_id), "--catalog", str(catalog), "--to", "csv",
+    proc = mrrig("export", "--run", str(late.run_id), "--catalog", str(catalog), "--to", "csv",
                   "--out", str(tmp_path / "x.csv"))  # fmt: skip
     line = one_error_line(proc)
     assert f"run {late.run_id}" in line and "is not inside the recording" in line
-    proc = _mrrig("export", "--run", "abcdef12", "--catalog", str(catalog), "--to", "csv")
+    proc = mrrig("export", "--run", "abcdef12", "--catalog", str(catalog), "--to", "csv")
     assert "abcdef12" in one_error_line(proc)

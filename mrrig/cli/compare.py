@@ -19,7 +19,7 @@ import contextlib
 import datetime as dt
 from pathlib import Path
 
-from mrrig.cli.test import add_sim_arguments, run_on, simulated_rig
+from mrrig.cli.test import add_run_arguments, run_on, simulated_rig
 from mrrig.cli_args import HelpFormatter, output_file
 from mrrig.compare import (
     DEFAULT_ACTUATOR,
@@ -30,7 +30,6 @@ from mrrig.compare import (
     rows,
     table,
 )
-from mrrig.rigio import client
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -62,21 +61,7 @@ def main(argv: list[str] | None = None) -> int:
     )
     ap.add_argument("--no-passive", action="store_true", help="leave out the passive extremes")
     ap.add_argument("--plan-out", type=output_file, help="where the plan is written")
-    ap.add_argument(
-        "--zenoh-config",
-        type=Path,
-        help=f"Zenoh client config (default: {client.DEFAULT_CONFIG}; with --sim, both the"
-        " client's and the daemon's on a free port of 127.0.0.1)",
-    )
-    ap.add_argument("--catalog", help="the catalog the steps go to (as mrrig test)")
-    ap.add_argument(
-        "--campaign",
-        help="the campaign the steps' runs belong to in the catalog (default: the plan's name"
-        " and the UTC time it started)",
-    )
-    ap.add_argument("--junit", type=Path, help="write a JUnit XML report here")
-    ap.add_argument("--html", type=Path, help="write a self-contained HTML report here")
-    add_sim_arguments(ap)
+    add_run_arguments(ap)
     args = ap.parse_args(argv)
     if args.sim == (args.rig is not None):
         ap.error("give --sim or --rig NAME")

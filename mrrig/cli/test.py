@@ -38,6 +38,31 @@ class SimError(MrrigError, RuntimeError):
     """--sim: the simulated rig did not start."""
 
 
+def add_run_arguments(ap: argparse.ArgumentParser) -> None:
+    """What a plan's run takes besides the plan (`mrrig test`, `mrrig compare`): the Zenoh
+    client config, the catalog and campaign of its steps' runs, the JUnit and HTML reports,
+    and --sim with its configs."""
+    ap.add_argument(
+        "--zenoh-config",
+        type=Path,
+        help=f"Zenoh client config (default: {client.DEFAULT_CONFIG}; with --sim, both the"
+        " client's and the daemon's on a free port of 127.0.0.1)",
+    )
+    ap.add_argument(
+        "--catalog",
+        help="register each step as a run in this catalog: an SQLite file or a postgresql://"
+        " URL (default: $MRRIG_CATALOG, else recordings/catalog.sqlite)",
+    )
+    ap.add_argument(
+        "--campaign",
+        help="the campaign the steps' runs belong to in the catalog (`mrrig runs --campaign`;"
+        " default: the plan's name and the UTC time it started)",
+    )
+    ap.add_argument("--junit", type=Path, help="write a JUnit XML report here")
+    ap.add_argument("--html", type=Path, help="write a self-contained HTML report here")
+    add_sim_arguments(ap)
+
+
 def add_sim_arguments(ap: argparse.ArgumentParser) -> None:
     """--sim and the two configs it starts the simulated rig with (`simulated_rig`)."""
     ap.add_argument(
@@ -137,25 +162,7 @@ def main(argv: list[str] | None = None) -> int:
     )
     ap.add_argument("plan", type=Path, help="the plan (TOML: [plan], [[step]]s)")
     ap.add_argument("--rig", help="the rig's name (default: the plan's [plan] rig)")
-    ap.add_argument(
-        "--zenoh-config",
-        type=Path,
-        help=f"Zenoh client config (default: {client.DEFAULT_CONFIG}; with --sim, both the"
-        " client's and the daemon's on a free port of 127.0.0.1)",
-    )
-    ap.add_argument(
-        "--catalog",
-        help="register each step as a run in this catalog: an SQLite file or a postgresql://"
-        " URL (default: $MRRIG_CATALOG, else recordings/catalog.sqlite)",
-    )
-    ap.add_argument(
-        "--campaign",
-        help="the campaign the steps' runs belong to in the catalog (`mrrig runs --campaign`;"
-        " default: the plan's name and the UTC time it started)",
-    )
-    ap.add_argument("--junit", type=Path, help="write a JUnit XML report here")
-    ap.add_argument("--html", type=Path, help="write a self-contained HTML report here")
-    add_sim_arguments(ap)
+    add_run_arguments(ap)
     ap.add_argument(
         "--adaptation",
         choices=("on", "off"),

@@ -155,6 +155,39 @@ class _Extrapolating:
         return float(self._w @ x), float(self._dw @ x) / self.period_s
 
 
+class _EstimatedDelay:
+    """The delay a compensator leads by, estimated on line from what it sent and what was
+    measured (`DelayEstimator`, a 2 s window), for the polynomial and the model compensators."""
+
+    def __init__(self, period_s: float, initial_delay_s: float, max_lead_frames: float) -> None:
+        self.period_s = period_s
+        self._max_lag = math.ceil(max_lead_frames) + 1
+        self._initial_frames = 1.0 + initial_delay_s / period_s
+        self.reset()
+
+    def reset(self) -> None:
+        self.estimator = DelayEstimator(
+            max_lag=self._max_lag,
+            window_frames=2.0 / self.period_s,
+            initial_frames=self._initial_frames,
+        )
+        self._sent: float | None = None
+
+    @property
+    def lead_frames(self) -> float:
+        """The estimated delay beyond the loop's own frame, in frames (>= 0)."""
+        return max(self.estimator.delay_frames - 1.0, 0.0)
+
+    def measured(self, measured_m: float) -> None:
+        """The measured stroke, against the last setpoint sent (before choosing the next)."""
+        if self._sent is not None:
+            self.estimator.update(self._sent, measured_m)
+
+    def remember(self, setpoint_m: float) -> None:
+        """The setpoint sent this frame."""
+        self._sent = setpoint_m
+
+
 class PolynomialCompensator(_Extrapolating):
     """Extrapolation over the delay estimated on line (Horiuchi et al. 1996)."""
 
@@ -162,28 +195,21 @@ class PolynomialCompensator(_Extrapolating):
         self, order: int, period_s: float, initial_delay_s: float, max_delay_s: float
     ) -> None:
         super().__init__(order, period_s, max_delay_s)
-        self._initial_frames = 1.0 + initial_delay_s / period_s
-        self.reset()
+        self.delay = _EstimatedDelay(period_s, initial_delay_s, self.max_lead_frames)
 
     def reset(self) -> None:
         self._targets.clear()
-        self.estimator = DelayEstimator(
-            max_lag=math.ceil(self.max_lead_frames) + 1,
-            window_frames=2.0 / self.period_s,  # a 2 s window
-            initial_frames=self._initial_frames,
-        )
-        self._sent: float | None = None
+        self.delay.reset()
 
     @property
     def delay_s(self) -> float:
         """The estimated delay beyond the loop's own frame (what the setpoint is led by)."""
-        return max(self.estimator.delay_frames - 1.0, 0.0) * self.period_s
+        return self.delay.lead_frames * self.period_s
 
     def update(self, target_m: float, measured_m: float) -> tuple[float, float]:
-        if self._sent is not None:
-            self.estimator.update(self._sent, measured_m)
-        setpoint, velocity = self._extrapolate(target_m, self.estimator.delay_frames - 1.0)
-        self._sent = setpoint
+        self.delay.measured(measured_m)
+        setpoint, velocity = self._extrapolate(target_m, self.delay.lead_frames)
+        self.delay.remember(setpoint)
         return setpoint, velocity
 
 
@@ -238,28 +264,21 @@ class ModelCompensator:
         self.substructure = substructure
         self.period_s = period_s
         self.max_lead_frames = max_delay_s / period_s
-        self._initial_frames = 1.0 + initial_delay_s / period_s
-        self.reset()
+        self.delay = _EstimatedDelay(period_s, initial_delay_s, self.max_lead_frames)
 
     def reset(self) -> None:
-        self.estimator = DelayEstimator(
-            max_lag=math.ceil(self.max_lead_frames) + 1,
-            window_frames=2.0 / self.period_s,
-            initial_frames=self._initial_frames,
-        )
-        self._sent: float | None = None
+        self.delay.reset()
 
     @property
     def delay_s(self) -> float:
-        return max(self.estimator.delay_frames - 1.0, 0.0) * self.period_s
+        return self.delay.lead_frames * self.period_s
 
     def update(self, target_m: float, measured_m: float) -> tuple[float, float]:
         """`target_m` is the model's stroke now (its state is what is predicted from)."""
-        if self._sent is not None:
-            self.estimator.update(self._sent, measured_m)
-        lead = min(max(self.estimator.delay_frames - 1.0, 0.0), self.max_lead_frames)
+        self.delay.measured(measured_m)
+        lead = min(self.delay.lead_frames, self.max_lead_frames)
         setpoint, velocity = self.substructure.predicted_stroke(lead)
-        self._sent = setpoint
+        self.delay.remember(setpoint)
         return setpoint, velocity
 
 
