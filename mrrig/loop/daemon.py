@@ -1036,7 +1036,7 @@ class Daemon:
             else:
                 self._sidecar_back(*c.sidecar)
             return {}
-        if c.cmd in ("set_controller", "set_profile") and sup.state is RigState.ARMED:
+        if c.cmd in ("set_controller", "set_profile", "set_hil") and sup.state is RigState.ARMED:
             raise RequestError(f"{c.cmd} only when not armed (disarm first)")
         if c.cmd == "set_controller":
             self.envelope = controller_envelope(c.controller)
@@ -1048,6 +1048,12 @@ class Daemon:
             self._send_status(force=True)
             settings = settings_in_force(c.controller_section, c.controller)
             return {"controller": self.controller.name, "settings": settings}
+        if c.cmd == "set_hil":
+            if self.hil.streaming:  # a disarm ends the run at the next frame
+                raise RequestError("set_hil: the last run is still ending (ask again)")
+            self.hil.set_scenario(c.hil_scenario)
+            self._send_status(force=True)
+            return {"hil": self.hil.status()}
         if c.cmd == "set_profile":
             self.reset_reference(self.now(), self.last_x, c.reference)
             self.cfg = replace(self.cfg, reference=c.reference_section)
