@@ -247,6 +247,7 @@ class HilLoop:
     def _start(self, t: float) -> None:
         self.step = HybridStep(self.scenario)
         self._watch.reset()
+        self._stream.restart()
         self.streaming = True
         self._stop_at = None
         self.runs += 1

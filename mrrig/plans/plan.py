@@ -254,10 +254,10 @@ def _check_hil_steps(steps: tuple[Step, ...], source: str) -> None:
                 f"{where}.scenario: {step.hil.scenario}: the plan's hil steps run on one daemon's"
                 f" scenario: every one names {first}"
             )
+        if not step.hil.scenario.is_file():
+            raise PlanError(f"{where}.scenario: {step.hil.scenario}: no such file")
         try:
             scenario = load_scenario(step.hil.scenario, law=step.hil.law)
-        except OSError as exc:
-            raise PlanError(f"{where}.scenario: {step.hil.scenario}: {exc.strerror}") from None
         except ConfigError as exc:
             raise PlanError(f"{where}: {exc}") from None
         if not scenario.period_s <= step.duration_s <= 3600.0:
