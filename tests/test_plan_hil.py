@@ -17,7 +17,7 @@ import pytest
 from mrrig.api.hil import HilResult, judge
 from mrrig.config import load_config
 from mrrig.hil.laws import LAWS
-from mrrig.hil.reference import percent_change
+from mrrig.hil.reference import percent_change, run_reference
 from mrrig.loop.daemon import Daemon, build_controller, build_reference
 from mrrig.loop.hil_loop import scenario_with
 from mrrig.loop.samples import SAMPLE_DTYPE, RigState
@@ -210,7 +210,7 @@ def runs():
 def test_the_plan_s_table_sets_hil_beside_the_reference_with_the_change_against_passive(runs):
     results = []
     for step, _, run in runs:
-        numbers = hil_numbers(step.hil.law, "quarter-car", run)
+        numbers = hil_numbers(step.hil.law, run)
         reasons = hil_failures(step.criteria, numbers)
         results.append(StepResult(step, "failed" if reasons else "passed", reasons, hil=numbers))
     text = table(results)
@@ -254,7 +254,7 @@ def test_the_plan_s_table_sets_hil_beside_the_reference_with_the_change_against_
 def test_the_hil_criteria_rows_of_the_record(runs):
     step, _, run = next(r for r in runs if r[0].name == "skyhook")
     criteria = dataclasses.replace(step.criteria, j2_pct_max=1.0)
-    rows = hil_criteria_rows(criteria, hil_numbers("skyhook", "quarter-car", run))
+    rows = hil_criteria_rows(criteria, hil_numbers("skyhook", run))
     assert ("body acc RMS against the reference", "<= 3 %", "5.00 %", "not met") in rows
     assert ("travel RMS against the reference", "<= 3 %", "0.00 %", "met") in rows
     assert ("J2 RMS tracking error", "<= 1 %", "0.00 %", "met") in rows
@@ -272,3 +272,37 @@ def test_a_second_run_may_start_on_the_counter_the_last_one_ended_on(tmp_path):
     hil._end(1.0, "the scenario is played out")
     hil._start(5.0)
     assert hil._stream.message(6, 0.0).arbitration_id == 0x212  # the next run's first
+
+
+def test_a_building_run_is_judged_by_its_first_storey_s_drift_and_roof_acceleration():
+    """`mrrig hil building.toml --sim` printed the first storey's drift error as
+    `suspension_travel_m`: a building has no suspension."""
+    from mrrig.hil.scenario import load_scenario
+
+    scenario = dataclasses.replace(load_scenario("configs/hil/building.toml"), duration_s=2.0)
+    reference = run_reference(scenario)
+    n = reference.stroke_m.size
+    s = np.zeros(n, SAMPLE_DTYPE)
+    s["hil_k"] = np.arange(n)
+    s["hil_x_c"] = s["x"] = reference.stroke_m * 1.02
+    s["hil_acc"] = reference.outputs["acceleration_m_s2"][:, -1]
+    *_, errors, figures = judge(s, reference)
+    assert list(errors) == ["storey_1_drift_m", "roof_acceleration_m_s2"]
+    drift = float(np.sqrt(np.mean(reference.outputs["drift_m"][:, 0] ** 2)))
+    assert figures["storey_1_drift_m"] == pytest.approx((drift * 1.02, drift))
+    assert errors["storey_1_drift_m"].rms_of_rms_pct == pytest.approx(2.0)
+
+
+def test_a_streaming_run_commands_within_the_scenario_s_current_range(tmp_path):
+    """The plan's scenario commands its damper 0-1 A (2 A made passive-hard's loop unstable);
+    the daemon's controller may ask up to the loop's 2 A: while a run streams, the scenario's
+    range holds, as in the reference."""
+    config = rig_config(tmp_path, "unused", None, hil={"scenario": str(REPO / SCENARIO)})
+    daemon = Daemon(load_config(config, {"controller": {"name": "constant", "current_a": 0.5}}))
+    hil = daemon.hil
+    assert hil.scenario.damper.i_max_a == 1.0 and daemon.cfg.loop.i_max_a == 2.0
+    assert hil.command(1.7, 2.0) == 1.7  # no run: the loop's range
+    hil._start(0.0)
+    assert hil.command(1.7, 2.0) == 1.0 and hil.command(-0.2, 2.0) == 0.0
+    hil.current = 1.0  # passive-hard's
+    assert hil.command(0.3, 2.0) == 1.0

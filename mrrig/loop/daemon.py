@@ -584,8 +584,8 @@ class Daemon:
                 events += sup.finite(t, f"the {self.controller.name} controller's command", i)
                 if sup.active:
                     i_cmd = self._slew_limit(min(max(i, 0.0), self.cfg.loop.i_max_a))
-                if self.hil is not None and self.hil.current is not None:  # a law's current
-                    i_cmd = min(max(self.hil.current, 0.0), self.cfg.loop.i_max_a)
+                if self.hil is not None:  # a law's current; the scenario's current range
+                    i_cmd = self.hil.command(i_cmd, self.cfg.loop.i_max_a)
         except Exception as exc:  # noqa: BLE001 - a bug must not leave a frame unanswered
             log.exception("cycle failed")
             events += sup.trip(t, Fault.INTERNAL_ERROR, f"{type(exc).__name__}: {exc}")

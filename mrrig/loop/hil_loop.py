@@ -220,6 +220,16 @@ class HilLoop:
             self._end(t, "the scenario is played out")
         return events
 
+    def command(self, i_a: float, i_max_a: float) -> float:
+        """The frame's current: the law's own where it asks one (passive-soft/hard), else the
+        controller's `i_a`; while a run streams, within the scenario's damper range (0 to
+        `damper.i_max_a`, as in the reference), and always within `i_max_a` (the loop's)."""
+        if self.current is not None:
+            i_a = self.current
+        if self.streaming:
+            i_a = min(i_a, self.scenario.damper.i_max_a)
+        return min(max(i_a, 0.0), i_max_a)
+
     def after_command(
         self, send: Callable[[Any], bool], counter: int, t: float, sup: Supervisor
     ) -> list[dict]:

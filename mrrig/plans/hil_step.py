@@ -32,10 +32,9 @@ OUTPUTS = {
     "body_acceleration_m_s2": ("body acc", "m/s^2", 1.0),
     "suspension_travel_m": ("travel", "mm", 1e3),
     "tyre_load_n": ("tyre load", "N", 1.0),
+    "storey_1_drift_m": ("storey-1 drift", "mm", 1e3),
     "roof_acceleration_m_s2": ("roof acc", "m/s^2", 1.0),
 }
-# what the building's stroke is (`mrrig.api.hil.judge` names it as the quarter car's)
-_BUILDING_LABELS = {"suspension_travel_m": ("storey-1 drift", "mm", 1e3)}
 # a figure the rig cannot give above this force (the load cell's, as `mrrig hil`)
 FORCE_LIMIT_N = 6000.0
 
@@ -45,7 +44,6 @@ class HilNumbers:
     """A hil step's run: its law, frames, J1-J3, and per output (HIL RMS, reference RMS)."""
 
     law: str
-    kind: str  # the scenario's: quarter-car or building
     frames: int
     missing: int
     tracking: Tracking | None
@@ -56,14 +54,12 @@ class HilNumbers:
         return {name: percent_change(hil, ref) for name, (hil, ref) in self.rms.items()}
 
 
-def hil_numbers(law: str, kind: str, result) -> HilNumbers:
+def hil_numbers(law: str, result) -> HilNumbers:
     """The numbers of a `mrrig.api.hil.HilResult`."""
-    return HilNumbers(law, kind, result.frames, result.missing, result.tracking, result.figures)
+    return HilNumbers(law, result.frames, result.missing, result.tracking, result.figures)
 
 
-def _label(numbers: HilNumbers, name: str) -> tuple[str, str, float]:
-    if numbers.kind == "building" and name in _BUILDING_LABELS:
-        return _BUILDING_LABELS[name]
+def _label(name: str) -> tuple[str, str, float]:
     return OUTPUTS.get(name, (name, "", 1.0))
 
 
@@ -72,7 +68,7 @@ def _limits(criteria: Criteria, numbers: HilNumbers) -> list[tuple[str, str, flo
     out = []
     if criteria.agreement_pct_max is not None:
         for name, pct in numbers.agreement_pct().items():
-            what = f"{_label(numbers, name)[0]} RMS against the reference"
+            what = f"{_label(name)[0]} RMS against the reference"
             out.append(("agreement_pct_max", what, abs(pct), criteria.agreement_pct_max, " %"))
     t = numbers.tracking
     for field, what, value, unit in (
@@ -132,7 +128,7 @@ def law_tables(rows: Sequence[tuple[str, HilNumbers]]) -> list[str]:
     outputs = sorted(first.rms, key=lambda name: list(OUTPUTS).index(name))
     head = f"{'step':<18} {'law':<16}"
     for name in outputs:
-        label, unit, _ = _label(first, name)
+        label, unit, _ = _label(name)
         head += f" | {label + ' ' + unit:>19} {'agree':>7}"
     head += f" | {'J1 ms':>6} {'J2 %':>6} {'J3 %':>6}"
     lines = ["HIL run beside the reference (RMS: HIL / reference; agree: % difference)", head]
@@ -141,7 +137,7 @@ def law_tables(rows: Sequence[tuple[str, HilNumbers]]) -> list[str]:
         line = f"{step[:18]:<18} {n.law:<16}"
         agree = n.agreement_pct()
         for name in outputs:
-            _, _, scale = _label(n, name)
+            _, _, scale = _label(name)
             hil, ref = n.rms[name]
             line += f" | {hil * scale:>9.4g}/{ref * scale:<9.4g} {agree[name]:>+6.2f}%"
         t = n.tracking
@@ -156,7 +152,7 @@ def law_tables(rows: Sequence[tuple[str, HilNumbers]]) -> list[str]:
     head = f"{'step':<18} {'law':<16}"
     for against in ("passive-soft", "passive-hard"):
         for name in outputs:
-            head += f" | {against[8:] + ' ' + _label(first, name)[0]:>13}"
+            head += f" | {against[8:] + ' ' + _label(name)[0]:>13}"
     lines += [head, "-" * len(head)]
     for step, n in rows:
         line = f"{step[:18]:<18} {n.law:<16}"

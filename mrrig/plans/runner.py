@@ -286,7 +286,7 @@ def _run_hil_step(
         raise StepAborted(str(exc)) from None
     result.samples = run.samples
     result.numbers = measure(run.samples, 0.0)
-    result.hil = hil_numbers(law, run.end["hil"]["kind"], run)
+    result.hil = hil_numbers(law, run)
     fault = run.end.get("fault")
     if fault is not None:
         result.faults.append(fault)
