@@ -41,6 +41,7 @@ class HilResult:
     delay_s: float  # the last delay estimate
     end: dict[str, Any]  # the rig's status at the end
     retried: tuple[str, ...] = ()  # the transport faults of the runs before this one
+    samples: np.ndarray | None = None  # the run's telemetry (every frame)
 
 
 def judge(samples: np.ndarray, reference: ReferenceRun) -> tuple[int, int, Tracking, dict, dict]:
@@ -54,14 +55,18 @@ def judge(samples: np.ndarray, reference: ReferenceRun) -> tuple[int, int, Track
     missing = int(k[-1] + 1 - k.size)
     period = reference.scenario.period_s
     t = tracking(rows["hil_x_c"], rows["x"], period)
-    outputs = {"suspension_travel_m": (rows["hil_x_c"], reference.stroke_m[k])}
+    # the damper's stroke: the quarter car's suspension travel, the building's first storey's
+    # drift (the damper sits between the ground and the first floor)
+    stroke = (rows["hil_x_c"], reference.stroke_m[k])
     if "body_acceleration_m_s2" in reference.outputs:
+        outputs = {"suspension_travel_m": stroke}
         outputs["body_acceleration_m_s2"] = (
             rows["hil_acc"],
             reference.outputs["body_acceleration_m_s2"][k],
         )
         outputs["tyre_load_n"] = (rows["hil_load_n"], reference.outputs["tyre_load_n"][k])
     else:
+        outputs = {"storey_1_drift_m": stroke}
         outputs["roof_acceleration_m_s2"] = (
             rows["hil_acc"],
             reference.outputs["acceleration_m_s2"][k, -1],
@@ -114,59 +119,68 @@ def _run_once(
     from mrrig.api import Rig
 
     with Rig(rig_name, zenoh_config=zenoh_config) as rig:
-        status = rig.status()
-        hil = status.get("hil")
-        if not hil:
-            raise HilRunError(
-                f"rig {rig_name} runs no hybrid simulation (its daemon has no [hil] scenario)"
-            )
-        if hil["kind"] != scenario.kind or hil["steps"] != scenario.steps:
-            raise HilRunError(
-                f"rig {rig_name} runs a {hil['kind']} of {hil['steps']} frames, not this "
-                f"{scenario.kind} of {scenario.steps}"
-            )
-        telemetry = rig.telemetry(quiet_s=scenario.duration_s + 60.0)
-        done = threading.Event()
+        return follow(rig, scenario, reference, progress)
 
-        def collect() -> None:
-            for _ in telemetry:
-                if done.is_set():
-                    break
 
-        reader = threading.Thread(target=collect, name="hil-telemetry", daemon=True)
-        reader.start()
-        # the subscriber declared, and the piston at rest: a daemon just started sent STOP
-        # (its config's motion ramps out over the firmware's 0.5 s); a run armed while it still
-        # moved gave the delay estimator motion no setpoint made (26 ms at frame 15: a trip)
-        time.sleep(REST_WAIT_S)
-        runs0 = hil["runs"]
-        reply = rig.arm()
-        if not reply.get("ok", True) and reply.get("state") != "ARMED":
-            raise HilRunError(f"arm refused: {reply.get('error', reply)}")
-        t0 = time.monotonic()
-        try:
-            while True:
-                time.sleep(STATUS_EVERY_S)
-                status = rig.status()
-                h = status["hil"]
-                started = h["runs"] > runs0
-                delay = h["delay_s"]
-                progress(
-                    f"{time.monotonic() - t0:6.1f} s  frame {h['k']:>6}/{h['steps']}  "
-                    f"{status['state']:<5}  delay "
-                    + (f"{delay * 1e3:.2f} ms" if delay is not None else "-")
-                )
-                if started and not h["streaming"]:
-                    break
-                if status["state"] != "ARMED" and (started or time.monotonic() - t0 > START_S):
-                    break
-        finally:
-            if rig.status()["state"] == "ARMED":
-                rig.disarm()
-            time.sleep(0.5)  # the last batches
-            done.set()
-            reader.join(timeout=5.0)
-        end = rig.status()
+def follow(
+    rig, scenario: Scenario, reference: ReferenceRun, progress: Callable[[str], None]
+) -> HilResult:
+    """One run on an open `mrrig.api.Rig` whose daemon runs `scenario` (disarmed): arm,
+    follow it once a second until the run ends, disarm, judge the telemetry. A plan's `hil`
+    step calls it after its `set_hil`."""
+    status = rig.status()
+    hil = status.get("hil")
+    if not hil:
+        raise HilRunError(
+            f"rig {rig.name} runs no hybrid simulation (its daemon has no [hil] scenario)"
+        )
+    if hil["kind"] != scenario.kind or hil["steps"] != scenario.steps:
+        raise HilRunError(
+            f"rig {rig.name} runs a {hil['kind']} of {hil['steps']} frames, not this "
+            f"{scenario.kind} of {scenario.steps}"
+        )
+    telemetry = rig.telemetry(quiet_s=scenario.duration_s + 60.0)
+    done = threading.Event()
+
+    def collect() -> None:
+        for _ in telemetry:
+            if done.is_set():
+                break
+
+    reader = threading.Thread(target=collect, name="hil-telemetry", daemon=True)
+    reader.start()
+    # the subscriber declared, and the piston at rest: a daemon just started sent STOP
+    # (its config's motion ramps out over the firmware's 0.5 s); a run armed while it still
+    # moved gave the delay estimator motion no setpoint made (26 ms at frame 15: a trip)
+    time.sleep(REST_WAIT_S)
+    runs0 = hil["runs"]
+    reply = rig.arm()
+    if not reply.get("ok", True) and reply.get("state") != "ARMED":
+        raise HilRunError(f"arm refused: {reply.get('error', reply)}")
+    t0 = time.monotonic()
+    try:
+        while True:
+            time.sleep(STATUS_EVERY_S)
+            status = rig.status()
+            h = status["hil"]
+            started = h["runs"] > runs0
+            delay = h["delay_s"]
+            progress(
+                f"{time.monotonic() - t0:6.1f} s  frame {h['k']:>6}/{h['steps']}  "
+                f"{status['state']:<5}  delay "
+                + (f"{delay * 1e3:.2f} ms" if delay is not None else "-")
+            )
+            if started and not h["streaming"]:
+                break
+            if status["state"] != "ARMED" and (started or time.monotonic() - t0 > START_S):
+                break
+    finally:
+        if rig.status()["state"] == "ARMED":
+            rig.disarm()
+        time.sleep(0.5)  # the last batches
+        done.set()
+        reader.join(timeout=5.0)
+    end = rig.status()
     try:
         frames, missing, t, errors, figures = judge(telemetry.samples, reference)
     except HilRunError as exc:
@@ -174,4 +188,5 @@ def _run_once(
             raise
         frames, missing, t, errors, figures = 0, 0, None, {}, {}
         progress(f"not judged: {exc}")
-    return HilResult(frames, missing, t, errors, figures, end["hil"]["delay_s"] or 0.0, end)
+    delay_s = end["hil"]["delay_s"] or 0.0
+    return HilResult(frames, missing, t, errors, figures, delay_s, end, samples=telemetry.samples)

@@ -4,7 +4,8 @@ verdict per step, a table at the end and, on request, JUnit XML and HTML reports
 The rig is driven only through its public interfaces (control requests, status, telemetry over
 Zenoh), so the same plan runs on the simulator, on vcan and at a real rig. `--sim` starts the
 simulated rig first (the CAN bridge on 127.0.0.1, firmware_sim, the daemon with telemetry), as
-`mrrig demo` does, and stops it at the end.
+`mrrig demo` does, and stops it at the end; for a plan of `hil` steps the daemon runs their
+scenario (`--hil`), and the end prints each law's figures beside the reference's.
 
 Exit codes: 0 every step passed; 1 a step failed or was aborted (a fault, Ctrl-C: the rig is
 left disarmed, the reports still written); 2 the plan could not run (a plan error, no rig).
@@ -176,8 +177,10 @@ def main(argv: list[str] | None = None) -> int:
     plan = load_plan(args.plan)  # a PlanError: one line, exit 2 (mrrig.cli.main)
     with contextlib.ExitStack() as stack:
         if args.sim:
+            # a plan of hil steps: the daemon runs their scenario (`set_hil` sets each law)
+            hil = () if plan.hil_scenario is None else ("--hil", str(plan.hil_scenario))
             rig_name, args.zenoh_config = stack.enter_context(
-                simulated_rig(args.config, args.sim_config, args.zenoh_config, args.adaptation)
+                simulated_rig(args.config, args.sim_config, args.zenoh_config, args.adaptation, hil)
             )
             if args.rig and args.rig != rig_name:
                 raise SimError(f"--rig {args.rig}: the simulated rig ({args.config}) is {rig_name}")

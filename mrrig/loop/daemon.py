@@ -584,8 +584,8 @@ class Daemon:
                 events += sup.finite(t, f"the {self.controller.name} controller's command", i)
                 if sup.active:
                     i_cmd = self._slew_limit(min(max(i, 0.0), self.cfg.loop.i_max_a))
-                if self.hil is not None and self.hil.current is not None:  # a law's current
-                    i_cmd = min(max(self.hil.current, 0.0), self.cfg.loop.i_max_a)
+                if self.hil is not None:  # a law's current; the scenario's current range
+                    i_cmd = self.hil.command(i_cmd, self.cfg.loop.i_max_a)
         except Exception as exc:  # noqa: BLE001 - a bug must not leave a frame unanswered
             log.exception("cycle failed")
             events += sup.trip(t, Fault.INTERNAL_ERROR, f"{type(exc).__name__}: {exc}")
@@ -1036,7 +1036,7 @@ class Daemon:
             else:
                 self._sidecar_back(*c.sidecar)
             return {}
-        if c.cmd in ("set_controller", "set_profile") and sup.state is RigState.ARMED:
+        if c.cmd in ("set_controller", "set_profile", "set_hil") and sup.state is RigState.ARMED:
             raise RequestError(f"{c.cmd} only when not armed (disarm first)")
         if c.cmd == "set_controller":
             self.envelope = controller_envelope(c.controller)
@@ -1048,6 +1048,12 @@ class Daemon:
             self._send_status(force=True)
             settings = settings_in_force(c.controller_section, c.controller)
             return {"controller": self.controller.name, "settings": settings}
+        if c.cmd == "set_hil":
+            if self.hil.streaming:  # a disarm ends the run at the next frame
+                raise RequestError("set_hil: the last run is still ending (ask again)")
+            self.hil.set_scenario(c.hil_scenario)
+            self._send_status(force=True)
+            return {"hil": self.hil.status()}
         if c.cmd == "set_profile":
             self.reset_reference(self.now(), self.last_x, c.reference)
             self.cfg = replace(self.cfg, reference=c.reference_section)

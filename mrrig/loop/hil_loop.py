@@ -21,11 +21,12 @@ import dataclasses
 import logging
 import math
 from collections.abc import Callable
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
-from mrrig.config import DaemonConfig
+from mrrig.config import DaemonConfig, HilCompensation, HilLaw
 from mrrig.hil.scenario import Scenario, load_scenario
 from mrrig.hil.stepper import HybridStep
 from mrrig.hil.substructure import QuarterCar
@@ -34,7 +35,8 @@ from mrrig.loop import reference as ref
 from mrrig.loop.safety import Fault, Supervisor
 from mrrig.rigio.canbus.profile import ProfileError, RigProfile
 from mrrig.rigio.canbus.setpoint import SetpointError, SetpointStream
-from mrrig.typed_config import ConfigError
+from mrrig.rigio.run_identity import file_sha256
+from mrrig.typed_config import ConfigError, parse
 
 log = logging.getLogger(__name__)
 
@@ -90,6 +92,36 @@ def build_scenario(cfg: DaemonConfig) -> Scenario:
     return scenario
 
 
+@dataclass(frozen=True)
+class HilRunSettings:
+    """What a `set_hil` request changes of the daemon's scenario while disarmed (a plan's `hil`
+    step: one law after another on the same road); a field left out is as `[hil]` set it at
+    start. The scenario file itself is the daemon's, fixed at start."""
+
+    law: HilLaw | None = None
+    compensation: HilCompensation | None = None
+    duration_s: float | None = None
+
+
+def scenario_with(base: Scenario, table: dict[str, Any], where: str) -> Scenario:
+    """`base` (the daemon's scenario as configured) with a `set_hil` request's fields;
+    ConfigError (one line naming the field) for what the scenario cannot take."""
+    s = parse(HilRunSettings, table, where)
+    new = base
+    if s.law is not None:
+        new = dataclasses.replace(new, law=s.law)
+    if s.compensation is not None:
+        c = dataclasses.replace(new.compensation, method=s.compensation)
+        new = dataclasses.replace(new, compensation=c)
+    if s.duration_s is not None:
+        new = dataclasses.replace(new, duration_s=s.duration_s)
+    try:
+        new.check()
+    except ValueError as exc:
+        raise ConfigError(f"{where}: {exc}") from None
+    return new
+
+
 class HilLoop:
     """One scenario, run each time the rig is armed."""
 
@@ -105,6 +137,9 @@ class HilLoop:
             raise ProfileError(f"hil: {why}")
         h = cfg.hil
         self.scenario = build_scenario(cfg)
+        self.configured = self.scenario  # what `set_hil` starts from
+        self.scenario_path = str(h.scenario)
+        self.scenario_sha256 = file_sha256(h.scenario)  # the plan's `hil` step checks it
         self.envelope_m = h.envelope_m
         self.hold_s = h.hold_s
         self.reference = HilDemand()
@@ -185,6 +220,16 @@ class HilLoop:
             self._end(t, "the scenario is played out")
         return events
 
+    def command(self, i_a: float, i_max_a: float) -> float:
+        """The frame's current: the law's own where it asks one (passive-soft/hard), else the
+        controller's `i_a`; while a run streams, within the scenario's damper range (0 to
+        `damper.i_max_a`, as in the reference), and always within `i_max_a` (the loop's)."""
+        if self.current is not None:
+            i_a = self.current
+        if self.streaming:
+            i_a = min(i_a, self.scenario.damper.i_max_a)
+        return min(max(i_a, 0.0), i_max_a)
+
     def after_command(
         self, send: Callable[[Any], bool], counter: int, t: float, sup: Supervisor
     ) -> list[dict]:
@@ -212,6 +257,7 @@ class HilLoop:
     def _start(self, t: float) -> None:
         self.step = HybridStep(self.scenario)
         self._watch.reset()
+        self._stream.restart()
         self.streaming = True
         self._stop_at = None
         self.runs += 1
@@ -235,10 +281,21 @@ class HilLoop:
         k = self.step.substructure.k if self.step is not None else 0
         log.info("hil: run %d ended at frame %d: %s", self.runs, k, why)
 
+    def set_scenario(self, scenario: Scenario) -> None:
+        """`set_hil`'s scenario for the next run (the loop thread, while disarmed)."""
+        self.scenario = scenario
+        self.step = None
+        log.info("hil: next runs %s, %s compensation, %g s", scenario.law,
+                 scenario.compensation.method, scenario.duration_s)  # fmt: skip
+
     def status(self) -> dict[str, Any]:
         sub = self.step.substructure if self.step is not None else None
         return {
             "kind": self.scenario.kind,
+            "scenario": self.scenario_path,
+            "scenario_sha256": self.scenario_sha256,
+            "duration_s": self.scenario.duration_s,
+            "envelope_m": self.envelope_m,
             "law": self.scenario.law if self.step is None else self.step.law.name,
             "compensation": self.scenario.compensation.method,
             "streaming": self.streaming,

@@ -32,6 +32,10 @@ _RANGES = {
 }
 
 
+# the criteria only a hil step has
+HIL_CRITERIA = ("agreement_pct_max", "j1_ms_max", "j2_pct_max", "j3_pct_max")
+
+
 @dataclass(frozen=True)
 class Criteria:
     et_max: float | None = None  # the paper's error norm over the armed samples after settling
@@ -41,9 +45,15 @@ class Criteria:
     temperature_max_degc: float | None = None
     # the share of samples outside the model's training envelope (mrrig/loop/coverage.py)
     coverage_outside_max: float | None = None
+    # a hil step's (mrrig/plans/hil_step.py): each RMS figure of the run within this % of the
+    # reference's; the RTHS benchmark's tracking delay J1 (|ms|), J2 and J3 (%)
+    agreement_pct_max: float | None = None
+    j1_ms_max: float | None = None
+    j2_pct_max: float | None = None
+    j3_pct_max: float | None = None
 
     def check(self) -> None:
-        for name in ("et_max", "peak_current_a_max", "latency_p99_us_max"):
+        for name in ("et_max", "peak_current_a_max", "latency_p99_us_max", *HIL_CRITERIA):
             value = getattr(self, name)
             if value is not None and not value > 0:
                 raise ValueError(f"{name}: must be > 0")
@@ -51,6 +61,10 @@ class Criteria:
             value = getattr(self, name)
             if value is not None and not (math.isfinite(value) and low <= value <= high):
                 raise ValueError(f"{name}: {value!r} is outside [{low:g}, {high:g}]{unit}")
+        for name in HIL_CRITERIA:
+            value = getattr(self, name)
+            if value is not None and not (math.isfinite(value) and value <= 1000):
+                raise ValueError(f"{name}: {value!r} is outside (0, 1000]")
         share = self.coverage_outside_max
         if share is not None and not 0 <= share <= 1:
             raise ValueError("coverage_outside_max: must be in [0, 1] (a share of the samples)")

@@ -3,20 +3,28 @@
 A plan is `[plan]` (name, the rig it is meant for) and an ordered list of `[[step]]`s, each
 with what the daemon's control requests take (`actuator`, `controller` = `set_controller`,
 `reference` = `set_profile`, `adaptation` = `reset_adaptation` + `freeze_adaptation`), its
-duration and settling time, and its `criteria`. An error is one line naming the file, the step
-(index and name) and the field.
+duration and settling time, and its `criteria`. A `hil` step (`hil = {scenario, law}`) is one
+hybrid-simulation run of a `[hil]` daemon's scenario with that law (`set_hil`), judged against
+the all-numerical reference (`mrrig.plans.hil_step`). An error is one line naming the file, the
+step (index and name) and the field.
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, Literal
 
-from mrrig.config import ActuatorSection, ControllerSection, ReferenceSection
+from mrrig.config import (
+    ActuatorSection,
+    ControllerSection,
+    HilCompensation,
+    HilLaw,
+    ReferenceSection,
+)
 from mrrig.loop.controllers import CONTROLLERS
-from mrrig.plans.criteria import Criteria
+from mrrig.plans.criteria import HIL_CRITERIA, Criteria
 from mrrig.safe_text import MAX_CHARS, one_line
 from mrrig.typed_config import ConfigError, load_toml, parse
 
@@ -38,6 +46,17 @@ class PlanError(ConfigError):
 
 
 @dataclass(frozen=True)
+class HilStepSection:
+    """A `hil` step: one run of the scenario (the daemon's `[hil]` scenario, the same file)
+    with this law (and compensation: the scenario's if left out), for the step's duration_s,
+    beside the scenario computed all-numerically (the reference)."""
+
+    scenario: Path
+    law: HilLaw
+    compensation: HilCompensation | None = None
+
+
+@dataclass(frozen=True)
 class Step:
     name: str
     duration_s: float
@@ -54,6 +73,7 @@ class Step:
     given: dict[str, tuple[str, ...]] = field(default_factory=dict)
     # figures printed beside the step's Et, by source (e.g. the paper's for the same case)
     compare_et: dict[str, float] = field(default_factory=dict)
+    hil: HilStepSection | None = None
 
     def check(self) -> None:
         _one_line("name", self.name)
@@ -85,6 +105,12 @@ class Step:
             out.append(
                 {"cmd": cmd, **{k: str(v) if isinstance(v, Path) else v for k, v in req.items()}}
             )
+        if self.hil is not None:
+            h = self.hil
+            run = {"law": h.law, "duration_s": self.duration_s}
+            if h.compensation is not None:
+                run["compensation"] = h.compensation
+            out.append({"cmd": "set_hil", **run})
         if self.adaptation is not None:  # after set_controller, which builds a new one
             frozen = self.adaptation == "off"
             out += [{"cmd": "reset_adaptation"}, {"cmd": "freeze_adaptation", "frozen": frozen}]
@@ -98,6 +124,11 @@ class Plan:
     steps: tuple[Step, ...]
     rig: str | None = None  # the rig it is meant for (--rig overrides)
     description: str = ""
+
+    @property
+    def hil_scenario(self) -> Path | None:
+        """The scenario of the plan's `hil` steps (one: a daemon runs one), or None."""
+        return next((s.hil.scenario for s in self.steps if s.hil is not None), None)
 
 
 @dataclass(frozen=True)
@@ -153,10 +184,12 @@ def load_plan(path: str | Path) -> Plan:
         raise PlanError(
             f"{source}: step: {len(steps)} steps, over the limit of {MAX_STEPS} (split the plan)"
         )
+    parsed = tuple(_step(i, raw, source) for i, raw in enumerate(steps, start=1))
+    _check_hil_steps(parsed, source)
     return Plan(
         name=header.name,
         path=path,
-        steps=tuple(_step(i, raw, source) for i, raw in enumerate(steps, start=1)),
+        steps=parsed,
         rig=header.rig,
         description=header.description,
     )
@@ -187,4 +220,48 @@ def _step(index: int, raw: Any, source: str) -> Step:
         step = parse(Step, table, source, where)
     except ConfigError as exc:
         raise PlanError(str(exc)) from None
-    return Step(**{**step.__dict__, "given": given})
+    if step.hil is not None:
+        mixed = [key for key in ("actuator", "reference", "settle_s") if key in raw]
+        if mixed:
+            raise PlanError(
+                f"{source}: {where}.{mixed[0]}: a hil step's run sets the actuator (STREAM) and"
+                " the force reference (the law's) and starts as it is armed: leave it out"
+            )
+        step = replace(step, settle_s=0.0)
+    else:
+        hil_only = [k for k in HIL_CRITERIA if getattr(step.criteria, k) is not None]
+        if hil_only:
+            raise PlanError(
+                f"{source}: {where}.criteria.{hil_only[0]}: a criterion of a hil step (this"
+                " step has no `hil`)"
+            )
+    return replace(step, given=given)
+
+
+def _check_hil_steps(steps: tuple[Step, ...], source: str) -> None:
+    """A plan's hil steps run one scenario (a daemon runs one), which loads with each law."""
+    from mrrig.hil.scenario import load_scenario
+
+    first: Path | None = None
+    for index, step in enumerate(steps, start=1):
+        if step.hil is None:
+            continue
+        where = f"{source}: step {index} ({step.name}).hil"
+        if first is None:
+            first = step.hil.scenario
+        elif step.hil.scenario != first:
+            raise PlanError(
+                f"{where}.scenario: {step.hil.scenario}: the plan's hil steps run on one daemon's"
+                f" scenario: every one names {first}"
+            )
+        if not step.hil.scenario.is_file():
+            raise PlanError(f"{where}.scenario: {step.hil.scenario}: no such file")
+        try:
+            scenario = load_scenario(step.hil.scenario, law=step.hil.law)
+        except ConfigError as exc:
+            raise PlanError(f"{where}: {exc}") from None
+        if not scenario.period_s <= step.duration_s <= 3600.0:
+            raise PlanError(
+                f"{source}: step {index} ({step.name}).duration_s: {step.duration_s:g} s, not a"
+                f" scenario's run ([{scenario.period_s:g}, 3600] s)"
+            )

@@ -14,6 +14,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from mrrig.plans.criteria import criteria_rows
+from mrrig.plans.hil_step import hil_criteria_rows
 from mrrig.plans.runner import StepResult, overall
 from mrrig.safe_text import one_line, plot_literal
 
@@ -97,6 +98,11 @@ def write_junit(path: Path, plan_name: str, ident: Identity, results: list[StepR
                 "temperature_max_degc": _number(n.temperature_max_degc),
                 "against_motion_share": _number(n.opposed_share),
             }
+        if r.hil is not None:  # a hil step's run: per output its RMS and the reference's
+            values["hil_law"] = r.hil.law
+            for name, (hil, ref) in r.hil.rms.items():
+                values[f"hil_rms_{name}"] = _number(hil)
+                values[f"reference_rms_{name}"] = _number(ref)
         for name, value in values.items():
             ET.SubElement(cprops, "property", name=name, value=one_line(value, _MAX_MESSAGE_CHARS))
         message = one_line("; ".join(r.reasons), _MAX_MESSAGE_CHARS)
@@ -143,6 +149,7 @@ def _criteria_table(r: StepResult) -> str:
     """The step's criteria: each limit, the value measured, met or not."""
     e = html.escape
     rows = criteria_rows(r.step.criteria, r.numbers, r.faults) if r.verdict != "skipped" else []
+    rows += hil_criteria_rows(r.step.criteria, r.hil)
     if not rows:
         return ""
     body = "".join(

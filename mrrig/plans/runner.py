@@ -30,6 +30,7 @@ from mrrig.loop.safety import TRANSPORT_FAULTS
 from mrrig.loop.samples import SAMPLE_DTYPE
 from mrrig.plans.criteria import Numbers, failures, measure
 from mrrig.plans.feasibility import Prediction, before_arming
+from mrrig.plans.hil_step import HilNumbers, hil_failures, hil_numbers, law_tables, run_hil_step
 from mrrig.plans.interrupts import interruptible
 from mrrig.plans.plan import Plan, Step
 from mrrig.rigio.client import ClientError
@@ -62,6 +63,7 @@ class StepResult:
     identity: dict = field(default_factory=dict)
     # the share of desired forces against the motion, as known before arming
     predicted: Prediction | None = None
+    hil: HilNumbers | None = None  # a hil step's run against its reference
 
 
 # what a step's catalog row takes from the daemon's identity in force (`StepResult.identity`)
@@ -104,7 +106,8 @@ def run_plan(
         try:
             _mark(rig, f"{where}: start", _start_data(plan, index, step))
             with interruptible():  # a stop signal interrupts the step, never its ending
-                _run_step(index, len(plan.steps), step, rig, result, progress)
+                run = _run_step if step.hil is None else _run_hil_step
+                run(index, len(plan.steps), step, rig, result, progress)
         except StepAborted as exc:
             result.verdict, result.reasons = "aborted", [str(exc)]
         except KeyboardInterrupt as exc:
@@ -141,6 +144,8 @@ def _register(
             "temp_max_degc": n.temperature_max_degc,
         }
     traced = {k: r.identity[k] for k in STEP_IDENTITY if r.identity.get(k) is not None}
+    if r.step.hil is not None:  # the law the run had (its figures: the plan's table, reports)
+        traced["tags"] = [f"hil:{r.step.hil.law}"]
     try:
         register_run(
             rig.name,
@@ -251,9 +256,8 @@ def _wait_state(rig: Rig, state: str, timeout_s: float = 3.0) -> dict:
     return status
 
 
-def _run_step(
-    index: int, count: int, step: Step, rig: Rig, result: StepResult, progress: Progress
-) -> None:
+def _set_up(step: Step, rig: Rig, result: StepResult) -> None:
+    """Out of FAULT, disarmed, the step's requests sent; what the rig has in force noted."""
     _out_of_fault(rig)
     _request(rig, {"cmd": "disarm"})
     for req in step.requests():
@@ -263,6 +267,38 @@ def _run_step(
     result.identity = status.get("identity") or {}  # a daemon from before it carried one: {}
     recording = status.get("recording")  # the sidecar's file, or the loop's "failed: ..."
     result.recording = recording.get("path") if isinstance(recording, dict) else None
+
+
+def _run_hil_step(
+    index: int, count: int, step: Step, rig: Rig, result: StepResult, progress: Progress
+) -> None:
+    """One hybrid-simulation run of the step's law (`mrrig.plans.hil_step`): the rig's own
+    end of the run (the scenario played out, a fault) ends the step; its numbers against the
+    reference."""
+    from mrrig.api.hil import HilRunError
+
+    _set_up(step, rig, result)
+    law = step.hil.law
+    progress(f"  step {index}/{count} {step.name}: {law}, the reference computed, then arm")
+    try:
+        run = run_hil_step(rig, step, lambda line: progress(f"  step {index}/{count} {line}"))
+    except (ValueError, HilRunError, RigError, ClientError) as exc:
+        raise StepAborted(str(exc)) from None
+    result.samples = run.samples
+    result.numbers = measure(run.samples, 0.0)
+    result.hil = hil_numbers(law, run)
+    fault = run.end.get("fault")
+    if fault is not None:
+        result.faults.append(fault)
+    result.reasons = failures(step.criteria, result.numbers, result.faults)
+    result.reasons += hil_failures(step.criteria, result.hil)
+    result.verdict = "failed" if result.reasons else "passed"
+
+
+def _run_step(
+    index: int, count: int, step: Step, rig: Rig, result: StepResult, progress: Progress
+) -> None:
+    _set_up(step, rig, result)
     result.predicted = before_arming(step)
     progress(f"  step {index}/{count} {step.name}: {result.predicted.text()}")
     tele = rig.telemetry(duration_s=step.settle_s + step.duration_s, quiet_s=CONTROL_PATIENCE_S)
@@ -348,7 +384,8 @@ def table(results: list[StepResult]) -> str:
             f"{i:>2}  {r.step.name[:24]:<24} {r.verdict:<8} {nums} {','.join(r.faults) or '-'}"
             + (f"  (Et {beside})" if beside else "")
         )
-    return "\n".join(rows)
+    hil = law_tables([(r.step.name, r.hil) for r in results if r.hil is not None])
+    return "\n".join(rows + ([""] if hil else []) + hil)
 
 
 def overall(results: list[StepResult]) -> str:

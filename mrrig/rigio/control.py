@@ -13,7 +13,8 @@ change between frames (`ControlWorker.take`), applies it (`Daemon.apply`) and ha
 back to the worker, which writes it.
 
 What needs DISARMED (not ARMED: IDLE or FAULT): `set_controller`, `set_model`, `set_profile`
-(a new force target or controller under an armed damper would step its current), and an
+(a new force target or controller under an armed damper would step its current), `set_hil`
+(the law, compensation and duration of a `[hil]` daemon's next runs), and an
 `actuator` change of waveform or frequency, or to an amplitude more than
 `control.armed_amplitude_step_m` from the amplitude at arming, while ARMED; `actuator` STOP
 is always taken (the firmware ramps to rest). The loop checks the state again when it
@@ -212,6 +213,7 @@ class Change:
     frozen: bool = True  # "freeze_adaptation"
     lease: str = ""  # "renew": the lease an arm answered
     remote: bool = False  # from a Zenoh client (an arm holds a lease), not in process
+    hil_scenario: Any = None  # "set_hil": the scenario of the next hybrid simulation runs
 
 
 def read_limited(path: Path, dirs: tuple[Path, ...], max_bytes: int, timeout_s: float) -> str:
@@ -447,6 +449,20 @@ class Preparer:
             raise RequestError(str(exc)) from None
         return Change("set_profile", reference_section=section, reference=new)
 
+    def _set_hil(self, req: dict) -> Change:
+        from mrrig.loop.hil_loop import scenario_with
+
+        _require_not_armed(self._d.supervisor.state, "set_hil")
+        hil = self._d.hil
+        if hil is None:
+            raise RequestError("set_hil: this daemon runs no hybrid simulation (no [hil] scenario)")
+        table = {k: v for k, v in req.items() if k not in ("cmd", "id")}
+        try:
+            scenario = scenario_with(hil.configured, table, "set_hil")
+        except ConfigError as exc:
+            raise RequestError(str(exc).removeprefix("set_hil: ")) from None
+        return Change("set_hil", hil_scenario=scenario)
+
     def _actuator(self, req: dict) -> Change:
         table = {k: v for k, v in req.items() if k not in ("cmd", "id")}
         section = _section(ActuatorSection, table, "actuator")
@@ -637,5 +653,6 @@ COMMANDS = (
     "actuator",
     "reset_adaptation",
     "freeze_adaptation",
+    "set_hil",  # the next hybrid simulation runs' law, compensation, duration_s (disarmed)
     "mark",  # a marker in the recording (answered by the telemetry process, which writes it)
 )

@@ -41,6 +41,11 @@ class SetpointStream:
         self._packer = packer
         self._last_echo: int | None = None
 
+    def restart(self) -> None:
+        """A new run: its first sensor frame may carry the counter the last run's last
+        setpoint echoed (the counter comes round), and is a frame of its own."""
+        self._last_echo = None
+
     def message(self, echo: int, position_m: float, velocity_m_s: float = 0.0) -> can.Message:
         """The ActuatorSetpoint answering the sensor frame whose counter is `echo`: the piston
         to `position_m`, moving at `velocity_m_s` (its feedforward; 0 when unknown)."""
