@@ -73,6 +73,7 @@ SCREEN_EVALUATIONS = 6
 # first speed over MOVING of its RMS speed (`warm_rows`)
 WARMUP_S = 0.2
 MOVING = 0.05
+AT_BOUND = math.log(1.01)  # a fitted parameter within 1 % of a bound is reported at it
 
 
 @dataclass(frozen=True)
@@ -105,7 +106,7 @@ class FitResult:
     seconds: float
     status: str
     # each start's Et on the fitted rows after its screening (`SCREEN_EVALUATIONS`), the
-    # first the given start's; which start was fitted on; the parameters left at a bound
+    # first the given start's; which start was fitted on; the parameters at a bound (1 %)
     start_ets: tuple[float, ...] = ()
     chosen_start: int = 0
     at_bounds: tuple[str, ...] = ()
@@ -350,7 +351,7 @@ def fit(
     at = [
         n
         for n, v, lo, hi in zip(free, sol.x, lower, upper, strict=False)
-        if min(v - lo, hi - v) < 1e-6
+        if min(v - lo, hi - v) < AT_BOUND
     ]
     return FitResult(
         params,
