@@ -94,7 +94,7 @@ def test_a_known_twin_is_recovered_from_segments_and_holds_on_the_ones_it_did_no
     s = _series(truth)
     held, fit_rows, _ = left_out_segments(s)
     start = dataclasses.replace(PAPER, c0a=1.5 * PAPER.c0a, alpha_b=0.7 * PAPER.alpha_b, eta=190.0)
-    r = fit([_run(s)], [fit_rows], start, 0.0, max_evaluations=30, starts=2, seed=1)
+    r = fit([_run(s)], [fit_rows], start, 0.0, max_evaluations=12, starts=2, seed=1)
     assert len(r.start_ets) == 2 and r.chosen_start == int(np.argmin(r.start_ets))
     got = run_force(r.params, r.offset_n, _run(s), SUBSTEP_S)
     scored = held & warm_rows(_run(s))

@@ -63,7 +63,10 @@ def _parser() -> argparse.ArgumentParser:
     )
     ap.add_argument("--seed", type=int, default=0, help="the drawn starts' seed (default 0)")
     ap.add_argument(
-        "--max-evaluations", type=COUNT, default=60, help="least-squares evaluations, at most"
+        "--max-evaluations",
+        type=COUNT,
+        default=60,
+        help="least-squares evaluations from the best start, at most",
     )
     ap.add_argument("--report", type=output_file, help="also write the report as JSON")
     ap.add_argument(

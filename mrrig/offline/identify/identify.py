@@ -101,10 +101,6 @@ def left_out_segments(series: Series) -> tuple[np.ndarray, np.ndarray, str]:
     segments dealt by character into `SEGMENT_GROUPS` groups, the `most_unlike` group held
     out and `GUARD_FRACTION` of a segment each side of its segments kept out of the fit."""
     n = len(series)
-    if n < 3 * SEGMENTS:
-        raise ValueError(
-            f"{series.name}: {n} samples, too few to hold {SEGMENTS} segments out (--holdout FILE)"
-        )
     segment = np.arange(n) * SEGMENTS // n
     char = segment_character(series, segment, SEGMENTS)
     group = character_groups(char, SEGMENT_GROUPS)
@@ -133,6 +129,11 @@ def load_test(path: Path, fit: bool, segments: bool = True) -> Test:
     if len(s) < 3:
         raise ValueError(f"{path}: fewer than 3 samples left after the bad stretches")
     if fit and segments:
+        if len(s) < 3 * SEGMENTS:
+            raise ValueError(
+                f"{path}: {len(s)} samples, too few to hold {SEGMENTS} segments out of the fit"
+                " (give a longer test, or tests to --holdout)"
+            )
         held, fit_mask, label = left_out_segments(s)
     elif fit:
         held, fit_mask, label = np.zeros(len(s), dtype=bool), np.ones(len(s), dtype=bool), ""
