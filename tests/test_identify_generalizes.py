@@ -25,7 +25,12 @@ from mrrig.offline.identify.fit import (
     start_points,
     warm_rows,
 )
-from mrrig.offline.identify.identify import SUBSTEP_S, identify, left_out_segments
+from mrrig.offline.identify.identify import (
+    SUBSTEP_S,
+    command_varies,
+    identify,
+    left_out_segments,
+)
 from mrrig.offline.metrics import error_norm
 from mrrig.offline.training.crossval import GUARD_FRACTION, SEGMENTS
 from mrrig.offline.training.kinds import twin_kind
@@ -168,3 +173,15 @@ def test_identify_prints_the_fitted_sets_et_on_the_segments_it_did_not_fit(tmp_p
     assert report["tests"][0]["et_segments_not_fitted"] == pytest.approx(expected, rel=1e-3)
     assert math.isfinite(report["tests"][0]["et_fitted_rows"])
     assert len(report["start_ets_fitted_rows"]) == 2
+
+
+def test_eta_is_fitted_only_where_the_command_changes_within_runs():
+    """A command held per run (a characterization matrix) cannot tell eq. 36's lag: such runs
+    hold eta at the start's (left free, the fit took it to 11670 1/s on four Labcontrol tests
+    and ran 9 times as long); a stepping command frees it."""
+    s = _series()
+    stepping = _run(s)
+    held = [dataclasses.replace(stepping, command=np.full(len(s), v)) for v in (0.0, 1.0, 2.0)]
+    assert command_varies([stepping])
+    assert not command_varies(held)
+    assert command_varies([*held, stepping])

@@ -4,15 +4,16 @@
 DATA are CSVs whose headers name field and unit (`t_s`, `x_cm`, `xd_cm_s`, `command_v`,
 `force_n`), tidy characterization CSVs or daemon recordings (.rrd); bad stretches are
 excluded as `mrrig train` does. The fit starts from the paper's parameters (`--from paper`,
-Table 3) or a plant file's (`--from FILE`) and from `--starts` - 1 more drawn around it (seeded;
-each screened a few evaluations, the best fitted on), each parameter within a physical range
-(mrrig/offline/identify/fit.py BOUNDS). Et is printed per test, and the estimate: on `--holdout
-FILES` (tests the fit never saw), else on each test's segments it did not fit (the test cut
-into 8 segments dealt by character, amplitude, frequency and command level, into 4 groups; the
-group most unlike the rest left out of the fit with guard bands either side; optimistic next to
-another test). A run that starts moving is scored after a 0.2 s warm-up, the twin run from
-rest before it. Writes the plant file that `firmware_sim` runs (`[plant] file = ...`): the
-fitted set whose estimate is printed.
+Table 3) or a plant file's (`--from FILE`) and from `--starts` - 1 more drawn around it
+(seeded; each screened a few evaluations, the best fitted on), each parameter within a
+physical range (mrrig/offline/identify/fit.py BOUNDS; eta held where the command is held per
+run). Et is printed per test, and the estimate: on `--holdout FILES` (tests the fit never
+saw), else on each test's segments it did not fit (the test cut into 8 segments dealt by
+character, amplitude, frequency and command level, into 4 groups; the group most unlike the
+rest left out of the fit with guard bands either side; optimistic next to another test). A run
+that starts moving is scored after a 0.2 s warm-up, the twin run from rest before it. Writes
+the plant file that `firmware_sim` runs (`[plant] file = ...`): the fitted set whose estimate
+is printed.
 
 `mrrig identify --map-model MODEL --command-per-a K --out OUT` instead takes a forward model
 trained on such data with its command in V, a network or a twin (a plant file), to the rig's

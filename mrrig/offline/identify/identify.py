@@ -57,6 +57,7 @@ from mrrig.offline.training.data import (
     run_ids,
 )
 from mrrig.offline.training.report import EtSum
+from mrrig.offline.training.select import COMMAND_VARIES_FRACTION
 
 log = logging.getLogger(__name__)
 
@@ -190,11 +191,14 @@ def identify(
     runs = [r for t in tests for r in t.runs]
     rows = [m for t in tests for m in t.fit_rows]
     offset0 = float(np.mean(np.concatenate([r.force[m] for r, m in zip(runs, rows, strict=True)])))
+    free = FREE if command_varies(runs) else tuple(n for n in FREE if n != "eta")
+    if "eta" not in free:
+        progress(f"eta held at the start's {first.params.eta:g} 1/s: the command is held per run")
     for t in tests:
         if t.held_label:
             progress(f"{t.path.name}: left out of the fit, the segments {t.held_label}")
     progress(
-        f"fitting {len(FREE) + 1} parameters to {sum(int(m.sum()) for m in rows)} samples of "
+        f"fitting {len(free) + 1} parameters to {sum(int(m.sum()) for m in rows)} samples of "
         f"{len(tests)} test(s), from {start} and {starts - 1} start(s) drawn around it"
         f" (seed {seed})"
     )
@@ -205,6 +209,7 @@ def identify(
         offset0,
         max_evaluations=max_evaluations,
         progress=progress,
+        free=free,
         starts=starts,
         seed=seed,
     )
@@ -239,8 +244,8 @@ def identify(
         "seed": seed,
         "start_ets_fitted_rows": list(result.start_ets),
         "chosen_start": result.chosen_start + 1,
-        "free_parameters": [*FREE, "offset_n"],
-        "bounds": {n: list(BOUNDS[n]) for n in FREE},
+        "free_parameters": [*free, "offset_n"],
+        "bounds": {n: list(BOUNDS[n]) for n in free},
         "at_bounds": list(result.at_bounds),
         "evaluations": result.evaluations,
         "seconds": result.seconds,
@@ -257,6 +262,16 @@ def identify(
     }
     plant = Plant(result.params, result.offset_n, unit, _finite(report))
     return plant, report
+
+
+def command_varies(runs: Sequence[Run]) -> bool:
+    """Whether the command changes within runs rather than being held per run (as
+    `training.select.command_varies` tells it of a Series): only then can the fit tell eq.
+    36's lag; held, eta would go anywhere (and slow the fit where it goes fast)."""
+    span = float(np.ptp(np.concatenate([r.command for r in runs])))
+    return span > 0.0 and any(
+        float(np.std(r.command)) > COMMAND_VARIES_FRACTION * span for r in runs
+    )
 
 
 def _method(tests: bool) -> str:
