@@ -194,9 +194,10 @@ def evaluate_stateful(
 ) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
     """`evaluate` for a stateful forward model, a GRU or a Bouc-Wen twin: run over each
     stretch of each segment from the zero state (the GRU, `training.gru.gru_forces`) or from
-    rest (the twin, `training.kinds.twin_kind`'s forces), as `mrrig train --features auto`
-    scores them. No inverse command RMSE (the MLP's exact inversion); the coverage lines where
-    the model keeps an envelope (a GRU of `mrrig train` does, a twin does not)."""
+    rest, a stretch that starts moving scored after its warm-up (the twin,
+    `training.kinds.twin_kind`'s forces), as `mrrig train --features auto` scores them. No
+    inverse command RMSE (the MLP's exact inversion); the coverage lines where the model keeps
+    an envelope (a GRU of `mrrig train` does, a twin does not)."""
     if isinstance(model, TwinModel):
         kind, unit = "Bouc-Wen twin", model.plant.command_unit
         fraction, envelope = HOLDOUT_FRACTION, None

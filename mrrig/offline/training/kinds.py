@@ -39,7 +39,7 @@ from mrrig.loop.controllers import Controller, ControllerSettings, make_controll
 from mrrig.loop.model_fit import COST_BUDGET_S, frame_cost_s
 from mrrig.loop.twin_model import SUBSTEP_S, TwinModel
 from mrrig.offline.datasets import Series
-from mrrig.offline.identify.fit import FREE, Run, fit, run_force
+from mrrig.offline.identify.fit import FREE, Run, fit, run_force, warm_rows
 from mrrig.offline.identify.identify import start_plant
 from mrrig.offline.training.crossval import (
     MAX_FOLDS,
@@ -262,10 +262,13 @@ def twin_kind(
         return Plant(res.params, res.offset_n, series.current_unit, identified)
 
     def forces(plant: Plant, series: Series) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """The twin run open loop over each stretch from rest at its first sample."""
+        """The twin run open loop over each stretch from rest at its first sample; a stretch
+        that starts moving scored after its warm-up (`identify.fit.warm_rows`)."""
         runs, index = _stretch_runs(series)
-        f = np.concatenate([run_force(plant.params, plant.offset_n, r, SUBSTEP_S) for r in runs])
-        rows = np.concatenate(index)
+        f = [run_force(plant.params, plant.offset_n, r, SUBSTEP_S) for r in runs]
+        warm = [warm_rows(r) for r in runs]
+        rows = np.concatenate([i[w] for i, w in zip(index, warm, strict=True)])
+        f = np.concatenate([g[w] for g, w in zip(f, warm, strict=True)])
         return rows, series.force[rows], f
 
     label = f"modified Bouc-Wen (eqs 30-36) and an offset, fitted from {start}"
