@@ -101,6 +101,10 @@ def test_rig_status_telemetry_arm_and_a_streamed_force(rig):
         frame = tele.to_pandas()
         assert len(frame) == tele.samples.size > 200  # about 500 samples a second
         assert (np.diff(frame["t_s"].to_numpy()) > 0).all() and "force_n" in frame
+        # utc: the run's start (sent with each batch) plus t_s, a wall clock of about now
+        assert list(frame.columns[:2]) == ["utc", "t_s"]
+        age_s = (dt.datetime.now(dt.UTC) - frame["utc"].iloc[-1]).total_seconds()
+        assert 0 < age_s < 60, age_s
         # armed without a force reference: the daemon faults (stale reference); reset clears it
         assert r.arm()["ok"]
         assert settled(r, "FAULT")["fault"] == "stale_reference"

@@ -351,3 +351,36 @@ def test_a_recording_from_before_the_later_fields_reads_them_as_nan(tmp_path, mo
     for field in LATER_FIELDS:
         assert np.isnan(back[field]).all()
     np.testing.assert_array_equal(back["f_meas"], s["f_meas"])
+
+
+@pytest.mark.parametrize("window", [300, 1 << 16])
+def test_a_later_field_is_not_written_until_its_first_value_and_reads_back_nan_before_it(
+    tmp_path, window
+):
+    """A run without adaptation or HIL writes none of their series (a series costs about 24
+    bytes a frame in the file, NaN or not); adaptation that starts mid-run is written from its
+    first value, and every frame reads back, NaN before it (issue 42: recordings' size)."""
+    from mrrig.offline.rrd_scan import open_rrd, scan_recording
+    from mrrig.rigio.recording import LATER_FIELDS
+
+    s = synthetic_run(1000)
+    for field in LATER_FIELDS:
+        if field != "temp_degc":
+            s[field] = np.nan
+    s["adapt_gain"][600:] = 1.0 + np.arange(400) * 1e-4  # adaptation from frame 600 on
+    path = tmp_path / "sparse.rrd"
+    write_recording(path, s, run_events(s), None)
+    got: list[np.ndarray] = []
+    scan = scan_recording(path, got.append, window=window)
+    back = np.concatenate(got)
+    absent = {f for f in LATER_FIELDS if f not in ("temp_degc", "adapt_gain")}
+    series = {c.entity_path for c in open_rrd(path).stream() if not c.is_static}
+    assert not {f"/{FIELD_ENTITIES[f]}" for f in absent} & series  # no series written
+    assert f"/{FIELD_ENTITIES['adapt_gain']}" in series
+    assert back.size == s.size and scan.dropped == 0  # every frame, none dropped
+    assert np.isnan(back["adapt_gain"][:600]).all()
+    np.testing.assert_array_equal(back["adapt_gain"][600:], s["adapt_gain"][600:])
+    for field in absent:
+        assert np.isnan(back[field]).all()
+    np.testing.assert_array_equal(back["f_meas"], s["f_meas"])
+    np.testing.assert_array_equal(back["temp_degc"], s["temp_degc"])

@@ -13,9 +13,9 @@
 - `register_run(rig, started_utc, ...)`: one run into the catalog (what a plan step,
   characterize and validate call; the daemon's sidecar registers its own runs).
 - `Rig(name)`: a running daemon over Zenoh: `status()`, `arm()`, `disarm()`, `reset()`,
-  `stream_force(...)`, `telemetry(...)` (a `Telemetry`: its `samples`, `to_pandas()`); a
-  refused request raises `RigError`. Use it as a context manager (`with Rig("rig1") as
-  rig:`) or call `close()`: it holds one Zenoh session, and an open session keeps the
+  `stream_force(...)`, `telemetry(...)` (a `Telemetry`: its `samples`, `to_pandas()` with
+  `utc`); a refused request raises `RigError`. Use it as a context manager (`with
+  Rig("rig1") as rig:`) or call `close()`: it holds one Zenoh session, and an open session keeps the
   interpreter from exiting (a finalizer closes it at exit as a last resort).
 
 The CLI (`mrrig status`, `arm`, ..., `send-force`, `runs`) is built on these; they are built

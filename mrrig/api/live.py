@@ -9,7 +9,7 @@ import math
 import time
 import weakref
 from collections.abc import Iterable, Iterator
-from datetime import datetime
+from datetime import UTC, datetime
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, TextIO
 
@@ -89,7 +89,8 @@ class Recording:
 class Telemetry:
     """The rig's live telemetry, batch by batch (numpy structured arrays of the sample fields,
     SI units as `Recording.samples`; a missing value is NaN), for `duration_s` or until no
-    batch came for `quiet_s`. Every batch iterated is kept for `samples` and `to_pandas()`."""
+    batch came for `quiet_s`. Every batch iterated is kept for `samples` and `to_pandas()`;
+    `utc_start` is the UTC time of `t = 0` the daemon sends with each batch (its run's start)."""
 
     def __init__(self, session: zenoh.Session, rig: str, duration_s: float | None, quiet_s: float):
         from mrrig.rigio.sidecar import keys
@@ -98,6 +99,9 @@ class Telemetry:
         self._duration_s = duration_s
         self._quiet_s = quiet_s
         self.batches: list[np.ndarray] = []
+        #: the UTC time of `t = 0` (the run identity's `started_utc`, sent with every batch);
+        #: None until a batch carrying it came (a daemon older than this sends none)
+        self.utc_start: datetime | None = None
 
     def __iter__(self) -> Iterator[np.ndarray]:
         import time
@@ -112,7 +116,10 @@ class Telemetry:
                     time.sleep(0.01)
                     continue
                 last = time.monotonic()
-                batch = _batch(json.loads(sample.payload.to_bytes())["fields"])
+                message = json.loads(sample.payload.to_bytes())
+                if self.utc_start is None and message.get("utc_start"):
+                    self.utc_start = datetime.fromisoformat(message["utc_start"]).astimezone(UTC)
+                batch = _batch(message["fields"])
                 self.batches.append(batch)
                 yield batch
         finally:
@@ -126,8 +133,10 @@ class Telemetry:
         return np.concatenate(self.batches) if self.batches else np.empty(0, SAMPLE_DTYPE)
 
     def to_pandas(self) -> pd.DataFrame:
-        """The batches iterated so far as a DataFrame with unit-named columns (`t_s`, ...)."""
-        return _frame(self.samples)
+        """The batches iterated so far as a DataFrame: `utc` (UTC timestamps: `utc_start` +
+        `t_s`; left out when the daemon sent no start), then unit-named columns (`t_s`, ...),
+        as `Recording.to_pandas()`."""
+        return _frame(self.samples, self.utc_start)
 
 
 def _batch(fields: dict[str, list[Any]]) -> np.ndarray:

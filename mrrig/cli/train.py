@@ -50,6 +50,7 @@ from mrrig.offline.training import (
 )
 from mrrig.offline.training.crossval import (
     MAX_FOLDS,
+    MIN_RUNS,
     SEGMENT_GROUPS,
     SEGMENTS,
     cross_validate,
@@ -218,7 +219,7 @@ def format_other_tests(cv: dict[str, Any] | None) -> list[str]:
     )
     if cv["optimistic"]:
         lines.append(
-            "  (one test: its segments are the same test, so this is optimistic too; only"
+            f"  (one test: its {kind}s are the same test, so this is optimistic too; only"
             " another test, --validate FILE, says how the model holds elsewhere)"
         )
     return lines
@@ -482,7 +483,9 @@ def _parser(cfg: TrainConfig) -> argparse.ArgumentParser:
         help="the other-test estimate: leave-one-test-out over the tests (files) given, up to"
         " K tests; K folds of tests beyond (default %(default)s; 0: none). One test: its"
         f" {SEGMENTS} segments dealt by character into {SEGMENT_GROUPS} groups, each left out in"
-        " turn, its neighbours not trained on (the same test: optimistic)",
+        f" turn, its neighbours not trained on; one test of {MIN_RUNS} runs or more (a"
+        " characterization matrix): its runs, each scored and named by its condition, dealt"
+        f" by character into {SEGMENT_GROUPS} folds (the same test: optimistic)",
     )
     return ap
 

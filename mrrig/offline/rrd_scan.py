@@ -10,7 +10,8 @@ identity, end marker).
 
 Frames that lack a field the recording has (a writer killed between the fields of one flush)
 are dropped and counted; a field of `LATER_FIELDS` that the whole recording lacks (one made
-before it existed) is NaN.
+before it existed, or a run that never had a value of it) is NaN, and so is such a field in
+the frames before its first (the recorder sends it from its first value on).
 """
 
 from __future__ import annotations
@@ -76,6 +77,9 @@ class _Assembler:
         self._required = np.array([f not in LATER_FIELDS for f in self._fields])
         self._seen = np.zeros(len(self._fields), dtype=bool)
         self._field_top = np.zeros(len(self._fields), dtype=np.int64)  # per field: max + 1
+        # per later field: its first frame (the frames before it are NaN: not sent till then)
+        self._later = ~self._required
+        self._first = np.full(len(self._fields), np.iinfo(np.int64).max, dtype=np.int64)
         self._base = 0  # the first frame not handed out yet
         self._top = 0  # one past the highest frame received
         self._buf = np.empty(4 * window, dtype=SAMPLE_DTYPE)
@@ -85,6 +89,8 @@ class _Assembler:
     def add(self, field: str, frames: np.ndarray, values: np.ndarray) -> None:
         k = self._fields.index(field)
         self._seen[k] = True
+        if frames.size:
+            self._first[k] = min(self._first[k], int(frames.min()))
         late = frames < self._base
         if late.any():  # its frame was handed out without it: nothing to do but count
             self.late += int(late.sum())
@@ -121,6 +127,12 @@ class _Assembler:
             return
         # every field but a later one the recording has not had so far (it is NaN)
         needed = self._required | self._seen
+        frame = self._base + np.arange(n)
+        for k in np.flatnonzero(self._later & self._seen):
+            before = frame < self._first[k]  # a later field's frames before its first: NaN
+            if before.any():
+                self._buf[self._fields[k]][:n][before] = np.nan
+                self._have[:n, k] |= before
         complete = self._have[:n][:, needed].all(axis=1)
         out = self._buf[:n][complete].copy()
         for field, need in zip(self._fields, needed, strict=True):

@@ -4,6 +4,8 @@ The daemon runs with the rig config's force reference (bouc_wen or sine, ...) an
 motion; for each model: arm, wait `--settle` s, keep `--duration` s of samples, disarm, and
 print the report (Et, tracking error, current, latency, faults). Models after the first are
 switched in with the daemon's `set_model` control request while disarmed, without a restart.
+With two models or more, the models' numbers are then printed side by side (`table`): Et and
+its ratio to the best, tracking error, current, latency, faults.
 A window whose faults are all transport faults (a stall past the sensor timeout or the
 firmware's watchdog) is tried again, up to `--attempts` in all; the report keeps the faults of
 the windows it discarded.
@@ -14,6 +16,7 @@ from __future__ import annotations
 import argparse
 import datetime as dt
 import logging
+import math
 import sys
 import threading
 from dataclasses import replace
@@ -118,6 +121,50 @@ def format_report(r: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
+def table(reports: list[dict[str, Any]]) -> str:
+    """The models' numbers side by side, one row each in the order run: Et and its ratio to
+    the lowest, |f_des - f_meas| p50 and p95 (N), measured current mean (A, armed), commanded
+    current max (A), latency p99 (us), windows tried and faults."""
+    ets = [r["et"] for r in reports if math.isfinite(r["et"])]
+    best = min(ets) if ets else math.nan
+    names = [Path(r["model"]).name for r in reports]
+    if len(set(names)) < len(names):  # the same name in two folders: the paths tell them apart
+        names = [r["model"] for r in reports]
+    width = max(len("model"), *map(len, names))
+    head = (
+        f"{'model':<{width}} {'Et':>7} {'/best':>6} {'err p50 N':>9} {'err p95 N':>9}"
+        f" {'i_meas A':>8} {'i_cmd max':>9} {'lat p99 us':>10} {'tries':>5} faults"
+    )
+    lines = ["models side by side:", head, "-" * len(head)]
+    for name, r in zip(names, reports, strict=True):
+        err = r["tracking_error_n"]
+        lines.append(
+            f"{name:<{width}} {_f(r['et'], '.4f'):>7} {_f(r['et'] / best, '.2f'):>6}"
+            f" {_f(err['p50'], '.1f'):>9} {_f(err['p95'], '.1f'):>9}"
+            f" {_f(r['i_meas_a']['mean'], '.3f'):>8} {_f(r['i_cmd_a']['max'], '.3f'):>9}"
+            f" {_f(r['latency_us']['p99'], '.0f'):>10} {r['attempts']:>5} {len(r['faults'])}"
+        )
+    return "\n".join(lines)
+
+
+def _f(v: float, fmt: str) -> str:
+    return format(v, fmt) if math.isfinite(v) else "-"
+
+
+def finish(reports: list[dict[str, Any]], json_path: Path | None) -> int:
+    """After the last model: the side-by-side table (two models or more), the JSON, and the
+    exit status (1 where a model's window faulted)."""
+    if len(reports) >= 2:
+        print(table(reports), flush=True)
+    if json_path:
+        json_path.write_text(json_text.dumps({"reports": reports}), encoding="utf-8")
+    faulted = [r["model"] for r in reports if r["faults"]]
+    if faulted:
+        print(f"faults during the validation of: {', '.join(faulted)}", file=sys.stderr)
+        return 1
+    return 0
+
+
 def _setup(cfg) -> str:
     r, a, c = cfg.reference, cfg.actuator, cfg.controller
     ref = f"reference {r.kind}"
@@ -204,10 +251,4 @@ def main(argv: list[str] | None = None) -> int:
         except RigError as exc:
             print(f"error: {exc}", file=sys.stderr)
             return 1
-    if args.json:
-        args.json.write_text(json_text.dumps({"reports": reports}), encoding="utf-8")
-    faulted = [r["model"] for r in reports if r["faults"]]
-    if faulted:
-        print(f"faults during the validation of: {', '.join(faulted)}", file=sys.stderr)
-        return 1
-    return 0
+    return finish(reports, args.json)

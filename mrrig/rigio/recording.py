@@ -7,7 +7,11 @@ Layout of the recording (the contract `mrrig.offline.review` reads back):
   `sensor_time` (duration, the sample's `t`; nanosecond resolution) and `frame` (sequence,
   the sample's running index in this recording, so rows are unique even if two samples
   share a time). `t` itself is also stored as a scalar (`frame/t`) because the timeline
-  rounds it to whole nanoseconds.
+  rounds it to whole nanoseconds. A field of `LATER_FIELDS` (adaptation, temperature,
+  coverage, the hybrid simulation's) is sent from its first flush with a value that is not
+  NaN on: a run without adaptation or HIL writes none of those 8 series (each frame of a
+  series costs about 24 bytes in the file whatever its value: 718 -> 513 bytes a frame). A
+  reader takes the frames before a field's first as NaN (`mrrig.offline.rrd_scan`).
 - `loops/force_velocity` and `loops/force_displacement`: one `LineStrips2D` strip per flush
   window, at the window's last sensor time, in normalised coordinates (value / full scale,
   so both axes span about +-1); `<loop>/axes` beside each strip draws the axes and labels
@@ -284,6 +288,7 @@ class Recorder:
         self._first_pending_t_s: float | None = None
         self._frames = 0
         self._events = 0
+        self._started: set[str] = set()  # LATER_FIELDS sent so far (from their first value)
         self._closed = False
         self._dropped_after_close = 0
         self.failed = ""  # why writing the file failed: what it holds is truncated
@@ -468,10 +473,13 @@ class Recorder:
             rr.TimeColumn(FRAME_TIMELINE, sequence=np.arange(self._frames, self._frames + n)),
         ]
         for field, entity in FIELD_ENTITIES.items():
+            values = batch[field].astype(np.float64)
+            if field in LATER_FIELDS and field not in self._started:
+                if np.isnan(values).all():
+                    continue  # none yet: readers take the frames before its first as NaN
+                self._started.add(field)
             self._rec.send_columns(
-                entity,
-                indexes=indexes,
-                columns=rr.Scalars.columns(scalars=batch[field].astype(np.float64)),
+                entity, indexes=indexes, columns=rr.Scalars.columns(scalars=values)
             )
         self._frames += n
         t = batch["t"]

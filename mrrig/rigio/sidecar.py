@@ -185,8 +185,10 @@ def alive_elsewhere(session: zenoh.Session, rig: str, timeout_s: float) -> list[
     return [t for t in tokens if token_session(t) in answered]
 
 
-def telemetry_json(rig: str, batch: np.ndarray) -> str:
-    """Columnar telemetry message: {"rig", "fields": {name: [values]}}.
+def telemetry_json(rig: str, batch: np.ndarray, utc_start: str | None = None) -> str:
+    """Columnar telemetry message: {"rig", "fields": {name: [values]}}, and with the run's
+    `utc_start` (ISO 8601: the UTC time of `t = 0`, the run identity's `started_utc`) the
+    key `utc_start`, from which a client gives each sample its UTC time.
 
     Non-finite floats become null (JSON has no NaN/Infinity).
     """
@@ -197,7 +199,10 @@ def telemetry_json(rig: str, batch: np.ndarray) -> str:
         if name in _FLOAT_FIELDS and not np.isfinite(col).all():
             values = [v if math.isfinite(v) else None for v in values]
         fields[name] = values
-    return json.dumps({"rig": rig, "fields": fields}, separators=(",", ":"))
+    message: dict[str, Any] = {"rig": rig, "fields": fields}
+    if utc_start is not None:
+        message["utc_start"] = utc_start
+    return json.dumps(message, separators=(",", ":"))
 
 
 def _is_disarm(query: zenoh.Query) -> bool:
@@ -673,7 +678,8 @@ class Sidecar:
         batch = np.concatenate(self._batches)
         self._batches = []
         if "telemetry" in self._pubs:
-            self._publish("telemetry", telemetry_json(self.rig, batch))
+            utc_start = (self._identity or {}).get("started_utc")
+            self._publish("telemetry", telemetry_json(self.rig, batch, utc_start))
 
     def _record(self, method: str, *args: Any, **kwargs: Any) -> None:
         if self._recorder is None:

@@ -16,6 +16,12 @@ left-out segment: `GUARD_FRACTION` of a segment on each side of it is left out o
 training too (`guard`). That is still the same test, its sensors and its conditions, so the
 figure is optimistic too, if less than a block hold-out; only another test (`mrrig train
 --validate FILE`) tells how a model holds elsewhere, and the report says so.
+
+A single test of `MIN_RUNS` runs or more (a characterization matrix: one run per amplitude,
+frequency and current) is left out run by run instead: its runs are dealt by the same
+character into `SEGMENT_GROUPS` folds, and each run is scored and named in the report by its
+place in the file and its condition (`run 7 (10 mm, 2.00 Hz, command 1 A)`). A run ends where
+the next begins, so no guard is needed between them.
 """
 
 from __future__ import annotations
@@ -43,6 +49,7 @@ MAX_FOLDS = 40  # leave-one-test-out up to so many tests; k-fold over tests beyo
 SEGMENTS = 8  # a single test is cut into so many segments,
 SEGMENT_GROUPS = 4  # dealt by character into so many groups, each left out in turn
 GUARD_FRACTION = 0.25  # of a segment, on each side of a left-out one, kept out of training
+MIN_RUNS = SEGMENTS  # a single test of so many runs or more is left out run by run
 
 
 def subset(series: Series, mask: np.ndarray) -> Series:
@@ -85,13 +92,42 @@ def character_groups(character: np.ndarray, groups: int) -> np.ndarray:
     return group
 
 
+def one_test_unit(series: Series) -> str:
+    """What a single test is left out by: "run" where it holds `MIN_RUNS` runs or more (a
+    characterization matrix), else "segment"."""
+    return "run" if np.unique(run_ids(series)).size >= MIN_RUNS else "segment"
+
+
+def run_label(series: Series, rows: np.ndarray, k: int) -> str:
+    """A run's name in the report: its place in the file (from 0, as `mrrig characterize`
+    numbers its runs) and its condition: the displacement's peak amplitude (half its range,
+    mm), its frequency (the velocity's RMS over the displacement's, Hz) and the command's mean
+    level in its unit."""
+    x, xd = series.x[rows], series.xd[rows]
+    amp_mm = 0.5 * float(np.ptp(x)) * 1e3 if x.size else 0.0
+    sx = float(np.std(x))
+    freq = float(np.std(xd)) / sx / (2 * np.pi) if sx > 0 else 0.0
+    level = float(np.mean(series.current[rows])) if rows.size else 0.0
+    return f"run {k} ({amp_mm:.3g} mm, {freq:.2f} Hz, command {level:.3g} {series.current_unit})"
+
+
 def leave_out_groups(
     series: Series, tests: np.ndarray, names: Sequence[str]
 ) -> tuple[np.ndarray, list[str], str]:
-    """(group of each sample, the groups' labels, "test" or "segment"): the tests, or for a
-    single test its `SEGMENTS` contiguous segments dealt by character into `SEGMENT_GROUPS`."""
+    """(group of each sample, the groups' labels, "test", "run" or "segment"): the tests; for
+    a single test of `MIN_RUNS` runs or more, its runs (`run_label`; `run_folds` deals them
+    into folds); else its `SEGMENTS` contiguous segments dealt by character into
+    `SEGMENT_GROUPS`."""
     if len(names) >= 2:
         return np.asarray(tests, dtype=int), [str(n) for n in names], "test"
+    name = names[0] if names else series.name
+    if one_test_unit(series) == "run":
+        _, run = np.unique(run_ids(series), return_inverse=True)
+        labels = [
+            f"{name} {run_label(series, np.flatnonzero(run == k), k)}"
+            for k in range(int(run.max()) + 1)
+        ]
+        return run, labels, "run"
     n = len(series)
     segment = np.arange(n) * SEGMENTS // max(n, 1)
     char = segment_character(series, segment, SEGMENTS)
@@ -108,8 +144,15 @@ def leave_out_groups(
                 if t.size
                 else "empty"
             )
-        labels.append(f"{names[0] if names else series.name} segments {'; '.join(parts)}")
+        labels.append(f"{name} segments {'; '.join(parts)}")
     return by[segment], labels, "segment"
+
+
+def run_folds(series: Series, run: np.ndarray, n_runs: int, max_folds: int) -> np.ndarray:
+    """Fold of each of a single test's runs (`leave_out_groups`' "run"): dealt by character
+    (`segment_character`, `character_groups`) into `SEGMENT_GROUPS` folds, at most
+    `max_folds`, so that a fold leaves out a character the others were not fitted on."""
+    return character_groups(segment_character(series, run, n_runs), min(SEGMENT_GROUPS, max_folds))
 
 
 def guard(out: np.ndarray, width: int) -> np.ndarray:
@@ -212,7 +255,10 @@ def cross_validate_with(
     t0 = time.perf_counter()
     group, labels, kind = leave_out_groups(series, tests, names)
     gap = round(GUARD_FRACTION * len(series) / SEGMENTS)
-    fold = fold_of_groups(len(labels), max_folds, seed)
+    if kind == "run":
+        fold = run_folds(series, group, len(labels), max_folds)
+    else:
+        fold = fold_of_groups(len(labels), max_folds, seed)
     n_folds = int(fold.max()) + 1 if fold.size else 0
     per = [EtSum() for _ in labels]
     overall = EtSum()
@@ -248,11 +294,15 @@ def cross_validate_with(
             )
     rows = [{kind: label, **s.numbers()} for label, s in zip(labels, per, strict=True)]
     ets = [r["et"] for r in rows if r["n"] and math.isfinite(r["et"])]
-    folds_text = (
-        f"leave-one-{kind}-out ({n_folds} folds)"
-        if n_folds == len(labels)
-        else f"{n_folds}-fold over {len(labels)} {kind}s (dealt at random, seed {seed})"
-    )
+    if kind == "run":
+        folds_text = (
+            f"{n_folds} folds over the {len(labels)} runs of one test (dealt by character:"
+            " amplitude, frequency and command level)"
+        )
+    elif n_folds == len(labels):
+        folds_text = f"leave-one-{kind}-out ({n_folds} folds)"
+    else:
+        folds_text = f"{n_folds}-fold over {len(labels)} {kind}s (dealt at random, seed {seed})"
     method = (
         folds_text + f": each fold trained on the others {how}, scored on the {kind}s it left out"
     )
@@ -265,7 +315,7 @@ def cross_validate_with(
     return {
         "kind": kind,
         "method": method,
-        "optimistic": kind == "segment",
+        "optimistic": kind != "test",
         "folds": n_folds,
         "per_group": rows,
         "overall": overall.numbers(),

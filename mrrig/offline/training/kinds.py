@@ -5,7 +5,8 @@ for every kind of data.
 Each kind is judged by the other-test estimate (`crossval.cross_validate_with`): where several
 tests are given (a file is a test), leave one test out (up to `max_folds` tests, k-fold over
 tests beyond); on one test, its segments dealt by character (amplitude, frequency, command
-level) into groups, each left out in turn with its neighbours kept out of training. Each fold
+level) into groups, each left out in turn with its neighbours kept out of training (a test of
+`crossval.MIN_RUNS` runs or more, a characterization matrix: its runs). Each fold
 is fitted on the rest by the kind's fold fit: the final model's procedure cut down to fit the
 time budget (an MLP: `fold_rows` LM rows, at most `FOLD_EPOCHS` epochs, one start; a GRU: the
 seconds a fold may take). Beside it, each kind's block hold-out (the fold fit on the training
@@ -46,6 +47,7 @@ from mrrig.offline.training.crossval import (
     OverBudget,
     cross_validate_with,
     fold_count,
+    one_test_unit,
 )
 from mrrig.offline.training.data import run_ids, sample_period, stretch_bounds, stretches
 from mrrig.offline.training.features import COIL_LAG_TAU_S, feature_rows, features
@@ -438,6 +440,7 @@ def choose_kind(
     t_start = time.perf_counter() if started is None else started
     end = t_start + CHOICE_BUDGET_S if deadline is None else deadline
     several = len(names) >= 2
+    unit = one_test_unit(series)
     scores: list[KindScore] = []
     not_tried = dict(not_built or {})
     for kind in kinds:
@@ -462,27 +465,28 @@ def choose_kind(
             " %.0f s",
             sc.name,
             sc.et,
-            "tests" if several else "segments",
+            "tests" if several else f"{unit}s",
             sc.block_et,
             sc.frame_cost_us,
             sc.seconds,
         )
         scores.append(sc)
-    best, why = pick_kind(scores, several)
-    by_block, _ = pick_kind(scores, several, key="block_et") if scores else (best, "")
+    best, why = pick_kind(scores, several, unit=unit)
+    by_block, _ = pick_kind(scores, several, key="block_et", unit=unit) if scores else (best, "")
     folds = fold_count(len(names), max_folds)
     method = (
         f"{'leave-one-test-out' if len(names) <= max_folds else f'{max_folds}-fold over tests'}"
         f" over {len(names)} tests: each kind fitted on the other tests, scored on the test"
         " left out"
         if several
-        else f"one test: its segments of different character (amplitude, frequency, command"
-        f" level) in {folds} groups, each left out in turn with its neighbours not trained on;"
-        " each kind fitted on the rest (optimistic still: the same test)"
+        else f"one test: its {unit}s of different character (amplitude, frequency, command"
+        f" level) in {folds} groups, each left out in turn"
+        + (" with its neighbours not trained on" if unit == "segment" else "")
+        + "; each kind fitted on the rest (optimistic still: the same test)"
     )
     report = {
         "method": method,
-        "estimate": "other tests" if several else "segments of different character",
+        "estimate": "other tests" if several else f"{unit}s of different character",
         "fold_fit": f"MLPs {FOLD_ROWS}-{FOLD_MAX_ROWS} LM rows (the same work whatever the"
         f" size), <= {FOLD_EPOCHS} epochs, one start; the GRU"
         " the seconds a fold may take; the twin as fitted",
@@ -510,19 +514,22 @@ def choose_kind(
     return best, report
 
 
-def pick_kind(scores: list[KindScore], several: bool, key: str = "et") -> tuple[KindScore, str]:
+def pick_kind(
+    scores: list[KindScore], several: bool, key: str = "et", unit: str = "segment"
+) -> tuple[KindScore, str]:
     """The kind of the lowest Et (`key`: the other-test estimate, or "block_et") among those
-    within the loop's budget (of all, where none is), and why it won."""
+    within the loop's budget (of all, where none is), and why it won; `unit`: what a single
+    test is left out by (`crossval.one_test_unit`)."""
     scored = [s for s in scores if math.isfinite(getattr(s, key))]
     if not scored:
         raise ValueError("no kind of model could be scored")
     pool = [s for s in scored if s.in_budget] or scored
     best = min(pool, key=lambda s: getattr(s, key))
-    return best, _why(best, scored, several)
+    return best, _why(best, scored, "test" if several else unit)
 
 
-def _why(best: KindScore, scored: list[KindScore], several: bool) -> str:
-    where = "on the tests left out" if several else "on the segments left out"
+def _why(best: KindScore, scored: list[KindScore], unit: str) -> str:
+    where = f"on the {unit}s left out"
     others = sorted((s for s in scored if s is not best), key=lambda s: s.et)
     text = f"the lowest Et {where} ({best.et:.4f})"
     in_budget = [s for s in others if s.in_budget]
