@@ -97,9 +97,9 @@ def test_three_rigs_run_a_plan_a_fourth_client_finds_every_run_in_one_catalog(
     # loops stay real-time; the test is of the fleet's plans and catalog.
     sim_conf = tmp_path / "sim.toml"
     sim_conf.write_text(
-        (REPO / "configs/sim.toml").read_text().replace(
-            "realtime_priority = 20", "realtime_priority = 0"
-        )
+        (REPO / "configs/sim.toml")
+        .read_text()
+        .replace("realtime_priority = 20", "realtime_priority = 0")
     )
     assert "realtime_priority = 0" in sim_conf.read_text()
     procs(["-m", "mrrig", "router", "--config", str(router)])
