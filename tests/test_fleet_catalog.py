@@ -91,28 +91,17 @@ def test_three_rigs_run_a_plan_a_fourth_client_finds_every_run_in_one_catalog(
     )
     plan = tmp_path / "plan.toml"
     plan.write_text(PLAN)
-    # Three rigs on this 2-core machine: their simulators and bridges at SCHED_FIFO (as one
-    # rig's are) would leave the daemons' control threads and sidecars, at normal priority by
-    # design, the kernel's 5 % of a CPU: a disarm answered seconds late (CI). The rig's own
-    # loops stay real-time; the test is of the fleet's plans and catalog.
-    sim_conf = tmp_path / "sim.toml"
-    sim_conf.write_text(
-        (REPO / "configs/sim.toml")
-        .read_text()
-        .replace("realtime_priority = 20", "realtime_priority = 0")
-    )
-    assert "realtime_priority = 0" in sim_conf.read_text()
     procs(["-m", "mrrig", "router", "--config", str(router)])
     bridges, sims, daemons, tools = [], {}, {}, {}
     try:
         for name in RIGS:
             bport = find_free_port()
-            bridges.append(start_bridge(bport, realtime_priority=0))
+            bridges.append(start_bridge(bport))
             channel = f"ws://127.0.0.1:{bport}/"
             work = tmp_path / name
             work.mkdir()
             sims[name] = procs(
-                ["-m", "firmware_sim", "--config", str(sim_conf), "--bus-channel", channel],
+                ["-m", "firmware_sim", "--config", "configs/sim.toml", "--bus-channel", channel],
                 stdout=subprocess.DEVNULL,
             )
             cfg = rig_config(
@@ -123,6 +112,13 @@ def test_three_rigs_run_a_plan_a_fourth_client_finds_every_run_in_one_catalog(
                 controller={"name": "constant", "current_a": 0.2},
                 telemetry={"enabled": True, "zenoh_config": str(rig_conf), "rate_hz": 20.0},
             )
+            # The three loops are not pinned to one CPU (configs/rig.toml's loop.cpu): pinned,
+            # each daemon keeps its control thread and sidecar off that CPU, and with three
+            # rigs' real-time simulators and bridges on the other one these got so little of
+            # it that a disarm was answered seconds late (CI).
+            text = cfg.read_text()
+            cfg.write_text(text.replace("\ncpu = 1\n", "\n"))
+            assert "cpu = " not in cfg.read_text(), text
             daemons[name] = procs(
                 ["-m", "mrrig", "run", "--config", str(cfg), "--record", str(work / "run.rrd"),
                  "--catalog", shared_catalog],
@@ -130,6 +126,9 @@ def test_three_rigs_run_a_plan_a_fourth_client_finds_every_run_in_one_catalog(
             )  # fmt: skip
         for name in RIGS:
             _wait_status(name, client_conf, daemons[name])
+        # one plan at a time, the three rigs running throughout: three plans' clients, leases
+        # and requests at once on top of three rigs left their sidecars a control plane
+        # "overloaded" on this 2-core machine (a lease renewal unanswered, a status busy)
         for name in RIGS:
             tools[name] = subprocess.Popen(
                 [sys.executable, "-m", "mrrig", "test", str(plan), "--rig", name,
@@ -137,9 +136,8 @@ def test_three_rigs_run_a_plan_a_fourth_client_finds_every_run_in_one_catalog(
                  "--junit", str(tmp_path / name / "plan.xml")],
                 cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
             )  # fmt: skip
-        for name, tool in tools.items():
-            out, _ = tool.communicate(timeout=180)
-            assert tool.returncode == 0, f"{name}: {out}"
+            out, _ = tools[name].communicate(timeout=180)
+            assert tools[name].returncode == 0, f"{name}: {out}"
         for name, daemon in daemons.items():
             stop(daemon)
             out = (tmp_path / name / "daemon.log").read_text()
