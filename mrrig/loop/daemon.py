@@ -11,9 +11,10 @@ Here: the daemon's state, built from its config, and its loop (`run`, one pass p
 frame or timeout). Its parts, each a module of its own:
   - `frame_path`: the frame's path, `on_frame` -> `cycle` -> the command sent;
   - `sensor_watch`: the sensor frames' arrival (the first one due, gaps, counter timing);
-  - `control_requests`: control requests applied between frames, the arm's lease;
+  - `control_requests`: control requests applied between frames, the arm's lease, force_ref;
   - `sidecar_watch`: the telemetry process, started, heard and restarted once;
   - `shutdown`: SAFE, the actuator to rest, the summary;
+  - `batches`: the sample rows handed on; `frame_age`: a frame's wait at the bus;
   - `build`: the controller and reference a config names; `run_command`: `mrrig run`.
 """
 
@@ -87,8 +88,9 @@ class Daemon(FramePath):
     def __init__(
         self, cfg: DaemonConfig, record_path: Path | None = None, keep_batches: bool = False
     ) -> None:
-        """`keep_batches`: keep every sample batch for `handed_over` (an in-process consumer
-        such as characterize); otherwise the loop keeps none and its memory stays fixed."""
+        """`keep_batches`: keep every sample batch for `batches.handed_over` (an in-process
+        consumer such as characterize); otherwise the loop keeps none and its memory stays
+        fixed."""
         self.cfg = cfg
         self.period_s = cfg.loop.period_s
         # the rig profile: the DBC and its roles ([can]); the start-up line names what is off
