@@ -87,6 +87,6 @@ def run_lockstep(
     finally:
         daemon.bus.shutdown()
         rig_end.shutdown()
-    samples = np.concatenate(daemon.handed_over())
+    samples = np.concatenate(daemon.batches.handed_over())
     x, xd, f = np.array(truth).T
     return LockstepRun(samples, x, xd, f)

@@ -200,7 +200,7 @@ def _frames(rig: ScriptedRig, n: int, k0: int = 0, **flags) -> None:
 
 def _armed(rig: ScriptedRig) -> int:
     time.sleep(0.1)  # the last frame's work after its command (the test saw the command)
-    batches = rig.daemon.handed_over()
+    batches = rig.daemon.batches.handed_over()
     return int(sum((b["state"] == RigState.ARMED).sum() for b in batches))
 
 
@@ -312,7 +312,7 @@ def test_an_old_model_of_the_commanded_current_loads_and_says_what_it_lacks(
     tmp_path, caplog, sim_model
 ):
     from mrrig.config import load_config
-    from mrrig.loop.daemon import build_controller
+    from mrrig.loop.build import build_controller
 
     # the trained network without current_input and lag_tau_s, as files were before them (a
     # random network is no model of a damper: the self-check refuses it, issue 40)
@@ -322,7 +322,7 @@ def test_an_old_model_of_the_commanded_current_loads_and_says_what_it_lacks(
     path = tmp_path / "old.json"
     old.save(path)
     cfg = load_config(rig_config(tmp_path, "ws://127.0.0.1:1/", path))
-    with caplog.at_level("WARNING", logger="mrrig.loop.daemon"):
+    with caplog.at_level("WARNING", logger="mrrig.loop.build"):
         ctrl = build_controller(cfg)
     assert ctrl.name == "network_inversion" and ctrl.ahead and ctrl.lag_tau_s is None
     (warning,) = [r.getMessage() for r in caplog.records if r.levelname == "WARNING"]

@@ -138,7 +138,7 @@ def test_a_loop_section_without_its_optional_fields_runs_on_their_defaults(tmp_p
         cfg = load_config(path)
         assert cfg.loop.max_frame_age_s is None and cfg.loop.frame_age_limit_s == 0.002
         time.sleep(0.2)  # the simulator streams
-        with caplog.at_level(logging.INFO, logger="mrrig.loop.daemon"):
+        with caplog.at_level(logging.INFO, logger="mrrig.loop.frame_age"):
             summary = Daemon(cfg).run()
     assert summary["frames_received"] > 0
     assert any("discarded" in r.getMessage() for r in caplog.records), "no backlog: not tested"

@@ -244,7 +244,7 @@ def test_the_estimate_goes_on_through_lost_frames(tmp_path):
             x += speed_m_s * period_s
         assert rig.daemon.counters["lost_frames"] == 3
         assert rig.daemon.supervisor.state is RigState.ARMED
-    samples = np.concatenate(rig.daemon.handed_over())
+    samples = np.concatenate(rig.daemon.batches.handed_over())
     xd_after = samples["xd"][-3:]
     assert np.all(np.abs(xd_after - speed_m_s) < 0.01), xd_after
 
@@ -270,7 +270,7 @@ def test_the_estimate_restarts_after_a_gap_the_counter_cannot_tell(tmp_path):
             x += speed_m_s * period_s
         assert rig.daemon.counters["estimate_restarts"] == 1
         assert_fault(rig, Fault.SENSOR_TIMEOUT)
-    samples = np.concatenate(rig.daemon.handed_over())
+    samples = np.concatenate(rig.daemon.batches.handed_over())
     xd_after = samples["xd"][-20:]
     assert np.all(np.abs(xd_after - speed_m_s) < 0.01), xd_after
 
@@ -278,7 +278,7 @@ def test_the_estimate_restarts_after_a_gap_the_counter_cannot_tell(tmp_path):
 def test_stale_external_force_reference_faults(tmp_path):
     with ScriptedRig(tmp_path) as rig:
         rig.daemon.reference = ref.External(timeout_s=0.05)
-        rig.daemon.on_force_ref(400.0, time.monotonic())
+        rig.daemon.requests.on_force_ref(400.0, time.monotonic())
         cmd = rig.exchange()
         assert cmd["Mode"] == ACTIVE and cmd["DesiredForce"] == pytest.approx(400.0)
         time.sleep(0.08)
@@ -374,7 +374,7 @@ def test_the_stop_answers_safe_and_disarms_from_that_frame(tmp_path):
         assert_safe(rig.exchange())
         rig.thread.join(timeout=5)
     d = rig.daemon
-    samples = np.concatenate(d.handed_over())
+    samples = np.concatenate(d.batches.handed_over())
     assert samples["state"][-1] == RigState.IDLE and samples["i_cmd"][-1] == 0.0
     assert (samples["state"][:-1] == RigState.ARMED).all()
     assert d.summary["armed_frames"] == d.counters["commands_active"] == 20

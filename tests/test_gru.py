@@ -19,8 +19,8 @@ import numpy as np
 import pytest
 
 from mrrig.config import load_config
+from mrrig.loop.build import build_controller
 from mrrig.loop.controllers import ControllerSettings, GruInversion, make_controller
-from mrrig.loop.daemon import build_controller
 from mrrig.loop.gru import GRUModel, GruTracker, affine_solve
 from mrrig.loop.mlp import ModelError
 from mrrig.loop.model_fit import COST_BUDGET_S, frame_cost_s

@@ -11,8 +11,8 @@ import numpy as np
 import pytest
 
 from mrrig.cli.main import main as mrrig_main
+from mrrig.loop.build import build_controller
 from mrrig.loop.controllers import ControlInput, NetworkInversion, SupervisedInverse
-from mrrig.loop.daemon import build_controller
 from mrrig.loop.mlp import MLP
 from mrrig.loop.samples import RigState
 from mrrig.loop.slew import SlewLimit
@@ -341,7 +341,7 @@ def test_daemon_loop_runs_a_history_model_like_the_controller_offline(tmp_path, 
         assert cmd["ControllerId"] == 1
         rig.daemon.request_stop("test done")
         rig.thread.join(timeout=5)
-    s = np.concatenate(rig.daemon.handed_over())
+    s = np.concatenate(rig.daemon.batches.handed_over())
     s = s[s["state"] == RigState.ARMED]
     assert s.size >= 40
     # the daemon's default load-cell feedback (with a history model: the present instant)

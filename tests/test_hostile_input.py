@@ -307,21 +307,21 @@ def test_finding6_a_killed_sidecar_is_a_fault_restarted_once_then_the_daemon_sto
         record_path=tmp_path / "run.rrd",
     )
     with rig:
-        wait_until(lambda: rig.exchange() and rig.daemon.link is not None)
-        first = rig.daemon.sidecar
+        wait_until(lambda: rig.exchange() and rig.daemon.sidecar.link is not None)
+        first = rig.daemon.sidecar.proc
         first.kill()
         while rig.daemon.supervisor.fault is not Fault.TELEMETRY_LOST:
             rig.exchange()
         assert "telemetry process exited" in rig.daemon.supervisor.reason
         assert rig.exchange()["Mode"] == SAFE
         # restarted once, into a file of its own
-        wait_until(lambda: rig.exchange() and rig.daemon.sidecar is not first, 30.0)
-        assert rig.daemon.record_paths[-1].name == "run.restart1.rrd"
+        wait_until(lambda: rig.exchange() and rig.daemon.sidecar.proc is not first, 30.0)
+        assert rig.daemon.sidecar.record_paths[-1].name == "run.restart1.rrd"
         assert rig.request({"cmd": "reset"})["ok"]  # the fault acknowledged, then armed
         assert rig.request({"cmd": "arm"})["ok"]
         # a stopped (stuck) one: no heartbeat for 0.5 s is the same fault
-        second = rig.daemon.sidecar
-        wait_until(lambda: rig.exchange() and rig.daemon.link is not None, 30.0)
+        second = rig.daemon.sidecar.proc
+        wait_until(lambda: rig.exchange() and rig.daemon.sidecar.link is not None, 30.0)
         end = time.monotonic() + 2.0  # its first heartbeats come
         while time.monotonic() < end:
             rig.exchange()

@@ -1,7 +1,8 @@
 """The walls of the house (pyproject.toml's `[tool.importlinter]` contracts): `mrrig` never
 imports `firmware_sim`; the damper's physics and the numerics never import I/O; the loop never
-imports torch, Zenoh or Rerun; the loop and the rig's I/O never import the offline work or the
-CLI."""
+imports torch, Zenoh or Rerun; the daemon's modules are layered by job (`mrrig run` over the
+daemon over its independent parts: the frame's path, control requests, the sidecar's supervision,
+shutdown...); the loop and the rig's I/O never import the offline work or the CLI."""
 
 from __future__ import annotations
 

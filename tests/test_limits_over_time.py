@@ -68,11 +68,11 @@ def test_finding9_a_force_ref_beyond_the_range_is_clamped_and_counted(tmp_path):
     with ScriptedRig(tmp_path) as rig:
         rig.daemon.reference = ref.External(timeout_s=0.5)
         lo, hi = rig.daemon.cfg.loop.f_range_n
-        rig.daemon.on_force_ref(1e300, time.monotonic())
+        rig.daemon.requests.on_force_ref(1e300, time.monotonic())
         cmd = rig.exchange()
         assert cmd["Mode"] == ACTIVE
         assert cmd["DesiredForce"] == pytest.approx(hi)
-        rig.daemon.on_force_ref(-1e300, time.monotonic())
+        rig.daemon.requests.on_force_ref(-1e300, time.monotonic())
         assert rig.exchange()["DesiredForce"] == pytest.approx(lo)
         assert rig.daemon.counters["force_refs_clamped"] == 2
         notes = [e for e in rig.daemon.events if e["kind"] == "force_ref_clamped"]

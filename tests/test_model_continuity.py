@@ -17,7 +17,7 @@ import pytest
 from damper.plant import BoucWenDamper, BoucWenParams
 from damper.signals import sine
 from mrrig.config import load_config
-from mrrig.loop.daemon import build_controller
+from mrrig.loop.build import build_controller
 from mrrig.loop.mlp import MLP, ModelError
 from mrrig.loop.summary import COMMAND_JUMP_A
 from mrrig.offline.metrics import error_norm

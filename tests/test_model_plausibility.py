@@ -21,8 +21,8 @@ import pytest
 from damper.plant import BoucWenDamper, BoucWenParams
 from damper.plant_file import Plant, save_plant
 from mrrig.config import load_config
+from mrrig.loop.build import build_controller
 from mrrig.loop.controllers import ControllerSettings, make_controller
-from mrrig.loop.daemon import build_controller
 from mrrig.loop.gru import GRUModel
 from mrrig.loop.mlp import ModelError
 from mrrig.loop.model_plausibility import MAX_CHATTER, SELF_CHECK_FRAMES, self_check

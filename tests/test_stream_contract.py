@@ -12,7 +12,8 @@ import pytest
 
 from firmware_sim.firmware import Firmware
 from mrrig.config import load_config
-from mrrig.loop.daemon import Daemon, build_controller, build_reference
+from mrrig.loop.build import build_controller, build_reference
+from mrrig.loop.daemon import Daemon
 from mrrig.rigio.canbus.profile import ProfileError, check_profile, contract_profile
 from mrrig.rigio.canbus.profile_limits import daemon_limits
 from mrrig.rigio.canbus.setpoint import SetpointError, SetpointStream

@@ -111,7 +111,7 @@ def test_the_daemons_exit_summary_is_the_summary_of_its_samples(tmp_path):
         for k in range(57):  # not a whole number of telemetry batches
             rig.exchange(x=0.001 * math.sin(k / 5), force=250.0 + 40.0 * k)
     d = rig.daemon
-    s = np.concatenate(d.handed_over())
+    s = np.concatenate(d.batches.handed_over())
     assert s.size == 57
     want = summarize(s, d.events)
     for key in ("frames", "armed_frames", "duration_s", "last_frame_t_s", "frame_gap_ms"):
@@ -138,8 +138,8 @@ def test_a_daemon_without_kept_batches_holds_no_samples(tmp_path):
         for k in range(25):  # the loop's own calls, 2.5 batches
             d.cycle(values, k % 16, d.t0 + 0.002 * k)
             d._last_sensor_t = d.t0 + 0.002 * k
-        assert d._chunks == [] and d._summary.frames == 20
+        assert d.batches.chunks == [] and d.batches.summary.frames == 20
         with pytest.raises(RuntimeError, match="keep_batches"):
-            d.handed_over()
+            d.batches.handed_over()
     finally:
         d.bus.shutdown()

@@ -24,8 +24,8 @@ from damper.plant import BoucWenDamper, BoucWenParams
 from damper.plant_file import Plant, load_plant, save_plant
 from mrrig.config import load_config
 from mrrig.loop.adaptation import AdaptationSettings
+from mrrig.loop.build import build_controller
 from mrrig.loop.controllers import ControllerSettings, TwinInversion, make_controller
-from mrrig.loop.daemon import build_controller
 from mrrig.loop.mlp import ModelError
 from mrrig.loop.model_fit import COST_BUDGET_S, frame_cost_s
 from mrrig.loop.twin_model import SUBSTEP_S, TwinModel, TwinTracker, load_forward_model

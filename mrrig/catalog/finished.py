@@ -3,9 +3,9 @@
 sidecar when the loop has ended, and by `mrrig runs register REC` from what a recording
 carries.
 
-The verdict comes from the summary's exit code (`mrrig.loop.daemon.Exit`). A run is `ok` only
-where its summary says it ended normally: a daemon that raised (the summary's `crashed`) or
-ended without a summary (killed, or crashed before it could send one) is `crashed`.
+The verdict comes from the summary's exit code (`mrrig.loop.exit_codes.Exit`). A run is `ok`
+only where its summary says it ended normally: a daemon that raised (the summary's `crashed`)
+or ended without a summary (killed, or crashed before it could send one) is `crashed`.
 """
 
 from __future__ import annotations
@@ -20,7 +20,7 @@ from mrrig.catalog.record import RecordError, RunRecord, summary_numbers
 
 log = logging.getLogger("mrrig.catalog")
 
-# a daemon run's verdict in the catalog, from its exit code (mrrig.loop.daemon.Exit)
+# a daemon run's verdict in the catalog, from its exit code (mrrig.loop.exit_codes.Exit)
 RUN_VERDICTS = {0: "ok", 1: "fault", 3: "bus_lost", 4: "telemetry_lost"}
 CRASHED = "crashed"
 # the identity's keys that are not the record's (where the sidecar registers it)

@@ -20,7 +20,7 @@ from mrrig.errors import MrrigError
 # subcommand -> (module with main(argv) -> int, one-line help)
 COMMANDS: dict[str, tuple[str, str]] = {
     "demo": ("mrrig.cli.demo", "simulator + daemon: a 20 s force-tracking run and its summary"),
-    "run": ("mrrig.loop.daemon", "run the rig daemon (mrrig run --config configs/rig.toml)"),
+    "run": ("mrrig.loop.run_command", "run the rig daemon (mrrig run --config configs/rig.toml)"),
     "sim": ("firmware_sim.__main__", "run the simulated rig firmware"),
     "bridge": ("mrrig.rigio.canbus.bridge", "serve a virtual CAN channel on 127.0.0.1"),
     "status": ("mrrig.cli.client", "print the daemon's status (Zenoh)"),

@@ -28,7 +28,7 @@ import numpy as np
 from mrrig import json_text
 from mrrig.cli_args import HelpFormatter, int_at_least, non_negative, output_file, positive
 from mrrig.config import load_config
-from mrrig.loop.daemon import build_controller
+from mrrig.loop.build import build_controller
 from mrrig.loop.safety import TRANSPORT_FAULTS
 from mrrig.loop.samples import RigState
 from mrrig.loop.summary import format_summary, summarize

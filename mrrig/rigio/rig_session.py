@@ -118,7 +118,7 @@ class ThreadLoop:
             d.t0,
             running,
             "" if running else self._error or d.stop_reason or "unknown",
-            d.handed_over(n_chunks),
+            d.batches.handed_over(n_chunks),
             d.events[n_events:],
         )
 
