@@ -145,11 +145,11 @@ def test_set_hil_changes_the_next_run_s_law_while_disarmed_and_refuses_what_cann
     assert status["scenario_sha256"] == _hil_status()["scenario_sha256"]
     prep = Preparer(daemon, build_controller, build_reference)
     req = check_request({"cmd": "set_hil", "law": "groundhook", "duration_s": 12.0})
-    reply = daemon.apply(prep.prepare(req))
+    reply = daemon.requests.apply(prep.prepare(req))
     assert reply["hil"]["law"] == "groundhook" and reply["hil"]["duration_s"] == 12.0
     assert daemon.hil.scenario.steps == 6000 and daemon.hil.scenario.road.speed_m_s == 12.0
     # a field left out is as configured: the file's law again, the duration kept as asked
-    daemon.apply(prep.prepare({"cmd": "set_hil", "duration_s": 12.0}))
+    daemon.requests.apply(prep.prepare({"cmd": "set_hil", "duration_s": 12.0}))
     assert daemon.status()["hil"]["law"] == "skyhook"
     for bad, named in (
         ({"law": "sky"}, "law"),
