@@ -19,9 +19,10 @@ import numpy as np
 
 from mrrig.loop import hil_loop
 from mrrig.loop import reference as ref
-from mrrig.loop.controllers import CONTROLLERS, ControlInput
+from mrrig.loop.controllers import ControlInput
 from mrrig.loop.safety import Fault
 from mrrig.loop.samples import RigState
+from mrrig.loop.slew import loop_command
 
 log = logging.getLogger(__name__)
 
@@ -197,7 +198,7 @@ class FramePath:
                 i = self.controller.command_one(x, xd, xdd, f_meas, f_des, f_next)
                 events += sup.finite(t, f"the {self.controller.name} controller's command", i)
                 if sup.active:
-                    i_cmd = self._slew_limit(min(max(i, 0.0), self.cfg.loop.i_max_a))
+                    i_cmd = self._slew_limit(i)
                 if self.hil is not None:  # a law's current; the scenario's current range
                     i_cmd = self.hil.command(i_cmd, self.cfg.loop.i_max_a)
         except Exception as exc:  # noqa: BLE001 - a bug must not leave a frame unanswered
@@ -323,14 +324,11 @@ class FramePath:
         return f_des, f_next
 
     def _slew_limit(self, i_a: float) -> float:
-        """A model's command within loop.max_current_slew_a_per_s of the last one sent; a
-        command moved is counted, and the controller told what is sent (`command_sent`)."""
-        if not CONTROLLERS[self.controller.name].needs_model:
-            return i_a  # the operator's own current (constant), not a model's
-        sent = self.slew.limit(i_a)
-        if sent != i_a:
-            self.counters["commands_slew_limited"] += 1
-            self.controller.command_sent(sent)
+        """The controller's command within [0, loop.i_max_a] and (a model's) within
+        loop.max_current_slew_a_per_s of the last one sent (`slew.loop_command`, the HIL
+        reference's too); a command the slew limit moved is counted."""
+        sent, moved = loop_command(self.slew, self.controller, i_a, self.cfg.loop.i_max_a)
+        self.counters["commands_slew_limited"] += moved
         return sent
 
     def _clamp_force(self, f_n: float) -> float:
