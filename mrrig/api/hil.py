@@ -8,6 +8,7 @@ calls; `judge(samples, reference)` is pure numerics on the samples."""
 from __future__ import annotations
 
 import dataclasses
+import logging
 import threading
 import time
 from collections.abc import Callable
@@ -19,8 +20,11 @@ import numpy as np
 
 from mrrig.errors import MrrigError
 from mrrig.hil.metrics import ResponseError, Tracking, response_error, tracking
-from mrrig.hil.reference import ReferenceRun
+from mrrig.hil.reference import DaemonCommand, ReferenceRun
 from mrrig.hil.scenario import Scenario
+from mrrig.rigio.run_identity import file_sha256
+
+log = logging.getLogger(__name__)
 
 STATUS_EVERY_S = 1.0
 START_S = 5.0
@@ -29,6 +33,40 @@ REST_WAIT_S = 1.5  # the run's first streamed frame within this long of the arm
 
 class HilRunError(MrrigError, RuntimeError):
     """The rig runs no hybrid simulation, or the run could not be judged."""
+
+
+def daemon_command(config: str | Path) -> DaemonCommand:
+    """The daemon's controller path of the config at `config` (its controller and model built
+    as the daemon builds them: `build_controller`), for the reference; MrrigError (one line)
+    where the config or its model does not load."""
+    from mrrig.config import load_config
+    from mrrig.loop.daemon import build_controller
+
+    cfg = load_config(config)
+    return DaemonCommand(
+        build_controller(cfg),
+        period_s=cfg.loop.period_s,
+        i_max_a=cfg.loop.i_max_a,
+        max_current_slew_a_per_s=cfg.loop.max_current_slew_a_per_s,
+        f_range_n=cfg.loop.f_range_n,
+        kalman_q=cfg.estimator.q,
+        kalman_r0_m2=cfg.estimator.r0_m2,
+    )
+
+
+def rig_command(hil_status: dict[str, Any]) -> DaemonCommand | None:
+    """The controller path of the daemon whose status' `hil` is `hil_status`: its config file,
+    where this machine has the same one (sha256, as the simulated rig's); None where not (a
+    live rig's config elsewhere: the reference then inverts the simulator's model exactly)."""
+    path = hil_status.get("config")
+    if not path or file_sha256(path) != hil_status.get("config_sha256"):
+        log.warning(
+            "the rig's daemon config %s is not on this machine: the reference inverts the "
+            "simulator's damper model exactly, not with the daemon's controller",
+            path,
+        )
+        return None
+    return daemon_command(path)
 
 
 @dataclass(frozen=True)

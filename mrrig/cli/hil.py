@@ -13,7 +13,9 @@
     mrrig hil SCENARIO --sim [--compensation none]
                                               on the simulated rig (bridge, firmware_sim, a
                                               daemon running the scenario): J1-J3, the
-                                              response errors against the reference, figures
+                                              response errors against the reference (with the
+                                              daemon's controller path: its --config's
+                                              controller, current clamp and slew limit), figures
     mrrig hil SCENARIO --rig NAME             the same on a rig whose daemon runs [hil]
 
 The reference is what a HIL run of the same scenario should give: its stroke and force envelope
@@ -26,11 +28,13 @@ import argparse
 import dataclasses
 from pathlib import Path
 
+from mrrig.api.hil import daemon_command
 from mrrig.cli_args import HelpFormatter, positive
 from mrrig.errors import MrrigError
 from mrrig.hil.laws import LAWS
 from mrrig.hil.reference import (
     SIM_PLANT_PRESET,
+    DaemonCommand,
     envelope_problem,
     law_table,
     percent_change,
@@ -39,7 +43,7 @@ from mrrig.hil.reference import (
 from mrrig.hil.scenario import Scenario, load_scenario
 
 
-def _title(path: Path, s: Scenario, law: str) -> str:
+def _title(path: Path, s: Scenario, law: str, command: DaemonCommand | None = None) -> str:
     if s.kind == "quarter-car":
         what = f"quarter car, class {s.road.iso_class} road at {s.road.speed_m_s:g} m/s"
     else:
@@ -50,6 +54,7 @@ def _title(path: Path, s: Scenario, law: str) -> str:
     return (
         f"{path}: {what}, {law}, {s.duration_s:g} s ({s.steps} frames of {s.period_s * 1e3:g} ms); "
         f"reference: firmware_sim's Bouc-Wen damper ({SIM_PLANT_PRESET}, 0-{s.damper.i_max_a:g} A)"
+        + (", its exact inverse" if command is None else f", the daemon's {command.name}")
     )
 
 
@@ -184,9 +189,12 @@ def main(argv: list[str] | None = None) -> int:
         ap.error("--compensation: only with --sim (a live rig's daemon keeps its own [hil])")
     if args.table and not args.reference:
         ap.error("--table: only with --reference")
-    run = run_reference(scenario)
+    # --sim: the daemon's own controller path, so that the run and its reference differ only
+    # by the rig; a live rig's daemon config is elsewhere: the exact inverse
+    command = daemon_command(args.config) if args.sim else None
+    run = run_reference(scenario, command=command)
     if args.sim or args.rig:
-        return _live(args, scenario, run)
+        return _live(args, scenario, run, command)
     figures = run.figures()
     print(_title(args.scenario, scenario, scenario.law))
     print("\n".join(_summary(figures, scenario)))
@@ -197,7 +205,9 @@ def main(argv: list[str] | None = None) -> int:
     return 0
 
 
-def _live(args: argparse.Namespace, scenario: Scenario, reference) -> int:
+def _live(
+    args: argparse.Namespace, scenario: Scenario, reference, command: DaemonCommand | None
+) -> int:
     """The scenario on the simulated or a live rig, judged against `reference`."""
     import contextlib
 
@@ -208,7 +218,7 @@ def _live(args: argparse.Namespace, scenario: Scenario, reference) -> int:
     if problem is not None:  # the simulator's stroke; a live rig's daemon checks its own
         raise MrrigError(f"{args.scenario}: {problem}: it does not fit the rig")
     where = "the simulated rig" if args.sim else f"rig {args.rig}"
-    print(_title(args.scenario, scenario, scenario.law) + f"; on {where}", flush=True)
+    print(_title(args.scenario, scenario, scenario.law, command) + f"; on {where}", flush=True)
     with contextlib.ExitStack() as stack:
         rig_name = args.rig
         if args.sim:

@@ -39,6 +39,16 @@ class Demand:
     force_n: float | None = None
     current_a: float | None = None
 
+    def current(self, controller_a: float, range_a: float | None, i_max_a: float) -> float:
+        """The frame's current: the law's own where it asks one (passive-soft/hard), else the
+        controller's `controller_a` (its inverse of `force_n`); within the scenario's damper
+        range 0-`range_a` while a run streams (None: no run), and always within [0, `i_max_a`]
+        (the loop's). The daemon's frame (`HilLoop.command`) and the reference both call it."""
+        i_a = controller_a if self.current_a is None else self.current_a
+        if range_a is not None:
+            i_a = min(i_a, range_a)
+        return min(max(i_a, 0.0), i_max_a)
+
 
 @dataclass(frozen=True)
 class LawParams:

@@ -3,10 +3,17 @@ model in place of the rig, stepped entirely in numerics, so that every HIL run i
 against what it should have been.
 
 The damper is firmware_sim's: the modified Bouc-Wen model, preset "rig-current" (the paper's
-Table 3 per ampere, 0 to i_max), RK4 sub-steps of `substep_s`. The law's desired force becomes
-a current through the inverse of the same model (`BoucWenInverse`). The stroke goes to the
-damper exactly as the model computed it (an ideal actuator), so the reference is what a HIL
-run with perfect tracking would give.
+Table 3 per ampere, 0 to i_max), RK4 sub-steps of `substep_s`. The stroke goes to the damper
+exactly as the model computed it (an ideal actuator), so the reference is what a HIL run with
+perfect tracking would give.
+
+The law's desired force becomes a current one of two ways. With `DaemonCommand` (what a HIL
+run is judged against: `mrrig hil`, a plan's `hil` step), the way the daemon computes a
+frame's command: its Kalman estimate of the stroke, its controller (the config's, network
+inversion of its forward model by default) on the measured force, the loop's current clamp
+and slew limit (`mrrig.loop.slew.loop_command`) and the run's current range (`Demand.current`),
+so that the reference and the HIL run differ only by the rig (servo, transport, measurement).
+Without it, through the exact inverse of the simulator's own model (`BoucWenInverse`).
 """
 
 from __future__ import annotations
@@ -17,10 +24,13 @@ from dataclasses import astuple, dataclass
 import numpy as np
 
 from damper.plant import BoucWenDamper, BoucWenParams, bouc_wen_force
-from mrrig.hil.laws import LAWS
+from mrrig.hil.laws import LAWS, Demand
 from mrrig.hil.scenario import Scenario
 from mrrig.hil.stepper import HybridStep
 from mrrig.hil.substructure import QuarterCar
+from mrrig.loop.controllers import Controller
+from mrrig.loop.estimation import RealtimeKalman
+from mrrig.loop.slew import SlewLimit, loop_command
 
 # firmware_sim's plant preset (firmware_sim/firmware.py, PLANT_PRESET)
 SIM_PLANT_PRESET = "rig-current"
@@ -61,6 +71,60 @@ class BoucWenInverse:
         return min(max(v, 0.0), self.i_max_a)
 
 
+class DaemonCommand:
+    """The daemon's path from a frame's measured stroke and force and the law's demand to the
+    current it sends (mrrig/loop/daemon.py, `Daemon.cycle`, armed, one run streaming): the
+    Kalman estimate of the stroke, the desired force within `loop.f_range_n` (0 N where the
+    law asks a current: `HilDemand`), the controller's `command_one` (with that force as the
+    next one too, for a controller that solves one step ahead: a HIL demand is not known
+    ahead), `loop_command` (clamp, slew limit), the run's range, then the slew limit told
+    what went out and the controller's on-line adaptation (`after_send`). The daemon's
+    `prepare_one` work ahead is left out: it changes no result beyond the solver's tolerance.
+    `controller`: built from the daemon's config (`mrrig.loop.daemon.build_controller`), the
+    rest its `[loop]` and `[estimator]` (`mrrig.api.hil.daemon_command`)."""
+
+    def __init__(
+        self,
+        controller: Controller,
+        *,
+        period_s: float,
+        i_max_a: float,
+        max_current_slew_a_per_s: float,
+        f_range_n: tuple[float, float],
+        kalman_q: float,
+        kalman_r0_m2: float,
+    ) -> None:
+        self.controller = controller
+        self.name = controller.name
+        self.i_max_a = i_max_a
+        self.f_range_n = f_range_n
+        self._kalman = (period_s, kalman_q, kalman_r0_m2)
+        self._slew = (max_current_slew_a_per_s, period_s)
+        self.reset()
+
+    def reset(self) -> None:
+        """A run's start, as arming the daemon: the controller reset, the slew limit free."""
+        period_s, q, r0 = self._kalman
+        self.kf = RealtimeKalman(period_s, q=q, r0=r0)
+        self.slew = SlewLimit(*self._slew)
+        self.controller.reset(1)
+
+    def current_a(self, x_meas: float, f_meas: float, demand: Demand, range_a: float) -> float:
+        x, xd, xdd = self.kf.update(x_meas)
+        lo, hi = self.f_range_n
+        f_des = min(max(demand.force_n if demand.force_n is not None else 0.0, lo), hi)
+        f_next = f_des if self.controller.wants_next_target else None
+        i = self.controller.command_one(x, xd, xdd, f_meas, f_des, f_next)
+        if not math.isfinite(i):
+            raise FloatingPointError(f"the {self.name} controller's command is not finite")
+        i_max = self.i_max_a
+        i_a, _ = loop_command(self.slew, self.controller, i, i_max)
+        i_a = demand.current(i_a, range_a, i_max)
+        self.slew.sent(i_a)
+        self.controller.after_send()
+        return i_a
+
+
 @dataclass(frozen=True)
 class ReferenceRun:
     """The recorded series of a run (one sample per frame) and the figures of spec/hil.md."""
@@ -94,11 +158,16 @@ class ReferenceRun:
         return out
 
 
-def run_reference(scenario: Scenario, law: str | None = None) -> ReferenceRun:
+def run_reference(
+    scenario: Scenario, law: str | None = None, command: DaemonCommand | None = None
+) -> ReferenceRun:
     """The scenario (with `law` in place of its own, if given) all-numerically: the hybrid
     loop's own step (`HybridStep`) with an ideal actuator (the stroke as the model computed it,
-    no compensation) and the simulator's damper in place of the rig."""
+    no compensation) and the simulator's damper in place of the rig; the law's force through
+    the daemon's controller path (`command`, reset here) or, without one, `BoucWenInverse`."""
     dt = scenario.period_s
+    if command is not None:
+        command.reset()
     loop = HybridStep(scenario, law, compensate=False)
     sub = loop.substructure
     params = BoucWenParams.preset(SIM_PLANT_PRESET)
@@ -130,7 +199,10 @@ def run_reference(scenario: Scenario, law: str | None = None) -> ReferenceRun:
             outputs["drift_m"][k] = sub.drifts_m
             outputs["acceleration_m_s2"][k] = sub.accelerations_m_s2
         x1, v1 = frame.target_m, frame.target_velocity_m_s
-        if frame.demand.current_a is not None:
+        if command is not None:
+            i_a = command.current_a(stroke[k], f, frame.demand, scenario.damper.i_max_a)
+            desired[k] = math.nan if frame.demand.force_n is None else frame.demand.force_n
+        elif frame.demand.current_a is not None:
             i_a, desired[k] = frame.demand.current_a, math.nan
         else:
             i_a = inverse.current_a(damper, x1, v1, frame.demand.force_n)
@@ -168,12 +240,14 @@ class LawRow:
     max_abs_stroke_m: float
 
 
-def law_table(scenario: Scenario, laws: tuple[str, ...] = LAWS) -> list[LawRow]:
+def law_table(
+    scenario: Scenario, laws: tuple[str, ...] = LAWS, command: DaemonCommand | None = None
+) -> list[LawRow]:
     """Every law on the scenario's road (quarter car): each law's RMS body acceleration,
     suspension travel and dynamic tyre load, and its peak stroke (does it fit the rig?)."""
     rows = []
     for name in laws:
-        fig = run_reference(scenario, name).figures()
+        fig = run_reference(scenario, name, command).figures()
         rows.append(
             LawRow(
                 name,

@@ -55,7 +55,7 @@ from mrrig.loop.model_plausibility import self_check
 from mrrig.loop.realtime import keep_off_cpu, leave_realtime, make_realtime
 from mrrig.loop.safety import Fault, Limits, Supervisor
 from mrrig.loop.samples import SAMPLE_DTYPE, RigState
-from mrrig.loop.slew import SlewLimit
+from mrrig.loop.slew import SlewLimit, loop_command
 from mrrig.loop.summary import (
     LATENCY_BIN_US,
     LATENCY_PARTS,
@@ -583,7 +583,7 @@ class Daemon:
                 i = self.controller.command_one(x, xd, xdd, f_meas, f_des, f_next)
                 events += sup.finite(t, f"the {self.controller.name} controller's command", i)
                 if sup.active:
-                    i_cmd = self._slew_limit(min(max(i, 0.0), self.cfg.loop.i_max_a))
+                    i_cmd = self._slew_limit(i)
                 if self.hil is not None:  # a law's current; the scenario's current range
                     i_cmd = self.hil.command(i_cmd, self.cfg.loop.i_max_a)
         except Exception as exc:  # noqa: BLE001 - a bug must not leave a frame unanswered
@@ -708,14 +708,11 @@ class Daemon:
         return f_des, f_next
 
     def _slew_limit(self, i_a: float) -> float:
-        """A model's command within loop.max_current_slew_a_per_s of the last one sent; a
-        command moved is counted, and the controller told what is sent (`command_sent`)."""
-        if not CONTROLLERS[self.controller.name].needs_model:
-            return i_a  # the operator's own current (constant), not a model's
-        sent = self.slew.limit(i_a)
-        if sent != i_a:
-            self.counters["commands_slew_limited"] += 1
-            self.controller.command_sent(sent)
+        """The controller's command within [0, loop.i_max_a] and (a model's) within
+        loop.max_current_slew_a_per_s of the last one sent (`slew.loop_command`, the HIL
+        reference's too); a command the slew limit moved is counted."""
+        sent, moved = loop_command(self.slew, self.controller, i_a, self.cfg.loop.i_max_a)
+        self.counters["commands_slew_limited"] += moved
         return sent
 
     def _clamp_force(self, f_n: float) -> float:

@@ -27,6 +27,7 @@ from typing import Any
 import numpy as np
 
 from mrrig.config import DaemonConfig, HilCompensation, HilLaw
+from mrrig.hil.laws import Demand
 from mrrig.hil.scenario import Scenario, load_scenario
 from mrrig.hil.stepper import HybridStep
 from mrrig.hil.substructure import QuarterCar
@@ -140,6 +141,9 @@ class HilLoop:
         self.configured = self.scenario  # what `set_hil` starts from
         self.scenario_path = str(h.scenario)
         self.scenario_sha256 = file_sha256(h.scenario)  # the plan's `hil` step checks it
+        # the daemon's config: its controller path is the reference's (`daemon_command`)
+        self.config_path = str(cfg.source)
+        self.config_sha256 = file_sha256(cfg.source)
         self.envelope_m = h.envelope_m
         self.hold_s = h.hold_s
         self.reference = HilDemand()
@@ -224,11 +228,8 @@ class HilLoop:
         """The frame's current: the law's own where it asks one (passive-soft/hard), else the
         controller's `i_a`; while a run streams, within the scenario's damper range (0 to
         `damper.i_max_a`, as in the reference), and always within `i_max_a` (the loop's)."""
-        if self.current is not None:
-            i_a = self.current
-        if self.streaming:
-            i_a = min(i_a, self.scenario.damper.i_max_a)
-        return min(max(i_a, 0.0), i_max_a)
+        range_a = self.scenario.damper.i_max_a if self.streaming else None
+        return Demand(current_a=self.current).current(i_a, range_a, i_max_a)
 
     def after_command(
         self, send: Callable[[Any], bool], counter: int, t: float, sup: Supervisor
@@ -294,6 +295,8 @@ class HilLoop:
             "kind": self.scenario.kind,
             "scenario": self.scenario_path,
             "scenario_sha256": self.scenario_sha256,
+            "config": self.config_path,
+            "config_sha256": self.config_sha256,
             "duration_s": self.scenario.duration_s,
             "envelope_m": self.envelope_m,
             "law": self.scenario.law if self.step is None else self.step.law.name,

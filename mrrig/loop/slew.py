@@ -10,6 +10,8 @@ a twin's or a GRU's state) carries the one the coil got. Pure numerics."""
 
 from __future__ import annotations
 
+from mrrig.loop.controllers import CONTROLLERS, Controller
+
 
 class SlewLimit:
     """Commands within `max_a_per_s * period_s` of the last active one sent (`sent`)."""
@@ -28,3 +30,20 @@ class SlewLimit:
     def sent(self, current_a: float | None) -> None:
         """The active command that went out; None for a SAFE one (the next starts afresh)."""
         self.last_a = current_a
+
+
+def loop_command(
+    slew: SlewLimit, controller: Controller, i_a: float, i_max_a: float
+) -> tuple[float, bool]:
+    """A controller's command `i_a` as the loop sends it, and whether the slew limit moved
+    it: within [0, `i_max_a`], then a model's within the slew limit, the controller told the
+    command sent where the limit moved it (`Controller.command_sent`); an operator's own
+    current (constant) is not limited. The daemon's frame and the all-numerical HIL reference
+    (mrrig/hil/reference.py) both call it."""
+    i_a = min(max(i_a, 0.0), i_max_a)
+    if not CONTROLLERS[controller.name].needs_model:
+        return i_a, False
+    sent = slew.limit(i_a)
+    if sent != i_a:
+        controller.command_sent(sent)
+    return sent, sent != i_a

@@ -191,8 +191,10 @@ def before_arming(step: Step, hil_status: dict | None) -> tuple[Scenario, Refere
             f"{str(hil_status.get('scenario_sha256'))[:12]}), not this step's {path} (sha256 "
             f"{str(sha)[:12]}): start it with --hil {path}"
         )
+    from mrrig.api.hil import rig_command
+
     scenario = step_scenario(step)
-    reference = run_reference(scenario)
+    reference = run_reference(scenario, command=rig_command(hil_status))
     stroke_m = hil_status.get("envelope_m", ACTUATOR_AMPLITUDE_MAX_M)
     problem = envelope_problem(reference.figures(), stroke_m, FORCE_LIMIT_N)
     if problem is not None:
