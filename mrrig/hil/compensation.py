@@ -73,12 +73,16 @@ class DelayEstimator:
     f = -S(a D) / S(D D) minimises the weighted sum of r^2 (a = dm - du_(k-L), D the
     difference), and d = L + f for the L of the least residual. Unlike the peak of a
     cross-correlation (flat for a narrow-band stroke, its top moved by the window's ripple),
-    the residual's minimum is sharp."""
+    the residual's minimum is sharp. The estimate stays `initial_frames` for the first
+    quarter of the window: from a few frames of a starting stroke, the sensor's noise chose a
+    lag of 13-20 frames where the rig's was 3, and the compensator leading by that much made
+    the hybrid loop unstable within 30 frames (test_hil_sim on the simulator)."""
 
     def __init__(self, max_lag: int, window_frames: float, initial_frames: float) -> None:
         self.max_lag = max_lag
         self._forget = 1.0 - 1.0 / window_frames
         self._min_s_dd = _MIN_EXCITATION_M2 * window_frames
+        self._warmup = int(window_frames / 4)  # updates before the first estimate
         # _sent[j]: the setpoint sent j + 1 frames before the frame being measured
         self._sent = deque([0.0] * (max_lag + 2), maxlen=max_lag + 2)
         self._s_aa = np.zeros(max_lag)
@@ -100,7 +104,9 @@ class DelayEstimator:
             self._s_aa = lam * self._s_aa + a * a
             self._s_ad = lam * self._s_ad + a * d
             self._s_dd = lam * self._s_dd + d * d
-            self._refine()
+            self._warmup -= 1
+            if self._warmup <= 0:
+                self._refine()
         self._last_measured = measured_m
         return self.delay_frames
 
