@@ -31,6 +31,13 @@ log = logging.getLogger(__name__)
 _NAMES = {c.field: c.name for c in COLUMNS}
 # stream_force's profile length: the forces' own end stops it (`_Feed` gives None there)
 _UNTIL_THE_END_S = 1e9
+# a disarm that the daemon did not answer in time is asked this many times in all
+DISARM_TRIES = 3
+
+
+def _unanswered(error: str) -> bool:
+    """The rig's sidecar's answer for a request the daemon did not answer in time."""
+    return error == "daemon did not answer" or error.startswith("busy")
 
 
 class RigError(MrrigError, RuntimeError):
@@ -313,8 +320,28 @@ class Rig:
         return self.request({"cmd": "arm"})
 
     def disarm(self) -> dict[str, Any]:
-        """Disarm: commands become SAFE 0 A. Returns the daemon's reply."""
-        return self.request({"cmd": "disarm"})
+        """Disarm: commands become SAFE 0 A. Returns the daemon's reply. A disarm the daemon
+        did not answer in time (its control plane overloaded: "daemon did not answer", "busy",
+        or no reply at all) is asked again, up to DISARM_TRIES times: it only makes the rig
+        safer, and a plan that gave up after one such answer aborted a step whose rig then
+        disarmed a second later (three rigs on a 2-core machine)."""
+        from mrrig.rigio.client import ClientError
+
+        for tries_left in range(DISARM_TRIES - 1, -1, -1):
+            try:
+                reply = self.ask({"cmd": "disarm"})
+            except ClientError as exc:
+                if not tries_left:
+                    raise
+                log.warning("rig %r: disarm unanswered (%s): asking again", self.name, exc)
+                continue
+            error = str(reply.get("error") or "")
+            if reply.get("ok") or not tries_left or not _unanswered(error):
+                break
+            log.warning("rig %r: disarm unanswered (%s): asking again", self.name, error)
+        if not reply.get("ok"):
+            raise RigError(f"rig {self.name!r}: disarm: {reply.get('error')}")
+        return reply
 
     def reset(self) -> dict[str, Any]:
         """Acknowledge a FAULT (back to IDLE), the one way out of FAULT before `arm`."""

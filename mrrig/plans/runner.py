@@ -259,7 +259,10 @@ def _wait_state(rig: Rig, state: str, timeout_s: float = 3.0) -> dict:
 def _set_up(step: Step, rig: Rig, result: StepResult) -> None:
     """Out of FAULT, disarmed, the step's requests sent; what the rig has in force noted."""
     _out_of_fault(rig)
-    _request(rig, {"cmd": "disarm"})
+    try:
+        rig.disarm()  # asked again where the daemon did not answer in time
+    except (RigError, ClientError) as exc:
+        raise StepAborted(str(exc)) from None
     for req in step.requests():
         _request(rig, req)
     status = _status(rig)
