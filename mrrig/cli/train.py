@@ -57,6 +57,7 @@ from mrrig.offline.training.crossval import (
 )
 from mrrig.offline.training.gru import DEFAULT_HIDDEN as GRU_HIDDEN
 from mrrig.offline.training.kinds import (
+    GREYBOX,
     GRU,
     SEARCH_SHARE,
     TWIN,
@@ -539,6 +540,8 @@ def _write_kind(
     }
     if kind.name == TWIN:
         save_plant(replace(model, identified=json_text.plain(kept)), args.out)
+    elif kind.name == GREYBOX:
+        replace(model, identified=json_text.plain({**model.identified, **kept})).save(args.out)
     else:
         model.meta.update(json_text.plain(kept))
         model.save(args.out)
@@ -567,6 +570,11 @@ def _write_kind(
             f' ([controller] model = "{args.out}"; a twin in V: mrrig identify --map-model)'
             " and firmware_sim runs ([plant] file)",
         ]
+    elif kind.name == GREYBOX:
+        lines.append(
+            f"wrote {args.out}: a grey-box forward model (the twin and a network on its"
+            f' residual), the model network inversion inverts ([controller] model = "{args.out}")'
+        )
     else:
         lines.append(
             f"wrote {args.out}: a GRU forward model, the model network inversion inverts"
@@ -650,7 +658,7 @@ def main(argv: list[str] | None = None) -> int:
             started=started,
             not_built=left_out,
         )
-        if best.name in (TWIN, GRU):
+        if best.name in (TWIN, GRU, GREYBOX):
             kind = next(k for k in kinds if k.name == best.name)
             return _write_kind(args, kind, series, excluded, search, kinds_report, columns, units)
         cand = cands[best.name]

@@ -30,13 +30,14 @@ import logging
 import math
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, fields, replace
 from typing import Any
 
 import numpy as np
 
 from damper.plant_file import Plant
 from mrrig.loop.controllers import Controller, ControllerSettings, make_controller
+from mrrig.loop.greybox import GreyBoxModel
 from mrrig.loop.model_fit import COST_BUDGET_S, frame_cost_s
 from mrrig.loop.twin_model import SUBSTEP_S, TwinModel
 from mrrig.offline.datasets import Series
@@ -52,6 +53,8 @@ from mrrig.offline.training.crossval import (
 from mrrig.offline.training.data import run_ids, sample_period, stretch_bounds, stretches
 from mrrig.offline.training.features import COIL_LAG_TAU_S, feature_rows, features
 from mrrig.offline.training.fit import HOLDOUT_FRACTION, block_split, train_forward
+from mrrig.offline.training.greybox import HIDDEN as GREYBOX_HIDDEN
+from mrrig.offline.training.greybox import fit_residual, greybox_run_forces
 from mrrig.offline.training.gru import DEFAULT_HIDDEN as GRU_HIDDEN
 from mrrig.offline.training.gru import fit_gru, gru_forces
 from mrrig.offline.training.report import EtSum, predict
@@ -60,7 +63,8 @@ from mrrig.offline.training.select import Candidate, command_varies, equal_work_
 log = logging.getLogger(__name__)
 
 STATIC_MLP, HISTORY_MLP, GRU, TWIN = "static MLP", "history MLP", "GRU", "Bouc-Wen twin"
-KIND_NAMES = (STATIC_MLP, HISTORY_MLP, TWIN, GRU)  # what `model_kinds` builds
+GREYBOX = "grey-box"
+KIND_NAMES = (STATIC_MLP, HISTORY_MLP, GREYBOX, TWIN, GRU)  # what `model_kinds` builds
 CHOICE_BUDGET_S = 300.0  # the choice's time (search and folds) by default, s
 SEARCH_SHARE = 0.3  # of the budget, the MLP structure search's at most
 FOLD_ROWS = 3000  # an MLP fold fit's LM rows at least; more for a smaller network, the same
@@ -75,6 +79,9 @@ COST_DT_S = 0.002  # the rig's period, at which the work per frame is measured
 TWIN_FIT_WINDOWS = 64
 TWIN_WINDOW_S, TWIN_BURN_IN_S = 0.5, 0.2
 TWIN_MAX_EVALUATIONS = 60
+# the twin's and the grey-box's folds over tests at most (k-fold over tests beyond: whole tests
+# left out still), so that their fits (seconds each) end within the budget on a matrix
+TWIN_MAX_FOLDS = 6
 
 
 @dataclass(frozen=True)
@@ -91,6 +98,7 @@ class ModelKind:
     controller: Callable[[Any], Controller]
     fold_fit: Callable[[Series, float], Any] | None = None
     min_fold_s: float = 0.0
+    max_folds: int | None = None  # at most so many folds over tests (k-fold beyond)
 
     def fit_fold(self, series: Series, seconds: float) -> Any:
         return self.fit(series) if self.fold_fit is None else self.fold_fit(series, seconds)
@@ -284,6 +292,75 @@ def twin_kind(
     )
 
 
+def _memoized(fit_twin: Callable[[Series], Plant]) -> Callable[[Series], Plant]:
+    """`fit_twin` remembering its fits by the rows fitted: the grey-box kind fits the twin of
+    each fold first, the twin kind's folds (the same rows) then reuse it."""
+    memo: dict[tuple, Plant] = {}
+
+    def fit_once(series: Series) -> Plant:
+        key = (len(series), *(float(np.sum(a)) for a in (series.t, series.x, series.force)))
+        if key not in memo:
+            memo[key] = fit_twin(series)
+        return memo[key]
+
+    return fit_once
+
+
+def greybox_kind(
+    fit_twin: Callable[[Series], Plant],
+    *,
+    holdout_fraction: float,
+    seed: int,
+    i_max: float,
+    hidden: int = GREYBOX_HIDDEN,
+) -> ModelKind:
+    """The grey-box: the twin (`fit_twin`, the twin kind's fit) and a small network on its
+    residual (`training.greybox.fit_residual`: of the twin's states and the measured motion),
+    in two stages, the block hold-out kept out of both (the network early-stopped on it)."""
+
+    def fit_gb(series: Series) -> GreyBoxModel:
+        plant = fit_twin(series)
+        runs, index = _stretch_runs(series)
+        held = block_holdout(series, np.arange(len(series)), holdout_fraction)
+        model, numbers = fit_residual(
+            plant, runs, [held[i] for i in index], hidden=hidden, seed=seed
+        )
+        log.info(
+            "grey-box residual network (%d hidden) fitted on %d rows, best epoch %d of %d;"
+            " the twin's RMS residual %.1f N",
+            hidden,
+            numbers["residual_rows"],
+            numbers["residual_best_epoch"],
+            numbers["residual_epochs"],
+            numbers["twin_rms_residual_n"],
+        )
+        return model
+
+    def forces(model: GreyBoxModel, series: Series) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Run over each stretch from rest at its first sample, scored after the warm-up of
+        a stretch that starts moving, as the twin is."""
+        runs, index = _stretch_runs(series)
+        f = greybox_run_forces(model, runs)
+        warm = [warm_rows(r) for r in runs]
+        rows = np.concatenate([i[w] for i, w in zip(index, warm, strict=True)])
+        f = np.concatenate([g[w] for g, w in zip(f, warm, strict=True)])
+        return rows, series.force[rows], f
+
+    label = (
+        f"the Bouc-Wen twin and a {hidden}-hidden network on its residual (of z, x - y, u, x,"
+        " xd), two stages"
+    )
+    return ModelKind(
+        GREYBOX,
+        label,
+        fit_gb,
+        forces,
+        lambda m: _network_controller(m, i_max, True),
+        min_fold_s=TWIN_MIN_FOLD_S,
+        max_folds=TWIN_MAX_FOLDS,
+    )
+
+
 def gru_kind(*, seed: int, holdout_fraction: float, lag_tau_s: float, i_max: float) -> ModelKind:
     """The GRU forward model (`training.gru.fit_gru`, its defaults) of the lagged command
     (`lag_tau_s`: the structure search's fitted lag where it fitted one), run over each
@@ -372,6 +449,7 @@ def _score_kind(
     """The kind's other-test estimate within `deadline` (OverBudget where it would not end),
     then its block hold-out."""
     t0 = time.perf_counter()
+    max_folds = min(max_folds, kind.max_folds or max_folds)
     n_folds = fold_count(len(names), max_folds)
     fold_s = (deadline - t0) / (n_folds + 1)
     if fold_s < kind.min_fold_s:
@@ -576,7 +654,10 @@ def model_kinds(
             )
         else:
             left_out[name] = "the structure search tried no such candidate"
-    kinds.append(twin_kind(holdout_fraction=holdout_fraction, i_max=i_max))
+    twin = twin_kind(holdout_fraction=holdout_fraction, i_max=i_max)
+    fit_twin = _memoized(twin.fit)
+    kinds.append(greybox_kind(fit_twin, holdout_fraction=holdout_fraction, seed=seed, i_max=i_max))
+    kinds.append(replace(twin, fit=fit_twin, max_folds=TWIN_MAX_FOLDS))
     lag = search.get("lag_fit") or {"tau_s": COIL_LAG_TAU_S}
     kinds.append(
         gru_kind(seed=seed, holdout_fraction=holdout_fraction, lag_tau_s=lag["tau_s"], i_max=i_max)
