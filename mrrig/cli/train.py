@@ -193,7 +193,7 @@ def format_kinds(k: dict[str, Any] | None) -> list[str]:
         lines.append(
             f"  Et {c['et']:.4f}  block hold-out {c['block_et']:.4f} ({ratio:.1f}x optimistic)"
             f"  work per frame {c['frame_cost_us']:5.0f} us"
-            f"  {c['kind']}: {c['label']}{budget} ({c['seconds']:.0f} s)"
+            f"  {c['kind']}: {c['label']}{budget} ({c['seconds']:.0f} s{_kind_folds(k, c)})"
         )
     lines += [f"  not tried: {name} ({why})" for name, why in k["not_tried"].items()]
     ch = k["chosen"]
@@ -201,6 +201,13 @@ def format_kinds(k: dict[str, Any] | None) -> list[str]:
     if k["block_holdout_would_choose"] != ch["kind"]:
         lines.append(f"  (the block hold-out would have chosen {k['block_holdout_would_choose']})")
     return lines
+
+
+def _kind_folds(k: dict[str, Any], c: dict[str, Any]) -> str:
+    """A kind scored on fewer folds than the method line says: how many (k-fold over tests)."""
+    most = max((d.get("folds", 0) for d in k["kinds"]), default=0)
+    n = c.get("folds", 0)
+    return f", {n} folds over tests" if 0 < n < most and not k["optimistic"] else ""
 
 
 def format_other_tests(cv: dict[str, Any] | None) -> list[str]:

@@ -5,14 +5,15 @@ twin misses, of the twin's own states and the measured motion.
 The twin's states are computed as the daemon's tracker carries them (`twin_states`: from rest
 with the coil off at the first sample of each stretch, the command of each sample held until
 the next, the integrator at `SUBSTEP_S`). The network is fitted by Levenberg-Marquardt
-(`lm.train_lm`) on at most `max_rows` rows drawn from the training rows (a stretch's
-warm-up, `identify.fit.warm_rows`, left out: its states are not yet the motion's),
-early-stopped on the block hold-out's rows.
+(`lm.train_lm`) on at most `max_rows` rows drawn from the training rows of runs spread over
+the data (about `RUN_SAMPLES` samples per row; a stretch's warm-up, `identify.fit.warm_rows`,
+left out: its states are not yet the motion's), early-stopped on the block hold-out's rows.
 Pure numerics.
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import astuple
 
 import numpy as np
@@ -26,6 +27,7 @@ from mrrig.offline.training.lm import train_lm
 SUBSTEP_S = 1e-3  # the grey-box twin's integrator sub-step (the daemon's tracker uses the same)
 HIDDEN = 8  # the residual network's hidden units
 MAX_ROWS = 4000  # the network's LM rows at most (and half as many early-stopping rows)
+RUN_SAMPLES = 5  # the runs the rows are drawn from: so many samples per LM row at most
 
 
 def twin_states(plant: Plant, runs: list[Run], substep_s: float = SUBSTEP_S) -> list[np.ndarray]:
@@ -45,6 +47,19 @@ def twin_states(plant: Plant, runs: list[Run], substep_s: float = SUBSTEP_S) -> 
             states[:, k] = damper.state
         out.append(states)
     return out
+
+
+def _spread(
+    runs: list[Run], val: list[np.ndarray], samples: int
+) -> tuple[list[Run], list[np.ndarray]]:
+    """Where the runs hold more than `samples` samples, as many of them, spread evenly over
+    the list, as hold about that many (the twin's states are the second stage's cost)."""
+    total = sum(r.t.size for r in runs)
+    if total <= samples:
+        return runs, val
+    k = max(1, min(len(runs), math.ceil(len(runs) * samples / total)))
+    pick = np.unique(np.linspace(0, len(runs) - 1, k).round().astype(int)).tolist()
+    return [runs[j] for j in pick], [val[j] for j in pick]
 
 
 def greybox_run_forces(model: GreyBoxModel, runs: list[Run]) -> list[np.ndarray]:
@@ -69,6 +84,7 @@ def fit_residual(
     """The second stage: the network on the twin's residual over the runs' warm rows, fitted
     on those not in `val` (per run, a bool mask: the block hold-out), early-stopped on those
     in it; the grey-box model and the LM report's numbers."""
+    runs, val = _spread(runs, val, RUN_SAMPLES * max_rows)
     states = twin_states(plant, runs, SUBSTEP_S)
     X, r, held = [], [], []
     k = astuple(plant.params)
