@@ -25,6 +25,7 @@ from mrrig.loop.greybox import (
 from mrrig.loop.mlp import MLP, ModelError
 from mrrig.loop.twin_model import load_forward_model
 from mrrig.offline.datasets import Series
+from mrrig.offline.evaluate import evaluate_stateful
 from mrrig.offline.identify.fit import Run
 from mrrig.offline.training.greybox import fit_residual, greybox_run_forces
 from mrrig.offline.training.kinds import (
@@ -35,6 +36,7 @@ from mrrig.offline.training.kinds import (
     model_kinds,
     twin_kind,
 )
+from tests.data_files import write_tidy
 
 DT_S = 0.002
 I_MAX = 2.0
@@ -204,3 +206,20 @@ def test_the_kind_choice_scores_the_grey_box_beside_the_twin_and_train_prints_it
         series, search, seed=0, max_epochs=5, holdout_fraction=0.15, i_max=I_MAX
     )
     assert GREYBOX in [kd.name for kd in kinds]
+
+
+def test_evaluate_scores_a_grey_box_file_with_its_residual(tmp_path):
+    """`mrrig evaluate` on a grey-box file runs the twin and its network (not the twin alone)."""
+    t = np.arange(0, 1.0, DT_S)
+    x, xd = 0.008 * np.sin(2 * np.pi * 2 * t), 0.008 * 4 * np.pi * np.cos(2 * np.pi * 2 * t)
+    cmd = np.full(t.size, 0.8)
+    run = Run(t, x, xd, cmd, np.zeros(t.size))
+    force = greybox_run_forces(MODEL, [run])[0]  # the data is the grey-box's own force
+    series = Series(t, x, xd, np.gradient(xd, t), cmd, force, np.zeros(t.size, int))
+    csv = tmp_path / "own.csv"
+    write_tidy(csv, series)
+    path = tmp_path / "gb.json"
+    MODEL.save(path)
+    numbers, _ = evaluate_stateful(load_forward_model(path), path, [csv])
+    assert numbers["kind"] == "grey-box"
+    assert numbers["forward"]["et"] < 0.05  # the twin alone misses the residual's share

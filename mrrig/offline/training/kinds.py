@@ -682,9 +682,10 @@ def model_kinds(
     kinds.append(greybox_kind(fit_twin, holdout_fraction=holdout_fraction, seed=seed, i_max=i_max))
     kinds.append(replace(twin, fit=fit_twin, max_folds=LATER_MAX_FOLDS))
     lag = search.get("lag_fit") or {"tau_s": COIL_LAG_TAU_S}
-    kinds.append(
-        gru_kind(seed=seed, holdout_fraction=holdout_fraction, lag_tau_s=lag["tau_s"], i_max=i_max)
+    gru = gru_kind(
+        seed=seed, holdout_fraction=holdout_fraction, lag_tau_s=lag["tau_s"], i_max=i_max
     )
+    kinds.append(replace(gru, max_folds=LATER_MAX_FOLDS))
     return kinds, cands, left_out
 
 
