@@ -141,6 +141,7 @@ def block_split(stretch: np.ndarray, fraction: float = HOLDOUT_FRACTION) -> Spli
 
 
 STOP_EVERY = 6  # a fold fit's early stopping: every so many stretches (whole tests) left out
+FOLD_STOP_ROWS = 2000  # a fold's early-stopping rows at most, drawn at random
 MIN_STOP_STRETCHES = 4  # fewer: the fold fit stops on its time blocks instead
 
 
@@ -221,6 +222,11 @@ def fit_rows(X: np.ndarray, split: Split, max_rows: int = FIT_ROWS, seed: int = 
     if split.stop is None:
         return split.train, split.val
     fit = np.setdiff1d(split.train, split.stop, assume_unique=True)
+    if split.kind == "stretches":  # a fold's: rows drawn at random, as the tests have them
+        rng = np.random.default_rng(seed)
+        pick = rng.choice(fit, min(max_rows, fit.size), replace=False)
+        stop = rng.choice(split.stop, min(FOLD_STOP_ROWS, split.stop.size), replace=False)
+        return np.sort(pick), np.sort(stop)
     return coverage_subsample(X, fit, max_rows, seed), _even(split.stop, STOP_ROWS)
 
 
