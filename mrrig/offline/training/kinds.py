@@ -310,8 +310,8 @@ def twin_kind(
 
 
 def _memoized(fit_twin: Callable[[Series], Plant]) -> Callable[[Series], Plant]:
-    """`fit_twin` remembering its fits by the rows fitted: the grey-box kind fits the twin of
-    each fold first, the twin kind's folds (the same rows) then reuse it."""
+    """`fit_twin` remembering its fits by the rows fitted: the twin kind fits the twin of each
+    fold first, the grey-box kind's folds (the same rows) then reuse it as their first stage."""
     memo: dict[tuple, Plant] = {}
 
     def fit_once(series: Series) -> Plant:
@@ -658,9 +658,9 @@ def model_kinds(
     """The kinds to choose among, the MLP structures of the two MLP kinds, and the kinds left
     out with why: the static and history MLPs of the structure search (`search`; the one it
     found better first: the first kind is scored whatever the budget, and by leaving each
-    test out; every later kind by at most `LATER_MAX_FOLDS` folds over tests), the grey-box,
-    the twin (its fits the grey-box's) and the GRU (the slowest to fit: last, so that the
-    budget cuts it first)."""
+    test out; every later kind by at most `LATER_MAX_FOLDS` folds over tests), the twin, the
+    grey-box (its first stage the twin's fits, remembered) and the GRU (the slowest to fit:
+    last, so that the budget cuts it first)."""
     cands = best_candidates(search)
     kinds, left_out = [], {}
     for name in sorted((STATIC_MLP, HISTORY_MLP), key=lambda n: _search_et(search, n)):
@@ -679,8 +679,8 @@ def model_kinds(
             left_out[name] = "the structure search tried no such candidate"
     twin = twin_kind(holdout_fraction=holdout_fraction, i_max=i_max)
     fit_twin = _memoized(twin.fit)
-    kinds.append(greybox_kind(fit_twin, holdout_fraction=holdout_fraction, seed=seed, i_max=i_max))
     kinds.append(replace(twin, fit=fit_twin, max_folds=LATER_MAX_FOLDS))
+    kinds.append(greybox_kind(fit_twin, holdout_fraction=holdout_fraction, seed=seed, i_max=i_max))
     lag = search.get("lag_fit") or {"tau_s": COIL_LAG_TAU_S}
     gru = gru_kind(
         seed=seed, holdout_fraction=holdout_fraction, lag_tau_s=lag["tau_s"], i_max=i_max
