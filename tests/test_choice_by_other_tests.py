@@ -27,7 +27,9 @@ from mrrig.offline.training.crossval import (
     guard,
     leave_out_groups,
 )
-from mrrig.offline.training.kinds import ModelKind, block_holdout, choose_kind
+from mrrig.offline.training.fit import stretch_split
+from mrrig.offline.training.kinds import ModelKind, block_holdout, choose_kind, mlp_kind
+from mrrig.offline.training.select import Candidate
 from tests.data_files import write_tidy
 
 HOLDOUT = 0.05  # of the 16 s one-test run: the end of its last piece
@@ -206,3 +208,27 @@ def test_the_default_on_constant_command_tests_chooses_by_leaving_tests_out(
     scored = [line.split() for line in text.splitlines() if line.startswith("  Et ")]
     assert scored and all(math.isfinite(float(r[1])) for r in scored)
     assert "[optimistic: the end of each run" in text and "other-test estimate, leave-one" in text
+
+
+def test_a_fold_fit_early_stops_on_whole_tests_and_the_block_figure_keeps_its_block_out():
+    """Issue 43 item 1: an MLP fold's early stopping was on a block of the very tests it trains
+    on (it stopped where the fit held on the same tests); it now stops on whole tests of the
+    fold's training data that it does not train on (`fit.stretch_split`), while the kind's
+    block hold-out figure is still fitted with that block kept out."""
+    sp = stretch_split(np.repeat(np.arange(8), 10))
+    stop_tests = set((sp.stop // 10).tolist())
+    assert stop_tests == {0, 6} and sp.stop.size == 20  # whole tests, every 6th
+    assert sp.train.size == 80 and sp.val.size == 0
+    assert stretch_split(np.repeat(np.arange(3), 10)).kind == "blocks"  # too few to keep one out
+    s = _series(PIECES, one_run=False)
+    kind = mlp_kind(
+        "history MLP",
+        Candidate(history_samples=2, hidden=4),
+        "toy",
+        seed=0,
+        max_epochs=3,
+        holdout_fraction=HOLDOUT,
+        i_max=4.0,
+    )
+    assert kind.fit_fold(s, 1.0).meta["split"] == "stretches"
+    assert kind.block_fit is not None and kind.block_fit(s, 1.0).meta["split"] == "blocks"

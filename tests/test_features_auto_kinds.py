@@ -1,7 +1,8 @@
-"""Issue 36, item 4: `mrrig train --features auto` chooses among the four kinds of forward model
-(the static MLP, the history MLP, the GRU and the Bouc-Wen twin) by their Et on tests they
-never saw, within the loop's budget (mrrig/offline/training/kinds.py). On a few tests of the
-Labcontrol characterization matrix (A. N. Vargas, Zenodo, DOI 10.5281/zenodo.4445334)."""
+"""Issue 36, item 4: `mrrig train --features auto` chooses among the kinds of forward model
+(the static MLP, the history MLP, the GRU, the Bouc-Wen twin and, issue 43, the grey-box) by
+their Et on tests they never saw, within the loop's budget (mrrig/offline/training/kinds.py).
+On a few tests of the Labcontrol characterization matrix (A. N. Vargas, Zenodo, DOI
+10.5281/zenodo.4445334)."""
 
 from __future__ import annotations
 
@@ -13,9 +14,11 @@ import pytest
 
 from damper.plant_file import load_plant
 from mrrig.cli.train import main as train_main
+from mrrig.loop.greybox import GreyBoxModel
 from mrrig.loop.model_fit import COST_BUDGET_S
 from mrrig.loop.twin_model import load_forward_model
 from mrrig.offline.training.kinds import (
+    GREYBOX,
     GRU,
     HISTORY_MLP,
     KIND_NAMES,
@@ -65,7 +68,7 @@ def test_features_auto_lists_every_kind_and_writes_the_lowest_et_within_budget(t
         m = re.match(r"  Et (\S+)  block hold-out .+\)  work per frame +\d+ us  ([^:]+): ", line)
         if m:
             rows[m[2]] = (float(m[1]), "(over the" not in line)
-    assert set(rows) == set(KIND_NAMES) == {STATIC_MLP, HISTORY_MLP, GRU, TWIN}, text
+    assert set(rows) == set(KIND_NAMES) == {STATIC_MLP, HISTORY_MLP, GREYBOX, GRU, TWIN}, text
     within = {k: et for k, (et, ok) in rows.items() if ok}
     chosen = min(within, key=within.get)
     assert f"  chosen: {chosen}, the lowest Et on the tests left out" in text
@@ -74,5 +77,8 @@ def test_features_auto_lists_every_kind_and_writes_the_lowest_et_within_budget(t
     if chosen == TWIN:  # the plant file the daemon inverts and firmware_sim runs
         assert load_plant(out).command_unit == "V"
         assert doc is not None and doc["kinds"]["chosen"]["kind"] == TWIN
+    elif chosen == GREYBOX:  # the twin and its residual network, a mrrig-greybox/1 file
+        assert isinstance(model, GreyBoxModel) and model.plant.command_unit == "V"
+        assert doc is not None and doc["kinds"]["chosen"]["kind"] == GREYBOX
     else:
         assert model.meta["kinds"]["chosen"]["kind"] == chosen

@@ -57,6 +57,7 @@ from mrrig.offline.training.crossval import (
 )
 from mrrig.offline.training.gru import DEFAULT_HIDDEN as GRU_HIDDEN
 from mrrig.offline.training.kinds import (
+    GREYBOX,
     GRU,
     SEARCH_SHARE,
     TWIN,
@@ -192,7 +193,7 @@ def format_kinds(k: dict[str, Any] | None) -> list[str]:
         lines.append(
             f"  Et {c['et']:.4f}  block hold-out {c['block_et']:.4f} ({ratio:.1f}x optimistic)"
             f"  work per frame {c['frame_cost_us']:5.0f} us"
-            f"  {c['kind']}: {c['label']}{budget} ({c['seconds']:.0f} s)"
+            f"  {c['kind']}: {c['label']}{budget} ({c['seconds']:.0f} s{_kind_folds(k, c)})"
         )
     lines += [f"  not tried: {name} ({why})" for name, why in k["not_tried"].items()]
     ch = k["chosen"]
@@ -200,6 +201,13 @@ def format_kinds(k: dict[str, Any] | None) -> list[str]:
     if k["block_holdout_would_choose"] != ch["kind"]:
         lines.append(f"  (the block hold-out would have chosen {k['block_holdout_would_choose']})")
     return lines
+
+
+def _kind_folds(k: dict[str, Any], c: dict[str, Any]) -> str:
+    """A kind scored on fewer folds than the method line says: how many (k-fold over tests)."""
+    most = max((d.get("folds", 0) for d in k["kinds"]), default=0)
+    n = c.get("folds", 0)
+    return f", {n} folds over tests" if 0 < n < most and not k["optimistic"] else ""
 
 
 def format_other_tests(cv: dict[str, Any] | None) -> list[str]:
@@ -539,6 +547,8 @@ def _write_kind(
     }
     if kind.name == TWIN:
         save_plant(replace(model, identified=json_text.plain(kept)), args.out)
+    elif kind.name == GREYBOX:
+        replace(model, identified=json_text.plain({**model.identified, **kept})).save(args.out)
     else:
         model.meta.update(json_text.plain(kept))
         model.save(args.out)
@@ -567,6 +577,11 @@ def _write_kind(
             f' ([controller] model = "{args.out}"; a twin in V: mrrig identify --map-model)'
             " and firmware_sim runs ([plant] file)",
         ]
+    elif kind.name == GREYBOX:
+        lines.append(
+            f"wrote {args.out}: a grey-box forward model (the twin and a network on its"
+            f' residual), the model network inversion inverts ([controller] model = "{args.out}")'
+        )
     else:
         lines.append(
             f"wrote {args.out}: a GRU forward model, the model network inversion inverts"
@@ -650,7 +665,7 @@ def main(argv: list[str] | None = None) -> int:
             started=started,
             not_built=left_out,
         )
-        if best.name in (TWIN, GRU):
+        if best.name in (TWIN, GRU, GREYBOX):
             kind = next(k for k in kinds if k.name == best.name)
             return _write_kind(args, kind, series, excluded, search, kinds_report, columns, units)
         cand = cands[best.name]

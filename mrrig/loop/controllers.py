@@ -25,7 +25,7 @@ from mrrig.loop.inversion import (
     gradient_inversion,
 )
 from mrrig.loop.mlp import MLP
-from mrrig.loop.twin_model import TwinModel, TwinTracker
+from mrrig.loop.twin_model import TwinModel
 
 FORWARD_INPUTS = ("x", "xd", "xdd", "current")
 INVERSION_METHODS = ("exact", "gradient", "flow")  # NetworkInversion's (mrrig/loop/inversion.py)
@@ -719,7 +719,7 @@ class TwinInversion(Controller):
 
     def reset(self, batch: int = 1) -> None:
         super().reset(batch)
-        self.lanes = [TwinTracker(self.model, self.dt_s, self.i_max) for _ in range(batch)]
+        self.lanes = [self.model.tracker(self.dt_s, self.i_max) for _ in range(batch)]
         self._residual = [0.0] * batch
 
     def command_sent(self, current_a: float) -> None:

@@ -179,7 +179,7 @@ class _ModelDamper:
         self._model = model
         self._tracker: TwinTracker | GruTracker | None = None
         if isinstance(model, TwinModel):
-            self._tracker = TwinTracker(model, dt_s, i_max)
+            self._tracker = model.tracker(dt_s, i_max)  # a grey-box's with its residual
         elif isinstance(model, GRUModel):
             self._tracker = GruTracker(model, dt_s, i_max)
         else:

@@ -66,9 +66,14 @@ class TwinModel:
             "lag_tau_s": 1.0 / self.plant.params.eta,
         }
 
+    def tracker(self, dt_s: float, i_max: float) -> TwinTracker:
+        """The model carried frame to frame and inverted (`TwinTracker`)."""
+        return TwinTracker(self, dt_s, i_max)
+
 
 def forward_model_from_text(text: str, path: str | Path) -> MLP | TwinModel | GRUModel:
     """A forward model file's content: a plant file (`format` "mrrig-plant") as a `TwinModel`,
+    a `mrrig-greybox/1` file as a `greybox.GreyBoxModel` (a TwinModel),
     a `mrrig-gru/1` file as a `GRUModel`, anything else as `MLP.from_text` reads it. One-line
     ModelError for a bad file, or one outside a physical range
     (`model_plausibility.check_plausible`)."""
@@ -86,6 +91,10 @@ def _forward_model(text: str, path: str | Path) -> MLP | TwinModel | GRUModel:
         doc = None  # MLP.from_text says what is wrong with it
     if is_gru_doc(doc):  # a recurrent forward model (mrrig/loop/gru.py)
         return GRUModel.from_doc(doc, path)
+    from mrrig.loop.greybox import GreyBoxModel, is_greybox_doc
+
+    if is_greybox_doc(doc):  # the twin and a network on its residual (mrrig/loop/greybox.py)
+        return GreyBoxModel.from_doc(doc, path)
     if not isinstance(doc, dict) or doc.get("format") != PLANT_FORMAT:
         return MLP.from_text(text, path)
     try:

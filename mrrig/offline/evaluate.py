@@ -37,6 +37,7 @@ from mrrig.loop.coverage import (
     model_envelope,
     shares,
 )
+from mrrig.loop.greybox import GreyBoxModel
 from mrrig.loop.gru import GRUModel
 from mrrig.loop.mlp import MLP, ModelError
 from mrrig.loop.twin_model import TwinModel, load_forward_model
@@ -50,7 +51,7 @@ from mrrig.offline.training.features import (
 )
 from mrrig.offline.training.fit import HOLDOUT_FRACTION, block_split
 from mrrig.offline.training.gru import gru_forces
-from mrrig.offline.training.kinds import twin_kind
+from mrrig.offline.training.kinds import greybox_kind, twin_kind
 from mrrig.offline.training.report import EtSum, MetricError, Scores
 from mrrig.offline.training.stream import SEGMENT_ROWS, merge_reports, prepare, segments
 
@@ -181,6 +182,10 @@ def evaluate(
     return numbers, plot_rows.arrays()
 
 
+def _no_fit(_series: Any) -> Any:
+    raise AssertionError("evaluate scores a model given, it fits none")
+
+
 def evaluate_stateful(
     model: GRUModel | TwinModel,
     model_path: Path,
@@ -195,10 +200,19 @@ def evaluate_stateful(
     """`evaluate` for a stateful forward model, a GRU or a Bouc-Wen twin: run over each
     stretch of each segment from the zero state (the GRU, `training.gru.gru_forces`) or from
     rest, a stretch that starts moving scored after its warm-up (the twin,
-    `training.kinds.twin_kind`'s forces), as `mrrig train --features auto` scores them. No
+    `training.kinds.twin_kind`'s forces; a grey-box the same, its residual network added), as
+    `mrrig train --features auto` scores them. No
     inverse command RMSE (the MLP's exact inversion); the coverage lines where the model keeps
     an envelope (a GRU of `mrrig train` does, a twin does not)."""
-    if isinstance(model, TwinModel):
+    if isinstance(model, GreyBoxModel):  # the twin and its residual network
+        kind, unit = "grey-box", model.plant.command_unit
+        fraction, envelope = HOLDOUT_FRACTION, None
+        forces = greybox_kind(
+            _no_fit, holdout_fraction=fraction, seed=0, i_max=1.0, hidden=model.residual.hidden
+        ).forces
+        model_arg = model
+        keep_all = bool(keep_all)
+    elif isinstance(model, TwinModel):
         kind, unit = "Bouc-Wen twin", model.plant.command_unit
         fraction, envelope = HOLDOUT_FRACTION, None
         forces = twin_kind(holdout_fraction=fraction, i_max=1.0).forces

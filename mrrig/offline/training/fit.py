@@ -140,6 +140,32 @@ def block_split(stretch: np.ndarray, fraction: float = HOLDOUT_FRACTION) -> Spli
     return Split(train, rows[val], rule, "blocks", stop)
 
 
+STOP_EVERY = 6  # a fold fit's early stopping: every so many stretches (whole tests) left out
+FOLD_STOP_ROWS = 2000  # a fold's early-stopping rows at most, drawn at random
+MIN_STOP_STRETCHES = 4  # fewer: the fold fit stops on its time blocks instead
+
+
+def stretch_split(stretch: np.ndarray, every: int = STOP_EVERY) -> Split:
+    """A cross-validation fold's split (`kinds.mlp_kind`'s fold fit): early stopping on whole
+    stretches (the tests of a matrix, the segments of one test) that are not trained on,
+    every `every`-th from the first, so that training stops where the fit no longer holds on
+    other tests, not on the next block of the same ones; every row of the other stretches is
+    a training row (nothing is held out: the fold's left-out tests are its hold-out). Fewer
+    than `MIN_STOP_STRETCHES` stretches (too few to keep one out and still train on several):
+    `block_split`."""
+    ids = np.unique(stretch)
+    if ids.size < MIN_STOP_STRETCHES:
+        return block_split(stretch)
+    rows = np.arange(stretch.size)
+    stop_ids = ids[::every]
+    stop = rows[np.isin(stretch, stop_ids)]
+    rule = (
+        f"every row of {ids.size - stop_ids.size} of {ids.size} stretches; early stopping on"
+        f" the other {stop_ids.size} (every {every}th), whole"
+    )
+    return Split(rows, rows[:0], rule, "stretches", stop)
+
+
 def make_split(
     kind: str,
     stretch: np.ndarray,
@@ -152,6 +178,8 @@ def make_split(
         return block_split(stretch, holdout_fraction)
     if kind == "random":
         return split_samples(stretch.size, n_train, n_val, seed)
+    if kind == "stretches":
+        return stretch_split(stretch)
     raise ValueError(f"unknown split {kind!r} ({', '.join(SPLITS)})")
 
 
@@ -194,6 +222,11 @@ def fit_rows(X: np.ndarray, split: Split, max_rows: int = FIT_ROWS, seed: int = 
     if split.stop is None:
         return split.train, split.val
     fit = np.setdiff1d(split.train, split.stop, assume_unique=True)
+    if split.kind == "stretches":  # a fold's: rows drawn at random, as the tests have them
+        rng = np.random.default_rng(seed)
+        pick = rng.choice(fit, min(max_rows, fit.size), replace=False)
+        stop = rng.choice(split.stop, min(FOLD_STOP_ROWS, split.stop.size), replace=False)
+        return np.sort(pick), np.sort(stop)
     return coverage_subsample(X, fit, max_rows, seed), _even(split.stop, STOP_ROWS)
 
 

@@ -30,13 +30,14 @@ import logging
 import math
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, fields, replace
 from typing import Any
 
 import numpy as np
 
 from damper.plant_file import Plant
 from mrrig.loop.controllers import Controller, ControllerSettings, make_controller
+from mrrig.loop.greybox import GreyBoxModel
 from mrrig.loop.model_fit import COST_BUDGET_S, frame_cost_s
 from mrrig.loop.twin_model import SUBSTEP_S, TwinModel
 from mrrig.offline.datasets import Series
@@ -51,7 +52,9 @@ from mrrig.offline.training.crossval import (
 )
 from mrrig.offline.training.data import run_ids, sample_period, stretch_bounds, stretches
 from mrrig.offline.training.features import COIL_LAG_TAU_S, feature_rows, features
-from mrrig.offline.training.fit import HOLDOUT_FRACTION, block_split, train_forward
+from mrrig.offline.training.fit import HOLDOUT_FRACTION, STOP_EVERY, block_split, train_forward
+from mrrig.offline.training.greybox import HIDDEN as GREYBOX_HIDDEN
+from mrrig.offline.training.greybox import fit_residual, greybox_run_forces
 from mrrig.offline.training.gru import DEFAULT_HIDDEN as GRU_HIDDEN
 from mrrig.offline.training.gru import fit_gru, gru_forces
 from mrrig.offline.training.report import EtSum, predict
@@ -60,7 +63,8 @@ from mrrig.offline.training.select import Candidate, command_varies, equal_work_
 log = logging.getLogger(__name__)
 
 STATIC_MLP, HISTORY_MLP, GRU, TWIN = "static MLP", "history MLP", "GRU", "Bouc-Wen twin"
-KIND_NAMES = (STATIC_MLP, HISTORY_MLP, TWIN, GRU)  # what `model_kinds` builds
+GREYBOX = "grey-box"
+KIND_NAMES = (STATIC_MLP, HISTORY_MLP, GREYBOX, TWIN, GRU)  # what `model_kinds` builds
 CHOICE_BUDGET_S = 300.0  # the choice's time (search and folds) by default, s
 SEARCH_SHARE = 0.3  # of the budget, the MLP structure search's at most
 FOLD_ROWS = 3000  # an MLP fold fit's LM rows at least; more for a smaller network, the same
@@ -75,6 +79,10 @@ COST_DT_S = 0.002  # the rig's period, at which the work per frame is measured
 TWIN_FIT_WINDOWS = 64
 TWIN_WINDOW_S, TWIN_BURN_IN_S = 0.5, 0.2
 TWIN_MAX_EVALUATIONS = 60
+# the folds over tests at most of every kind but the first (k-fold over tests beyond: whole
+# tests left out still), so that all kinds are scored within the budget on a matrix (38 tests:
+# the first kind's leave-one-test-out takes half of it)
+LATER_MAX_FOLDS = 6
 
 
 @dataclass(frozen=True)
@@ -91,6 +99,9 @@ class ModelKind:
     controller: Callable[[Any], Controller]
     fold_fit: Callable[[Series, float], Any] | None = None
     min_fold_s: float = 0.0
+    max_folds: int | None = None  # at most so many folds over tests (k-fold beyond)
+    # the fit whose block hold-out figure is printed (it keeps that block out); default fit_fold
+    block_fit: Callable[[Series, float], Any] | None = None
 
     def fit_fold(self, series: Series, seconds: float) -> Any:
         return self.fit(series) if self.fold_fit is None else self.fold_fit(series, seconds)
@@ -136,12 +147,12 @@ def mlp_kind(
         )
         return model
 
-    def fold_mlp(series: Series, _seconds: float) -> Any:
+    def cut_down(series: Series, split: str) -> Any:
         model, _ = train_forward(
             series,
             seed=seed,
             max_epochs=min(max_epochs, FOLD_EPOCHS),
-            split="blocks",
+            split=split,
             holdout_fraction=holdout_fraction,
             hidden=cand.hidden,
             max_fit_rows=fold_rows(cand),
@@ -150,13 +161,27 @@ def mlp_kind(
         )
         return model
 
+    def fold_mlp(series: Series, _seconds: float) -> Any:
+        """A fold: early-stopped on whole tests (segments) of the fold's own training data
+        (`fit.stretch_split`), not on a block of the tests it trains on."""
+        return cut_down(series, "stretches")
+
+    def block_mlp(series: Series, _seconds: float) -> Any:
+        return cut_down(series, "blocks")  # the block hold-out kept out
+
     def forces(model: Any, series: Series) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         X, y = features(series, **feat)
         return feature_rows(series, cand.history_samples, cand.history_stride), y, predict(model, X)
 
     ahead = cand.history_samples == 0
     return ModelKind(
-        name, label, fit_mlp, forces, lambda m: _network_controller(m, i_max, ahead), fold_mlp
+        name,
+        label,
+        fit_mlp,
+        forces,
+        lambda m: _network_controller(m, i_max, ahead),
+        fold_mlp,
+        block_fit=block_mlp,
     )
 
 
@@ -284,6 +309,75 @@ def twin_kind(
     )
 
 
+def _memoized(fit_twin: Callable[[Series], Plant]) -> Callable[[Series], Plant]:
+    """`fit_twin` remembering its fits by the rows fitted: the twin kind fits the twin of each
+    fold first, the grey-box kind's folds (the same rows) then reuse it as their first stage."""
+    memo: dict[tuple, Plant] = {}
+
+    def fit_once(series: Series) -> Plant:
+        key = (len(series), *(float(np.sum(a)) for a in (series.t, series.x, series.force)))
+        if key not in memo:
+            memo[key] = fit_twin(series)
+        return memo[key]
+
+    return fit_once
+
+
+def greybox_kind(
+    fit_twin: Callable[[Series], Plant],
+    *,
+    holdout_fraction: float,
+    seed: int,
+    i_max: float,
+    hidden: int = GREYBOX_HIDDEN,
+) -> ModelKind:
+    """The grey-box: the twin (`fit_twin`, the twin kind's fit) and a small network on its
+    residual (`training.greybox.fit_residual`: of the twin's states and the measured motion),
+    in two stages, the block hold-out kept out of both (the network early-stopped on it)."""
+
+    def fit_gb(series: Series) -> GreyBoxModel:
+        plant = fit_twin(series)
+        runs, index = _stretch_runs(series)
+        held = block_holdout(series, np.arange(len(series)), holdout_fraction)
+        model, numbers = fit_residual(
+            plant, runs, [held[i] for i in index], hidden=hidden, seed=seed
+        )
+        log.info(
+            "grey-box residual network (%d hidden) fitted on %d rows, best epoch %d of %d;"
+            " the twin's RMS residual %.1f N",
+            hidden,
+            numbers["residual_rows"],
+            numbers["residual_best_epoch"],
+            numbers["residual_epochs"],
+            numbers["twin_rms_residual_n"],
+        )
+        return model
+
+    def forces(model: GreyBoxModel, series: Series) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Run over each stretch from rest at its first sample, scored after the warm-up of
+        a stretch that starts moving, as the twin is."""
+        runs, index = _stretch_runs(series)
+        f = greybox_run_forces(model, runs)
+        warm = [warm_rows(r) for r in runs]
+        rows = np.concatenate([i[w] for i, w in zip(index, warm, strict=True)])
+        f = np.concatenate([g[w] for g, w in zip(f, warm, strict=True)])
+        return rows, series.force[rows], f
+
+    label = (
+        f"the Bouc-Wen twin and a {hidden}-hidden network on its residual (of z, x - y, u, x,"
+        " xd), two stages"
+    )
+    return ModelKind(
+        GREYBOX,
+        label,
+        fit_gb,
+        forces,
+        lambda m: _network_controller(m, i_max, True),
+        min_fold_s=TWIN_MIN_FOLD_S,
+        max_folds=LATER_MAX_FOLDS,
+    )
+
+
 def gru_kind(*, seed: int, holdout_fraction: float, lag_tau_s: float, i_max: float) -> ModelKind:
     """The GRU forward model (`training.gru.fit_gru`, its defaults) of the lagged command
     (`lag_tau_s`: the structure search's fitted lag where it fitted one), run over each
@@ -345,12 +439,14 @@ class KindScore:
     model: Any = None  # the last model fitted (a fold's)
     other_tests: dict[str, Any] | None = None  # the cross-validation's own report
     block_et: float = math.nan  # the fold fit on the training blocks, on the block hold-out
+    folds: int = 0  # the cross-validation's folds
 
 
 def _block_et(kind: ModelKind, series: Series, holdout_fraction: float, seconds: float) -> float:
     """The kind's block hold-out Et: its fold fit on the training blocks (the last part of
     each run kept out), scored on that last part."""
-    model = kind.fit_fold(series, seconds)
+    fit = kind.fit_fold if kind.block_fit is None else kind.block_fit
+    model = fit(series, seconds)
     rows, y, f = kind.forces(model, series)
     val = block_holdout(series, rows, holdout_fraction)
     s = EtSum()
@@ -372,6 +468,7 @@ def _score_kind(
     """The kind's other-test estimate within `deadline` (OverBudget where it would not end),
     then its block hold-out."""
     t0 = time.perf_counter()
+    max_folds = min(max_folds, kind.max_folds or max_folds)
     n_folds = fold_count(len(names), max_folds)
     fold_s = (deadline - t0) / (n_folds + 1)
     if fold_s < kind.min_fold_s:
@@ -415,6 +512,7 @@ def _score_kind(
         model,
         cv,
         block,
+        n_folds,
     )
 
 
@@ -488,7 +586,8 @@ def choose_kind(
         "method": method,
         "estimate": "other tests" if several else f"{unit}s of different character",
         "fold_fit": f"MLPs {FOLD_ROWS}-{FOLD_MAX_ROWS} LM rows (the same work whatever the"
-        f" size), <= {FOLD_EPOCHS} epochs, one start; the GRU"
+        f" size), <= {FOLD_EPOCHS} epochs, one start, early-stopped on every {STOP_EVERY}th"
+        " test (segment) of the fold's training data; the GRU"
         " the seconds a fold may take; the twin as fitted",
         "optimistic": not several,
         "budget_s": end - t_start,
@@ -503,6 +602,7 @@ def choose_kind(
                 "frame_cost_us": s.frame_cost_us,
                 "in_budget": s.in_budget,
                 "seconds": s.seconds,
+                "folds": s.folds,
             }
             for s in scores
         ],
@@ -557,30 +657,35 @@ def model_kinds(
 ) -> tuple[list[ModelKind], dict[str, Candidate], dict[str, str]]:
     """The kinds to choose among, the MLP structures of the two MLP kinds, and the kinds left
     out with why: the static and history MLPs of the structure search (`search`; the one it
-    found better first: the first kind is scored whatever the budget), the twin and the GRU
-    (the slowest to fit: last, so that the budget cuts them first)."""
+    found better first: the first kind is scored whatever the budget, and by leaving each
+    test out; every later kind by at most `LATER_MAX_FOLDS` folds over tests), the twin, the
+    grey-box (its first stage the twin's fits, remembered) and the GRU (the slowest to fit:
+    last, so that the budget cuts it first)."""
     cands = best_candidates(search)
     kinds, left_out = [], {}
     for name in sorted((STATIC_MLP, HISTORY_MLP), key=lambda n: _search_et(search, n)):
         if name in cands:
-            kinds.append(
-                mlp_kind(
-                    name,
-                    cands[name],
-                    cands[name].label(_period(series)),
-                    seed=seed,
-                    max_epochs=max_epochs,
-                    holdout_fraction=holdout_fraction,
-                    i_max=i_max,
-                )
+            kind = mlp_kind(
+                name,
+                cands[name],
+                cands[name].label(_period(series)),
+                seed=seed,
+                max_epochs=max_epochs,
+                holdout_fraction=holdout_fraction,
+                i_max=i_max,
             )
+            kinds.append(replace(kind, max_folds=LATER_MAX_FOLDS) if kinds else kind)
         else:
             left_out[name] = "the structure search tried no such candidate"
-    kinds.append(twin_kind(holdout_fraction=holdout_fraction, i_max=i_max))
+    twin = twin_kind(holdout_fraction=holdout_fraction, i_max=i_max)
+    fit_twin = _memoized(twin.fit)
+    kinds.append(replace(twin, fit=fit_twin, max_folds=LATER_MAX_FOLDS))
+    kinds.append(greybox_kind(fit_twin, holdout_fraction=holdout_fraction, seed=seed, i_max=i_max))
     lag = search.get("lag_fit") or {"tau_s": COIL_LAG_TAU_S}
-    kinds.append(
-        gru_kind(seed=seed, holdout_fraction=holdout_fraction, lag_tau_s=lag["tau_s"], i_max=i_max)
+    gru = gru_kind(
+        seed=seed, holdout_fraction=holdout_fraction, lag_tau_s=lag["tau_s"], i_max=i_max
     )
+    kinds.append(replace(gru, max_folds=LATER_MAX_FOLDS))
     return kinds, cands, left_out
 
 
