@@ -487,6 +487,19 @@ def test_runs_lists_and_prints_json_with_the_registered_numbers(url, capsys):
     assert [r["et"] for r in json.loads(out)] == [0.02]
 
 
+def test_the_list_names_each_runs_model_by_its_sha256(tmp_path, capsys):
+    """Issue 42's walkthrough: `mrrig runs --specimen` is to list each step with the model as
+    deployed; the list showed the controller only (the sha256 was in --json and `show`)."""
+    catalog = str(tmp_path / "catalog.sqlite")
+    digest = hashlib.sha256(b"a model").hexdigest()
+    inversion = run(1, controller="network_inversion", model_sha256=digest)
+    register_runs(catalog, [run(0, controller="constant"), inversion])
+    code, out, _ = _cli(capsys, "--catalog", catalog)
+    head, first, second = (line.split() for line in out.splitlines()[:3])
+    assert code == 0 and head[6:9] == ["controller", "model", "Et"]
+    assert first[6:8] == ["constant", "-"] and second[6:8] == ["network_inversion", digest[:12]]
+
+
 def test_runs_reads_the_catalog_from_the_environment(tmp_path, monkeypatch, capsys):
     path = tmp_path / "elsewhere.sqlite"
     register_run(path, run(0))

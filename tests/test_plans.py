@@ -13,6 +13,7 @@ import subprocess
 import sys
 import textwrap
 import time
+import warnings
 import xml.etree.ElementTree as ET
 from pathlib import Path
 
@@ -299,6 +300,21 @@ def test_a_constant_force_has_no_et_and_an_et_criterion_on_it_fails():
     assert "undefined" in failures(Criteria(et_max=0.1), numbers, [])[0]
     never_armed = measure(synthetic(idle=1000), settle_s=0.0)
     assert never_armed.samples == 0 and failures(Criteria(), never_armed, [])
+
+
+def test_a_temperature_criterion_on_a_rig_without_a_temperature_says_so():
+    """The tutorial's walk (a lab profile without damper_temperature, the first-day plan with a
+    temperature limit): every step failed with 'temperature max is undefined (a desired force
+    without spread?)' and numpy's All-NaN warning on the console."""
+    s = synthetic()
+    s["temp_degc"] = np.nan
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        numbers = measure(s, settle_s=0.2)
+    assert math.isnan(numbers.temperature_max_degc) and numbers.et == pytest.approx(0.02, rel=0.05)
+    (reason,) = failures(Criteria(temperature_max_degc=80.0), numbers, [])
+    assert reason.startswith("temperature_max_degc: temperature max is undefined (the rig")
+    assert "maps no damper_temperature" in reason and "spread" not in reason
 
 
 # --- reports -------------------------------------------------------------------------------

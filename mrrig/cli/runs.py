@@ -158,7 +158,10 @@ def _replay(catalog: str, folder: Path | None) -> None:
         )
 
 
-_COLUMNS = ("run", "started (UTC)", "rig", "specimen", "plan/step", "controller", "Et", "faults")
+# model: the first 12 digits of the sha256 of the model in force when the run started
+_COLUMNS = (
+    "run", "started (UTC)", "rig", "specimen", "plan/step", "controller", "model", "Et", "faults"
+)  # fmt: skip
 
 
 def _table(found: list[RunRecord]) -> str:
@@ -170,6 +173,7 @@ def _table(found: list[RunRecord]) -> str:
             r.specimen or "-",
             "/".join(x for x in (r.plan, r.step) if x) or "-",
             r.controller or "-",
+            (r.model_sha256 or "-")[:12],
             "-" if r.et is None else f"{r.et:.4f}",
             str(r.faults_count),
             r.verdict or "-",

@@ -106,10 +106,26 @@ def measure(samples: np.ndarray, settle_s: float) -> Numbers:
         et=et,
         peak_current_a=float(np.nanmax(np.abs(s["i_cmd"]))),
         latency_p99_us=float(np.nanpercentile(s["latency_us"], 99)),
-        temperature_max_degc=float(np.nanmax(s["temp_degc"])),
+        temperature_max_degc=_nanmax(s["temp_degc"]),
         opposed_share=opposed_share(s["f_des"], s["xd"]),
         outside_share=outside_shares(s["outside"])["outside_share"],
     )
+
+
+def _nanmax(values: np.ndarray) -> float:
+    """The largest finite value; NaN where there is none (a channel the rig does not have)."""
+    finite = values[np.isfinite(values)]
+    return float(finite.max()) if finite.size else math.nan
+
+
+# why a criterion's number is NaN, by its field (the samples are there: `failures` checks it)
+_UNDEFINED = {
+    "et_max": "a desired force without spread?",
+    "peak_current_a_max": "no commanded current in the samples",
+    "latency_p99_us_max": "no latency in the samples",
+    "temperature_max_degc": "the rig reports no damper temperature: its profile maps no"
+    " damper_temperature; leave this criterion out",
+}
 
 
 def failures(criteria: Criteria, numbers: Numbers, faults: list[str]) -> list[str]:
@@ -132,7 +148,7 @@ def failures(criteria: Criteria, numbers: Numbers, faults: list[str]) -> list[st
         if limit is None:
             continue
         if math.isnan(value):
-            out.append(f"{field}: {what} is undefined (a desired force without spread?)")
+            out.append(f"{field}: {what} is undefined ({_UNDEFINED[field]})")
         elif value > limit:
             out.append(
                 f"{field}: {what} {value:.4g}{unit} > {limit:g}{unit}" + _why(field, numbers)

@@ -636,12 +636,14 @@ class Sidecar:
         self._answer(pending.query, pending.request, pending.requester, reply)
 
     def _with_recording(self, status: dict[str, Any], payload: bytes) -> bytes:
-        """The loop's status with the recording this process writes: path, size at its
-        latest check, samples sent (the loop reports only a failed one)."""
+        """The loop's status with the recording this process writes: path (absolute, as the
+        run's catalog row has it: a plan step registered with it gets the file's sha256 when
+        the daemon's run is registered), size at its latest check, samples sent (the loop
+        reports only a failed one)."""
         if self._recorder is None or status.get("recording") is not None:
             return payload
         status["recording"] = {
-            "path": str(self._recorder.path),
+            "path": str(self._recorder.path.resolve()),
             "bytes": self._recording_bytes,
             "frames": self._recorder.frames,
         }
