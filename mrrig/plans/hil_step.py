@@ -23,6 +23,7 @@ from mrrig.config import ACTUATOR_AMPLITUDE_MAX_M
 from mrrig.hil.metrics import Tracking
 from mrrig.hil.reference import ReferenceRun, envelope_problem, percent_change, run_reference
 from mrrig.hil.scenario import Scenario, load_scenario
+from mrrig.loop.safety import TRANSPORT_FAULTS
 from mrrig.plans.criteria import Criteria
 from mrrig.plans.plan import Step
 from mrrig.rigio.run_identity import file_sha256
@@ -200,6 +201,18 @@ def before_arming(step: Step, hil_status: dict | None) -> tuple[Scenario, Refere
     if problem is not None:
         raise ValueError(f"{path} with {step.hil.law}: {problem}: it does not fit the rig")
     return scenario, reference
+
+
+# a hil step's runs in all where each ends by a transport fault (`faults = "transport"`)
+HIL_RUNS = 3
+
+
+def run_again(criteria: Criteria, fault: str | None, runs: int) -> bool:
+    """Whether a hil step runs its scenario again after `runs` runs, the last one ended by
+    `fault`: a transport fault (a stall of the bus or a process, `TRANSPORT_FAULTS`) where the
+    step allows them (`faults = "transport"`, as an ordinary step re-arms), at most `HIL_RUNS`
+    runs in all. A hybrid run cannot be re-armed where it stopped: the model starts again."""
+    return criteria.faults == "transport" and fault in TRANSPORT_FAULTS and runs < HIL_RUNS
 
 
 def run_hil_step(rig, step: Step, progress: Callable[[str], None]):
