@@ -322,3 +322,24 @@ def test_a_hil_step_runs_again_only_after_a_transport_fault_it_allows() -> None:
     assert not run_again(allows, "sensor_timeout", 3)
     assert not run_again(allows, "hil_safety", 1) and not run_again(allows, None, 1)
     assert not run_again(Criteria(), "sensor_timeout", 1)
+
+
+def test_the_plan_s_table_sets_j3_apart_from_a_measured_stall_beside_j3(runs):
+    """A 3 mm tracking error 10 ms after a frame answered 5 ms late (its setpoint dropped by
+    the firmware) is the run's J3, and no part of J3 apart from the stall."""
+    from mrrig.api.hil import stall_apart
+    from mrrig.plans.hil_step import law_tables
+
+    step, reference, run = next(r for r in runs if r[0].name == "hybrid")
+    s = run.samples.copy()
+    s["latency_us"] = 400.0
+    s["latency_us"][1000] = 5000.0
+    s["x"][1005] += 0.003
+    frames, missing, t, errors, figures = judge(s, reference)
+    apart = stall_apart(s, reference.scenario.period_s)
+    stalled = HilResult(frames, missing, t, errors, figures, 0.0, {}, samples=s, apart=apart)
+    lines = law_tables([("hybrid", hil_numbers("hybrid", stalled))])
+    assert lines[1].endswith("J1 ms   J2 %   J3 %  apart")
+    j3 = 100 * 0.003 / np.max(np.abs(reference.stroke_m))
+    assert lines[3].endswith(f"{j3:>6.2f}   0.00") and j3 > 5.0
+    assert "apart: J3 apart from the frames a measured stall of the loop explains" in lines

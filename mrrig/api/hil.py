@@ -87,6 +87,7 @@ class HilResult:
     end: dict[str, Any]  # the rig's status at the end
     retried: tuple[str, ...] = ()  # the transport faults of the runs before this one
     samples: np.ndarray | None = None  # the run's telemetry (every frame)
+    apart: StallApart | None = None  # J2, J3 apart from what a measured stall explains
 
 
 def judge(samples: np.ndarray, reference: ReferenceRun) -> tuple[int, int, Tracking, dict, dict]:
@@ -240,10 +241,13 @@ def follow(
     end = rig.status()
     try:
         frames, missing, t, errors, figures = judge(telemetry.samples, reference)
+        apart = stall_apart(telemetry.samples, scenario.period_s)
     except HilRunError as exc:
         if end.get("fault") is None:
             raise
-        frames, missing, t, errors, figures = 0, 0, None, {}, {}
+        frames, missing, t, errors, figures, apart = 0, 0, None, {}, {}, None
         progress(f"not judged: {exc}")
     delay_s = end["hil"]["delay_s"] or 0.0
-    return HilResult(frames, missing, t, errors, figures, delay_s, end, samples=telemetry.samples)
+    return HilResult(
+        frames, missing, t, errors, figures, delay_s, end, samples=telemetry.samples, apart=apart
+    )

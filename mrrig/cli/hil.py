@@ -28,7 +28,7 @@ import argparse
 import dataclasses
 from pathlib import Path
 
-from mrrig.api.hil import daemon_command, stall_apart
+from mrrig.api.hil import daemon_command
 from mrrig.cli_args import HelpFormatter, positive
 from mrrig.errors import MrrigError
 from mrrig.hil.laws import LAWS
@@ -263,7 +263,7 @@ def _live(
         print(f"run again after a transport fault: {why}")
     if t is not None:
         print(f"J1 {t.j1_ms:.2f} ms   J2 {t.j2_pct:.2f} %   J3 {t.j3_pct:.2f} %")
-        print(_stall_line(stall_apart(result.samples, scenario.period_s)))
+        print(_stall_line(result.apart))
     for name, e in result.errors.items():
         hil_rms, ref_rms = result.figures[name]
         print(

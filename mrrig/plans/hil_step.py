@@ -20,7 +20,7 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 from mrrig.config import ACTUATOR_AMPLITUDE_MAX_M
-from mrrig.hil.metrics import Tracking
+from mrrig.hil.metrics import StallApart, Tracking
 from mrrig.hil.reference import ReferenceRun, envelope_problem, percent_change, run_reference
 from mrrig.hil.scenario import Scenario, load_scenario
 from mrrig.loop.safety import TRANSPORT_FAULTS
@@ -49,6 +49,7 @@ class HilNumbers:
     missing: int
     tracking: Tracking | None
     rms: dict[str, tuple[float, float]]
+    apart: StallApart | None = None  # J2, J3 apart from what a measured stall explains
 
     def agreement_pct(self) -> dict[str, float]:
         """Each output's RMS against the reference's: 100 (HIL - reference) / reference."""
@@ -57,7 +58,9 @@ class HilNumbers:
 
 def hil_numbers(law: str, result) -> HilNumbers:
     """The numbers of a `mrrig.api.hil.HilResult`."""
-    return HilNumbers(law, result.frames, result.missing, result.tracking, result.figures)
+    return HilNumbers(
+        law, result.frames, result.missing, result.tracking, result.figures, result.apart
+    )
 
 
 def _label(name: str) -> tuple[str, str, float]:
@@ -131,7 +134,7 @@ def law_tables(rows: Sequence[tuple[str, HilNumbers]]) -> list[str]:
     for name in outputs:
         label, unit, _ = _label(name)
         head += f" | {label + ' ' + unit:>19} {'agree':>7}"
-    head += f" | {'J1 ms':>6} {'J2 %':>6} {'J3 %':>6}"
+    head += f" | {'J1 ms':>6} {'J2 %':>6} {'J3 %':>6} {'apart':>6}"
     lines = ["HIL run beside the reference (RMS: HIL / reference; agree: % difference)", head]
     lines.append("-" * len(head))
     for step, n in rows:
@@ -147,7 +150,9 @@ def law_tables(rows: Sequence[tuple[str, HilNumbers]]) -> list[str]:
             if t is not None
             else f" | {'-':>6} {'-':>6} {'-':>6}"
         )
+        line += f" {n.apart.j3_pct:>6.2f}" if n.apart is not None else f" {'-':>6}"
         lines.append(line)
+    lines.append("apart: J3 apart from the frames a measured stall of the loop explains")
     passive = {n.law: n for _, n in rows if n.law in ("passive-soft", "passive-hard")}
     lines += ["", "% change against passive-soft and passive-hard (HIL / reference)"]
     head = f"{'step':<18} {'law':<16}"
