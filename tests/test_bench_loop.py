@@ -3,9 +3,11 @@ benchmarks)."""
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 
-from mrrig.offline.bench.loop import budget_verdict
+from mrrig.offline.bench.loop import budget_verdict, hil_args, hil_lines
 
 
 def _run(p99: float, p999: float, unanswered: int) -> dict:
@@ -119,3 +121,19 @@ def test_bench_drift_sets_aside_the_half_second_after_a_stall_or_an_arming():
     out = _after_stalls(t, armed)
     expect = ((t >= 0.2) & (t < 0.7)) | ((t >= t[1000]) & (t < t[1000] + 0.5))
     np.testing.assert_array_equal(out, expect)
+
+
+def test_bench_loop_sets_the_hybrid_simulation_s_work_beside_the_force_tracking_loop_s() -> None:
+    def run(p50: float, p99: float) -> dict:
+        return {"latency_split_us": {"work": {"p50": p50, "p99": p99, "p99.9": 2 * p99}}}
+
+    lines = hil_lines({"off": run(150.0, 240.0), "hil": run(190.0, 310.0)})
+    assert lines[0] == (
+        "hybrid simulation: work per frame p50 190  p99 310  p99.9 620 us (p99 > 300 us)"
+    )
+    assert lines[1].endswith("the hybrid simulation adds +40 us at p50, +70 us at p99")
+    assert hil_lines({"hil": run(190.0, 300.0)}) == [
+        "hybrid simulation: work per frame p50 190  p99 300  p99.9 600 us (p99 <= 300 us)"
+    ]
+    # the scenario streams a second longer than the simulator: never played out early
+    assert hil_args(Path("s.toml"), 60.0) == ("--hil", "s.toml", "--hil-duration", "61.0")

@@ -13,7 +13,7 @@ from scipy.integrate import solve_ivp
 
 from mrrig.hil.compensation import extrapolation_weights, make_compensator
 from mrrig.hil.laws import Demand, Law, LawParams, dissipative
-from mrrig.hil.metrics import response_error, tracking
+from mrrig.hil.metrics import response_error, tracking, tracking_apart_from_stalls
 from mrrig.hil.scenario import load_scenario
 from mrrig.hil.substructure import BuildingParams, QuarterCar, QuarterCarParams, ShearBuilding, zoh
 from mrrig.typed_config import ConfigError
@@ -200,6 +200,29 @@ def test_j1_j2_j3_of_a_known_delay_and_error() -> None:
     assert (e.rms_pct, e.peak_pct, e.rms_of_rms_pct) == pytest.approx((2.0, 2.0, 2.0))
 
 
+def test_j2_j3_apart_from_stalls_set_aside_only_what_a_measured_stall_explains() -> None:
+    """A stall (a frame answered 5 ms late: its setpoint dropped) and, 10 ms later, a 3 mm
+    error: set aside; a frame delivered 4 ms after the one before: a stall too; a 1 mm error
+    with no stall in the 20 ms before it stays in J3."""
+    t = np.arange(0.0, 8.0, DT)
+    x_c = 0.02 * np.sin(2 * np.pi * 1.0 * t)
+    x_m = x_c.copy()
+    latency_us = np.full(t.size, 400.0)
+    latency_us[1000] = 5000.0
+    x_m[1005] += 0.003  # 10 ms after the stall: 15 % of the 20 mm peak
+    t[1500:] += 0.002  # frame 1500 delivered 4 ms after frame 1499
+    x_m[1509] -= 0.002  # 18 ms after it: 10 %
+    x_m[2000] += 0.001  # no stall: 5 %
+    got = tracking_apart_from_stalls(x_c, x_m, t, latency_us, DT)
+    assert got.stalls == 2 and got.excluded == 2 * 11
+    assert got.j3_pct == pytest.approx(5.0, rel=1e-6)
+    assert got.peak_after_stall and got.peak_t_s == pytest.approx(t[1005])
+    assert tracking(x_c, x_m, DT).j3_pct == pytest.approx(15.0, rel=1e-6)
+    x_m[1011] += 0.004  # 22 ms after the stall: the stall no longer explains it
+    got = tracking_apart_from_stalls(x_c, x_m, t, latency_us, DT)
+    assert got.j3_pct == pytest.approx(20.0, rel=1e-6) and not got.peak_after_stall
+
+
 @pytest.mark.parametrize(
     "path", sorted((REPO / "configs/hil").glob("*.toml")), ids=lambda p: p.name
 )
@@ -216,6 +239,10 @@ def test_the_shipped_scenarios_are_the_issue_s() -> None:
         20.0,
     )
     assert car.duration_s == 60.0 and car.steps == 30_000
+    # the road alone: a bump asks a stroke velocity past firmware_sim's actuator (1 m/s)
+    assert car.road.bumps == ()
+    bump = load_scenario("configs/hil/quarter-car-bump.toml")
+    assert len(bump.road.bumps) == 1 and dataclasses.replace(bump.road, bumps=()) == car.road
     building = load_scenario("configs/hil/building.toml")
     assert (building.kind, building.law) == ("building", "clipped-optimal")
 

@@ -19,7 +19,14 @@ from typing import Any
 import numpy as np
 
 from mrrig.errors import MrrigError
-from mrrig.hil.metrics import ResponseError, Tracking, response_error, tracking
+from mrrig.hil.metrics import (
+    ResponseError,
+    StallApart,
+    Tracking,
+    response_error,
+    tracking,
+    tracking_apart_from_stalls,
+)
 from mrrig.hil.reference import DaemonCommand, ReferenceRun
 from mrrig.hil.scenario import Scenario
 from mrrig.rigio.run_identity import file_sha256
@@ -80,16 +87,12 @@ class HilResult:
     end: dict[str, Any]  # the rig's status at the end
     retried: tuple[str, ...] = ()  # the transport faults of the runs before this one
     samples: np.ndarray | None = None  # the run's telemetry (every frame)
+    apart: StallApart | None = None  # J2, J3 apart from what a measured stall explains
 
 
 def judge(samples: np.ndarray, reference: ReferenceRun) -> tuple[int, int, Tracking, dict, dict]:
     """(frames, missing, J1-J3, response errors, RMS figures) of a run's streamed samples."""
-    rows = samples[np.isfinite(samples["hil_k"])]
-    if rows.size <= 60:
-        raise HilRunError(f"{rows.size} streamed frames: too few to judge")
-    k = rows["hil_k"].astype(int)
-    k, first = np.unique(k, return_index=True)
-    rows = rows[first]
+    k, rows = _streamed(samples)
     missing = int(k[-1] + 1 - k.size)
     period = reference.scenario.period_s
     t = tracking(rows["hil_x_c"], rows["x"], period)
@@ -115,6 +118,23 @@ def judge(samples: np.ndarray, reference: ReferenceRun) -> tuple[int, int, Track
         for name, (y, y_ref) in outputs.items()
     }
     return int(k.size), missing, t, errors, figures
+
+
+def _streamed(samples: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(model frame index, sample) of each streamed frame once, in order."""
+    rows = samples[np.isfinite(samples["hil_k"])]
+    if rows.size <= 60:
+        raise HilRunError(f"{rows.size} streamed frames: too few to judge")
+    k, first = np.unique(rows["hil_k"].astype(int), return_index=True)
+    return k, rows[first]
+
+
+def stall_apart(samples: np.ndarray, period_s: float) -> StallApart:
+    """J2 and J3 of a run's streamed samples apart from the frames a measured stall of the
+    loop explains (`tracking_apart_from_stalls`); the peak's time from the run's start."""
+    _k, rows = _streamed(samples)
+    t = rows["t"] - rows["t"][0]
+    return tracking_apart_from_stalls(rows["hil_x_c"], rows["x"], t, rows["latency_us"], period_s)
 
 
 def run_on_rig(
@@ -221,10 +241,13 @@ def follow(
     end = rig.status()
     try:
         frames, missing, t, errors, figures = judge(telemetry.samples, reference)
+        apart = stall_apart(telemetry.samples, scenario.period_s)
     except HilRunError as exc:
         if end.get("fault") is None:
             raise
-        frames, missing, t, errors, figures = 0, 0, None, {}, {}
+        frames, missing, t, errors, figures, apart = 0, 0, None, {}, {}, None
         progress(f"not judged: {exc}")
     delay_s = end["hil"]["delay_s"] or 0.0
-    return HilResult(frames, missing, t, errors, figures, delay_s, end, samples=telemetry.samples)
+    return HilResult(
+        frames, missing, t, errors, figures, delay_s, end, samples=telemetry.samples, apart=apart
+    )

@@ -32,6 +32,7 @@ from mrrig.api.hil import daemon_command
 from mrrig.cli_args import HelpFormatter, positive
 from mrrig.errors import MrrigError
 from mrrig.hil.laws import LAWS
+from mrrig.hil.metrics import AFTER_STALL_S, StallApart
 from mrrig.hil.reference import (
     SIM_PLANT_PRESET,
     DaemonCommand,
@@ -205,6 +206,16 @@ def main(argv: list[str] | None = None) -> int:
     return 0
 
 
+def _stall_line(s: StallApart) -> str:
+    """J2 and J3 apart from the frames a measured stall of the loop explains."""
+    return (
+        f"  apart from {s.excluded} frames within {AFTER_STALL_S * 1e3:g} ms after one of "
+        f"{s.stalls} measured stalls (a frame answered or delivered late): "
+        f"J2 {s.j2_pct:.2f} %   J3 {s.j3_pct:.2f} %; the largest error at {s.peak_t_s:.2f} s, "
+        + ("after a stall" if s.peak_after_stall else "no stall before it")
+    )
+
+
 def _live(
     args: argparse.Namespace, scenario: Scenario, reference, command: DaemonCommand | None
 ) -> int:
@@ -252,6 +263,7 @@ def _live(
         print(f"run again after a transport fault: {why}")
     if t is not None:
         print(f"J1 {t.j1_ms:.2f} ms   J2 {t.j2_pct:.2f} %   J3 {t.j3_pct:.2f} %")
+        print(_stall_line(result.apart))
     for name, e in result.errors.items():
         hil_rms, ref_rms = result.figures[name]
         print(

@@ -74,3 +74,56 @@ def response_error(y: np.ndarray, y_ref: np.ndarray) -> ResponseError:
         peak_pct=100.0 * float(np.max(np.abs(d))) / float(np.max(np.abs(y_ref))),
         rms_of_rms_pct=100.0 * (float(np.sqrt(np.mean(y**2))) - rms_ref) / rms_ref,
     )
+
+
+# a frame of a stall: its answer took longer than this many periods (it reached the firmware
+# after the next frame was due: the setpoint is dropped as late, can-protocol.md), or it
+# arrived this many periods after the frame before it (the bus or the simulator held up)
+STALL_PERIODS = 1.0
+GAP_PERIODS = 1.5
+# the frames after a stall whose tracking error is the stall's: the servo's settling (50 Hz,
+# damped 0.67) behind two frames of transport
+AFTER_STALL_S = 0.02
+
+
+@dataclass(frozen=True)
+class StallApart:
+    stalls: int  # frames of a measured stall
+    excluded: int  # frames within AFTER_STALL_S of one
+    j2_pct: float  # J2 and J3 over the frames left
+    j3_pct: float
+    peak_t_s: float  # where the whole run's largest |x_m - x_c| is
+    peak_after_stall: bool  # and whether a stall explains it
+
+
+def stall_frames(t_s: np.ndarray, latency_us: np.ndarray, period_s: float) -> np.ndarray:
+    """The frames of a measured stall of the loop (`STALL_PERIODS`, `GAP_PERIODS`): the
+    setpoint the firmware got late, or a frame the bus delivered late."""
+    t_s, latency_us = np.asarray(t_s, float), np.asarray(latency_us, float)
+    gap = np.diff(t_s, prepend=t_s[:1])
+    return (latency_us > STALL_PERIODS * period_s * 1e6) | (gap > GAP_PERIODS * period_s)
+
+
+def tracking_apart_from_stalls(
+    x_c: np.ndarray, x_m: np.ndarray, t_s: np.ndarray, latency_us: np.ndarray, period_s: float
+) -> StallApart:
+    """J2 and J3 over the frames that no measured stall explains: each stall frame and the
+    `AFTER_STALL_S` after it set aside (a late setpoint is dropped by the firmware, whatever
+    the compensation: the piston heads for the last one it took)."""
+    x_c, x_m = np.asarray(x_c, float), np.asarray(x_m, float)
+    stalls = stall_frames(t_s, latency_us, period_s)
+    after = int(round(AFTER_STALL_S / period_s))
+    # frame j is set aside when a stall is among frames j - after .. j
+    count = np.convolve(stalls.astype(int), np.ones(after + 1, int))[: stalls.size]
+    excluded = count > 0
+    error = x_m - x_c
+    kept = error[~excluded]
+    peak = int(np.argmax(np.abs(error)))
+    return StallApart(
+        stalls=int(stalls.sum()),
+        excluded=int(excluded.sum()),
+        j2_pct=100.0 * float(np.std(kept) / np.std(x_c)),
+        j3_pct=100.0 * float(np.max(np.abs(kept)) / np.max(np.abs(x_c))),
+        peak_t_s=float(np.asarray(t_s, float)[peak]),
+        peak_after_stall=bool(excluded[peak]),
+    )

@@ -20,9 +20,10 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 from mrrig.config import ACTUATOR_AMPLITUDE_MAX_M
-from mrrig.hil.metrics import Tracking
+from mrrig.hil.metrics import StallApart, Tracking
 from mrrig.hil.reference import ReferenceRun, envelope_problem, percent_change, run_reference
 from mrrig.hil.scenario import Scenario, load_scenario
+from mrrig.loop.safety import TRANSPORT_FAULTS
 from mrrig.plans.criteria import Criteria
 from mrrig.plans.plan import Step
 from mrrig.rigio.run_identity import file_sha256
@@ -48,6 +49,7 @@ class HilNumbers:
     missing: int
     tracking: Tracking | None
     rms: dict[str, tuple[float, float]]
+    apart: StallApart | None = None  # J2, J3 apart from what a measured stall explains
 
     def agreement_pct(self) -> dict[str, float]:
         """Each output's RMS against the reference's: 100 (HIL - reference) / reference."""
@@ -56,7 +58,9 @@ class HilNumbers:
 
 def hil_numbers(law: str, result) -> HilNumbers:
     """The numbers of a `mrrig.api.hil.HilResult`."""
-    return HilNumbers(law, result.frames, result.missing, result.tracking, result.figures)
+    return HilNumbers(
+        law, result.frames, result.missing, result.tracking, result.figures, result.apart
+    )
 
 
 def _label(name: str) -> tuple[str, str, float]:
@@ -130,7 +134,7 @@ def law_tables(rows: Sequence[tuple[str, HilNumbers]]) -> list[str]:
     for name in outputs:
         label, unit, _ = _label(name)
         head += f" | {label + ' ' + unit:>19} {'agree':>7}"
-    head += f" | {'J1 ms':>6} {'J2 %':>6} {'J3 %':>6}"
+    head += f" | {'J1 ms':>6} {'J2 %':>6} {'J3 %':>6} {'apart':>6}"
     lines = ["HIL run beside the reference (RMS: HIL / reference; agree: % difference)", head]
     lines.append("-" * len(head))
     for step, n in rows:
@@ -146,7 +150,9 @@ def law_tables(rows: Sequence[tuple[str, HilNumbers]]) -> list[str]:
             if t is not None
             else f" | {'-':>6} {'-':>6} {'-':>6}"
         )
+        line += f" {n.apart.j3_pct:>6.2f}" if n.apart is not None else f" {'-':>6}"
         lines.append(line)
+    lines.append("apart: J3 apart from the frames a measured stall of the loop explains")
     passive = {n.law: n for _, n in rows if n.law in ("passive-soft", "passive-hard")}
     lines += ["", "% change against passive-soft and passive-hard (HIL / reference)"]
     head = f"{'step':<18} {'law':<16}"
@@ -200,6 +206,18 @@ def before_arming(step: Step, hil_status: dict | None) -> tuple[Scenario, Refere
     if problem is not None:
         raise ValueError(f"{path} with {step.hil.law}: {problem}: it does not fit the rig")
     return scenario, reference
+
+
+# a hil step's runs in all where each ends by a transport fault (`faults = "transport"`)
+HIL_RUNS = 3
+
+
+def run_again(criteria: Criteria, fault: str | None, runs: int) -> bool:
+    """Whether a hil step runs its scenario again after `runs` runs, the last one ended by
+    `fault`: a transport fault (a stall of the bus or a process, `TRANSPORT_FAULTS`) where the
+    step allows them (`faults = "transport"`, as an ordinary step re-arms), at most `HIL_RUNS`
+    runs in all. A hybrid run cannot be re-armed where it stopped: the model starts again."""
+    return criteria.faults == "transport" and fault in TRANSPORT_FAULTS and runs < HIL_RUNS
 
 
 def run_hil_step(rig, step: Step, progress: Callable[[str], None]):

@@ -30,7 +30,14 @@ from mrrig.loop.safety import TRANSPORT_FAULTS
 from mrrig.loop.samples import SAMPLE_DTYPE
 from mrrig.plans.criteria import Numbers, failures, measure
 from mrrig.plans.feasibility import Prediction, before_arming
-from mrrig.plans.hil_step import HilNumbers, hil_failures, hil_numbers, law_tables, run_hil_step
+from mrrig.plans.hil_step import (
+    HilNumbers,
+    hil_failures,
+    hil_numbers,
+    law_tables,
+    run_again,
+    run_hil_step,
+)
 from mrrig.plans.interrupts import interruptible
 from mrrig.plans.plan import Plan, Step
 from mrrig.rigio.client import ClientError
@@ -280,13 +287,25 @@ def _run_hil_step(
     reference."""
     from mrrig.api.hil import HilRunError
 
-    _set_up(step, rig, result)
     law = step.hil.law
-    progress(f"  step {index}/{count} {step.name}: {law}, the reference computed, then arm")
-    try:
-        run = run_hil_step(rig, step, lambda line: progress(f"  step {index}/{count} {line}"))
-    except (ValueError, HilRunError, RigError, ClientError) as exc:
-        raise StepAborted(str(exc)) from None
+    runs = 0
+    while True:
+        _set_up(step, rig, result)  # out of the last run's fault, disarmed, `set_hil` sent
+        progress(f"  step {index}/{count} {step.name}: {law}, the reference computed, then arm")
+        try:
+            run = run_hil_step(rig, step, lambda line: progress(f"  step {index}/{count} {line}"))
+        except (ValueError, HilRunError, RigError, ClientError) as exc:
+            raise StepAborted(str(exc)) from None
+        runs += 1
+        fault = run.end.get("fault")
+        if not run_again(step.criteria, fault, runs):
+            break
+        result.faults.append(fault)
+        result.rearms += 1
+        progress(
+            f"  step {index}/{count} {step.name}: the run ended by a transport fault ({fault}: "
+            f"{run.end.get('fault_reason')}): reset, and run it again"
+        )
     result.samples = run.samples
     result.numbers = measure(run.samples, 0.0)
     result.hil = hil_numbers(law, run)

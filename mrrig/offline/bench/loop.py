@@ -8,7 +8,11 @@ loop's work from its read to the end of send() (the spec's budget), frames witho
 command (the simulator's count), the simulator's period jitter, CPU per process, and the on/off
 ratio of the latency p99. A first run replaces the daemon by `mrrig.offline.bench.echo`, which
 answers every frame with a SAFE command and does nothing else: the floor that the transport (bridge,
-Python, this machine) sets, measured the same way in the same session.
+Python, this machine) sets, measured the same way in the same session. With `--hil SCENARIO`
+a last run has the daemon run that hybrid simulation (`mrrig run --hil`: the numerical
+substructure and the delay compensation stepped on every frame, an ActuatorSetpoint after
+each command; telemetry and recording off as in the `off` run), so that its work per frame is
+measured beside the force-tracking loop's in the same session (`hil_lines`).
 """
 
 from __future__ import annotations
@@ -61,7 +65,9 @@ BUDGET_P99_US = 300.0  # spec/system.md: the daemon's work per frame
 BUDGET_P999_US = 1000.0  # transport floor; daemon without / with telemetry+recording
 
 
-def run_once(config: Path, sim_config: Path, duration_s: float, mode: str) -> dict:
+def run_once(
+    config: Path, sim_config: Path, duration_s: float, mode: str, daemon_args: tuple = ()
+) -> dict:
     work = Path(tempfile.mkdtemp(prefix="mrrig-bench-loop-"))
     # the benchmark's daemon runs go into a catalog of their own, not the lab's
     os.environ[CATALOG_ENV] = str(work / "catalog.sqlite")
@@ -92,8 +98,9 @@ def run_once(config: Path, sim_config: Path, duration_s: float, mode: str) -> di
             ]
         if mode == "on":
             cmd += ["--record", str(work / "bench.rrd")]
-        elif mode == "off":
+        elif mode in ("off", "hil"):
             cmd += ["--no-record", "--no-telemetry"]
+        cmd += list(daemon_args)
         daemon = subprocess.Popen(cmd, stdout=subprocess.DEVNULL)
         _wait_for_daemon(daemon)
         t0 = time.monotonic()
@@ -263,6 +270,7 @@ def format_run(r: dict) -> str:
         "echo": "transport floor (echo process, no daemon)",
         "off": "daemon, telemetry+recording OFF",
         "on": "daemon, telemetry+recording ON",
+        "hil": "daemon running the hybrid simulation, telemetry+recording OFF",
     }[r["mode"]]
     return "\n".join(
         [
@@ -322,6 +330,31 @@ def budget_verdict(r: dict) -> str:
     return ("MET: " if ok else "MISSED: ") + ", ".join(parts)
 
 
+def hil_args(scenario: Path, duration_s: float) -> tuple[str, ...]:
+    """The daemon's arguments for the `hil` run: the scenario armed at start for the whole
+    run (a second longer than the simulator streams, so that it is not played out early)."""
+    return ("--hil", str(scenario), "--hil-duration", repr(duration_s + 1.0))
+
+
+def hil_lines(runs: dict[str, dict]) -> list[str]:
+    """The hybrid simulation's work per frame beside the force-tracking loop's (the `off`
+    run, the same outputs off) of the same session, against the spec's p99 budget."""
+    hil = runs["hil"]["latency_split_us"]["work"]
+    lines = [
+        f"hybrid simulation: work per frame p50 {hil['p50']:.0f}  p99 {hil['p99']:.0f}  "
+        f"p99.9 {hil['p99.9']:.0f} us (p99 {'<=' if hil['p99'] <= BUDGET_P99_US else '>'} "
+        f"{BUDGET_P99_US:g} us)"
+    ]
+    if "off" in runs:
+        off = runs["off"]["latency_split_us"]["work"]
+        lines.append(
+            f"  beside the force-tracking loop (off): p50 {off['p50']:.0f}  p99 "
+            f"{off['p99']:.0f}  p99.9 {off['p99.9']:.0f} us; the hybrid simulation adds "
+            f"{hil['p50'] - off['p50']:+.0f} us at p50, {hil['p99'] - off['p99']:+.0f} us at p99"
+        )
+    return lines
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(
         formatter_class=HelpFormatter, prog="mrrig bench loop", description=__doc__
@@ -330,6 +363,12 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--sim-config", type=Path, default=Path("configs/sim.toml"))
     ap.add_argument("--duration", type=positive, default=60.0, help="seconds per run (default 60)")
     ap.add_argument("--only", choices=MODES, help="one run instead of all three")
+    ap.add_argument(
+        "--hil",
+        type=Path,
+        metavar="SCENARIO",
+        help="a last run with the daemon running this hybrid simulation (configs/hil/*.toml)",
+    )
     ap.add_argument("--json", type=output_file, help="also write the numbers here")
     args = ap.parse_args(argv)
     from mrrig.cli.demo import SIM_MODEL, ensure_sim_model
@@ -340,6 +379,13 @@ def main(argv: list[str] | None = None) -> int:
         log.info("run %s, %.0f s", mode, args.duration)
         runs[mode] = run_once(args.config, args.sim_config, args.duration, mode)
         print(format_run(runs[mode]), flush=True)
+    if args.hil is not None:
+        log.info("run hil (%s), %.0f s", args.hil, args.duration)
+        runs["hil"] = run_once(
+            args.config, args.sim_config, args.duration, "hil", hil_args(args.hil, args.duration)
+        )
+        print(format_run(runs["hil"]), flush=True)
+        print("\n".join(hil_lines(runs)), flush=True)
     result: dict = {"runs": list(runs.values())}
     if "on" in runs and "off" in runs:
         ratio = runs["on"]["latency_us"]["p99"] / runs["off"]["latency_us"]["p99"]
