@@ -11,6 +11,7 @@ from dataclasses import replace
 from pathlib import Path
 
 from mrrig.config import DaemonConfig, ReferenceSection
+from mrrig.loop import compiled
 from mrrig.loop import reference as ref
 from mrrig.loop.controllers import (
     CONTROLLERS,
@@ -113,6 +114,8 @@ def build_controller(cfg: DaemonConfig, section=None, model: MLP | None = None) 
         x_half = 0.5 * (cfg.loop.x_range_m[1] - cfg.loop.x_range_m[0])
         checked = self_check(spare, model, c.model, dt, i_max, x_half)
         log.info("%s: self-check passed in %.0f ms", c.model, checked.seconds * 1e3)
+    if cfg.loop.numerics == "compiled":
+        return compiled.compile_controller(controller)
     return controller
 
 
@@ -136,7 +139,16 @@ def load_model(path: Path | None, source: str) -> MLP | TwinModel:
     return load_forward_model(path)  # a network, or a twin (a plant file)
 
 
-def build_reference(r: ReferenceSection, dt_s: float) -> ref.ForceReference:
+def build_reference(
+    r: ReferenceSection, dt_s: float, numerics: str = "python"
+) -> ref.ForceReference:
+    """The reference a section names; a reference damper stepped in compiled code with
+    `numerics="compiled"` (`mrrig.loop.compiled`)."""
+    reference = _reference(r, dt_s)
+    return compiled.compile_reference(reference) if numerics == "compiled" else reference
+
+
+def _reference(r: ReferenceSection, dt_s: float) -> ref.ForceReference:
     if r.kind == "constant":
         return ref.Constant(r.offset_n)
     if r.kind == "sine":
