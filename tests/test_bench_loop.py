@@ -119,3 +119,16 @@ def test_bench_drift_sets_aside_the_half_second_after_a_stall_or_an_arming():
     out = _after_stalls(t, armed)
     expect = ((t >= 0.2) & (t < 0.7)) | ((t >= t[1000]) & (t < t[1000] + 0.5))
     np.testing.assert_array_equal(out, expect)
+
+
+def test_bench_loop_prints_the_compiled_work_beside_the_python_work_and_the_target() -> None:
+    from mrrig.offline.bench.loop import compiled_beside_python
+
+    def run(p50: float, p99: float, p999: float) -> dict:
+        work = {"p50": p50, "p99": p99, "p99.9": p999}
+        return {"latency_split_us": {"work": work, "send_call": {"p50": 20.0}}}
+
+    text = compiled_beside_python(run(20.0, 50.0, 150.0), run(80.0, 200.0, 600.0))
+    assert "python / compiled: p50 4.00  p99 4.00  p99.9 4.00" in text
+    assert text.endswith("MET (send() call p50 20 us of it)")
+    assert "MISSED" in compiled_beside_python(run(20.0, 50.5, 100.0), run(80.0, 200.0, 600.0))

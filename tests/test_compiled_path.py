@@ -176,3 +176,11 @@ def test_the_compiled_kalman_and_damper_equal_the_python_ones_through_gaps_and_f
         dt = 0.002 * (1 + (k % 41 == 0))  # and a lost frame's two periods
         assert _close(pd.step(x, xd, 0.8, dt), cd.step(x, xd, 0.8, dt))
     assert np.allclose(pd.state, cd.state, rtol=TOL, atol=0.0)
+
+
+def test_the_frame_path_writes_its_row_in_the_sample_dtypes_order():
+    from mrrig.loop.frame_path import NO_HIL, ROW_FIELDS
+    from mrrig.loop.samples import SAMPLE_DTYPE
+
+    assert ROW_FIELDS == SAMPLE_DTYPE.names
+    assert len(NO_HIL) == sum(name.startswith("hil_") for name in SAMPLE_DTYPE.names)
