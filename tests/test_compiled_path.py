@@ -184,3 +184,19 @@ def test_the_frame_path_writes_its_row_in_the_sample_dtypes_order():
 
     assert ROW_FIELDS == SAMPLE_DTYPE.names
     assert len(NO_HIL) == sum(name.startswith("hil_") for name in SAMPLE_DTYPE.names)
+
+
+def test_the_frames_model_force_on_the_float_path_equals_the_arrays(sim_model):
+    from mrrig.loop.controllers import ConstantCurrent, ControlInput, NetworkInversion
+
+    model = MLP.load(sim_model)
+    for ctrl in (
+        NetworkInversion(2.0, model),
+        NetworkInversion(2.0, model, feedback_tau_s=0.0),
+    ):
+        ctrl.reset(1)
+        for x, xd, xdd, i in ((0.01, 0.2, 3.0, 0.7), (-0.004, -0.5, -20.0, 1.9)):
+            s = ControlInput(*(np.array([v]) for v in (x, xd, xdd, 100.0, 200.0)))
+            arrays = float(ctrl.model_force(s, np.array([i]))[0])
+            assert _close(arrays, ctrl.model_force_one(x, xd, xdd, 100.0, 200.0, i))
+    assert np.isnan(ConstantCurrent(2.0, 1.0).model_force_one(0.0, 0.0, 0.0, 0.0, 0.0, 1.0))

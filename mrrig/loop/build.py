@@ -11,7 +11,6 @@ from dataclasses import replace
 from pathlib import Path
 
 from mrrig.config import DaemonConfig, ReferenceSection
-from mrrig.loop import compiled
 from mrrig.loop import reference as ref
 from mrrig.loop.controllers import (
     CONTROLLERS,
@@ -20,6 +19,7 @@ from mrrig.loop.controllers import (
     ControllerSettings,
     make_controller,
 )
+from mrrig.loop.estimation import RealtimeKalman
 from mrrig.loop.inversion import DEFAULT_CONTINUITY
 from mrrig.loop.mlp import MLP, ModelError
 from mrrig.loop.model_fit import RigUnits, check_cost, check_period, check_units
@@ -115,6 +115,8 @@ def build_controller(cfg: DaemonConfig, section=None, model: MLP | None = None) 
         checked = self_check(spare, model, c.model, dt, i_max, x_half)
         log.info("%s: self-check passed in %.0f ms", c.model, checked.seconds * 1e3)
     if cfg.loop.numerics == "compiled":
+        from mrrig.loop import compiled  # numba (LLVM) imported only for the compiled path
+
         return compiled.compile_controller(controller)
     return controller
 
@@ -139,13 +141,26 @@ def load_model(path: Path | None, source: str) -> MLP | TwinModel:
     return load_forward_model(path)  # a network, or a twin (a plant file)
 
 
+def kalman(period_s: float, q: float, r0: float, numerics: str) -> RealtimeKalman:
+    """The daemon's estimate, compiled with `numerics="compiled"` (`mrrig.loop.compiled`)."""
+    if numerics == "compiled":
+        from mrrig.loop import compiled  # numba (LLVM) imported only for the compiled path
+
+        return compiled.kalman(period_s, q, r0, True)
+    return RealtimeKalman(period_s, q=q, r0=r0)
+
+
 def build_reference(
     r: ReferenceSection, dt_s: float, numerics: str = "python"
 ) -> ref.ForceReference:
     """The reference a section names; a reference damper stepped in compiled code with
     `numerics="compiled"` (`mrrig.loop.compiled`)."""
     reference = _reference(r, dt_s)
-    return compiled.compile_reference(reference) if numerics == "compiled" else reference
+    if numerics == "compiled":
+        from mrrig.loop import compiled  # numba (LLVM) imported only for the compiled path
+
+        return compiled.compile_reference(reference)
+    return reference
 
 
 def _reference(r: ReferenceSection, dt_s: float) -> ref.ForceReference:

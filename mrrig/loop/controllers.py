@@ -189,7 +189,14 @@ class Controller(abc.ABC):
     def model_force_one(
         self, x: float, xd: float, xdd: float, f_meas: float, f_des: float, current_a: float
     ) -> float:
-        """`model_force` for one lane in plain floats (the daemon's sample of each frame)."""
+        """`model_force` for one lane in plain floats (the daemon's sample of each frame); the
+        controllers with a model override it."""
+        return math.nan
+
+    def _model_force_arrays(
+        self, x: float, xd: float, xdd: float, f_meas: float, f_des: float, current_a: float
+    ) -> float:
+        """`model_force_one` through `model_force` (arrays of one lane)."""
         s = ControlInput(
             np.array([x]), np.array([xd]), np.array([xdd]), np.array([f_meas]), np.array([f_des])
         )
@@ -503,7 +510,7 @@ class NetworkInversion(Controller):
         """The network's one-sample force (`ScalarInverter.force`: no arrays built), adapted;
         a model with history inputs as `model_force`."""
         if self._inputs.samples or self.batch != 1:
-            return super().model_force_one(x, xd, xdd, f_meas, f_des, current_a)
+            return self._model_force_arrays(x, xd, xdd, f_meas, f_des, current_a)
         feat = self._feat_model
         feat[0], feat[1], feat[2] = x, xd, xdd
         f = self._scalar.force(feat, current_a)
@@ -806,6 +813,11 @@ class TwinInversion(Controller):
                 for j in range(self.batch)
             ]
         )
+
+    def model_force_one(
+        self, x: float, xd: float, xdd: float, f_meas: float, f_des: float, current_a: float
+    ) -> float:
+        return self._model_force_arrays(x, xd, xdd, f_meas, f_des, current_a)
 
     def model_force(self, s: ControlInput, current: np.ndarray) -> np.ndarray:
         """Eq. 30 at the twin's present state and the motion of `s`, with u = `current`."""

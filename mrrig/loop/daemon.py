@@ -33,10 +33,10 @@ from typing import Any
 
 from mrrig.config import DaemonConfig
 from mrrig.config_gaps import config_gaps
-from mrrig.loop import compiled, hil_loop
+from mrrig.loop import hil_loop
 from mrrig.loop import reference as ref
 from mrrig.loop.batches import SampleBatches
-from mrrig.loop.build import build_controller, build_reference
+from mrrig.loop.build import build_controller, build_reference, kalman
 from mrrig.loop.collector import CollectorOffWhileArmed
 from mrrig.loop.control_requests import ControlRequests
 from mrrig.loop.coverage import controller_envelope
@@ -126,9 +126,7 @@ class Daemon(FramePath):
         if cfg.hil.scenario is not None:
             self.hil = hil_loop.HilLoop(cfg, self.profile, self.packer, self._set_waveform)
             self.reference = self.hil.reference
-        self.kf = compiled.kalman(
-            self.period_s, cfg.estimator.q, cfg.estimator.r0_m2, cfg.loop.numerics == "compiled"
-        )
+        self.kf = kalman(self.period_s, cfg.estimator.q, cfg.estimator.r0_m2, cfg.loop.numerics)
         self.supervisor = Supervisor(
             Limits(
                 cfg.loop.x_range_m,
