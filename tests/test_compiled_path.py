@@ -200,3 +200,10 @@ def test_the_frames_model_force_on_the_float_path_equals_the_arrays(sim_model):
             arrays = float(ctrl.model_force(s, np.array([i]))[0])
             assert _close(arrays, ctrl.model_force_one(x, xd, xdd, 100.0, 200.0, i))
     assert np.isnan(ConstantCurrent(2.0, 1.0).model_force_one(0.0, 0.0, 0.0, 0.0, 0.0, 1.0))
+
+
+def test_an_unknown_numerics_is_one_line_naming_the_setting():
+    from mrrig.typed_config import ConfigError
+
+    with pytest.raises(ConfigError, match=r"loop\.numerics: one of compiled, python, got 'fast'"):
+        load_config(REPO / "configs/rig.toml", {"loop": {"numerics": "fast"}})
