@@ -1,6 +1,6 @@
 """The cyclic garbage collector kept off the armed frames: the daemon collects and freezes the
 heap before its loop (`Daemon.run`); this turns automatic collection off while the rig is
-armed (a young-generation pass at the wrong frame costs hundreds of microseconds) and, at
+armed (a collection triggered by allocations adds its time to whichever frame made it) and, at
 each disarm, back on, after one collection of what the armed run left (between runs). The
 loop allocates few containers per frame and reference counting frees them: what waits for
 the collection is the rare cycle (an exception's traceback)."""
