@@ -84,6 +84,9 @@ class CanSection:
                 raise ValueError(f'signals.{role}: expected "MESSAGE.SIGNAL" or "absent"')
 
 
+NUMERICS = ("compiled", "python")
+
+
 @dataclass(frozen=True)
 class LoopSection:
     period_s: float = 0.002  # the firmware's RigSensors period
@@ -110,6 +113,9 @@ class LoopSection:
     # a sensor frame older than this when answered (from its receive timestamp at the bus)
     # was held up by a stall: answered SAFE, and a fault. Absent: one period (a real bus)
     max_frame_age_s: float | None = None
+    # the frame's numerics: "compiled" (numba: mrrig/loop/compiled.py; the Python path where
+    # numba is missing) or "python" (the reference they are tested equal to)
+    numerics: str = "compiled"
 
     @property
     def frame_age_limit_s(self) -> float:
@@ -128,6 +134,8 @@ class LoopSection:
             )
         if self.timeout_periods < 1:
             raise ValueError("timeout_periods: must be at least 1")
+        if self.numerics not in NUMERICS:
+            raise ValueError(f"numerics: one of {', '.join(NUMERICS)}, got {self.numerics!r}")
         if self.timeout_periods * self.period_s > MAX_SENSOR_TIMEOUT_S:
             raise ValueError(
                 f"timeout_periods: {self.timeout_periods} periods of {self.period_s:g} s is a "

@@ -22,6 +22,11 @@ if [ ! -f "$stamp" ] || [ pyproject.toml -nt "$stamp" ]; then
     # demo right after a fresh install stalled 15-30 ms on the writeback and failed
     sync
 fi
+# the loop's compiled numerics (numba, mrrig/loop/compiled.py) compiled now into __pycache__,
+# so that a daemon's start loads them (about 0.5 s) instead of compiling (about 10 s); a second
+# run only loads them
+echo "bootstrap: compiling the loop's numerics (numba, cached)"
+.venv/bin/python -c "from mrrig.loop import compiled; compiled.warm()"
 # the rerun CLI asks about analytics once; never in CI or at a rig
 .venv/bin/rerun analytics disable >/dev/null 2>&1 || true
 echo "bootstrap: .venv ready"

@@ -137,3 +137,16 @@ def test_bench_loop_sets_the_hybrid_simulation_s_work_beside_the_force_tracking_
     ]
     # the scenario streams a second longer than the simulator: never played out early
     assert hil_args(Path("s.toml"), 60.0) == ("--hil", "s.toml", "--hil-duration", "61.0")
+
+
+def test_bench_loop_prints_the_compiled_work_beside_the_python_work_and_the_target() -> None:
+    from mrrig.offline.bench.loop import compiled_beside_python
+
+    def run(p50: float, p99: float, p999: float) -> dict:
+        work = {"p50": p50, "p99": p99, "p99.9": p999}
+        return {"latency_split_us": {"work": work, "send_call": {"p50": 20.0}}}
+
+    text = compiled_beside_python(run(20.0, 50.0, 150.0), run(80.0, 200.0, 600.0))
+    assert "python / compiled: p50 4.00  p99 4.00  p99.9 4.00" in text
+    assert text.endswith("MET (send() call p50 20 us of it)")
+    assert "MISSED" in compiled_beside_python(run(20.0, 50.5, 100.0), run(80.0, 200.0, 600.0))

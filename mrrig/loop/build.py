@@ -19,6 +19,7 @@ from mrrig.loop.controllers import (
     ControllerSettings,
     make_controller,
 )
+from mrrig.loop.estimation import RealtimeKalman
 from mrrig.loop.inversion import DEFAULT_CONTINUITY
 from mrrig.loop.mlp import MLP, ModelError
 from mrrig.loop.model_fit import RigUnits, check_cost, check_period, check_units
@@ -113,6 +114,10 @@ def build_controller(cfg: DaemonConfig, section=None, model: MLP | None = None) 
         x_half = 0.5 * (cfg.loop.x_range_m[1] - cfg.loop.x_range_m[0])
         checked = self_check(spare, model, c.model, dt, i_max, x_half)
         log.info("%s: self-check passed in %.0f ms", c.model, checked.seconds * 1e3)
+    if cfg.loop.numerics == "compiled":
+        from mrrig.loop import compiled  # numba (LLVM) imported only for the compiled path
+
+        return compiled.compile_controller(controller)
     return controller
 
 
@@ -136,7 +141,29 @@ def load_model(path: Path | None, source: str) -> MLP | TwinModel:
     return load_forward_model(path)  # a network, or a twin (a plant file)
 
 
-def build_reference(r: ReferenceSection, dt_s: float) -> ref.ForceReference:
+def kalman(period_s: float, q: float, r0: float, numerics: str) -> RealtimeKalman:
+    """The daemon's estimate, compiled with `numerics="compiled"` (`mrrig.loop.compiled`)."""
+    if numerics == "compiled":
+        from mrrig.loop import compiled  # numba (LLVM) imported only for the compiled path
+
+        return compiled.kalman(period_s, q, r0, True)
+    return RealtimeKalman(period_s, q=q, r0=r0)
+
+
+def build_reference(
+    r: ReferenceSection, dt_s: float, numerics: str = "python"
+) -> ref.ForceReference:
+    """The reference a section names; a reference damper stepped in compiled code with
+    `numerics="compiled"` (`mrrig.loop.compiled`)."""
+    reference = _reference(r, dt_s)
+    if numerics == "compiled":
+        from mrrig.loop import compiled  # numba (LLVM) imported only for the compiled path
+
+        return compiled.compile_reference(reference)
+    return reference
+
+
+def _reference(r: ReferenceSection, dt_s: float) -> ref.ForceReference:
     if r.kind == "constant":
         return ref.Constant(r.offset_n)
     if r.kind == "sine":

@@ -186,6 +186,22 @@ class Controller(abc.ABC):
         """The forward model's force for `current` (NaN for controllers without one)."""
         return np.full_like(np.asarray(current, dtype=float), np.nan)
 
+    def model_force_one(
+        self, x: float, xd: float, xdd: float, f_meas: float, f_des: float, current_a: float
+    ) -> float:
+        """`model_force` for one lane in plain floats (the daemon's sample of each frame); the
+        controllers with a model override it."""
+        return math.nan
+
+    def _model_force_arrays(
+        self, x: float, xd: float, xdd: float, f_meas: float, f_des: float, current_a: float
+    ) -> float:
+        """`model_force_one` through `model_force` (arrays of one lane)."""
+        s = ControlInput(
+            np.array([x]), np.array([xd]), np.array([xdd]), np.array([f_meas]), np.array([f_des])
+        )
+        return float(self.model_force(s, np.array([current_a]))[0])
+
 
 class ModelInputs:
     """A model's input rows at each control instant, history inputs included.
@@ -441,6 +457,7 @@ class NetworkInversion(Controller):
         self._feat = np.empty(model.n_in - 1)  # the float path's features, reused
         self._feat_ahead = np.empty(model.n_in - 1)
         self._feat_next = np.empty(model.n_in - 1)  # the solved instant's (one step ahead)
+        self._feat_model = np.empty(model.n_in - 1)  # the frame's sample (`model_force_one`)
 
     @staticmethod
     def _forward_inputs(model: MLP) -> ModelInputs:
@@ -486,6 +503,20 @@ class NetworkInversion(Controller):
     def model_force(self, s: ControlInput, current: np.ndarray) -> np.ndarray:
         f = self.model.predict(self._features(s, np.asarray(current, dtype=float)))
         return f if self.adapt is None else self.adapt.force(f)
+
+    def model_force_one(
+        self, x: float, xd: float, xdd: float, f_meas: float, f_des: float, current_a: float
+    ) -> float:
+        """The network's one-sample force (`ScalarInverter.force`: no arrays built), adapted;
+        a model with history inputs as `model_force`."""
+        if self._inputs.samples or self.batch != 1:
+            return self._model_force_arrays(x, xd, xdd, f_meas, f_des, current_a)
+        feat = self._feat_model
+        feat[0], feat[1], feat[2] = x, xd, xdd
+        f = self._scalar.force(feat, current_a)
+        if self.adapt is None:
+            return f
+        return float(self.adapt.force(f)[0])
 
     def after_send(self) -> None:
         if self.adapt is not None and self._f_net_now is not None:
@@ -782,6 +813,11 @@ class TwinInversion(Controller):
                 for j in range(self.batch)
             ]
         )
+
+    def model_force_one(
+        self, x: float, xd: float, xdd: float, f_meas: float, f_des: float, current_a: float
+    ) -> float:
+        return self._model_force_arrays(x, xd, xdd, f_meas, f_des, current_a)
 
     def model_force(self, s: ControlInput, current: np.ndarray) -> np.ndarray:
         """Eq. 30 at the twin's present state and the motion of `s`, with u = `current`."""

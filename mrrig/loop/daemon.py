@@ -20,6 +20,7 @@ frame or timeout). Its parts, each a module of its own:
 
 from __future__ import annotations
 
+import functools
 import gc
 import logging
 import math
@@ -35,11 +36,11 @@ from mrrig.config_gaps import config_gaps
 from mrrig.loop import hil_loop
 from mrrig.loop import reference as ref
 from mrrig.loop.batches import SampleBatches
-from mrrig.loop.build import build_controller, build_reference
+from mrrig.loop.build import build_controller, build_reference, kalman
+from mrrig.loop.collector import CollectorOffWhileArmed
 from mrrig.loop.control_requests import ControlRequests
 from mrrig.loop.coverage import controller_envelope
 from mrrig.loop.detectors import Detectors
-from mrrig.loop.estimation import RealtimeKalman
 from mrrig.loop.exit_codes import Exit
 from mrrig.loop.frame_age import FrameAge
 from mrrig.loop.frame_path import FramePath
@@ -114,7 +115,8 @@ class Daemon(FramePath):
         self.controller = build_controller(cfg)
         # the model's training envelope: each frame is marked against it (`coverage`)
         self.envelope = controller_envelope(self.controller)
-        self.reference = build_reference(cfg.reference, self.period_s)
+        build_ref = functools.partial(build_reference, numerics=cfg.loop.numerics)
+        self.reference = build_ref(cfg.reference, self.period_s)
         try:
             ref.check_in_range(self.reference, cfg.loop.f_range_n)
         except ref.ForceReferenceError as exc:
@@ -124,7 +126,7 @@ class Daemon(FramePath):
         if cfg.hil.scenario is not None:
             self.hil = hil_loop.HilLoop(cfg, self.profile, self.packer, self._set_waveform)
             self.reference = self.hil.reference
-        self.kf = RealtimeKalman(self.period_s, q=cfg.estimator.q, r0=cfg.estimator.r0_m2)
+        self.kf = kalman(self.period_s, cfg.estimator.q, cfg.estimator.r0_m2, cfg.loop.numerics)
         self.supervisor = Supervisor(
             Limits(
                 cfg.loop.x_range_m,
@@ -142,7 +144,7 @@ class Daemon(FramePath):
         # why the daemon raised, where it did: the summary says so (the catalog: `crashed`)
         self.crashed = ""
         self.frame_age = FrameAge()  # of each frame at the bus
-        self.control = ControlWorker(Preparer(self, build_controller, build_reference))
+        self.control = ControlWorker(Preparer(self, build_controller, build_ref))
         self.control.on_start = self._control_thread_started
         self.stop_reason = ""
         self._stop = False
@@ -203,6 +205,7 @@ class Daemon(FramePath):
         self._status_key = None
         self.notifier = sdnotify.Notifier.from_env()  # systemd's READY=1 and watchdog
         self._targets: list[float] = []  # desired forces of the coming frames (`_targets_now`)
+        self._collector = CollectorOffWhileArmed()  # no automatic collection while armed
 
     # ---- time, events and status --------------------------------------------------------
     def now(self) -> float:
@@ -336,6 +339,7 @@ class Daemon(FramePath):
             self.crashed = f"{type(exc).__name__}: {exc}"
             raise
         finally:
+            self._collector.close()
             shut_down(self)
         return self.summary
 
@@ -384,6 +388,7 @@ class Daemon(FramePath):
                 self._send_actuator()
             self._send_status()
             self._read_kernel_stalls()
+            self._collector.after_pass(self.supervisor.active)
             if end is not None and t_rx >= end:
                 self.request_stop(f"duration {cfg.loop.duration_s:g} s reached")
 

@@ -15,11 +15,8 @@ import time
 from dataclasses import replace
 from typing import Any
 
-import numpy as np
-
 from mrrig.loop import hil_loop
 from mrrig.loop import reference as ref
-from mrrig.loop.controllers import ControlInput
 from mrrig.loop.safety import Fault
 from mrrig.loop.samples import RigState
 from mrrig.loop.slew import loop_command
@@ -27,6 +24,14 @@ from mrrig.loop.slew import loop_command
 log = logging.getLogger(__name__)
 
 # the faults of the error detectors' disarm and stop actions
+# a sample row's fields in the order `cycle` writes them (SAMPLE_DTYPE's: a test checks)
+ROW_FIELDS = (
+    "t", "counter", "x", "x_est", "xd", "xdd", "f_meas", "f_des", "f_model", "i_cmd", "i_meas",
+    "latency_us", "adapt_gain", "adapt_offset_n", "temp_degc", "state", "outside",
+    *hil_loop.SAMPLE_FIELDS,
+)  # fmt: skip
+NO_HIL = (math.nan,) * len(hil_loop.SAMPLE_FIELDS)  # a daemon without [hil]
+
 DETECTOR_FAULTS = {
     "tracking_error": Fault.TRACKING_ERROR,
     "velocity": Fault.OVER_VELOCITY,
@@ -246,31 +251,25 @@ class FramePath:
             # work, from the predicted state
             self._prepare_next(t + self.period_s, active)
             if active:
-                s = ControlInput(
-                    np.array([x]),
-                    np.array([xd]),
-                    np.array([xdd]),
-                    np.array([f_meas]),
-                    np.array([f_des]),
-                )
-                f_model = float(self.controller.model_force(s, np.array([i_cmd]))[0])
+                f_model = self.controller.model_force_one(x, xd, xdd, f_meas, f_des, i_cmd)
         except Exception as exc:  # noqa: BLE001
             log.exception("after-send work failed")
             events += sup.trip(t, Fault.INTERNAL_ERROR, f"{type(exc).__name__}: {exc}")
-        row = b.buf[b.n]
-        row["t"], row["counter"], row["x"], row["x_est"] = t, counter, x_meas, x
-        row["xd"], row["xdd"], row["f_meas"], row["f_des"] = xd, xdd, f_meas, f_record
-        row["f_model"], row["i_cmd"] = f_model, i_cmd if active else 0.0
-        row["i_meas"], row["latency_us"], row["state"] = self._i_meas, latency_us, sup.state
-        row["temp_degc"] = self._temp_degc
         env = self.envelope  # off the latency path: the command is sent
-        row["outside"] = math.nan if env is None else env.outside(x, xd, xdd, i_cmd)
-        (hil_loop.record_nan if self.hil is None else self.hil.record)(row)
         adapt = getattr(self.controller, "adapt", None)
-        if adapt is None:
-            row["adapt_gain"] = row["adapt_offset_n"] = math.nan
-        else:
-            row["adapt_gain"], row["adapt_offset_n"] = adapt.theta[0, 0], adapt.offset_n[0]
+        # the row in one assignment, in SAMPLE_DTYPE's order (ROW_FIELDS): a field at a time
+        # cost 18 us a frame
+        b.buf[b.n] = (
+            t, counter, x_meas, x, xd, xdd, f_meas, f_record, f_model,
+            i_cmd if active else 0.0, self._i_meas, latency_us,
+            math.nan if adapt is None else adapt.theta[0, 0],
+            math.nan if adapt is None else adapt.offset_n[0],
+            self._temp_degc, sup.state,
+            math.nan if env is None else env.outside(x, xd, xdd, i_cmd),
+            *NO_HIL,
+        )  # fmt: skip
+        if self.hil is not None:
+            self.hil.record(b.buf[b.n])
         b.n += 1
         if b.n == len(b.buf):
             self._flush_samples()

@@ -311,12 +311,6 @@ class HilLoop:
         }
 
 
-def record_nan(row) -> None:
-    """A sample of a daemon without `[hil]`."""
-    for name in SAMPLE_FIELDS:
-        row[name] = math.nan
-
-
 def hil_row_values(samples: np.ndarray) -> np.ndarray:
     """The streamed frames of a recording or telemetry (those with a model frame index)."""
     return samples[np.isfinite(samples["hil_k"])]

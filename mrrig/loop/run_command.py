@@ -10,7 +10,7 @@ from pathlib import Path
 
 from mrrig import json_text
 from mrrig.cli_args import HelpFormatter, add_bus_options, output_file, positive
-from mrrig.config import load_config
+from mrrig.config import NUMERICS, load_config
 from mrrig.loop.daemon import Daemon
 from mrrig.loop.exit_codes import Exit
 from mrrig.loop.summary import format_summary
@@ -62,6 +62,11 @@ def main(argv: list[str] | None = None) -> int:
         help="override adaptation.enabled: on-line gain and offset of the model's force",
     )
     ap.add_argument(
+        "--numerics",
+        choices=NUMERICS,
+        help="override loop.numerics: the frame's numerics compiled, or on the Python path",
+    )
+    ap.add_argument(
         "--insecure",
         action="store_true",
         help="allow a Zenoh config off loopback without authentication and access control "
@@ -111,6 +116,8 @@ def main(argv: list[str] | None = None) -> int:
         loop["duration_s"] = args.duration
     if args.arm:
         loop["arm_on_start"] = True
+    if args.numerics:
+        loop["numerics"] = args.numerics
     if loop:
         overrides["loop"] = loop
     cfg = load_config(args.config, overrides)

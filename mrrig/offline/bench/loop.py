@@ -6,13 +6,16 @@ prints per run: receive->send latency p50/p99/p99.9/max (the daemon's own measur
 from the bus's receive timestamp) split into the wait before the loop read the frame and the
 loop's work from its read to the end of send() (the spec's budget), frames without a
 command (the simulator's count), the simulator's period jitter, CPU per process, and the on/off
-ratio of the latency p99. A first run replaces the daemon by `mrrig.offline.bench.echo`, which
-answers every frame with a SAFE command and does nothing else: the floor that the transport (bridge,
-Python, this machine) sets, measured the same way in the same session. With `--hil SCENARIO`
-a last run has the daemon run that hybrid simulation (`mrrig run --hil`: the numerical
-substructure and the delay compensation stepped on every frame, an ActuatorSetpoint after
-each command; telemetry and recording off as in the `off` run), so that its work per frame is
-measured beside the force-tracking loop's in the same session (`hil_lines`).
+ratio of the latency p99. The "on" run's daemon runs the frame's numerics compiled
+(`loop.numerics`, mrrig/loop/compiled.py); a "python" run, the same with them on the Python
+path, is printed beside it: the work per frame of both and their ratio. A first run replaces
+the daemon by `mrrig.offline.bench.echo`, which answers every frame with a SAFE command and
+does nothing else: the floor that the transport (bridge, Python, this machine) sets, measured
+the same way in the same session. With `--hil SCENARIO` a last run has the daemon run that
+hybrid simulation (`mrrig run --hil`: the numerical substructure and the delay compensation
+stepped on every frame, an ActuatorSetpoint after each command; telemetry and recording off
+as in the `off` run), so that its work per frame is measured beside the force-tracking loop's
+in the same session (`hil_lines`).
 """
 
 from __future__ import annotations
@@ -60,9 +63,13 @@ def _wait_for_daemon(proc: subprocess.Popen, timeout_s: float = 60.0) -> None:
     raise RuntimeError("daemon did not settle in 60 s")
 
 
-MODES = ("echo", "off", "on")
+MODES = ("echo", "off", "on", "python")
 BUDGET_P99_US = 300.0  # spec/system.md: the daemon's work per frame
 BUDGET_P999_US = 1000.0  # transport floor; daemon without / with telemetry+recording
+# issue 44's target for the work per frame (read -> end of send), compiled, telemetry and
+# recording on
+TARGET_WORK_P99_US = 50.0
+TARGET_WORK_P999_US = 150.0
 
 
 def run_once(
@@ -96,8 +103,10 @@ def run_once(
                 "--summary-json",
                 str(work / "daemon.json"),
             ]
-        if mode == "on":
+        if mode in ("on", "python"):
             cmd += ["--record", str(work / "bench.rrd")]
+        if mode == "python":
+            cmd += ["--numerics", "python"]
         elif mode in ("off", "hil"):
             cmd += ["--no-record", "--no-telemetry"]
         cmd += list(daemon_args)
@@ -148,7 +157,8 @@ def run_once(
         )
         return {
             "mode": mode,
-            "telemetry_and_recording": mode == "on",
+            "telemetry_and_recording": mode in ("on", "python"),
+            "numerics": "python" if mode == "python" else "compiled",
             "duration_s": d.get("duration_s", wall),
             "frames": d["frames"],
             "latency_us": d["latency_us"],
@@ -271,6 +281,7 @@ def format_run(r: dict) -> str:
         "off": "daemon, telemetry+recording OFF",
         "on": "daemon, telemetry+recording ON",
         "hil": "daemon running the hybrid simulation, telemetry+recording OFF",
+        "python": "daemon, telemetry+recording ON, numerics on the Python path",
     }[r["mode"]]
     return "\n".join(
         [
@@ -315,6 +326,26 @@ def format_run(r: dict) -> str:
             ),
         ]
     )
+
+
+QUANTILES = ("p50", "p99", "p99.9")
+
+
+def compiled_beside_python(compiled: dict, python: dict) -> str:
+    """The work per frame of the two runs (telemetry and recording on), their ratio, and issue
+    44's target for the compiled one."""
+    c, p = compiled["latency_split_us"]["work"], python["latency_split_us"]["work"]
+    lines = ["work per frame us (read -> end of send), telemetry+recording ON:"]
+    for name, q in (("compiled", c), ("python", p)):
+        lines.append("  " + f"{name:<9}" + "  ".join(f"{k} {q[k]:.0f}" for k in QUANTILES))
+    lines.append("  python / compiled: " + "  ".join(f"{k} {p[k] / c[k]:.2f}" for k in QUANTILES))
+    met = c["p99"] <= TARGET_WORK_P99_US and c["p99.9"] <= TARGET_WORK_P999_US
+    lines.append(
+        f"  target (issue 44, compiled): p99 <= {TARGET_WORK_P99_US:g} us, p99.9 <= "
+        f"{TARGET_WORK_P999_US:g} us: {'MET' if met else 'MISSED'} (send() call p50 "
+        f"{compiled['latency_split_us']['send_call']['p50']:.0f} us of it)"
+    )
+    return "\n".join(lines)
 
 
 def budget_verdict(r: dict) -> str:
@@ -391,6 +422,12 @@ def main(argv: list[str] | None = None) -> int:
         ratio = runs["on"]["latency_us"]["p99"] / runs["off"]["latency_us"]["p99"]
         result["p99_ratio_on_off"] = ratio
         print(f"latency p99 ratio on/off: {ratio:.2f}")
+    if "on" in runs and "python" in runs:
+        print(compiled_beside_python(runs["on"], runs["python"]))
+        work = runs["on"]["latency_split_us"]["work"]
+        result["work_python_over_compiled"] = {
+            q: runs["python"]["latency_split_us"]["work"][q] / work[q] for q in QUANTILES
+        }
     if "echo" in runs:
         floor = runs["echo"]["latency_us"]
         print(
