@@ -6,16 +6,24 @@ python-can virtual bus, the test playing the firmware frame by frame (`ScriptedR
 
 from __future__ import annotations
 
+import itertools
 import time
 
+import numpy as np
 import pytest
 
-from mrrig.loop.samples import RigState
+from mrrig.api.hil import HilResult, judge
+from mrrig.hil.reference import run_reference
+from mrrig.loop.samples import SAMPLE_DTYPE, RigState
+from mrrig.plans.criteria import failures, measure
+from mrrig.plans.hil_step import hil_failures, hil_numbers, hil_tries, step_scenario
+from mrrig.plans.plan import load_plan
 from tests.conftest import REPO
 from tests.rig_harness import ScriptedRig
 
 SCENARIO = REPO / "configs/hil/quarter-car-laws.toml"
 HOLD_S = 0.05
+TIMEOUT_PERIODS = 250  # 0.5 s
 
 
 class Frames:
@@ -48,8 +56,8 @@ class Frames:
         return cmd
 
     def settle(self) -> None:
-        """The frames the daemon sent after its last command (its ActuatorCommand); only
-        where the rig is not armed (no frame for 0.1 s: an armed one faults sensor_timeout)."""
+        """The frames the daemon sent after its last command (its ActuatorCommand), 0.1 s
+        without a sensor frame."""
         self._take(0.1)
 
     def mark(self) -> int:
@@ -64,9 +72,12 @@ class Frames:
 
 def _rig(tmp_path) -> ScriptedRig:
     """A `[hil]` daemon (the quarter-car plan's scenario, 2 s), armed by request; the frame
-    age limit the harness's (0.1 s: the test thread plays the firmware)."""
+    age limit the harness's (0.1 s: the test thread plays the firmware), the sensor timeout
+    0.5 s (no frames flow while the harness waits for a request's preparation: an arm's
+    builds its run)."""
     hil = {"scenario": str(SCENARIO), "duration_s": 2.0, "hold_s": HOLD_S}
-    return ScriptedRig(tmp_path, overrides={"hil": hil, "loop": {"arm_on_start": False}})
+    overrides = {"hil": hil, "loop": {"arm_on_start": False}}
+    return ScriptedRig(tmp_path, timeout_periods=TIMEOUT_PERIODS, overrides=overrides)
 
 
 @pytest.mark.parametrize(
@@ -138,3 +149,88 @@ def test_a_run_is_built_off_the_loop_so_its_first_frame_is_answered_in_time(tmp_
         assert status["fault"] is None, status["fault_reason"]
         assert cmd["Mode"] == 1 and d.hil.streaming
         assert d.hil.step.scenario.duration_s == 600.0
+
+
+def test_an_arm_after_a_transport_fault_starts_the_scenario_from_its_first_frame(tmp_path):
+    """A transport fault (here the sensor frames stop: `sensor_timeout`) ends the run at
+    once, HOLD then STOP with no frame to answer (the run ended only at a next frame: until
+    then the daemon repeated STREAM, and a HOLD sent then stayed: the piston held); an arm
+    after the `reset` (a client's re-arm: `mrrig hil --tries`, a plan's hil step) starts a
+    fresh run at the scenario's frame 0, never the old one where it stopped."""
+    with _rig(tmp_path) as rig:
+        d = rig.daemon
+        frames = Frames(rig)
+        assert rig.request({"cmd": "arm"})["ok"]
+        frames.exchange(30)
+        k_before = d.hil.step.substructure.k
+        assert k_before >= 29
+        mark = frames.mark()
+        time.sleep(0.8)  # no sensor frame for longer than the timeout (0.5 s), and hold_s
+        status = d.status()
+        assert status["fault"] == "sensor_timeout" and not d.hil.streaming, status
+        frames.settle()
+        waves = [w for w, _ in itertools.groupby(frames.waveforms_since(mark))]  # repeats
+        assert waves[-2:] == ["HOLD", "STOP"], waves
+        assert rig.request({"cmd": "reset"})["ok"]
+        frames.exchange(3)
+        armed = rig.request({"cmd": "arm"})
+        assert armed["ok"], armed
+        frames.exchange(5)
+        assert d.status()["fault"] is None and d.hil.streaming and d.hil.runs == 2
+        assert d.hil.step.substructure.k <= 6 < k_before
+
+
+def _hil_plan(tmp_path, faults: str):
+    path = tmp_path / f"plan-{faults}.toml"
+    path.write_text(
+        f"""
+[plan]
+name = "one-law"
+[[step]]
+name = "skyhook"
+duration_s = 2
+hil = {{ scenario = "{SCENARIO}", law = "skyhook" }}
+criteria = {{ agreement_pct_max = 3.0, faults = "{faults}" }}
+"""
+    )
+    return load_plan(path).steps[0]
+
+
+def _run(reference, frames: int, end: dict) -> HilResult:
+    """A run's telemetry as the daemon records it over the scenario's first `frames`, from the
+    reference (tracking perfectly: x_m = x_c), judged as `mrrig hil` does; `end` its status."""
+    s = np.zeros(frames, SAMPLE_DTYPE)
+    s["state"] = RigState.ARMED
+    s["hil_k"] = np.arange(frames)
+    s["hil_x_c"] = s["x"] = reference.stroke_m[:frames]
+    s["hil_acc"] = reference.outputs["body_acceleration_m_s2"][:frames]
+    s["hil_load_n"] = reference.outputs["tyre_load_n"][:frames]
+    judged, missing, t, errors, figures = judge(s, reference)
+    return HilResult(judged, missing, t, errors, figures, 0.0, end, samples=s)
+
+
+def test_a_hil_step_is_judged_on_its_whole_run_whatever_faults_it_allows(tmp_path):
+    """With `faults = "transport"` a hil step whose run a transport fault ended at a quarter
+    of the scenario passed: the quarter agreed with the reference's same frames, and the fault
+    was allowed. The step judges only a whole run: a run a transport fault ended is run again
+    from the scenario's start (up to 3 runs, each fault counted), and one that did not play
+    out fails the step, saying where and why it ended."""
+    step = _hil_plan(tmp_path, "transport")
+    reference = run_reference(step_scenario(step))
+    n = reference.stroke_m.size
+    cut = n // 4
+    why = "no sensor frame for 120.0 ms"
+    end = {
+        "fault": "sensor_timeout",
+        "fault_reason": why,
+        "hil": {"k": cut, "steps": n, "ended": why},
+    }
+    run = _run(reference, cut, end)
+    numbers = hil_numbers("skyhook", run)
+    assert all(abs(p) < 1e-9 for p in numbers.agreement_pct().values())  # the part agrees
+    reasons = failures(step.criteria, measure(run.samples, 0.0), ["sensor_timeout"])
+    reasons += hil_failures(step.criteria, numbers)
+    assert reasons == [f"the run ended at frame {cut} of {n}: {why}"]
+    whole = _run(reference, n, {"fault": None, "hil": {"k": n, "steps": n, "ended": "played out"}})
+    assert hil_failures(step.criteria, hil_numbers("skyhook", whole)) == []
+    assert hil_tries(step) == 3 and hil_tries(_hil_plan(tmp_path, "none")) == 1

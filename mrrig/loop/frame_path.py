@@ -129,6 +129,8 @@ class FramePath:
 
     def check_timeout(self, now_abs: float) -> None:
         """No sensor frame for timeout_periods: FAULT, and a SAFE command on its own."""
+        if self.hil is not None:  # a run's end and HOLD, STOP, with no frame to wait for
+            self.hil.tick(now_abs - self.t0, self.supervisor)
         limit = self.cfg.loop.timeout_periods * self.period_s
         if self._last_sensor_t is None:
             self._emit(self.sensors.first_frame(now_abs, limit, now_abs - self.t0))

@@ -199,11 +199,8 @@ class HilLoop:
                 )
                 return sup.trip(t, Fault.HIL_SAFETY, f"hil: {why}")
             self._start(t)
-        elif not sup.active and self.streaming:
-            self._end(t, sup.reason or "disarmed")
-        if self._stop_at is not None and t >= self._stop_at:
-            self._stop_at = None
-            self._set_waveform("stop", 0.0)  # the firmware ramps the piston to rest
+        else:
+            self.tick(t, sup)
         if not self.streaming:
             self.reference.force_n = 0.0
             return events
@@ -234,6 +231,17 @@ class HilLoop:
             events += sup.disarm(t, "hil: the scenario is played out")
             self._end(t, "the scenario is played out")
         return events
+
+    def tick(self, t: float, sup: Supervisor) -> None:
+        """Each frame, and each pass of the loop without one (`check_timeout`): a run the
+        supervisor left ARMED ends now (HOLD), and STOP follows `hold_s` later, whether the
+        sensor frames come or not (a fault that stopped them must not leave the piston held,
+        nor the daemon repeating STREAM)."""
+        if self.streaming and not sup.active:
+            self._end(t, sup.reason or "disarmed")
+        if self._stop_at is not None and t >= self._stop_at:
+            self._stop_at = None
+            self._set_waveform("stop", 0.0)  # the firmware ramps the piston to rest
 
     def command(self, i_a: float, i_max_a: float) -> float:
         """The frame's current: the law's own where it asks one (passive-soft/hard), else the

@@ -37,6 +37,8 @@ OUTPUTS = {
 }
 # a figure the rig cannot give above this force (the load cell's, as `mrrig hil`)
 FORCE_LIMIT_N = 6000.0
+# runs in all of a hil step with `faults = "transport"` (`mrrig hil --tries`' default)
+HIL_TRIES = 3
 
 
 @dataclass(frozen=True)
@@ -48,6 +50,16 @@ class HilNumbers:
     missing: int
     tracking: Tracking | None
     rms: dict[str, tuple[float, float]]
+    # how far the judged run went (the model's frames of the scenario's) and why it ended
+    end_k: int = 0
+    steps: int = 0
+    ended: str = ""
+
+    def unfinished(self) -> str | None:
+        """Why the run is not the whole scenario (a fault ended it early), None if it is."""
+        if self.end_k >= self.steps:
+            return None
+        return f"the run ended at frame {self.end_k} of {self.steps}: {self.ended or '-'}"
 
     def agreement_pct(self) -> dict[str, float]:
         """Each output's RMS against the reference's: 100 (HIL - reference) / reference."""
@@ -56,7 +68,11 @@ class HilNumbers:
 
 def hil_numbers(law: str, result) -> HilNumbers:
     """The numbers of a `mrrig.api.hil.HilResult`."""
-    return HilNumbers(law, result.frames, result.missing, result.tracking, result.figures)
+    h = result.end.get("hil") or {}
+    return HilNumbers(
+        law, result.frames, result.missing, result.tracking, result.figures,
+        end_k=int(h.get("k", 0)), steps=int(h.get("steps", 0)), ended=str(h.get("ended", "")),
+    )  # fmt: skip
 
 
 def _label(name: str) -> tuple[str, str, float]:
@@ -87,6 +103,10 @@ def hil_failures(criteria: Criteria, numbers: HilNumbers | None) -> list[str]:
     if numbers is None:
         return ["the run was not judged (no HIL numbers)"]
     out = []
+    # a part of the scenario is not the scenario: whatever faults the step allows (a run a
+    # transport fault ended was run again from its start, `run_hil_step`'s tries)
+    if (why := numbers.unfinished()) is not None:
+        out.append(why)
     if criteria.agreement_pct_max is not None and not numbers.rms:
         out.append("agreement_pct_max: the run was not judged (too few frames)")
     for field, what, value, limit, unit in _limits(criteria, numbers):
@@ -202,10 +222,18 @@ def before_arming(step: Step, hil_status: dict | None) -> tuple[Scenario, Refere
     return scenario, reference
 
 
+def hil_tries(step: Step) -> int:
+    """Runs in all a hil step may take: with `faults = "transport"` a run that a transport
+    fault ended is run again from the scenario's start (never resumed, never judged in part),
+    up to HIL_TRIES; otherwise one (a fault fails the step)."""
+    return HIL_TRIES if step.criteria.faults == "transport" else 1
+
+
 def run_hil_step(rig, step: Step, progress: Callable[[str], None]):
-    """The step's run on the rig (disarmed, `set_hil` sent): its `HilResult`, with the
-    reference beside it. ValueError or `mrrig.api.hil.HilRunError` where it cannot run."""
-    from mrrig.api.hil import follow
+    """The step's run on the rig (disarmed, `set_hil` sent): its `HilResult` (the last run's,
+    `retried` the transport faults of the runs before it), with the reference beside it.
+    ValueError or `mrrig.api.hil.HilRunError` where it cannot run."""
+    from mrrig.api.hil import follow_tries
 
     scenario, reference = before_arming(step, rig.status().get("hil"))
-    return follow(rig, scenario, reference, progress)
+    return follow_tries(rig, scenario, reference, progress, hil_tries(step))

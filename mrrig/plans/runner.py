@@ -290,6 +290,9 @@ def _run_hil_step(
     result.samples = run.samples
     result.numbers = measure(run.samples, 0.0)
     result.hil = hil_numbers(law, run)
+    # the transport faults of the runs before (each run again from the scenario's start)
+    result.faults += [why.partition(":")[0] for why in run.retried]
+    result.rearms = len(run.retried)
     fault = run.end.get("fault")
     if fault is not None:
         result.faults.append(fault)
