@@ -234,3 +234,75 @@ def test_a_hil_step_is_judged_on_its_whole_run_whatever_faults_it_allows(tmp_pat
     whole = _run(reference, n, {"fault": None, "hil": {"k": n, "steps": n, "ended": "played out"}})
     assert hil_failures(step.criteria, hil_numbers("skyhook", whole)) == []
     assert hil_tries(step) == 3 and hil_tries(_hil_plan(tmp_path, "none")) == 1
+
+
+# ---- set_hil, hostile (the values `mrrig bench fuzz` sends) -------------------------------
+def _set_hil_payloads() -> list[dict]:
+    """Each of the fuzz's set_hil values alone, then 40 of its random set_hil requests."""
+    import json
+    import random
+
+    from mrrig.offline.bench.fuzz import SET_HIL_VALUES, random_request
+
+    out = [{"cmd": "set_hil", name: v} for name, vs in SET_HIL_VALUES.items() for v in vs]
+    rng = random.Random(41)
+    while len(out) < 80:
+        raw = random_request(rng)
+        req = json.loads(raw) if isinstance(raw, str) and '"set_hil"' in raw else None
+        if isinstance(req, dict) and req.get("cmd") == "set_hil":
+            out.append(req)
+    return out
+
+
+def test_a_hostile_set_hil_is_one_line_or_a_run_the_scenario_takes_and_never_while_armed(
+    tmp_path,
+):
+    """Every set_hil value of `mrrig bench fuzz` (NaN, inf, 1e308, a wrong type, an unknown
+    law, unknown fields) sent as a client's bytes to a `[hil]` daemon: refused in one line
+    naming the field, or taken as a checked scenario (a duration in [period_s, 3600] s, a law
+    the substructure has) whose run is built before the loop sees it; while armed, each one
+    refused, and the run and scenario in force unchanged."""
+    import json
+    import math
+
+    from mrrig.config import load_config
+    from mrrig.hil.laws import LAWS
+    from mrrig.loop.daemon import Daemon, build_controller, build_reference
+    from mrrig.rigio.control import Preparer, RequestError, parse_request
+    from tests.conftest import rig_config
+
+    config = rig_config(tmp_path, "unused", None, hil={"scenario": str(SCENARIO)})
+    d = Daemon(load_config(config, {"controller": {"name": "constant", "current_a": 0.5}}))
+    prep = Preparer(d, build_controller, build_reference)
+    payloads = _set_hil_payloads()
+    taken = refused = 0
+    for req in payloads:
+        raw = json.dumps(req).encode()  # NaN, Infinity as Python writes them
+        try:
+            change = prep.prepare(parse_request(raw))
+        except RequestError as exc:
+            text = str(exc)
+            assert "\n" not in text and len(text) < 300, text
+            assert any(f"{name}:" in text for name in req if name != "cmd"), (req, text)
+            refused += 1
+            continue
+        s = change.hil_scenario
+        s.check()
+        assert math.isfinite(s.duration_s) and s.period_s <= s.duration_s <= 3600.0
+        assert s.law in LAWS and change.hil_run.scenario is s
+        d.requests.apply(change)
+        assert d.hil.scenario is s and d.hil.run_ready()
+        taken += 1
+    print(f"set_hil: {len(payloads)} sent, {taken} taken, {refused} refused in one line")
+    assert taken and refused
+    ok, why, _ = d.supervisor.arm(d.now())
+    assert ok, why
+    in_force = d.hil.scenario
+    for req in payloads:
+        try:
+            parsed = parse_request(json.dumps(req).encode())
+        except RequestError:
+            continue  # refused as it is read (NaN, too large), before any state
+        with pytest.raises(RequestError, match=r"^set_hil only when not armed"):
+            prep.prepare(parsed)
+    assert d.hil.scenario is in_force
