@@ -5,7 +5,9 @@ Per step: out of FAULT by an explicit `reset` (spec/system.md: a new step needs 
 the step's actuator, controller and profile, arm, settle, telemetry for the step's duration,
 disarm, verdict. A fault aborts the step with the fault's reason (with `faults = "transport"`
 a transport fault is reset and re-armed, and counted, at most 3 times in any 10 s: one more is
-a faulty bus, and aborts the step); Ctrl-C disarms, marks the step aborted and ends the plan.
+a faulty bus, and aborts the step; a hil step's run is never re-armed mid-scenario: one a
+transport fault ended is run again from its start, `mrrig.plans.hil_step.hil_tries`); Ctrl-C
+disarms, marks the step aborted and ends the plan.
 The arm's lease is renewed in the background while the step holds the rig (`mrrig.api.Rig`):
 a plan killed mid-step leaves the daemon to disarm and stop the actuator once it lapses; the
 plan's end (normal or Ctrl-C) stops the actuator.
