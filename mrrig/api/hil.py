@@ -146,38 +146,39 @@ def run_on_rig(
     tries: int = 1,
 ) -> HilResult:
     """Arm the rig (its daemon runs the scenario), follow it once a second until the run
-    ends, disarm, and judge the telemetry. A run ended by a transport fault (a stall of the
-    bus or a process: `TRANSPORT_FAULTS`) is run again after a `reset`, up to `tries` runs in
-    all, as `mrrig demo` re-arms after one; each such fault is in `HilResult.retried`."""
+    ends, disarm, and judge the telemetry; a run ended by a transport fault is run again from
+    its start (`follow_tries`)."""
+    from mrrig.api import Rig
+
+    with Rig(rig_name, zenoh_config=zenoh_config) as rig:
+        return follow_tries(rig, scenario, reference, progress, tries)
+
+
+def follow_tries(
+    rig,
+    scenario: Scenario,
+    reference: ReferenceRun,
+    progress: Callable[[str], None],
+    tries: int = 1,
+) -> HilResult:
+    """`follow`; a run ended by a transport fault (a stall of the bus or a process:
+    `TRANSPORT_FAULTS`) is run again from its start (the daemon starts a fresh run at each
+    arm, never resumes one) after a `reset` and the piston's return to rest, up to `tries`
+    runs in all, as `mrrig demo` re-arms after one; each such fault, with its reason, is in
+    `HilResult.retried` and said by `progress`. The result is the last run's."""
     from mrrig.loop.safety import TRANSPORT_FAULTS
 
     retried: list[str] = []
     while True:
-        result = _run_once(rig_name, scenario, reference, zenoh_config, progress)
+        result = follow(rig, scenario, reference, progress)
         fault = result.end.get("fault")
         if fault not in TRANSPORT_FAULTS or len(retried) + 1 >= tries:
             return dataclasses.replace(result, retried=tuple(retried))
         why = f"{fault}: {result.end.get('fault_reason')}"
         retried.append(why)
-        progress(f"the run ended by a transport fault ({why}): reset, and run it again")
-        from mrrig.api import Rig
-
-        with Rig(rig_name, zenoh_config=zenoh_config) as rig:
-            rig.reset()
-            time.sleep(1.0)  # HOLD, then STOP: the piston back at rest
-
-
-def _run_once(
-    rig_name: str,
-    scenario: Scenario,
-    reference: ReferenceRun,
-    zenoh_config: Path,
-    progress: Callable[[str], None],
-) -> HilResult:
-    from mrrig.api import Rig
-
-    with Rig(rig_name, zenoh_config=zenoh_config) as rig:
-        return follow(rig, scenario, reference, progress)
+        progress(f"the run ended by a transport fault ({why}): reset, and run it from its start")
+        rig.reset()
+        time.sleep(1.0)  # HOLD, then STOP: the piston back at rest
 
 
 def follow(

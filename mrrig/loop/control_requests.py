@@ -59,6 +59,8 @@ class ControlRequests:
             ok, msg, events = sup.arm(d.now())
             if not ok:
                 raise RequestError(msg)
+            if c.hil_run is not None:  # the run this arm starts, built off the loop
+                d.hil.ready(c.hil_run)
             if events:
                 self.lease.end()  # armed anew: a lease of its own
                 d.actuator_at_arm = d.actuator
@@ -108,6 +110,7 @@ class ControlRequests:
             if d.hil.streaming:  # a disarm ends the run at the next frame
                 raise RequestError("set_hil: the last run is still ending (ask again)")
             d.hil.set_scenario(c.hil_scenario)
+            d.hil.ready(c.hil_run)
             d._send_status(force=True)
             return {"hil": d.hil.status()}
         if c.cmd == "set_profile":

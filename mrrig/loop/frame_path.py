@@ -99,7 +99,10 @@ class FramePath:
         self._temp_degc = v["DamperTemperature"]
         status = self.profile.firmware_status(v)
         if status is not None:
-            self._emit(self.supervisor.firmware_status(t_rx - self.t0, *status))
+            t = t_rx - self.t0
+            self._emit(self.supervisor.firmware_status(t, *status))
+            if self.hil is not None:  # a stream fault of the firmware ends the run
+                self._emit(self.hil.firmware_status(t, status[1], status[2], self.supervisor))
 
     def _restart_estimate(self, t_rx: float, x_meas: float, gap_s: float) -> None:
         """After a gap longer than the sensor timeout the 4-bit counter no longer tells how
@@ -131,6 +134,8 @@ class FramePath:
 
     def check_timeout(self, now_abs: float) -> None:
         """No sensor frame for timeout_periods: FAULT, and a SAFE command on its own."""
+        if self.hil is not None:  # a run's end and HOLD, STOP, with no frame to wait for
+            self.hil.tick(now_abs - self.t0, self.supervisor)
         limit = self.cfg.loop.timeout_periods * self.period_s
         if self._last_sensor_t is None:
             self._emit(self.sensors.first_frame(now_abs, limit, now_abs - self.t0))

@@ -49,6 +49,14 @@ SAMPLE_FIELDS = ("hil_k", "hil_x_c", "hil_setpoint", "hil_delay_s", "hil_acc", "
 # a run starts with the piston this close to 0 (the model's equilibrium): else a fault
 REST_TOLERANCE_M = 0.002
 
+# the firmware's FaultCodes (RigStatus; contract 1.1) that break a stream while the firmware
+# itself runs on (State RUNNING, so the supervisor takes no fault of them): by the DBC's label,
+# with what the firmware did
+STREAM_FAULTS = {
+    "ACTUATOR_SETPOINT_TIMEOUT": (7, "no valid ActuatorSetpoint for 20 ms: it holds the piston"),
+    "STROKE_LIMIT": (3, "it clamped a setpoint to its envelope or stroke"),
+}
+
 
 class HilDemand(ref.ForceReference):
     """The law's desired force of the present frame, set by `HilLoop.on_frame` (0 N while no
@@ -160,6 +168,9 @@ class HilLoop:
             self.scenario.period_s,
         )
         self.step: HybridStep | None = None
+        # the next run, built off the loop (here, and by an arm's or set_hil's preparation):
+        # its excitation record takes 10 ms to seconds, the first one half a second more
+        self._next_run: HybridStep | None = self.build_run()
         self.streaming = False
         self.current: float | None = None  # a law's current for this frame (sent as it is)
         self._setpoint: tuple[float, float] | None = None  # this frame's, to send
@@ -188,11 +199,8 @@ class HilLoop:
                 )
                 return sup.trip(t, Fault.HIL_SAFETY, f"hil: {why}")
             self._start(t)
-        elif not sup.active and self.streaming:
-            self._end(t, sup.reason or "disarmed")
-        if self._stop_at is not None and t >= self._stop_at:
-            self._stop_at = None
-            self._set_waveform("stop", 0.0)  # the firmware ramps the piston to rest
+        else:
+            self.tick(t, sup)
         if not self.streaming:
             self.reference.force_n = 0.0
             return events
@@ -224,6 +232,17 @@ class HilLoop:
             self._end(t, "the scenario is played out")
         return events
 
+    def tick(self, t: float, sup: Supervisor) -> None:
+        """Each frame, and each pass of the loop without one (`check_timeout`): a run the
+        supervisor left ARMED ends now (HOLD), and STOP follows `hold_s` later, whether the
+        sensor frames come or not (a fault that stopped them must not leave the piston held,
+        nor the daemon repeating STREAM)."""
+        if self.streaming and not sup.active:
+            self._end(t, sup.reason or "disarmed")
+        if self._stop_at is not None and t >= self._stop_at:
+            self._stop_at = None
+            self._set_waveform("stop", 0.0)  # the firmware ramps the piston to rest
+
     def command(self, i_a: float, i_max_a: float) -> float:
         """The frame's current: the law's own where it asks one (passive-soft/hard), else the
         controller's `i_a`; while a run streams, within the scenario's damper range (0 to
@@ -250,13 +269,49 @@ class HilLoop:
             self.setpoints_sent += 1
         return []
 
+    def firmware_status(self, t: float, code: int, label: str, sup: Supervisor) -> list[dict]:
+        """A RigStatus while a run streams: a stream fault of the firmware (FaultCode 7, the
+        setpoint watchdog; 3, a setpoint clamped) ends the run as the loop's own checks do
+        (fault, SAFE, HOLD then STOP): the piston no longer follows the model's stroke."""
+        known = STREAM_FAULTS.get(label)
+        if known is None and label == str(code):  # a layout without the contract's labels
+            known = next((v for v in STREAM_FAULTS.values() if v[0] == code), None)
+        if not self.streaming or known is None:
+            return []
+        if not sup.active:  # faulted already (the firmware's FAULT state, ...)
+            self._end(t, sup.reason or "disarmed")
+            return []
+        why = f"the firmware reports FaultCode {known[0]} ({label}) while streaming: {known[1]}"
+        events = sup.trip(t, Fault.HIL_SAFETY, f"hil: {why}")
+        self._end(t, why)
+        return events
+
     def record(self, row) -> None:
         for name, value in self._row.items():
             row[name] = value
 
     # ---- start and end -----------------------------------------------------------------
+    def build_run(self, scenario: Scenario | None = None) -> HybridStep:
+        """A fresh run of `scenario` (default the one in force): any thread but the loop."""
+        return HybridStep(self.scenario if scenario is None else scenario)
+
+    def run_ready(self) -> bool:
+        """Whether the next run of the scenario in force is built (any thread: a snapshot)."""
+        run = self._next_run
+        return run is not None and run.scenario is self.scenario
+
+    def ready(self, run: HybridStep | None) -> None:
+        """The next run, built off the loop (loop thread, while disarmed); one of a scenario no
+        longer in force (a `set_hil` applied after it was built) is not taken."""
+        if run is not None and run.scenario is self.scenario:
+            self._next_run = run
+
     def _start(self, t: float) -> None:
-        self.step = HybridStep(self.scenario)
+        ready, run, self._next_run = self.run_ready(), self._next_run, None
+        if not ready:
+            log.warning("hil: run %d built in the loop (no run was ready)", self.runs + 1)
+            run = HybridStep(self.scenario)
+        self.step = run
         self._watch.reset()
         self._stream.restart()
         self.streaming = True

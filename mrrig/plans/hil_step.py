@@ -23,7 +23,6 @@ from mrrig.config import ACTUATOR_AMPLITUDE_MAX_M
 from mrrig.hil.metrics import StallApart, Tracking
 from mrrig.hil.reference import ReferenceRun, envelope_problem, percent_change, run_reference
 from mrrig.hil.scenario import Scenario, load_scenario
-from mrrig.loop.safety import TRANSPORT_FAULTS
 from mrrig.plans.criteria import Criteria
 from mrrig.plans.plan import Step
 from mrrig.rigio.run_identity import file_sha256
@@ -38,6 +37,8 @@ OUTPUTS = {
 }
 # a figure the rig cannot give above this force (the load cell's, as `mrrig hil`)
 FORCE_LIMIT_N = 6000.0
+# runs in all of a hil step with `faults = "transport"` (`mrrig hil --tries`' default)
+HIL_TRIES = 3
 
 
 @dataclass(frozen=True)
@@ -50,6 +51,16 @@ class HilNumbers:
     tracking: Tracking | None
     rms: dict[str, tuple[float, float]]
     apart: StallApart | None = None  # J2, J3 apart from what a measured stall explains
+    # how far the judged run went (the model's frames of the scenario's) and why it ended
+    end_k: int = 0
+    steps: int = 0
+    ended: str = ""
+
+    def unfinished(self) -> str | None:
+        """Why the run is not the whole scenario (a fault ended it early), None if it is."""
+        if self.end_k >= self.steps:
+            return None
+        return f"the run ended at frame {self.end_k} of {self.steps}: {self.ended or '-'}"
 
     def agreement_pct(self) -> dict[str, float]:
         """Each output's RMS against the reference's: 100 (HIL - reference) / reference."""
@@ -58,9 +69,11 @@ class HilNumbers:
 
 def hil_numbers(law: str, result) -> HilNumbers:
     """The numbers of a `mrrig.api.hil.HilResult`."""
+    h = result.end.get("hil") or {}
     return HilNumbers(
-        law, result.frames, result.missing, result.tracking, result.figures, result.apart
-    )
+        law, result.frames, result.missing, result.tracking, result.figures, result.apart,
+        end_k=int(h.get("k", 0)), steps=int(h.get("steps", 0)), ended=str(h.get("ended", "")),
+    )  # fmt: skip
 
 
 def _label(name: str) -> tuple[str, str, float]:
@@ -91,6 +104,10 @@ def hil_failures(criteria: Criteria, numbers: HilNumbers | None) -> list[str]:
     if numbers is None:
         return ["the run was not judged (no HIL numbers)"]
     out = []
+    # a part of the scenario is not the scenario: whatever faults the step allows (a run a
+    # transport fault ended was run again from its start, `run_hil_step`'s tries)
+    if (why := numbers.unfinished()) is not None:
+        out.append(why)
     if criteria.agreement_pct_max is not None and not numbers.rms:
         out.append("agreement_pct_max: the run was not judged (too few frames)")
     for field, what, value, limit, unit in _limits(criteria, numbers):
@@ -208,22 +225,18 @@ def before_arming(step: Step, hil_status: dict | None) -> tuple[Scenario, Refere
     return scenario, reference
 
 
-# a hil step's runs in all where each ends by a transport fault (`faults = "transport"`)
-HIL_RUNS = 3
-
-
-def run_again(criteria: Criteria, fault: str | None, runs: int) -> bool:
-    """Whether a hil step runs its scenario again after `runs` runs, the last one ended by
-    `fault`: a transport fault (a stall of the bus or a process, `TRANSPORT_FAULTS`) where the
-    step allows them (`faults = "transport"`, as an ordinary step re-arms), at most `HIL_RUNS`
-    runs in all. A hybrid run cannot be re-armed where it stopped: the model starts again."""
-    return criteria.faults == "transport" and fault in TRANSPORT_FAULTS and runs < HIL_RUNS
+def hil_tries(step: Step) -> int:
+    """Runs in all a hil step may take: with `faults = "transport"` a run that a transport
+    fault ended is run again from the scenario's start (never resumed, never judged in part),
+    up to HIL_TRIES; otherwise one (a fault fails the step)."""
+    return HIL_TRIES if step.criteria.faults == "transport" else 1
 
 
 def run_hil_step(rig, step: Step, progress: Callable[[str], None]):
-    """The step's run on the rig (disarmed, `set_hil` sent): its `HilResult`, with the
-    reference beside it. ValueError or `mrrig.api.hil.HilRunError` where it cannot run."""
-    from mrrig.api.hil import follow
+    """The step's run on the rig (disarmed, `set_hil` sent): its `HilResult` (the last run's,
+    `retried` the transport faults of the runs before it), with the reference beside it.
+    ValueError or `mrrig.api.hil.HilRunError` where it cannot run."""
+    from mrrig.api.hil import follow_tries
 
     scenario, reference = before_arming(step, rig.status().get("hil"))
-    return follow(rig, scenario, reference, progress)
+    return follow_tries(rig, scenario, reference, progress, hil_tries(step))

@@ -5,7 +5,9 @@ Per step: out of FAULT by an explicit `reset` (spec/system.md: a new step needs 
 the step's actuator, controller and profile, arm, settle, telemetry for the step's duration,
 disarm, verdict. A fault aborts the step with the fault's reason (with `faults = "transport"`
 a transport fault is reset and re-armed, and counted, at most 3 times in any 10 s: one more is
-a faulty bus, and aborts the step); Ctrl-C disarms, marks the step aborted and ends the plan.
+a faulty bus, and aborts the step; a hil step's run is never re-armed mid-scenario: one a
+transport fault ended is run again from its start, `mrrig.plans.hil_step.hil_tries`); Ctrl-C
+disarms, marks the step aborted and ends the plan.
 The arm's lease is renewed in the background while the step holds the rig (`mrrig.api.Rig`):
 a plan killed mid-step leaves the daemon to disarm and stop the actuator once it lapses; the
 plan's end (normal or Ctrl-C) stops the actuator.
@@ -30,14 +32,7 @@ from mrrig.loop.safety import TRANSPORT_FAULTS
 from mrrig.loop.samples import SAMPLE_DTYPE
 from mrrig.plans.criteria import Numbers, failures, measure
 from mrrig.plans.feasibility import Prediction, before_arming
-from mrrig.plans.hil_step import (
-    HilNumbers,
-    hil_failures,
-    hil_numbers,
-    law_tables,
-    run_again,
-    run_hil_step,
-)
+from mrrig.plans.hil_step import HilNumbers, hil_failures, hil_numbers, law_tables, run_hil_step
 from mrrig.plans.interrupts import interruptible
 from mrrig.plans.plan import Plan, Step
 from mrrig.rigio.client import ClientError
@@ -287,28 +282,19 @@ def _run_hil_step(
     reference."""
     from mrrig.api.hil import HilRunError
 
+    _set_up(step, rig, result)
     law = step.hil.law
-    runs = 0
-    while True:
-        _set_up(step, rig, result)  # out of the last run's fault, disarmed, `set_hil` sent
-        progress(f"  step {index}/{count} {step.name}: {law}, the reference computed, then arm")
-        try:
-            run = run_hil_step(rig, step, lambda line: progress(f"  step {index}/{count} {line}"))
-        except (ValueError, HilRunError, RigError, ClientError) as exc:
-            raise StepAborted(str(exc)) from None
-        runs += 1
-        fault = run.end.get("fault")
-        if not run_again(step.criteria, fault, runs):
-            break
-        result.faults.append(fault)
-        result.rearms += 1
-        progress(
-            f"  step {index}/{count} {step.name}: the run ended by a transport fault ({fault}: "
-            f"{run.end.get('fault_reason')}): reset, and run it again"
-        )
+    progress(f"  step {index}/{count} {step.name}: {law}, the reference computed, then arm")
+    try:
+        run = run_hil_step(rig, step, lambda line: progress(f"  step {index}/{count} {line}"))
+    except (ValueError, HilRunError, RigError, ClientError) as exc:
+        raise StepAborted(str(exc)) from None
     result.samples = run.samples
     result.numbers = measure(run.samples, 0.0)
     result.hil = hil_numbers(law, run)
+    # the transport faults of the runs before (each run again from the scenario's start)
+    result.faults += [why.partition(":")[0] for why in run.retried]
+    result.rearms = len(run.retried)
     fault = run.end.get("fault")
     if fault is not None:
         result.faults.append(fault)

@@ -214,6 +214,9 @@ class Change:
     lease: str = ""  # "renew": the lease an arm answered
     remote: bool = False  # from a Zenoh client (an arm holds a lease), not in process
     hil_scenario: Any = None  # "set_hil": the scenario of the next hybrid simulation runs
+    # "arm", "set_hil" of a [hil] daemon: its next run, built here (its excitation record
+    # takes 10 ms to seconds to compute: never in the loop)
+    hil_run: Any = None
 
 
 def read_limited(path: Path, dirs: tuple[Path, ...], max_bytes: int, timeout_s: float) -> str:
@@ -350,6 +353,8 @@ class Preparer:
                 "mark: taken by the telemetry process, which writes the recording (this daemon"
                 " runs without one)"
             )
+        if cmd == "arm" and (hil := self._d.hil) is not None and not hil.run_ready():
+            return Change(cmd, hil_run=hil.build_run())
         if cmd in ("arm", "disarm", "reset", "status", "reset_adaptation"):
             return Change(cmd)
         if cmd == "renew":
@@ -461,7 +466,7 @@ class Preparer:
             scenario = scenario_with(hil.configured, table, "set_hil")
         except ConfigError as exc:
             raise RequestError(str(exc).removeprefix("set_hil: ")) from None
-        return Change("set_hil", hil_scenario=scenario)
+        return Change("set_hil", hil_scenario=scenario, hil_run=hil.build_run(scenario))
 
     def _actuator(self, req: dict) -> Change:
         table = {k: v for k, v in req.items() if k not in ("cmd", "id")}

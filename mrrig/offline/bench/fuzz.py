@@ -48,6 +48,7 @@ import collections
 import functools
 import json
 import logging
+import math
 import os
 import random
 import signal
@@ -296,8 +297,20 @@ def random_json(rng: random.Random, depth: int = 0) -> Any:
 
 
 COMMANDS = [
-    "arm", "disarm", "reset", "status", "set_profile", "set_controller", "actuator", "set_model"
+    "arm", "disarm", "reset", "status", "set_profile", "set_controller", "actuator", "set_model",
+    "set_hil",
 ]  # fmt: skip
+# set_hil's fields (a [hil] daemon's next runs): each refused in one line or a run the scenario
+# takes (tests/test_hil_safety.py sends every one to a daemon that runs a scenario; the bench's
+# runs none, and refuses each in one line)
+SET_HIL_VALUES: dict[str, tuple[Any, ...]] = {
+    "law": ("skyhook", "passive-hard", "clipped-optimal", "sky", "", 3, None, ["skyhook"]),
+    "compensation": ("none", "model", "magic", 1, None),
+    "duration_s": (
+        math.nan, math.inf, -1.0, 0.0, 0.001, 0.002, 2.0, 3600.0, 3600.0001, 1e308, "10", True,
+        None,
+    ),
+}  # fmt: skip
 
 
 def random_request(rng: random.Random) -> str | bytes:
@@ -317,6 +330,10 @@ def random_request(rng: random.Random) -> str | bytes:
     elif req["cmd"] == "set_controller":
         req["name"] = rng.choice(["heaviside", "constant", "network_inversion", "nope"])
         req["current_a"] = rng.choice([0.5, 1.9, 3.0, -1.0])
+    elif req["cmd"] == "set_hil":
+        for name, values in SET_HIL_VALUES.items():
+            if rng.random() < 0.6:
+                req[name] = rng.choice(values)
     elif req["cmd"] == "actuator":
         req["waveform"] = rng.choice(["sine", "random", "hold", "stop", "x"])
         req["amplitude_m"] = rng.choice([0.01, 0.012, 0.04, 1.0])
