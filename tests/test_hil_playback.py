@@ -219,6 +219,14 @@ def test_the_daemon_refuses_at_start_a_playback_its_actuator_cannot_play(tmp_pat
     )
     with pytest.raises(ConfigError, match=r"\|v\| 1\.0\d* m/s beyond the actuator's 1 m/s"):
         build_scenario(load_config(slow))
+    # a duration beyond the record (`mrrig run --hil-duration`, [hil] duration_s): one line
+    longer = rig_config(tmp_path, "unused", None, hil={"scenario": str(path), "duration_s": 5.0})
+    with pytest.raises(ConfigError) as err:
+        build_scenario(load_config(longer))
+    assert str(err.value) == (
+        f"{longer}: hil.duration_s: {path}: duration_s: 5 s is longer than the record (1 s of "
+        f"{path})"
+    )
     # within them, it loads
     ok = rig_config(
         tmp_path,
