@@ -192,6 +192,11 @@ def test_a_stroke_csv_is_a_playback_scenario_of_its_length(tmp_path):
     )
     toml.write_text('kind = "playback"\n[playback]\nfile = "sweep.csv"\n')  # beside the toml
     assert load_scenario(toml).steps == 750
+    bad = tmp_path / "bad.csv"
+    bad.write_text("t_s,x_m\n0,0\n0.1,abc\n")
+    with pytest.raises(ConfigError) as err:  # a CSV given as the scenario: named once
+        load_scenario(bad)
+    assert str(err.value) == f"{bad}:3: column 'x_m': 'abc' is not a number"
     toml.write_text('kind = "playback"\n[playback]\nfile = "none.csv"\n')
     with pytest.raises(ConfigError, match=r"none.csv: cannot read the stroke file"):
         load_scenario(toml)

@@ -185,7 +185,8 @@ def load_scenario(path: str | Path, law: str | None = None) -> Scenario:
         if base.file is not None and ok_period:  # else the full parse names what is wrong
             try:
                 record = load_resampled(str(base.file), float(period))
-            except MrrigError as exc:
-                raise ConfigError(f"{where}: {exc}") from None
+            except MrrigError as exc:  # a stroke CSV given as the scenario names itself
+                text = str(exc)
+                raise ConfigError(text if text.startswith(where) else f"{where}: {text}") from None
             data = {**data, "duration_s": record.duration_s}
     return parse(Scenario, data, str(path))
