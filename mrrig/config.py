@@ -312,6 +312,10 @@ class HilSection:
     envelope_m: float = 0.04  # the STREAM's: no setpoint beyond +-envelope_m
     tracking_limit_m: float = 0.02  # |x_m - x_c|
     max_setpoint_velocity_m_s: float = 3.0  # a setpoint's step per frame / period
+    # a playback's recorded stroke (kind = "playback") is refused before arming beyond it,
+    # as beyond envelope_m and max_setpoint_velocity_m_s: the actuator's force over its moving
+    # mass (its data sheet); firmware_sim's servo has no such limit
+    max_setpoint_acceleration_m_s2: float = 200.0
     energy_limit_j: float = 0.1  # the damper's delivered energy (-F s' dt) over the window
     energy_window_s: float = 0.25  # s
     hold_s: float = 0.5  # HOLD after a run ends, then STOP (the firmware ramps to rest)
@@ -321,7 +325,8 @@ class HilSection:
             raise ValueError(f"envelope_m: must be in (0, {ACTUATOR_AMPLITUDE_MAX_M:g}] m")
         if self.duration_s is not None and not self.duration_s > 0:
             raise ValueError("duration_s: must be positive")
-        for name in ("tracking_limit_m", "max_setpoint_velocity_m_s", "energy_limit_j"):
+        positive = ("tracking_limit_m", "max_setpoint_velocity_m_s", "energy_limit_j")
+        for name in positive + ("max_setpoint_acceleration_m_s2",):
             if not getattr(self, name) > 0:
                 raise ValueError(f"{name}: must be positive")
         if not 0.01 <= self.energy_window_s <= 10:

@@ -18,7 +18,7 @@ import numpy as np
 from firmware_sim.config import load_config as load_sim_config
 from firmware_sim.firmware import Firmware
 from mrrig.config import load_config
-from mrrig.loop.daemon import Daemon
+from mrrig.loop.daemon import ACTUATOR_PERIOD_S, Daemon
 from mrrig.pycan import can
 from mrrig.rigio.canbus.profile import contract_profile
 from tests.conftest import REPO
@@ -41,10 +41,15 @@ def run_lockstep(
     preroll_s: float = 1.0,
     sim_config: Path = REPO / "configs/sim.toml",
     seed: int = 1,
+    arm: bool = False,
+    actuator_commands: bool = False,
 ) -> LockstepRun:
     """`config`: a daemon config (armed at its first frame: arm_on_start, arm_settle_s 0);
     `actuator`: (waveform, amplitude m, frequency Hz) commanded to the firmware directly, which
-    runs `preroll_s` before the daemon hears its first frame (the motion ramped in)."""
+    runs `preroll_s` before the daemon hears its first frame (the motion ramped in). `arm`:
+    the daemon arms at its first frame, as `Daemon.run` with the config's arm_on_start;
+    `actuator_commands`: the daemon's ActuatorCommands go out after each frame as its loop
+    sends them (on a change, and every ACTUATOR_PERIOD_S): a HIL run's STREAM, HOLD, STOP."""
     daemon = Daemon(load_config(config), keep_batches=True)
     channel = f"lockstep-{next(_channels)}-{time.time_ns()}"
     daemon.bus = can.Bus(interface="virtual", channel=channel)
@@ -54,6 +59,7 @@ def run_lockstep(
     )
     firmware.actuator.command(*actuator)
     daemon.controller.reset(1)
+    daemon._arm_pending = arm
     period_s = firmware.period_s
     wall0 = time.time()
     preroll = round(preroll_s / period_s)
@@ -76,6 +82,8 @@ def run_lockstep(
                 t_rx = time.perf_counter()
                 daemon.t0 = t_rx - t_sim  # the daemon's clock reads the simulated time
                 daemon.on_frame(msg, t_rx)
+                if actuator_commands and t_sim - daemon._last_actuator_sent >= ACTUATOR_PERIOD_S:
+                    daemon._send_actuator()
                 if frame.frame_id == firmware.sensors_id:
                     motion = firmware.actuator
                     truth.append((motion.x_m, motion.xd_m_s, firmware.force_n))

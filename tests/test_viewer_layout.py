@@ -38,6 +38,7 @@ def test_blueprint_has_one_tab_per_task(recorded):
         "Motion",
         "Adaptation",
         "Timing",
+        "Hybrid simulation",
         "Events and summary",
     ]
     origins = {name: {v.origin: v for v in tab.views()} for name, tab in tabs.items()}

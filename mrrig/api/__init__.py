@@ -12,6 +12,14 @@
   (`mrrig.api.catalog`).
 - `register_run(rig, started_utc, ...)`: one run into the catalog (what a plan step,
   characterize and validate call; the daemon's sidecar registers its own runs).
+- `run_hil(rig, law=..., compensation=..., duration_s=...)`: one hybrid-simulation run (a
+  model's scenario or a stroke playback) on a rig whose daemon runs `[hil]`: set, armed,
+  followed to its end, disarmed and judged against the all-numerical reference (a
+  `HilResult`: `tracking` J1-J3, `errors`, `figures`, `end` the rig's status; a refusal is a
+  `HilRunError`); the rig's HIL status is `Rig(name).status()["hil"]`; `hil_tracking(samples)`
+  J1-J3 of any run's samples (a `Recording`'s, a `Telemetry`'s); `load_scenario(path)` a
+  scenario file or stroke CSV, `run_reference(scenario)` its all-numerical run
+  (`mrrig.api.hil`, `mrrig.hil`).
 - `Rig(name)`: a running daemon over Zenoh: `status()`, `arm()`, `disarm()`, `reset()`,
   `stream_force(...)`, `telemetry(...)` (a `Telemetry`: its `samples`, `to_pandas()` with
   `utc`); a refused request raises `RigError`. Use it as a context manager (`with
@@ -43,10 +51,15 @@ from mrrig.api.catalog import (
 )
 
 if TYPE_CHECKING:
+    from mrrig.api.hil import HilResult, HilRunError, hil_tracking, run_hil
     from mrrig.api.live import Recording, Rig, RigError, Telemetry
     from mrrig.catalog import RunRecord
+    from mrrig.hil.reference import run_reference
+    from mrrig.hil.scenario import load_scenario
 
 __all__ = [
+    "HilResult",
+    "HilRunError",
     "Recording",
     "Rig",
     "RigError",
@@ -56,10 +69,14 @@ __all__ = [
     "compare_figure",
     "default_catalog",
     "get_run",
+    "hil_tracking",
+    "load_scenario",
     "register_recording",
     "register_run",
     "replay_journals",
     "run_records",
+    "run_hil",
+    "run_reference",
     "runs",
     "sync_runs",
     "unregistered_recordings",
@@ -71,6 +88,12 @@ _LAZY = {
     "RigError": "mrrig.api.live",
     "Telemetry": "mrrig.api.live",
     "RunRecord": "mrrig.catalog",
+    "HilResult": "mrrig.api.hil",
+    "HilRunError": "mrrig.api.hil",
+    "hil_tracking": "mrrig.api.hil",
+    "run_hil": "mrrig.api.hil",
+    "load_scenario": "mrrig.hil.scenario",
+    "run_reference": "mrrig.hil.reference",
 }
 
 

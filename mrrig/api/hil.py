@@ -3,7 +3,8 @@ scenario play out, disarm, then judge the run from its telemetry (every frame's 
 the model's outputs) against the all-numerical reference (spec/hil.md, Metrics).
 
 `run_on_rig(rig_name, scenario, zenoh_config, progress)` is what `mrrig hil --sim | --rig`
-calls; `judge(samples, reference)` is pure numerics on the samples."""
+calls; `run_hil(rig, law=...)` the same from Python on a rig's own scenario (`mrrig.api`);
+`judge(samples, reference)` and `hil_tracking(samples)` are pure numerics on the samples."""
 
 from __future__ import annotations
 
@@ -27,6 +28,7 @@ from mrrig.hil.metrics import (
     tracking,
     tracking_apart_from_stalls,
 )
+from mrrig.hil.playback import ActuatorLimits, infeasibility
 from mrrig.hil.reference import DaemonCommand, ReferenceRun
 from mrrig.hil.scenario import Scenario
 from mrrig.rigio.run_identity import file_sha256
@@ -76,6 +78,25 @@ def rig_command(hil_status: dict[str, Any]) -> DaemonCommand | None:
     return daemon_command(path)
 
 
+def rig_limits(hil_status: dict[str, Any]) -> ActuatorLimits:
+    """What the daemon whose status' `hil` is `hil_status` lets its actuator play."""
+    return ActuatorLimits(
+        hil_status["envelope_m"],
+        hil_status["max_setpoint_velocity_m_s"],
+        hil_status["max_setpoint_acceleration_m_s2"],
+    )
+
+
+def playback_problem(scenario: Scenario, hil_status: dict[str, Any]) -> str | None:
+    """A playback's feasibility check against the rig's limits, before arming: one line
+    naming the first frame its actuator cannot play, or None (also for a model's scenario)."""
+    if scenario.kind != "playback":
+        return None
+    return infeasibility(
+        scenario.played_stroke(), rig_limits(hil_status), str(scenario.playback.file)
+    )
+
+
 @dataclass(frozen=True)
 class HilResult:
     frames: int  # streamed frames received
@@ -90,9 +111,28 @@ class HilResult:
     apart: StallApart | None = None  # J2, J3 apart from what a measured stall explains
 
 
+def _streamed(samples: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(rows, model frame index) of a run's streamed frames, each frame once."""
+    rows = samples[np.isfinite(samples["hil_k"])]
+    if rows.size <= 60:
+        raise HilRunError(f"{rows.size} streamed frames: too few to judge")
+    k, first = np.unique(rows["hil_k"].astype(int), return_index=True)
+    return rows[first], k
+
+
+def hil_tracking(samples: np.ndarray, period_s: float = 0.002) -> Tracking:
+    """J1-J3 (spec/hil.md, Metrics) of a HIL run's samples: a `Telemetry`'s, a `Recording`'s
+    (`Recording(path).samples`) or a `HilResult`'s; the streamed frames of the last run in
+    them if it holds more than one (the model's frame index starts again at 0). HilRunError
+    where they hold too few streamed frames (a daemon without `[hil]`: none)."""
+    starts = np.flatnonzero(samples["hil_k"] == 0)
+    rows, _ = _streamed(samples[starts[-1] :] if starts.size else samples)
+    return tracking(rows["hil_x_c"], rows["x"], period_s)
+
+
 def judge(samples: np.ndarray, reference: ReferenceRun) -> tuple[int, int, Tracking, dict, dict]:
     """(frames, missing, J1-J3, response errors, RMS figures) of a run's streamed samples."""
-    k, rows = _streamed(samples)
+    rows, k = _streamed(samples)
     missing = int(k[-1] + 1 - k.size)
     period = reference.scenario.period_s
     t = tracking(rows["hil_x_c"], rows["x"], period)
@@ -106,6 +146,9 @@ def judge(samples: np.ndarray, reference: ReferenceRun) -> tuple[int, int, Track
             reference.outputs["body_acceleration_m_s2"][k],
         )
         outputs["tyre_load_n"] = (rows["hil_load_n"], reference.outputs["tyre_load_n"][k])
+    elif "force_n" in reference.outputs:  # a playback: the damper's force on the stroke
+        # (its stroke is the record: J1-J3 say how the actuator played it)
+        outputs = {"force_n": (rows["f_meas"], reference.outputs["force_n"][k])}
     else:
         outputs = {"storey_1_drift_m": stroke}
         outputs["roof_acceleration_m_s2"] = (
@@ -120,21 +163,66 @@ def judge(samples: np.ndarray, reference: ReferenceRun) -> tuple[int, int, Track
     return int(k.size), missing, t, errors, figures
 
 
-def _streamed(samples: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(model frame index, sample) of each streamed frame once, in order."""
-    rows = samples[np.isfinite(samples["hil_k"])]
-    if rows.size <= 60:
-        raise HilRunError(f"{rows.size} streamed frames: too few to judge")
-    k, first = np.unique(rows["hil_k"].astype(int), return_index=True)
-    return k, rows[first]
-
-
 def stall_apart(samples: np.ndarray, period_s: float) -> StallApart:
     """J2 and J3 of a run's streamed samples apart from the frames a measured stall of the
     loop explains (`tracking_apart_from_stalls`); the peak's time from the run's start."""
-    _k, rows = _streamed(samples)
+    rows, _k = _streamed(samples)
     t = rows["t"] - rows["t"][0]
     return tracking_apart_from_stalls(rows["hil_x_c"], rows["x"], t, rows["latency_us"], period_s)
+
+
+def run_hil(
+    rig,
+    *,
+    law: str | None = None,
+    compensation: str | None = None,
+    duration_s: float | None = None,
+    scenario: str | Path | None = None,
+    progress: Callable[[str], None] | None = None,
+    zenoh_config: str | Path | None = None,
+) -> HilResult:
+    """One hybrid-simulation run (a model's scenario or a stroke playback) on a rig whose
+    daemon runs `[hil]`, from Python: `rig` an open `mrrig.api.Rig` or a rig's name. `law`,
+    `compensation`, `duration_s`: the daemon's next runs' (a `set_hil` request, while
+    disarmed). The run's scenario is the daemon's (its status' `hil.scenario`) unless
+    `scenario` names the file here; either way the file here must be the daemon's (sha256).
+    The reference is computed, a playback checked against the rig's limits, then the rig is
+    armed, followed to the run's end (`progress` gets a line a second), disarmed, and the run
+    judged: the `HilResult`'s `tracking` (J1-J3), `errors` and `figures` against the
+    reference, `end` the rig's status. HilRunError (one line) where it cannot run."""
+    from mrrig.api.live import Rig
+    from mrrig.hil.reference import run_reference
+    from mrrig.hil.scenario import load_scenario
+
+    if isinstance(rig, str):
+        with Rig(rig, zenoh_config=zenoh_config) as opened:
+            return run_hil(
+                opened, law=law, compensation=compensation, duration_s=duration_s,
+                scenario=scenario, progress=progress,
+            )  # fmt: skip
+    hil = rig.status().get("hil")
+    if not hil:
+        raise HilRunError(
+            f"rig {rig.name} runs no hybrid simulation (its daemon has no [hil] scenario)"
+        )
+    change = {"law": law, "compensation": compensation, "duration_s": duration_s}
+    change = {k: v for k, v in change.items() if v is not None}
+    if change:
+        rig.request({"cmd": "set_hil", **change})
+        hil = rig.status()["hil"]
+    path = Path(scenario if scenario is not None else hil["scenario"])
+    if not path.is_file() or file_sha256(path) != hil.get("scenario_sha256"):
+        raise HilRunError(
+            f"rig {rig.name}'s daemon runs scenario {hil['scenario']} (sha256 "
+            f"{str(hil.get('scenario_sha256'))[:12]}), which {path} here is not"
+        )
+    s = load_scenario(path, law=hil["law"])
+    method = dataclasses.replace(s.compensation, method=hil["compensation"])
+    s = dataclasses.replace(s, duration_s=hil["duration_s"], compensation=method)
+    if (why := playback_problem(s, hil)) is not None:  # before the reference's work
+        raise HilRunError(why)
+    reference = run_reference(s, command=rig_command(hil))
+    return follow(rig, s, reference, progress or log.info)
 
 
 def run_on_rig(
@@ -198,6 +286,8 @@ def follow(
             f"rig {rig.name} runs a {hil['kind']} of {hil['steps']} frames, not this "
             f"{scenario.kind} of {scenario.steps}"
         )
+    if (why := playback_problem(scenario, hil)) is not None:
+        raise HilRunError(why)
     telemetry = rig.telemetry(quiet_s=scenario.duration_s + 60.0)
     done = threading.Event()
 

@@ -17,6 +17,14 @@
                                               daemon's controller path: its --config's
                                               controller, current clamp and slew limit), figures
     mrrig hil SCENARIO --rig NAME             the same on a rig whose daemon runs [hil]
+    mrrig hil STROKE.csv --sim [--law passive-hard]
+                                              displacement playback: the actuator plays a
+                                              recorded stroke (t_s, x_m[, v_m_s]) resampled to
+                                              the loop, refused in one line before anything
+                                              moves where it passes the actuator's stroke,
+                                              velocity or acceleration (naming the first frame);
+                                              the damper at 0 A (or damper.i_max_a); J1-J3 and
+                                              the force against the reference
 
 The reference is what a HIL run of the same scenario should give: its stroke and force envelope
 say whether the scenario fits the rig before anything moves.
@@ -33,6 +41,7 @@ from mrrig.cli_args import HelpFormatter, positive
 from mrrig.errors import MrrigError
 from mrrig.hil.laws import LAWS
 from mrrig.hil.metrics import AFTER_STALL_S, StallApart
+from mrrig.hil.playback import ActuatorLimits, infeasibility
 from mrrig.hil.reference import (
     SIM_PLANT_PRESET,
     DaemonCommand,
@@ -47,6 +56,8 @@ from mrrig.hil.scenario import Scenario, load_scenario
 def _title(path: Path, s: Scenario, law: str, command: DaemonCommand | None = None) -> str:
     if s.kind == "quarter-car":
         what = f"quarter car, class {s.road.iso_class} road at {s.road.speed_m_s:g} m/s"
+    elif s.kind == "playback":
+        what = f"playback of the stroke {s.playback.file}"
     else:
         what = (
             f"{len(s.building.masses_kg)}-storey building, Kanai-Tajimi ground motion "
@@ -71,6 +82,11 @@ def _summary(fig: dict[str, float], s: Scenario) -> list[str]:
                 f"{label:<18} RMS {fig['rms_' + key] * scale:9.4g} {unit:<6}"
                 f"  peak {fig['peak_' + key] * scale:9.4g} {unit}"
             )
+    elif s.kind == "playback":
+        lines.append(
+            f"{'damper force':<18} RMS {fig['rms_force_n']:9.4g} {'N':<6}"
+            f"  peak {fig['peak_force_n']:9.4g} N"
+        )
     else:
         for j in range(1, len(s.building.masses_kg) + 1):
             lines.append(
@@ -119,7 +135,11 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(
         prog="mrrig hil", description=__doc__, formatter_class=HelpFormatter
     )
-    ap.add_argument("scenario", type=Path, help="scenario file (configs/hil/*.toml)")
+    ap.add_argument(
+        "scenario",
+        type=Path,
+        help="scenario file (configs/hil/*.toml), or a stroke CSV to play (t_s, x_m[, v_m_s])",
+    )
     where = ap.add_mutually_exclusive_group(required=True)
     where.add_argument(
         "--reference",
@@ -180,6 +200,10 @@ def main(argv: list[str] | None = None) -> int:
     scenario = load_scenario(args.scenario, law=args.law)
     if args.duration is not None:
         scenario = dataclasses.replace(scenario, duration_s=args.duration)
+        try:
+            scenario.check()  # a playback's record is this long
+        except ValueError as exc:
+            raise MrrigError(f"--duration: {args.scenario}: {exc}") from None
     if args.table:
         if scenario.kind != "quarter-car":
             ap.error("--table: the law table is the quarter car's (skyhook, groundhook, ...)")
@@ -190,6 +214,12 @@ def main(argv: list[str] | None = None) -> int:
         ap.error("--compensation: only with --sim (a live rig's daemon keeps its own [hil])")
     if args.table and not args.reference:
         ap.error("--table: only with --reference")
+    if args.sim and scenario.kind == "playback":  # before anything starts: the simulator's
+        why = infeasibility(
+            scenario.played_stroke(), _sim_limits(args), str(scenario.playback.file)
+        )
+        if why is not None:
+            raise MrrigError(why)
     # --sim: the daemon's own controller path, so that the run and its reference differ only
     # by the rig; a live rig's daemon config is elsewhere: the exact inverse
     command = daemon_command(args.config) if args.sim else None
@@ -213,6 +243,23 @@ def _stall_line(s: StallApart) -> str:
         f"{s.stalls} measured stalls (a frame answered or delivered late): "
         f"J2 {s.j2_pct:.2f} %   J3 {s.j3_pct:.2f} %; the largest error at {s.peak_t_s:.2f} s, "
         + ("after a stall" if s.peak_after_stall else "no stall before it")
+    )
+
+
+def _sim_limits(args: argparse.Namespace) -> ActuatorLimits:
+    """What the simulated rig's actuator plays: the tighter of the daemon config's `[hil]`
+    limits and the simulator's stroke and servo flow limit (its config's `[actuator]`,
+    read as TOML: the rig service never imports the simulator; firmware_sim's defaults)."""
+    from mrrig.config import load_config
+    from mrrig.loop.hil_loop import playback_limits
+    from mrrig.typed_config import load_toml
+
+    rig = playback_limits(load_config(args.config).hil)
+    actuator = load_toml(args.sim_config).get("actuator", {})
+    stroke = float(actuator.get("stroke_m", 0.04))
+    velocity = float(actuator.get("servo", {}).get("velocity_limit_m_s", 1.0))
+    return ActuatorLimits(
+        min(rig.stroke_m, stroke), min(rig.velocity_m_s, velocity), rig.acceleration_m_s2
     )
 
 

@@ -82,6 +82,12 @@ COLUMNS: tuple[Column, ...] = (
     Column("hil_delay_s", "hil_delay_s", "s", "hybrid simulation: the delay estimate"),
     Column("hil_acc", "hil_acc_m_s2", "m/s^2", "hybrid simulation: body (roof) acceleration"),
     Column("hil_load_n", "hil_load_n", "N", "hybrid simulation: dynamic tyre load"),
+    Column("hil_z_body", "hil_z_body_m", "m", "hybrid simulation: the body's displacement"),
+    Column("hil_v_body", "hil_v_body_m_s", "m/s", "hybrid simulation: the body's velocity"),
+    Column("hil_z_wheel", "hil_z_wheel_m", "m", "hybrid simulation: the wheel's displacement"),
+    Column("hil_v_wheel", "hil_v_wheel_m_s", "m/s", "hybrid simulation: the wheel's velocity"),
+    Column("hil_drift_2", "hil_drift_2_m", "m", "hybrid simulation: storey 2's drift"),
+    Column("hil_drift_3", "hil_drift_3_m", "m", "hybrid simulation: storey 3's drift"),
 )
 UTC_DESCRIPTION = "absolute time, UTC: the run's UTC start plus t_s"
 _NAME_UTC = re.compile(r"-(\d{8}T\d{6}Z)$")

@@ -25,6 +25,7 @@ import numpy as np
 
 from damper.plant import BoucWenDamper, BoucWenParams, bouc_wen_force
 from mrrig.hil.laws import LAWS, Demand
+from mrrig.hil.playback import StrokePlayback
 from mrrig.hil.scenario import Scenario
 from mrrig.hil.stepper import HybridStep
 from mrrig.hil.substructure import QuarterCar
@@ -138,6 +139,7 @@ class ReferenceRun:
     current_a: np.ndarray
     # quarter car: body acceleration, suspension travel, dynamic tyre load
     # building: storey drifts and absolute floor accelerations, one column per storey
+    # playback: the damper's force
     outputs: dict[str, np.ndarray]
 
     def figures(self) -> dict[str, float]:
@@ -175,12 +177,15 @@ def run_reference(
     inverse = BoucWenInverse(params, scenario.damper.i_max_a, dt)
     n = sub.steps
     quarter_car = isinstance(sub, QuarterCar)
+    playback = isinstance(sub, StrokePlayback)
     stroke, velocity, force, desired, current = (np.empty(n) for _ in range(5))
-    outputs = (
-        {k: np.empty(n) for k in ("body_acceleration_m_s2", "suspension_travel_m", "tyre_load_n")}
-        if quarter_car
-        else {k: np.empty((n, sub.n)) for k in ("drift_m", "acceleration_m_s2")}
-    )
+    if quarter_car:
+        names = ("body_acceleration_m_s2", "suspension_travel_m", "tyre_load_n")
+        outputs = {k: np.empty(n) for k in names}
+    elif playback:  # the damper's force on the recorded stroke
+        outputs = {"force_n": force}
+    else:
+        outputs = {k: np.empty((n, sub.n)) for k in ("drift_m", "acceleration_m_s2")}
     f = damper.reset(0.0)
     i_a = 0.0
     for k in range(n):
@@ -195,7 +200,7 @@ def run_reference(
             outputs["body_acceleration_m_s2"][k] = sub.body_acceleration_m_s2
             outputs["suspension_travel_m"][k] = stroke[k]
             outputs["tyre_load_n"][k] = sub.tyre_load_n
-        else:
+        elif not playback:
             outputs["drift_m"][k] = sub.drifts_m
             outputs["acceleration_m_s2"][k] = sub.accelerations_m_s2
         x1, v1 = frame.target_m, frame.target_velocity_m_s

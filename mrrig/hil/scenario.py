@@ -10,11 +10,13 @@ from typing import Literal
 
 import numpy as np
 
+from mrrig.errors import MrrigError
 from mrrig.hil.ground import GroundMotion, ground_acceleration_m_s2
 from mrrig.hil.laws import VEHICLE_LAWS, LawName, LawParams
+from mrrig.hil.playback import StrokePlayback, load_resampled
 from mrrig.hil.road import Bump, road_input_m
 from mrrig.hil.substructure import BuildingParams, QuarterCar, QuarterCarParams, ShearBuilding
-from mrrig.typed_config import load_toml, parse
+from mrrig.typed_config import ConfigError, load_toml, parse
 
 
 @dataclass(frozen=True)
@@ -76,9 +78,21 @@ class CompensationConfig:
             )
 
 
+# a playback has no model for a law to act on: the damper at a fixed current
+PLAYBACK_LAWS = ("passive-soft", "passive-hard")
+
+
+@dataclass(frozen=True)
+class PlaybackConfig:
+    """A recorded stroke played by the actuator (`kind = "playback"`; mrrig.hil.playback):
+    the stroke CSV (t_s, x_m[, v_m_s]), relative to the scenario file."""
+
+    file: Path | None = None
+
+
 @dataclass(frozen=True)
 class Scenario:
-    kind: Literal["quarter-car", "building"]
+    kind: Literal["quarter-car", "building", "playback"]
     law: LawName = "skyhook"
     duration_s: float = 60.0
     period_s: float = 0.002
@@ -89,6 +103,7 @@ class Scenario:
     laws: LawParams = field(default_factory=LawParams)
     damper: DamperConfig = field(default_factory=DamperConfig)
     compensation: CompensationConfig = field(default_factory=CompensationConfig)
+    playback: PlaybackConfig = field(default_factory=PlaybackConfig)
 
     def check(self) -> None:
         if not 0.0 < self.period_s <= 0.01:
@@ -97,6 +112,9 @@ class Scenario:
             raise ValueError(f"duration_s: must be in [period_s, 3600] s, got {self.duration_s}")
         if self.kind == "building" and self.law in VEHICLE_LAWS:
             raise ValueError(f"law: {self.law!r} needs a quarter car (a body and a wheel)")
+        if self.kind == "playback":
+            self._check_playback()
+            return
         outputs = 3 if self.kind == "quarter-car" else 2 * len(self.building.masses_kg)
         weights = self.laws.lqr_output_weights
         if weights and len(weights) != outputs:
@@ -105,12 +123,37 @@ class Scenario:
                 f"got {len(weights)}"
             )
 
+    def _check_playback(self) -> None:
+        if self.playback.file is None:
+            raise ValueError("playback.file: a playback needs its stroke CSV (t_s, x_m[, v_m_s])")
+        if self.law not in PLAYBACK_LAWS:
+            raise ValueError(
+                f"law: {self.law!r} needs a numerical model; a playback takes "
+                f"{' or '.join(PLAYBACK_LAWS)} (the damper at 0 A or damper.i_max_a)"
+            )
+        record = self.stroke()
+        if self.duration_s > record.duration_s + 1e-9:
+            raise ValueError(
+                f"duration_s: {self.duration_s:g} s is longer than the record "
+                f"({record.duration_s:g} s of {self.playback.file})"
+            )
+
+    def stroke(self):
+        """A playback's stroke file resampled to `period_s` (read once; `mrrig.hil.playback`)."""
+        return load_resampled(str(self.playback.file), self.period_s)
+
+    def played_stroke(self):
+        """What a playback plays of its record: `duration_s` of it (frames 0..steps)."""
+        return self.stroke().head(self.steps + 1)
+
     @property
     def steps(self) -> int:
         return max(1, round(self.duration_s / self.period_s))
 
-    def substructure(self) -> QuarterCar | ShearBuilding:
-        """A fresh substructure with its seeded excitation record."""
+    def substructure(self) -> QuarterCar | ShearBuilding | StrokePlayback:
+        """A fresh substructure with its seeded excitation record (a playback: its stroke)."""
+        if self.kind == "playback":
+            return StrokePlayback(self.played_stroke())
         if self.kind == "quarter-car":
             r = self.road
             bumps = tuple(Bump(b.height_m, b.length_m, b.at_m) for b in r.bumps)
@@ -123,8 +166,27 @@ class Scenario:
 
 
 def load_scenario(path: str | Path, law: str | None = None) -> Scenario:
-    """The scenario of a TOML file; `law` replaces the file's law (the plan's law table)."""
-    data = load_toml(path)
+    """The scenario of a TOML file; `law` replaces the file's law (the plan's law table).
+    A stroke CSV (`*.csv`) is a playback of it; a playback's law is passive-soft and its
+    duration its record's unless the file (or `law`) sets them."""
+    if Path(path).suffix.lower() == ".csv":
+        data: dict = {"kind": "playback", "playback": {"file": str(path)}}
+    else:
+        data = load_toml(path)
     if law is not None:
         data = {**data, "law": law}
+    if data.get("kind") == "playback" and "law" not in data:
+        data = {**data, "law": PLAYBACK_LAWS[0]}
+    if data.get("kind") == "playback" and "duration_s" not in data:
+        where = str(path)
+        base = parse(PlaybackConfig, data.get("playback", {}), where, "playback")
+        period = data.get("period_s", Scenario.period_s)
+        ok_period = isinstance(period, int | float) and not isinstance(period, bool) and period > 0
+        if base.file is not None and ok_period:  # else the full parse names what is wrong
+            try:
+                record = load_resampled(str(base.file), float(period))
+            except MrrigError as exc:  # a stroke CSV given as the scenario names itself
+                text = str(exc)
+                raise ConfigError(text if text.startswith(where) else f"{where}: {text}") from None
+            data = {**data, "duration_s": record.duration_s}
     return parse(Scenario, data, str(path))

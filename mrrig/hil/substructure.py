@@ -15,6 +15,7 @@ k and advances to frame k + 1, whose stroke is the next setpoint.
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import numpy as np
@@ -34,6 +35,24 @@ def zoh(a: np.ndarray, b: np.ndarray, dt_s: float) -> tuple[np.ndarray, np.ndarr
 _FRACTIONS = 100
 
 
+@functools.lru_cache(maxsize=8)
+def _fraction_table(
+    a_key: bytes, b_key: bytes, n: int, m: int, period_s: float
+) -> tuple[tuple[np.ndarray, np.ndarray], ...]:
+    """The exact steps of 0, 1, ..., 100 % of a frame of the model (A, B) given as bytes,
+    computed once per process: 101 matrix exponentials took 0.6-2.5 s on a loaded 2-core VM,
+    and a run builds its substructure at its first frame (a building's arm frame answered
+    1.4 s late: a stall fault). The daemon builds one at start (`HilLoop`), so a run's
+    first frame finds them here."""
+    a = np.frombuffer(a_key).reshape(n, n)
+    b = np.frombuffer(b_key).reshape(n, m)
+    steps = tuple(zoh(a, b, j / _FRACTIONS * period_s) for j in range(_FRACTIONS + 1))
+    for ad, bd in steps:
+        ad.setflags(write=False)
+        bd.setflags(write=False)
+    return steps
+
+
 class _Predicting:
     """The model's own prediction of its stroke `lead_frames` ahead (whole and fractional
     frames): the exact step with the last measured force held and the excitation record ahead
@@ -51,11 +70,11 @@ class _Predicting:
     _fractions: tuple[tuple[np.ndarray, np.ndarray], ...]
 
     def _fraction_steps(self) -> tuple[tuple[np.ndarray, np.ndarray], ...]:
-        """The exact steps of 0, 1, ..., 100 % of a frame, computed once (a fraction's step
-        is then a look-up in the loop, never an expm)."""
-        return tuple(
-            zoh(self.a, self.b, j / _FRACTIONS * self.period_s) for j in range(_FRACTIONS + 1)
-        )
+        """The exact steps of 0, 1, ..., 100 % of a frame, computed once per model (a
+        fraction's step is then a look-up in the loop, never an expm; the last is the whole
+        frame's)."""
+        a, b = np.ascontiguousarray(self.a, float), np.ascontiguousarray(self.b, float)
+        return _fraction_table(a.tobytes(), b.tobytes(), *b.shape, self.period_s)
 
     def predicted_state(self, lead_frames: float) -> np.ndarray:
         whole = int(lead_frames)
@@ -115,8 +134,8 @@ class QuarterCar(_Predicting):
                 [1.0 / p.m_u_kg, p.k_t_n_per_m / p.m_u_kg],
             ]
         )
-        self._ad, self._bd = zoh(self.a, self.b, period_s)
         self._fractions = self._fraction_steps()
+        self._ad, self._bd = self._fractions[-1]
         self.reset()
 
     @property
@@ -256,8 +275,8 @@ class ShearBuilding(_Predicting):
         self.b = np.zeros((2 * n, 2))
         self.b[n:, 0] = -m_inv @ e1
         self.b[n:, 1] = -1.0
-        self._ad, self._bd = zoh(self.a, self.b, period_s)
         self._fractions = self._fraction_steps()
+        self._ad, self._bd = self._fractions[-1]
         self.reset()
 
     @property

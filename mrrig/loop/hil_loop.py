@@ -26,8 +26,9 @@ from typing import Any
 
 import numpy as np
 
-from mrrig.config import DaemonConfig, HilCompensation, HilLaw
+from mrrig.config import DaemonConfig, HilCompensation, HilLaw, HilSection
 from mrrig.hil.laws import Demand
+from mrrig.hil.playback import ActuatorLimits, StrokePlayback, infeasibility
 from mrrig.hil.scenario import Scenario, load_scenario
 from mrrig.hil.stepper import HybridStep
 from mrrig.hil.substructure import QuarterCar
@@ -42,8 +43,12 @@ from mrrig.typed_config import ConfigError, parse
 log = logging.getLogger(__name__)
 
 # the sample fields this mode fills (NaN without it): x_c, the setpoint, the delay estimate,
-# the model's frame index, the body's (roof's) absolute acceleration and the tyre load
-SAMPLE_FIELDS = ("hil_k", "hil_x_c", "hil_setpoint", "hil_delay_s", "hil_acc", "hil_load_n")
+# the model's frame index, the body's (roof's) absolute acceleration and the tyre load, the
+# quarter car's body and wheel displacement and velocity, the building's storey 2-3 drifts
+SAMPLE_FIELDS = (
+    "hil_k", "hil_x_c", "hil_setpoint", "hil_delay_s", "hil_acc", "hil_load_n",
+    "hil_z_body", "hil_v_body", "hil_z_wheel", "hil_v_wheel", "hil_drift_2", "hil_drift_3",
+)  # fmt: skip
 
 
 # a run starts with the piston this close to 0 (the model's equilibrium): else a fault
@@ -88,6 +93,10 @@ def build_scenario(cfg: DaemonConfig) -> Scenario:
         scenario = dataclasses.replace(scenario, compensation=c)
     if h.duration_s is not None:
         scenario = dataclasses.replace(scenario, duration_s=h.duration_s)
+        try:
+            scenario.check()  # a playback's record is this long
+        except ValueError as exc:
+            raise ConfigError(f"{where}.duration_s: {h.scenario}: {exc}") from None
     if not math.isclose(scenario.period_s, cfg.loop.period_s, rel_tol=1e-9):
         raise ConfigError(
             f"{where}.scenario: {h.scenario}: period_s {scenario.period_s:g} s is not the "
@@ -98,7 +107,19 @@ def build_scenario(cfg: DaemonConfig) -> Scenario:
             f"{where}.scenario: {h.scenario}: damper.i_max_a {scenario.damper.i_max_a:g} A "
             f"above loop.i_max_a {cfg.loop.i_max_a:g} A"
         )
+    if scenario.kind == "playback":  # the feasibility check before any arming
+        played = scenario.played_stroke()
+        why = infeasibility(played, playback_limits(h), str(scenario.playback.file))
+        if why is not None:
+            raise ConfigError(f"{where}.scenario: {why} ([hil] limits)")
     return scenario
+
+
+def playback_limits(h: HilSection) -> ActuatorLimits:
+    """What a daemon's `[hil]` lets an actuator play (a playback's feasibility check)."""
+    return ActuatorLimits(
+        h.envelope_m, h.max_setpoint_velocity_m_s, h.max_setpoint_acceleration_m_s2
+    )
 
 
 @dataclass(frozen=True)
@@ -146,6 +167,9 @@ class HilLoop:
             raise ProfileError(f"hil: {why}")
         h = cfg.hil
         self.scenario = build_scenario(cfg)
+        # the model's exact steps computed now, at start, not at a run's first frame (cached
+        # per model: mrrig.hil.substructure._fraction_table)
+        HybridStep(self.scenario)
         self.configured = self.scenario  # what `set_hil` starts from
         self.scenario_path = str(h.scenario)
         self.scenario_sha256 = file_sha256(h.scenario)  # the plan's `hil` step checks it
@@ -153,6 +177,7 @@ class HilLoop:
         self.config_path = str(cfg.source)
         self.config_sha256 = file_sha256(cfg.source)
         self.envelope_m = h.envelope_m
+        self.playback_limits = playback_limits(h)
         self.hold_s = h.hold_s
         self.reference = HilDemand()
         self._stream = SetpointStream(profile, packer, h.envelope_m)
@@ -162,7 +187,10 @@ class HilLoop:
                 h.envelope_m,
                 h.tracking_limit_m,
                 h.max_setpoint_velocity_m_s,
-                h.energy_limit_j,
+                # a playback has no model for the damper to put energy into (the measured force
+                # goes nowhere): no energy check; its hysteresis near a reversal gives -F s' > 0
+                # for a moment, which on a 2 Hz, 10 mm stroke at 1 A passed 0.1 J in 0.25 s
+                math.inf if self.scenario.kind == "playback" else h.energy_limit_j,
                 h.energy_window_s,
             ),
             self.scenario.period_s,
@@ -207,6 +235,7 @@ class HilLoop:
         step = self.step
         sub = step.substructure
         x_c, v_c, k = sub.stroke_m, sub.stroke_velocity_m_s, sub.k
+        state = sub.x.tolist()
         frame = step.step(f_meas, x_meas)
         why = self._watch.check(
             x_c, x_meas, f_meas, v_c, frame.target_m, frame.setpoint_m,
@@ -216,8 +245,17 @@ class HilLoop:
         row["hil_k"], row["hil_x_c"], row["hil_delay_s"] = k, x_c, frame.delay_s
         if isinstance(sub, QuarterCar):
             row["hil_acc"], row["hil_load_n"] = sub.body_acceleration_m_s2, sub.tyre_load_n
+            # frame k's states (x_c's): the step has advanced the model to k + 1
+            row["hil_z_body"], row["hil_v_body"], row["hil_z_wheel"], row["hil_v_wheel"] = state
+        elif isinstance(sub, StrokePlayback):
+            row["hil_acc"] = sub.acceleration_m_s2  # the record's stroke acceleration
         else:
             row["hil_acc"] = float(sub.accelerations_m_s2[-1])
+            drifts = sub.drifts_m
+            if drifts.size > 1:
+                row["hil_drift_2"] = float(drifts[1])
+            if drifts.size > 2:
+                row["hil_drift_3"] = float(drifts[2])
         if why is not None:
             events += sup.trip(t, Fault.HIL_SAFETY, f"hil: {why}")
             self._end(t, why)
@@ -354,6 +392,8 @@ class HilLoop:
             "config_sha256": self.config_sha256,
             "duration_s": self.scenario.duration_s,
             "envelope_m": self.envelope_m,
+            "max_setpoint_velocity_m_s": self.playback_limits.velocity_m_s,
+            "max_setpoint_acceleration_m_s2": self.playback_limits.acceleration_m_s2,
             "law": self.scenario.law if self.step is None else self.step.law.name,
             "compensation": self.scenario.compensation.method,
             "streaming": self.streaming,

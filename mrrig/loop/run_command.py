@@ -72,7 +72,9 @@ def main(argv: list[str] | None = None) -> int:
         help="allow a Zenoh config off loopback without authentication and access control "
         "(a closed lab network only); warned in every status and recording",
     )
-    ap.add_argument("--hil", help="a hybrid simulation: this scenario (configs/hil/*.toml)")
+    ap.add_argument(
+        "--hil", help="a hybrid simulation: this scenario (configs/hil/*.toml, or a stroke CSV)"
+    )
     ap.add_argument("--hil-law", help="--hil: this law in place of the scenario's")
     ap.add_argument(
         "--hil-compensation",

@@ -52,6 +52,16 @@ SAMPLE_DTYPE = np.dtype(
         ("hil_delay_s", "f8"),
         ("hil_acc", "f8"),
         ("hil_load_n", "f8"),
+        # the model's states beside the rig's stroke and force (the recording's "Hybrid
+        # simulation" tab): the quarter car's body and wheel displacement (m, from the static
+        # equilibrium) and velocity (m/s); the building's storey 2 and 3 drifts (m; storey 1's
+        # is x_c, the damper's stroke); NaN where the model has none
+        ("hil_z_body", "f8"),
+        ("hil_v_body", "f8"),
+        ("hil_z_wheel", "f8"),
+        ("hil_v_wheel", "f8"),
+        ("hil_drift_2", "f8"),
+        ("hil_drift_3", "f8"),
     ]
 )
 

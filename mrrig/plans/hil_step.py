@@ -34,6 +34,7 @@ OUTPUTS = {
     "tyre_load_n": ("tyre load", "N", 1.0),
     "storey_1_drift_m": ("storey-1 drift", "mm", 1e3),
     "roof_acceleration_m_s2": ("roof acc", "m/s^2", 1.0),
+    "force_n": ("damper force", "N", 1.0),  # a playback's
 }
 # a figure the rig cannot give above this force (the load cell's, as `mrrig hil`)
 FORCE_LIMIT_N = 6000.0

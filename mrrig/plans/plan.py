@@ -265,3 +265,7 @@ def _check_hil_steps(steps: tuple[Step, ...], source: str) -> None:
                 f"{source}: step {index} ({step.name}).duration_s: {step.duration_s:g} s, not a"
                 f" scenario's run ([{scenario.period_s:g}, 3600] s)"
             )
+        try:  # a playback's step within its record
+            replace(scenario, duration_s=step.duration_s).check()
+        except ValueError as exc:
+            raise PlanError(f"{source}: step {index} ({step.name}).{exc}") from None

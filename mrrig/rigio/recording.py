@@ -111,6 +111,13 @@ FIELD_ENTITIES: dict[str, str] = {
     "hil_delay_s": "hil/delay_s",
     "hil_acc": "hil/acc",
     "hil_load_n": "hil/load_n",
+    # the model's states (the "Hybrid simulation" tab shows them beside the rig's)
+    "hil_z_body": "model/displacement/body",
+    "hil_z_wheel": "model/displacement/wheel",
+    "hil_drift_2": "model/displacement/storey_2_drift",
+    "hil_drift_3": "model/displacement/storey_3_drift",
+    "hil_v_body": "model/velocity/body",
+    "hil_v_wheel": "model/velocity/wheel",
 }
 
 # fields that recordings made before them lack: `mrrig review` reads those as NaN
@@ -131,6 +138,16 @@ _SERIES_NAMES: dict[str, str] = {
     "xdd": "xdd estimated (Kalman)",
     "adapt_gain": "gain on the model force",
     "adapt_offset_n": "offset of the model force (N)",
+    "hil_x_c": "x_c the model's stroke",
+    "hil_setpoint": "setpoint sent (compensated)",
+    "hil_z_body": "body (model)",
+    "hil_z_wheel": "wheel (model)",
+    "hil_v_body": "body (model)",
+    "hil_v_wheel": "wheel (model)",
+    "hil_drift_2": "storey 2 drift (model)",
+    "hil_drift_3": "storey 3 drift (model)",
+    "hil_acc": "body (roof) acceleration (model)",
+    "hil_load_n": "dynamic tyre load (model)",
 }
 
 _SERIES_COLORS: dict[str, tuple[int, int, int]] = {
@@ -143,6 +160,14 @@ _SERIES_COLORS: dict[str, tuple[int, int, int]] = {
     "x_est": (255, 127, 14),
     "adapt_gain": (31, 119, 180),
     "adapt_offset_n": (255, 127, 14),
+    "hil_x_c": (214, 39, 40),
+    "hil_setpoint": (44, 160, 44),
+    "hil_z_body": (31, 119, 180),
+    "hil_z_wheel": (255, 127, 14),
+    "hil_v_body": (31, 119, 180),
+    "hil_v_wheel": (255, 127, 14),
+    "hil_drift_2": (255, 127, 14),
+    "hil_drift_3": (44, 160, 44),
 }
 
 _SIGNALS = {signal.SIGINT, signal.SIGTERM}
@@ -198,9 +223,71 @@ def _loop_view(origin: str, name: str) -> rrb.Spatial2DView:
     )
 
 
+# the "Hybrid simulation" tab's series, by field (fixed here: the recorder's entity table may
+# be a recording's older one)
+_HIL_VIEWS = {
+    name: [FIELD_ENTITIES[f] for f in fields]
+    for name, fields in (
+        ("stroke", ("x", "hil_x_c", "hil_setpoint")),
+        ("force", ("f_meas", "f_des")),
+        ("x_c", ("hil_x_c",)),
+        ("load", ("hil_load_n",)),
+        ("acc", ("hil_acc",)),
+    )
+}
+
+
+def _hil_tab() -> rrb.Horizontal:
+    """A hybrid simulation's run (spec/hil.md): the rig's side (the model's stroke x_c, the
+    setpoint sent and the measured stroke; the measured and the desired damper force) beside
+    the numerical model's states (quarter car: body and wheel displacement and velocity,
+    suspension travel = x_c, tyre load, body acceleration; building: storey drifts, storey 1's
+    = x_c, roof acceleration). Empty in a run without one."""
+    rig = rrb.Vertical(
+        rrb.TimeSeriesView(
+            origin="/",
+            contents=_HIL_VIEWS["stroke"],
+            name="Rig stroke (m): measured blue, model's x_c red, setpoint sent green",
+            plot_legend=rrb.PlotLegend(visible=False),
+        ),
+        rrb.TimeSeriesView(
+            origin="/",
+            contents=_HIL_VIEWS["force"],
+            name="Rig damper force (N): measured blue, the law's desired red",
+            plot_legend=rrb.PlotLegend(visible=False),
+        ),
+        name="The rig",
+    )
+    model = rrb.Vertical(
+        rrb.TimeSeriesView(
+            origin="/",
+            contents=[*_HIL_VIEWS["x_c"], "model/displacement/**"],
+            name="Model displacement (m): body blue, wheel orange, travel or storey-1 drift "
+            "(x_c) red; storey 2 orange, 3 green",
+            plot_legend=rrb.PlotLegend(visible=False),
+        ),
+        _series_view("model/velocity", "Model velocity (m/s): body blue, wheel orange"),
+        rrb.TimeSeriesView(
+            origin="/",
+            contents=_HIL_VIEWS["load"],
+            name="Model dynamic tyre load (N)",
+            plot_legend=rrb.PlotLegend(visible=False),
+        ),
+        rrb.TimeSeriesView(
+            origin="/",
+            contents=_HIL_VIEWS["acc"],
+            name="Model body (building: roof) acceleration (m/s^2)",
+            plot_legend=rrb.PlotLegend(visible=False),
+        ),
+        name="The numerical model",
+    )
+    return rrb.Horizontal(rig, model, name="Hybrid simulation")
+
+
 def default_blueprint() -> rrb.Blueprint:
     """One tab per task: tracking (forces, their error, the loops), current, motion, the
-    on-line adaptation and the damper's temperature, timing, events with the run's summary."""
+    on-line adaptation and the damper's temperature, timing, a hybrid simulation's rig and
+    model side by side, events with the run's summary."""
     return rrb.Blueprint(
         rrb.Tabs(
             rrb.Horizontal(
@@ -242,6 +329,7 @@ def default_blueprint() -> rrb.Blueprint:
                 row_shares=[2, 2, 1],
                 name="Timing",
             ),
+            _hil_tab(),
             rrb.Horizontal(
                 rrb.TextLogView(origin=EVENTS_ENTITY, name="Events (faults, state changes)"),
                 rrb.TextDocumentView(origin=REPORT_ENTITY, name="Run summary"),
