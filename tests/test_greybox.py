@@ -223,3 +223,19 @@ def test_evaluate_scores_a_grey_box_file_with_its_residual(tmp_path):
     numbers, _ = evaluate_stateful(load_forward_model(path), path, [csv])
     assert numbers["kind"] == "grey-box"
     assert numbers["forward"]["et"] < 0.05  # the twin alone misses the residual's share
+
+
+def test_identify_refuses_to_map_a_grey_box_file_in_one_line(tmp_path, capsys):
+    """`mrrig identify --map-model` maps a twin's or a network's command from V to A; a grey-box
+    file's residual network takes the command too, and was written out without it."""
+    from mrrig.cli.identify import main
+
+    path = tmp_path / "gb.json"
+    MODEL.save(path)
+    out = tmp_path / "mapped.json"
+    with pytest.raises(SystemExit) as exc:
+        main(["--map-model", str(path), "--out", str(out)])
+    assert exc.value.code == 2
+    err = capsys.readouterr().err.strip().splitlines()[-1]
+    assert "grey-box model" in err and str(path) in err
+    assert not out.exists()

@@ -32,6 +32,7 @@ from pathlib import Path
 
 from damper.plant_file import PARAM_NAMES, save_plant
 from mrrig.cli_args import COUNT, HelpFormatter, output_file, positive
+from mrrig.loop.greybox import GreyBoxModel
 from mrrig.loop.twin_model import TwinModel, load_forward_model
 from mrrig.offline.identify.command_map import model_in_amperes, plant_in_amperes
 from mrrig.offline.identify.fit import STARTS
@@ -94,6 +95,12 @@ def main(argv: list[str] | None = None) -> int:
             ap.error("--map-model takes no DATA")
         source = str(args.map_model)
         model = load_forward_model(args.map_model)
+        if isinstance(model, GreyBoxModel):  # its network's inputs include the command in V
+            ap.error(
+                f"--map-model {source}: a grey-box model (a twin and a network on its "
+                "residual, whose inputs include the command) cannot be mapped: train it on "
+                "the command in A"
+            )
         if isinstance(model, TwinModel):
             save_plant(plant_in_amperes(model.plant, args.command_per_a, source), args.out)
         else:
