@@ -64,3 +64,33 @@ def test_a_disarm_still_unanswered_after_its_tries_is_an_error_and_a_refusal_is_
         queryable.undeclare()
         session.close()
     assert len(asked) == DISARM_TRIES + 1
+
+
+def test_an_arm_the_daemon_did_not_answer_is_disarmed_then_asked_again(tmp_path):
+    """The lost arm may have armed the rig under a lease no client holds: disarm first."""
+    answers = [NO_ANSWER, {"ok": True}, OVERLOADED[1], {"ok": True}]
+    session, queryable, client_conf, asked = _serve(tmp_path, answers)
+    try:
+        with Rig(RIG, client_conf, timeout_s=2.0) as rig:
+            assert rig.arm() == {"ok": True}
+            n = len(asked)
+    finally:
+        queryable.undeclare()
+        session.close()
+    assert asked[:n] == [{"cmd": "arm"}, {"cmd": "disarm"}, {"cmd": "arm"}, {"cmd": "disarm"}] + [
+        {"cmd": "arm"}
+    ]
+
+
+def test_an_arm_refused_by_the_daemon_is_not_asked_again(tmp_path):
+    answers = [{"ok": False, "error": "not allowed: the actuator is off"}]
+    session, queryable, client_conf, asked = _serve(tmp_path, answers)
+    try:
+        with Rig(RIG, client_conf, timeout_s=2.0) as rig:
+            with pytest.raises(Exception, match="arm: not allowed: the actuator is off"):
+                rig.arm()
+            n = len(asked)
+    finally:
+        queryable.undeclare()
+        session.close()
+    assert asked[:n] == [{"cmd": "arm"}]

@@ -33,6 +33,8 @@ _NAMES = {c.field: c.name for c in COLUMNS}
 _UNTIL_THE_END_S = 1e9
 # a disarm that the daemon did not answer in time is asked this many times in all
 DISARM_TRIES = 3
+# an arm that the daemon did not answer in time: the rig disarmed, then asked again (in all)
+ARM_TRIES = 3
 
 
 def _unanswered(error: str) -> bool:
@@ -316,8 +318,29 @@ class Rig:
         return self.request({"cmd": "status"})["status"]
 
     def arm(self) -> dict[str, Any]:
-        """Arm: the daemon's commands become ACTIVE. Returns its reply."""
-        return self.request({"cmd": "arm"})
+        """Arm: the daemon's commands become ACTIVE. Returns its reply. An arm the control
+        plane did not answer in time ("daemon did not answer", "busy", or no reply) may have
+        armed the rig under a lease this client never got: the rig is disarmed (`disarm`) and
+        the arm asked again, up to ARM_TRIES times in all (on CI, three rigs on a 2-core
+        machine, a plan step was aborted on "arm: daemon did not answer")."""
+        from mrrig.rigio.client import ClientError
+
+        for tries_left in range(ARM_TRIES - 1, -1, -1):
+            try:
+                reply = self.ask({"cmd": "arm"})
+            except ClientError as exc:
+                if not tries_left:
+                    raise
+                error = str(exc)
+            else:
+                error = str(reply.get("error") or "")
+                if reply.get("ok") or not tries_left or not _unanswered(error):
+                    break
+            log.warning("rig %r: arm unanswered (%s): disarmed, and asked again", self.name, error)
+            self.disarm()
+        if not reply.get("ok"):
+            raise RigError(f"rig {self.name!r}: arm: {reply.get('error')}")
+        return reply
 
     def disarm(self) -> dict[str, Any]:
         """Disarm: commands become SAFE 0 A. Returns the daemon's reply. A disarm the daemon

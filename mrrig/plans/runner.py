@@ -310,7 +310,10 @@ def _run_step(
     result.predicted = before_arming(step)
     progress(f"  step {index}/{count} {step.name}: {result.predicted.text()}")
     tele = rig.telemetry(duration_s=step.settle_s + step.duration_s, quiet_s=CONTROL_PATIENCE_S)
-    _request(rig, {"cmd": "arm"})
+    try:
+        rig.arm()  # an arm left unanswered: disarmed and asked again (mrrig.api.Rig.arm)
+    except (RigError, ClientError) as exc:
+        raise StepAborted(str(exc)) from None
     rearms = RearmLimit()  # per step: a faulty bus aborts it (mrrig.rigio.rearm)
     t0 = last_status = last_progress = answered = time.monotonic()
     total = step.settle_s + step.duration_s
