@@ -94,3 +94,23 @@ def test_an_arm_refused_by_the_daemon_is_not_asked_again(tmp_path):
         queryable.undeclare()
         session.close()
     assert asked[:n] == [{"cmd": "arm"}]
+
+
+def test_a_status_the_control_plane_did_not_answer_is_told_apart_from_a_refusal(tmp_path):
+    """A plan asks a loaded rig's status again within its patience (mrrig.plans.runner): on CI
+    three rigs on two cores answered "busy" and the plan ended with an error (exit 2)."""
+    from mrrig.api.live import RigError, RigUnanswered
+
+    answers = [OVERLOADED[1], NO_ANSWER, {"ok": False, "error": "unknown command"}]
+    session, queryable, client_conf, _asked = _serve(tmp_path, answers)
+    try:
+        with Rig(RIG, client_conf, timeout_s=2.0) as rig:
+            for _ in OVERLOADED:
+                with pytest.raises(RigUnanswered):
+                    rig.status()
+            with pytest.raises(RigError) as refused:
+                rig.status()
+            assert not isinstance(refused.value, RigUnanswered)
+    finally:
+        queryable.undeclare()
+        session.close()

@@ -46,6 +46,11 @@ class RigError(MrrigError, RuntimeError):
     """The daemon refused a request (its reply's `error`), or the Rig is closed."""
 
 
+class RigUnanswered(RigError):
+    """The rig's control plane did not answer the request in time ("daemon did not answer",
+    "busy: the control plane is overloaded"): not a refusal, a request to ask again."""
+
+
 def _frame(samples: np.ndarray, utc0: datetime | None = None) -> pd.DataFrame:
     """Samples as a DataFrame with unit-named columns (`t_s`, `x_m`, `force_n`, ...) and, with
     a UTC start, `utc` (`utc0` + `t_s`)."""
@@ -309,7 +314,9 @@ class Rig:
         """`ask`, and RigError when the reply is not ok."""
         reply = self.ask(payload)
         if not reply.get("ok"):
-            raise RigError(f"rig {self.name!r}: {payload.get('cmd')}: {reply.get('error')}")
+            error = str(reply.get("error"))
+            kind = RigUnanswered if _unanswered(error) else RigError
+            raise kind(f"rig {self.name!r}: {payload.get('cmd')}: {error}")
         return reply
 
     def status(self) -> dict[str, Any]:

@@ -26,6 +26,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from mrrig.api import Rig, RigError, register_run
+from mrrig.api.live import RigUnanswered
 from mrrig.errors import MrrigError
 from mrrig.interruption import what
 from mrrig.loop.safety import TRANSPORT_FAULTS
@@ -324,7 +325,7 @@ def _run_step(
             try:
                 _check_faults(step, rig, result, rearms)
                 answered = time.monotonic()
-            except ClientError as exc:
+            except (ClientError, RigUnanswered) as exc:  # a loaded rig: asked again
                 if time.monotonic() - answered > CONTROL_PATIENCE_S:
                     raise StepAborted(
                         f"the rig's control plane did not answer for {CONTROL_PATIENCE_S:g} s:"
@@ -339,10 +340,16 @@ def _run_step(
                 f"  step {index}/{count} {step.name}: {now - t0:4.0f}/{total:g} s {phase}, "
                 f"Et {numbers.et:.4f}, faults {len(result.faults)}"
             )
-    try:
-        _check_faults(step, rig, result, rearms)
-    except ClientError as exc:
-        raise StepAborted(f"no status from the rig at the step's end: {exc}") from None
+    end = time.monotonic() + CONTROL_PATIENCE_S
+    while True:  # the step's last status: asked again while a loaded rig does not answer
+        try:
+            _check_faults(step, rig, result, rearms)
+            break
+        except (ClientError, RigUnanswered) as exc:
+            if time.monotonic() > end:
+                raise StepAborted(f"no status from the rig at the step's end: {exc}") from None
+            log.warning("no status from the rig at the step's end (asking again): %s", exc)
+            time.sleep(STATUS_PERIOD_S)
     result.samples = tele.samples
     if time.monotonic() - t0 < total - 1.0:
         raise StepAborted(f"telemetry stopped after {time.monotonic() - t0:.1f} s")
