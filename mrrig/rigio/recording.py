@@ -200,11 +200,14 @@ def nice_scale(value: float) -> float:
     return 10.0 ** (k + 1)
 
 
-def _series_view(origin: str, name: str) -> rrb.TimeSeriesView:
+def _series_view(origin: str, name: str, contents: list[str] | None = None) -> rrb.TimeSeriesView:
     """A time series view without a legend (one drawn over the plot hides the traces that pass
     under it): a view of several series names their colours in its title, and hovering a
-    trace shows its name."""
-    return rrb.TimeSeriesView(origin=origin, name=name, plot_legend=rrb.PlotLegend(visible=False))
+    trace shows its name. `contents`: the entities shown, where not all under `origin`."""
+    extra = {} if contents is None else {"contents": contents}
+    return rrb.TimeSeriesView(
+        origin=origin, name=name, plot_legend=rrb.PlotLegend(visible=False), **extra
+    )
 
 
 def _loop_view(origin: str, name: str) -> rrb.Spatial2DView:
@@ -244,40 +247,35 @@ def _hil_tab() -> rrb.Horizontal:
     suspension travel = x_c, tyre load, body acceleration; building: storey drifts, storey 1's
     = x_c, roof acceleration). Empty in a run without one."""
     rig = rrb.Vertical(
-        rrb.TimeSeriesView(
-            origin="/",
-            contents=_HIL_VIEWS["stroke"],
-            name="Rig stroke (m): measured blue, model's x_c red, setpoint sent green",
-            plot_legend=rrb.PlotLegend(visible=False),
+        _series_view(
+            "/",
+            "Rig stroke (m): measured blue, model's x_c red, setpoint sent green",
+            _HIL_VIEWS["stroke"],
         ),
-        rrb.TimeSeriesView(
-            origin="/",
-            contents=_HIL_VIEWS["force"],
-            name="Rig damper force (N): measured blue, the law's desired red",
-            plot_legend=rrb.PlotLegend(visible=False),
+        _series_view(
+            "/",
+            "Rig damper force (N): measured blue, the law's desired red",
+            _HIL_VIEWS["force"],
         ),
         name="The rig",
     )
     model = rrb.Vertical(
-        rrb.TimeSeriesView(
-            origin="/",
-            contents=[*_HIL_VIEWS["x_c"], "model/displacement/**"],
-            name="Model displacement (m): body blue, wheel orange, travel or storey-1 drift "
+        _series_view(
+            "/",
+            "Model displacement (m): body blue, wheel orange, travel or storey-1 drift "
             "(x_c) red; storey 2 orange, 3 green",
-            plot_legend=rrb.PlotLegend(visible=False),
+            [*_HIL_VIEWS["x_c"], "model/displacement/**"],
         ),
         _series_view("model/velocity", "Model velocity (m/s): body blue, wheel orange"),
-        rrb.TimeSeriesView(
-            origin="/",
-            contents=_HIL_VIEWS["load"],
-            name="Model dynamic tyre load (N)",
-            plot_legend=rrb.PlotLegend(visible=False),
+        _series_view(
+            "/",
+            "Model dynamic tyre load (N)",
+            _HIL_VIEWS["load"],
         ),
-        rrb.TimeSeriesView(
-            origin="/",
-            contents=_HIL_VIEWS["acc"],
-            name="Model body (building: roof) acceleration (m/s^2)",
-            plot_legend=rrb.PlotLegend(visible=False),
+        _series_view(
+            "/",
+            "Model body (building: roof) acceleration (m/s^2)",
+            _HIL_VIEWS["acc"],
         ),
         name="The numerical model",
     )
