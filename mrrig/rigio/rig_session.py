@@ -85,6 +85,8 @@ class Loop(Protocol):
 
     def poll(self, n_chunks: int, n_events: int) -> Snapshot: ...
 
+    def stalls(self) -> dict[str, Any]: ...
+
     def stop(self, reason: str) -> None: ...
 
 
@@ -122,6 +124,9 @@ class ThreadLoop:
             d.events[n_events:],
         )
 
+    def stalls(self) -> dict[str, Any]:
+        return self.daemon.kernel_stalls.result()
+
     def stop(self, reason: str) -> None:
         if self._thread.is_alive():
             self.daemon.request_stop(reason)
@@ -156,7 +161,12 @@ def _serve(cfg: DaemonConfig, conn: Connection, log_level: int) -> None:
             reason = arg
             break
         try:
-            reply = loop.request(arg) if call == "request" else loop.poll(*arg)
+            if call == "request":
+                reply = loop.request(arg)
+            elif call == "stalls":
+                reply = loop.stalls()
+            else:
+                reply = loop.poll(*arg)
         except Exception as exc:  # noqa: BLE001 - the tool reports it
             conn.send(("error", f"{type(exc).__name__}: {exc}"))
             continue
@@ -233,6 +243,9 @@ class ProcessLoop:
 
     def poll(self, n_chunks: int, n_events: int) -> Snapshot:
         return self._call("poll", (n_chunks, n_events))
+
+    def stalls(self) -> dict[str, Any]:
+        return self._call("stalls", None)
 
     def stop(self, reason: str) -> None:
         if self._proc.is_alive():
@@ -343,6 +356,11 @@ class RigSession:
     def last_fault(self) -> dict[str, Any] | None:
         """The daemon's latest fault event (its `t` on the daemon's clock)."""
         return next((e for e in reversed(self.events) if e["kind"] == "fault"), None)
+
+    def kernel_stalls(self) -> dict[str, Any]:
+        """The loop's own stalls so far as the kernel measured them (the daemon summary's
+        `kernel_stalls`, times on the daemon's clock)."""
+        return self.loop.stalls()
 
     @property
     def clock_t0_s(self) -> float:
