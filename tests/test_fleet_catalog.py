@@ -91,6 +91,19 @@ def test_three_rigs_run_a_plan_a_fourth_client_finds_every_run_in_one_catalog(
     )
     plan = tmp_path / "plan.toml"
     plan.write_text(PLAN)
+    # Three rigs on two cores: none of them real-time. Nine 500 Hz processes at SCHED_FIFO
+    # (simulators and loops) left the rigs' control planes (sidecars, bridges, the router)
+    # so little CPU that a disarm went unanswered for 8 s (CI); this test is of the catalog
+    # and the fleet's clients, and fair scheduling lets every process make progress (a stall
+    # is a transport fault, re-armed: the plan's criteria).
+    sim_toml = tmp_path / "sim.toml"
+    sim_toml.write_text(
+        (REPO / "configs/sim.toml")
+        .read_text()
+        .replace("realtime_priority = 20", "realtime_priority = 0")
+        .replace("poll_idle = true", "poll_idle = false")
+    )
+    assert "realtime_priority = 0" in sim_toml.read_text()
     procs(["-m", "mrrig", "router", "--config", str(router)])
     bridges, sims, daemons, tools = [], {}, {}, {}
     try:
@@ -101,7 +114,7 @@ def test_three_rigs_run_a_plan_a_fourth_client_finds_every_run_in_one_catalog(
             work = tmp_path / name
             work.mkdir()
             sims[name] = procs(
-                ["-m", "firmware_sim", "--config", "configs/sim.toml", "--bus-channel", channel],
+                ["-m", "firmware_sim", "--config", str(sim_toml), "--bus-channel", channel],
                 stdout=subprocess.DEVNULL,
             )
             cfg = rig_config(
@@ -109,6 +122,7 @@ def test_three_rigs_run_a_plan_a_fourth_client_finds_every_run_in_one_catalog(
                 channel,
                 None,
                 rig={"name": name, "specimen": f"SN-{name}"},
+                loop={"realtime": False},
                 controller={"name": "constant", "current_a": 0.2},
                 telemetry={"enabled": True, "zenoh_config": str(rig_conf), "rate_hz": 20.0},
             )
