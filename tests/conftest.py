@@ -323,6 +323,11 @@ def rig_config(tmp_path: Path, channel: str, model: Path | None, **sections) -> 
         table["controller"]["model"] = str(model)
     table["telemetry"]["enabled"] = False
     table["recording"]["enabled"] = False
+    # the Python reference numerics: loading numba and its cached kernels adds about 1.3 s to
+    # each daemon's start (measured), and the process tests are of the daemon's behaviour; the
+    # compiled numerics are tested equal to these (tests/test_compiled_path.py) and run by the
+    # tests of the shipped configs (the demo, the walkthrough) and CI's smoke plan and fuzz
+    table["loop"]["numerics"] = "python"
     for name, values in sections.items():
         table.setdefault(name, {}).update(values)
     path = tmp_path / "rig.toml"

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 import shutil
 import signal
 import subprocess
@@ -31,7 +32,7 @@ from mrrig.offline.characterize import (
 from mrrig.offline.review import read_recording
 from mrrig.offline.training import load_tidy
 from mrrig.offline.validate import track_with_attempts
-from mrrig.rigio.rig_session import RigSession
+from mrrig.rigio.rig_session import SERVER_NICE, RigSession
 from mrrig.typed_config import ConfigError
 from tests.conftest import REPO, OutputWatch, rig_config, stall
 from tests.rig_harness import ThreadRig
@@ -320,6 +321,9 @@ def test_the_loop_process_ends_safe_when_its_tool_is_killed(tmp_path, bridge, pr
     assert line.strip().isdigit(), f"the tool printed no loop pid: {line!r}"
     loop_pid = int(line)
     time.sleep(0.5)
+    if os.geteuid() == 0:  # permitted: the pipe server (the process's main thread) favoured
+        stat = Path(f"/proc/{loop_pid}/task/{loop_pid}/stat").read_text()
+        assert int(stat.rsplit(")", 1)[1].split()[16]) == SERVER_NICE, stat
     tool.kill()
     tool.wait(timeout=10)
     end = time.monotonic() + 10
