@@ -10,9 +10,9 @@ level) into groups, each left out in turn with its neighbours kept out of traini
 is fitted on the rest by the kind's fold fit: the final model's procedure cut down to fit the
 time budget (an MLP: `fold_rows` LM rows, at most `FOLD_EPOCHS` epochs, one start, or where
 `mrrig train` is given several tests the mean of `ENSEMBLE_MEMBERS` starts, as its final
-model; a GRU: the seconds a fold may take). Beside it, each kind's block hold-out (the fold fit on the training
-blocks, scored on the last part of each run) is printed, the optimistic alternative, and the
-kind it would have chosen. The choice (search and folds) runs within `budget_s`
+model; a GRU: the seconds a fold may take). Beside it, each kind's block hold-out (the fold
+fit on the training blocks, scored on the last part of each run) is printed, the optimistic
+alternative, and the kind it would have chosen. The choice (search and folds) runs within `budget_s`
 (`CHOICE_BUDGET_S` by default): a kind whose folds would not end within what is left (projected
 from its first folds, or from the least a fold of it needs: `GRU_MIN_FOLD_S`,
 `TWIN_MIN_FOLD_S`) is not tried, with why; the first kind is scored whatever the budget.
