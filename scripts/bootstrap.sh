@@ -26,7 +26,7 @@ fi
 # so that a daemon's start loads them (about 0.5 s) instead of compiling (about 10 s); a second
 # run only loads them
 echo "bootstrap: compiling the loop's numerics (numba, cached)"
-.venv/bin/python -c "from mrrig.loop import compiled; compiled.warm()"
+.venv/bin/python -c "from mrrig.loop import compiled, compiled_hil; compiled.warm(); compiled_hil.warm()"
 # the rerun CLI asks about analytics once; never in CI or at a rig
 .venv/bin/rerun analytics disable >/dev/null 2>&1 || true
 echo "bootstrap: .venv ready"

@@ -153,18 +153,81 @@ def _runs_catalog_of_the_tests(tmp_path_factory: pytest.TempPathFactory) -> Iter
         os.environ["MRRIG_CATALOG"] = old
 
 
+# Modules of pure numerics (trainings, fits, the models' and the HIL's numerics: no thread,
+# process, socket or timeout of their own) that run beside a rig at SCHED_IDLE rather than wait
+# for the machine: a task of that class gets only a CPU no other task wants, and any other
+# task that wakes takes its CPU at once, so the rig's bridges, sidecars and tools lose nothing
+# to them (its loops and simulators are SCHED_FIFO anyway). They took about 220 s of CI's
+# test time while the other worker's rigs left a CPU idle.
+BESIDE_RIGS = frozenset(
+    {
+        "test_features_auto_kinds",
+        "test_measured_data",
+        "test_identify_generalizes",
+        "test_plant",
+        "test_training",
+        "test_export_window",
+        "test_crossval",
+        "test_datasets",
+        "test_hil_loop",
+        "test_inversion",
+        "test_hil_numerics",
+        "test_closed_loop",
+        "test_reference_motion",
+        "test_actuator",
+        "test_evaluate_kinds",
+        "test_model_continuity",
+        "test_greybox",
+        "test_choice_by_other_tests",
+        "test_beside_rigs",
+    }
+)
+
+
+@contextlib.contextmanager
+def _at_sched_idle() -> Iterator[bool]:
+    """Every thread of this process (a pool that torch or OpenBLAS started earlier too, and
+    what they start) at SCHED_IDLE while the block runs, then as it was; False (nothing
+    changed) where this process could not set it back (not root)."""
+    if os.geteuid() != 0 or not hasattr(os, "SCHED_IDLE"):
+        yield False
+        return
+    tids = [int(t) for t in os.listdir("/proc/self/task")]
+    old = {}
+    for tid in tids:
+        with contextlib.suppress(OSError):
+            old[tid] = (os.sched_getscheduler(tid), os.sched_getparam(tid))
+            os.sched_setscheduler(tid, os.SCHED_IDLE, os.sched_param(0))
+    try:
+        yield True
+    finally:
+        for tid, (policy, param) in old.items():
+            with contextlib.suppress(OSError):  # a thread that ended
+                os.sched_setscheduler(tid, policy, param)
+
+
 @pytest.fixture(scope="module", autouse=True)
 def _process_modules_run_alone(
     request: pytest.FixtureRequest, tmp_path_factory: pytest.TempPathFactory
 ) -> Iterator[None]:
     """A module with process tests holds the machine alone, its module fixtures included
-    (send-force's and the bus logs' runs start rigs too); any other module holds it shared."""
+    (send-force's and the bus logs' runs start rigs too); a module of BESIDE_RIGS runs beside
+    them at SCHED_IDLE; any other module holds it shared."""
     module = request.module
     process = any(
         item.get_closest_marker("process") is not None
         for item in request.session.items
         if getattr(item, "module", None) is module
     )
+    if not process and module.__name__.rsplit(".", 1)[-1] in BESIDE_RIGS:
+        with _at_sched_idle() as idle:
+            if idle:
+                _Machine.held = "beside"  # its fixtures' trainings too: no lock, idle
+                try:
+                    yield
+                finally:
+                    _Machine.held = None
+                return
     with _Machine.hold(_shared_base(tmp_path_factory), alone=process):
         yield
 
@@ -323,6 +386,11 @@ def rig_config(tmp_path: Path, channel: str, model: Path | None, **sections) -> 
         table["controller"]["model"] = str(model)
     table["telemetry"]["enabled"] = False
     table["recording"]["enabled"] = False
+    # the Python reference numerics: loading numba and its cached kernels adds about 1.3 s to
+    # each daemon's start (measured), and the process tests are of the daemon's behaviour; the
+    # compiled numerics are tested equal to these (tests/test_compiled_path.py) and run by the
+    # tests of the shipped configs (the demo, the walkthrough) and CI's smoke plan and fuzz
+    table["loop"]["numerics"] = "python"
     for name, values in sections.items():
         table.setdefault(name, {}).update(values)
     path = tmp_path / "rig.toml"

@@ -13,7 +13,8 @@ transport's (its own frame echoed back late by the bridge). `prove` checks a run
 
 A stall of the daemon itself the simulator cannot see: the kernel measures it, and the
 daemon's summary keeps it (`kernel_stalls`, mrrig/loop/kernel_stalls.py: the passes of its
-loop that waited on a run queue or lost time to the VM's steal). A fault a stall causes is
+loop that waited on a run queue, or whose GIL another of the daemon's Python threads held
+while it waited on one, or lost time to the VM's steal). A fault a stall causes is
 explained by those too, where the passes next to its silent interval lost that interval's
 length (less DETECT_S) or more: the figure is printed. Any other fault still fails.
 
@@ -50,6 +51,7 @@ class Window:
     end_s: float
     runq_ms: float = 0.0  # kernel: the daemon's loop waited this long on a run queue
     steal_ms: float = 0.0  # kernel: the VM lost this much to the hypervisor
+    others_ms: float = 0.0  # kernel: another Python thread of the daemon waited on a run queue
 
     def __str__(self) -> str:
         return (
@@ -60,8 +62,13 @@ class Window:
     def measured(self, clock_t0_s: float) -> str:
         """A kernel window's figures, its times on the daemon's clock."""
         steal = f" and lost {self.steal_ms:.0f} ms to the VM's steal" if self.steal_ms else ""
+        others = (
+            f", another of its threads (the GIL's holder?) {self.others_ms:.1f} ms"
+            if self.others_ms
+            else ""
+        )
         return (
-            f"daemon waited {self.runq_ms:.1f} ms on the run queue{steal} in "
+            f"daemon waited {self.runq_ms:.1f} ms on the run queue{others}{steal} in "
             f"[{self.start_s - clock_t0_s:.3f}, {self.end_s - clock_t0_s:.3f}] s"
         )
 
@@ -86,7 +93,7 @@ def kernel_windows(kernel: Mapping[str, Any] | None, clock_t0_s: float) -> list[
     """The daemon's stalls that the kernel measured (its summary's `kernel_stalls`, times
     on the daemon's clock whose zero is `clock_t0_s`) on CLOCK_MONOTONIC."""
     rows = (kernel or {}).get("windows") or []
-    return [Window("kernel", clock_t0_s + a, clock_t0_s + b, r, st) for a, b, r, st in rows]
+    return [Window("kernel", clock_t0_s + w[0], clock_t0_s + w[1], *w[2:5]) for w in rows]
 
 
 def kernel_explains(silent: tuple[float, float], ks: Iterable[Window]) -> Window | None:
@@ -98,9 +105,11 @@ def kernel_explains(silent: tuple[float, float], ks: Iterable[Window]) -> Window
     near = [w for w in ks if w.start_s <= silent[1] + DETECT_S and silent[0] - DETECT_S <= w.end_s]
     runq = sum(w.runq_ms for w in near)
     steal = sum(w.steal_ms for w in near)
-    if not near or (runq + steal) * 1e-3 < silent[1] - silent[0] - DETECT_S:
+    others = sum(w.others_ms for w in near)
+    if not near or (runq + steal + others) * 1e-3 < silent[1] - silent[0] - DETECT_S:
         return None
-    return Window("kernel", min(w.start_s for w in near), max(w.end_s for w in near), runq, steal)
+    a, b = min(w.start_s for w in near), max(w.end_s for w in near)
+    return Window("kernel", a, b, runq, steal, others)
 
 
 def spans(ws: Iterable[Window]) -> list[Window]:

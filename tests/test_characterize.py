@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 import shutil
 import signal
 import subprocess
@@ -31,7 +32,7 @@ from mrrig.offline.characterize import (
 from mrrig.offline.review import read_recording
 from mrrig.offline.training import load_tidy
 from mrrig.offline.validate import track_with_attempts
-from mrrig.rigio.rig_session import RigSession
+from mrrig.rigio.rig_session import SERVER_NICE, RigSession
 from mrrig.typed_config import ConfigError
 from tests.conftest import REPO, OutputWatch, rig_config, stall
 from tests.rig_harness import ThreadRig
@@ -282,6 +283,14 @@ def _failed_attempts(out: Path) -> list[dict]:
     return [{"t": a["clock_s"], "reason": a["fault"]} for a in failed]
 
 
+def _failed_attempts_stalls(out: Path) -> dict:
+    """The loop's kernel-measured stalls before each failed attempt's fault, on
+    CLOCK_MONOTONIC (a daemon summary's `kernel_stalls` with time zero 0)."""
+    runs = json.loads((out / "done.json").read_text())["runs"].values()
+    failed = [a for r in runs for a in r["failed_attempts"]]
+    return {"windows": [w for a in failed for w in a.get("kernel_windows", [])]}
+
+
 def _report_faults(r: dict) -> list[dict]:
     """A validate report's faults, kept and discarded, with `t` on its daemon's clock."""
     return [*r["faults"], *r["discarded_faults"]]
@@ -312,6 +321,9 @@ def test_the_loop_process_ends_safe_when_its_tool_is_killed(tmp_path, bridge, pr
     assert line.strip().isdigit(), f"the tool printed no loop pid: {line!r}"
     loop_pid = int(line)
     time.sleep(0.5)
+    if os.geteuid() == 0:  # permitted: the pipe server (the process's main thread) favoured
+        stat = Path(f"/proc/{loop_pid}/task/{loop_pid}/stat").read_text()
+        assert int(stat.rsplit(")", 1)[1].split()[16]) == SERVER_NICE, stat
     tool.kill()
     tool.wait(timeout=10)
     end = time.monotonic() + 10
@@ -361,9 +373,9 @@ def test_characterize_train_validate_from_the_command_line(tmp_path, bridge, pro
     print(log_val)
     print(f"characterize {t1 - t0:.1f} s, train {t2 - t1:.1f} s, validate {t3 - t2:.1f} s")
     st = _sim_stats(sim, sim_stats)
-    explain(st, _failed_attempts(out), 0.0)
+    explain(st, _failed_attempts(out), 0.0, _failed_attempts_stalls(out))
     (r,) = json.loads(report.read_text())["reports"]
-    explain(st, _report_faults(r), r["clock_t0_s"])
+    explain(st, _report_faults(r), r["clock_t0_s"], r["kernel_stalls"])
     assert p.returncode == 0, log_val  # the kept window has no fault
     assert 1 <= r["attempts"] <= 3 and (r["attempts"] > 1) == bool(r["discarded_faults"])
     done = json.loads((out / "done.json").read_text())
@@ -401,7 +413,7 @@ def test_validate_tries_a_window_again_after_a_transport_fault(tmp_path, bridge,
     print(log[-2500:])
     st = _sim_stats(sim, sim_stats)
     (r,) = json.loads(report.read_text())["reports"]
-    explained = explain(st, _report_faults(r), r["clock_t0_s"])
+    explained = explain(st, _report_faults(r), r["clock_t0_s"], r["kernel_stalls"])
     assert any(w.end_s - w.start_s >= 0.09 for _, w in explained), explained  # ours
     assert r["attempts"] >= 2, log
     assert "trying the window again" in log and "windows discarded for a transport fault" in log
@@ -434,7 +446,7 @@ def test_interrupted_characterize_command_resumes_without_repeating_runs(tmp_pat
     log, _ = p.communicate(timeout=120)
     assert p.returncode == 0, log
     assert f"{len(first)} of {N_SHORT} runs already recorded" in log
-    explain(_sim_stats(sim, sim_stats), _failed_attempts(out), 0.0)
+    explain(_sim_stats(sim, sim_stats), _failed_attempts(out), 0.0, _failed_attempts_stalls(out))
     runs = json.loads(done_path.read_text())["runs"]
     assert set(runs) == {str(k) for k in range(N_SHORT)}
     for k, entry in first.items():

@@ -16,6 +16,7 @@ import pytest
 from mrrig.loop.kernel_stalls import (
     KernelStalls,
     ProcReader,
+    format_stalls,
     parse_run_delay_ns,
     parse_steal_ticks,
     schedstat_path,
@@ -38,10 +39,10 @@ def test_a_pass_that_lost_two_ms_or_more_is_a_window_and_the_totals_span_the_run
     k = KernelStalls(period_s=0.002)
     k.add(0.000, 50 * MS, 7)
     assert k.add(0.002, 50 * MS + 300_000, None) is None  # 0.3 ms: no window
-    assert k.add(0.018, 64 * MS + 500_000, 7) == [0.002, 0.018, pytest.approx(14.2), 0.0]
+    assert k.add(0.018, 64 * MS + 500_000, 7) == [0.002, 0.018, pytest.approx(14.2), 0.0, 0.0]
     assert k.add(0.020, 65 * MS, None) is None
     r = k.result()
-    assert r["windows"] == [[0.002, 0.018, pytest.approx(14.2), 0.0]]
+    assert r["windows"] == [[0.002, 0.018, pytest.approx(14.2), 0.0, 0.0]]
     assert r["runq_total_ms"] == pytest.approx(15.0) and r["runq_max_ms"] == pytest.approx(14.2)
     assert r["run_delay_ns_first_last"] == [50 * MS, 65 * MS] and r["span_s"] == [0.0, 0.020]
     assert "the largest 14.2 ms in [0.002, 0.018] s" in format_summary(
@@ -55,9 +56,60 @@ def test_steal_is_credited_at_most_the_length_of_its_pass():
     k = KernelStalls(period_s=0.002)
     k.add(1.000, 0, 100)
     w = k.add(1.002, 0, 101)
-    assert w == [1.000, 1.002, 0.0, pytest.approx(2.0)]
-    assert k.add(1.016, 0, 102) == [1.002, 1.016, 0.0, pytest.approx(10.0)]
+    assert w == [1.000, 1.002, 0.0, pytest.approx(2.0), 0.0]
+    assert k.add(1.016, 0, 102) == [1.002, 1.016, 0.0, pytest.approx(10.0), 0.0]
     assert k.result()["steal_total_ms"] == pytest.approx(20.0)  # the counter's own total
+
+
+def test_another_python_threads_run_queue_delay_is_credited_at_most_its_pass():
+    """The loop needs the GIL: another thread that waited on a run queue (holding it, maybe)
+    held the loop up as long. The largest of their delays since the previous read, at most
+    the pass's length; a thread new since then counts from its first reading."""
+    k = KernelStalls(period_s=0.002)
+    k.add(1.000, 0, 0, {11: 5 * MS})
+    assert k.add(1.002, 0, None) is None  # not read this pass
+    w = k.add(1.014, 0, 0, {11: 14 * MS, 12: 900 * MS})  # 12: new, no delay credited
+    assert w == [1.002, 1.014, 0.0, 0.0, pytest.approx(9.0)]
+    w = k.add(1.017, 0, 0, {11: 30 * MS, 12: 901 * MS})  # 16 ms waited, a 3 ms pass
+    assert w == [1.014, 1.017, 0.0, 0.0, pytest.approx(3.0)]
+    assert k.add(1.019, 0, 0, {12: 901 * MS}) is None  # 11 ended
+    r = k.result()
+    assert r["others_total_ms"] == pytest.approx(12.0) and r["others_max_ms"] == pytest.approx(9)
+    line = format_summary(summarize(_no_samples(), [], {}) | {"kernel_stalls": r})
+    assert "other threads 12.0 ms (max 9.0 ms)" in line and "the largest 9.0 ms" in line
+    assert (
+        "another of its threads (the GIL's holder?) 9.0 ms" in stall_event(r["windows"][0])["text"]
+    )
+
+
+def test_a_recording_made_before_the_other_threads_were_measured_still_reads():
+    old = {
+        "measured": True, "runq_total_ms": 14.2, "runq_max_ms": 14.2, "steal_total_ms": 0.0,
+        "steal_max_ms": 0.0, "window_min_ms": 2.0, "windows_count": 1,
+        "windows": [[0.002, 0.018, 14.2, 0.0]],
+    }  # fmt: skip
+    assert "the largest 14.2 ms in [0.002, 0.018] s" in format_stalls(old)
+    assert "14.2 ms on the run queue and lost 0 ms" in stall_event(old["windows"][0])["text"]
+
+
+def test_the_reader_reads_the_other_python_threads_of_its_process():
+    """Each other thread of the process that runs Python is read by its native id (the
+    reader's own thread left out); a thread that ended is dropped."""
+    go, done = threading.Event(), threading.Event()
+    t = threading.Thread(target=lambda: (go.set(), done.wait(5)), daemon=True)
+    t.start()
+    go.wait(5)
+    r = ProcReader()
+    try:
+        got = r.others_run_delay_ns()
+        assert t.native_id in got and threading.get_native_id() not in got
+        assert 0 <= got[t.native_id] <= _run_delay_ns(t.native_id)  # its own count, cumulative
+        done.set()
+        t.join(5)
+        assert t.native_id not in r.others_run_delay_ns()
+    finally:
+        done.set()
+        r.close()
 
 
 def test_the_summary_lists_the_largest_windows_and_counts_all():
@@ -141,8 +193,9 @@ def test_the_daemons_summary_carries_its_loop_threads_run_queue_delay(tmp_path):
     assert k["runq_total_ms"] >= (after - before) * 1e-6
     assert k["steal_total_ms"] >= 0 and k["runq_max_ms"] >= 0 and k["steal_max_ms"] >= 0
     t0, t1 = k["span_s"]
-    for a, b, runq, steal in k["windows"]:
-        assert t0 <= a < b <= t1 and runq >= 0 and steal >= 0 and runq + steal >= 2.0
+    for a, b, runq, steal, others in k["windows"]:
+        assert t0 <= a < b <= t1 and min(runq, steal, others) >= 0
+        assert runq + steal + others >= 2.0
     assert sum(w[2] for w in k["windows"]) <= k["runq_total_ms"] + 1e-6
 
 

@@ -157,6 +157,18 @@ def test_a_sensor_timeout_the_vms_steal_explains_is_attributed_with_its_figure(c
     )
 
 
+def test_a_stale_frame_while_another_daemon_thread_waited_on_a_run_queue_is_attributed(capsys):
+    """CI: validate's loop answered a frame 10.8 ms late, its own thread never on a run queue:
+    the process's pipe-server thread (holding the GIL, maybe) waited 11.5 ms on one."""
+    k = kernel([12.331, 12.346, 0.1, 0.0, 11.5])
+    proof = prove(sim_stats(), [stale(12.345)], T0_DAEMON, kernel=k)
+    ((f, w),) = proof.explained
+    assert w.kind == "kernel" and w.others_ms == 11.5
+    assert "another of its threads (the GIL's holder?) 11.5 ms" in capsys.readouterr().out
+    with pytest.raises(AssertionError, match="no measured stall explains"):  # 4 ms: too little
+        prove(sim_stats(), [stale(12.345)], T0_DAEMON, kernel=kernel([12.331, 12.346, 0, 0, 4]))
+
+
 @pytest.mark.parametrize(
     ("windows", "f"),
     [

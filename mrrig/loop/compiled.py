@@ -18,6 +18,8 @@ on the Python path: the flow and gradient methods, models with history inputs, t
 inversion, the supervised and recurrent inverses, the constant, Heaviside and continuous-state
 laws, the other references, the clamp and the slew limit (a few float operations each: a call
 into compiled code costs more than they do), the detectors, and the packing (cantools' codec).
+The hybrid loop's frame (the substructure, its law and delay compensation) is compiled in
+`mrrig.loop.compiled_hil`.
 """
 
 from __future__ import annotations

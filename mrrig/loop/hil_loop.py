@@ -196,6 +196,13 @@ class HilLoop:
             self.scenario.period_s,
         )
         self.step: HybridStep | None = None
+        # a run's frame compiled (`mrrig.loop.compiled_hil`) with `loop.numerics = "compiled"`
+        self._run_type = HybridStep
+        if cfg.loop.numerics == "compiled":
+            from mrrig.loop import compiled_hil  # numba imported only for the compiled path
+
+            compiled_hil.warm()
+            self._run_type = compiled_hil.hybrid_step
         # the next run, built off the loop (here, and by an arm's or set_hil's preparation):
         # its excitation record takes 10 ms to seconds, the first one half a second more
         self._next_run: HybridStep | None = self.build_run()
@@ -331,7 +338,7 @@ class HilLoop:
     # ---- start and end -----------------------------------------------------------------
     def build_run(self, scenario: Scenario | None = None) -> HybridStep:
         """A fresh run of `scenario` (default the one in force): any thread but the loop."""
-        return HybridStep(self.scenario if scenario is None else scenario)
+        return self._run_type(self.scenario if scenario is None else scenario)
 
     def run_ready(self) -> bool:
         """Whether the next run of the scenario in force is built (any thread: a snapshot)."""
@@ -348,7 +355,7 @@ class HilLoop:
         ready, run, self._next_run = self.run_ready(), self._next_run, None
         if not ready:
             log.warning("hil: run %d built in the loop (no run was ready)", self.runs + 1)
-            run = HybridStep(self.scenario)
+            run = self.build_run()
         self.step = run
         self._watch.reset()
         self._stream.restart()

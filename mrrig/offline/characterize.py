@@ -56,6 +56,7 @@ MIN_SAMPLE_FRACTION = 0.95  # a run with fewer samples than this of duration/per
 # Disarmed pause before another attempt: the firmware reports a watchdog trip in its next
 # RigStatus (10 Hz); arming again at once would fault on that old trip.
 RETRY_PAUSE_S = 1.0
+KERNEL_NEAR_S = 1.0  # a failed attempt keeps the loop's kernel-measured stalls this long before
 MAX_FAILED_IN_A_ROW = 3  # then the rig is taken to be unusable and the tool stops
 RUN_OVERHEAD_S = 0.5  # requests and file writing per run, for the first time-left estimate
 DONE_FILE = "done.json"
@@ -414,8 +415,12 @@ def _failed_attempt(session: RigSession, attempt: int, exc: RunFailed) -> dict[s
     to set it beside the rig's own record of the same moment."""
     out: dict[str, Any] = {"attempt": attempt, "reason": str(exc)}
     if exc.fault is not None:
-        t = float(exc.fault["t"])
-        out.update(fault=exc.fault["reason"], t_s=t, clock_s=session.clock_t0_s + t)
+        t, t0 = float(exc.fault["t"]), session.clock_t0_s
+        out.update(fault=exc.fault["reason"], t_s=t, clock_s=t0 + t)
+        # the loop's own stalls (the kernel's) in the second before it, on CLOCK_MONOTONIC
+        windows = session.kernel_stalls().get("windows") or []
+        near = [w for w in windows if t - KERNEL_NEAR_S <= w[1] and w[0] <= t]
+        out["kernel_windows"] = [[t0 + w[0], t0 + w[1], *w[2:]] for w in near]
     return out
 
 

@@ -243,6 +243,8 @@ def main(argv: list[str] | None = None) -> int:
                         verdict="fault" if r["faults"] else "ok",
                     )
                     r["clock_t0_s"] = session.clock_t0_s  # the faults' `t` on CLOCK_MONOTONIC
+                    # the loop's own stalls (the kernel's): what explains a discarded fault
+                    r["kernel_stalls"] = session.kernel_stalls()
                     reports.append(r)
                     print(format_report(r), flush=True)
         except Interrupted:

@@ -73,8 +73,15 @@ TARGET_WORK_P999_US = 150.0
 
 
 def run_once(
-    config: Path, sim_config: Path, duration_s: float, mode: str, daemon_args: tuple = ()
+    config: Path,
+    sim_config: Path,
+    duration_s: float,
+    mode: str,
+    daemon_args: tuple = (),
+    numerics: str = "compiled",
 ) -> dict:
+    """One run; `numerics`: the daemon's (`loop.numerics`) in the off, on and hil runs (the
+    python run's is python)."""
     work = Path(tempfile.mkdtemp(prefix="mrrig-bench-loop-"))
     # the benchmark's daemon runs go into a catalog of their own, not the lab's
     os.environ[CATALOG_ENV] = str(work / "catalog.sqlite")
@@ -106,8 +113,10 @@ def run_once(
         if mode in ("on", "python"):
             cmd += ["--record", str(work / "bench.rrd")]
         if mode == "python":
-            cmd += ["--numerics", "python"]
-        elif mode in ("off", "hil"):
+            numerics = "python"
+        if mode != "echo":
+            cmd += ["--numerics", numerics]
+        if mode in ("off", "hil"):
             cmd += ["--no-record", "--no-telemetry"]
         cmd += list(daemon_args)
         daemon = subprocess.Popen(cmd, stdout=subprocess.DEVNULL)
@@ -158,7 +167,7 @@ def run_once(
         return {
             "mode": mode,
             "telemetry_and_recording": mode in ("on", "python"),
-            "numerics": "python" if mode == "python" else "compiled",
+            "numerics": None if mode == "echo" else numerics,
             "duration_s": d.get("duration_s", wall),
             "frames": d["frames"],
             "latency_us": d["latency_us"],
@@ -283,6 +292,8 @@ def format_run(r: dict) -> str:
         "hil": "daemon running the hybrid simulation, telemetry+recording OFF",
         "python": "daemon, telemetry+recording ON, numerics on the Python path",
     }[r["mode"]]
+    if r["mode"] in ("off", "on", "hil"):
+        title += f", {r['numerics']} numerics"
     return "\n".join(
         [
             f"{title}: simulator sent {r['sensor_frames_sent']} sensor frames, "
@@ -400,6 +411,13 @@ def main(argv: list[str] | None = None) -> int:
         metavar="SCENARIO",
         help="a last run with the daemon running this hybrid simulation (configs/hil/*.toml)",
     )
+    ap.add_argument(
+        "--numerics",
+        choices=("compiled", "python"),
+        default="compiled",
+        help="the daemon's frame numerics in the off, on and hil runs (default compiled; the "
+        "python run's are python)",
+    )
     ap.add_argument("--json", type=output_file, help="also write the numbers here")
     args = ap.parse_args(argv)
     from mrrig.cli.demo import SIM_MODEL, ensure_sim_model
@@ -408,12 +426,19 @@ def main(argv: list[str] | None = None) -> int:
     runs = {}
     for mode in [args.only] if args.only else MODES:
         log.info("run %s, %.0f s", mode, args.duration)
-        runs[mode] = run_once(args.config, args.sim_config, args.duration, mode)
+        runs[mode] = run_once(
+            args.config, args.sim_config, args.duration, mode, numerics=args.numerics
+        )
         print(format_run(runs[mode]), flush=True)
     if args.hil is not None:
         log.info("run hil (%s), %.0f s", args.hil, args.duration)
         runs["hil"] = run_once(
-            args.config, args.sim_config, args.duration, "hil", hil_args(args.hil, args.duration)
+            args.config,
+            args.sim_config,
+            args.duration,
+            "hil",
+            hil_args(args.hil, args.duration),
+            args.numerics,
         )
         print(format_run(runs["hil"]), flush=True)
         print("\n".join(hil_lines(runs)), flush=True)

@@ -484,9 +484,10 @@ def _score_kind(
     max_folds: int,
     seed: int,
     deadline: float,
+    cost_budget_s: float = COST_BUDGET_S,
 ) -> KindScore:
     """The kind's other-test estimate within `deadline` (OverBudget where it would not end),
-    then its block hold-out."""
+    then its block hold-out and its work per frame against `cost_budget_s`."""
     t0 = time.perf_counter()
     max_folds = min(max_folds, kind.max_folds or max_folds)
     n_folds = fold_count(len(names), max_folds)
@@ -527,7 +528,7 @@ def _score_kind(
         float(cv["overall"]["et"]),
         cv["per_group"],
         cost_s * 1e6,
-        cost_s <= COST_BUDGET_S,
+        cost_s <= cost_budget_s,
         time.perf_counter() - t0,
         model,
         cv,
@@ -548,13 +549,15 @@ def choose_kind(
     deadline: float | None = None,
     started: float | None = None,
     not_built: dict[str, str] | None = None,
+    cost_budget_s: float = COST_BUDGET_S,
 ) -> tuple[KindScore, dict[str, Any]]:
     """Each kind's other-test Et (module docstring), and the chosen one with the report: every
     kind's Et, per test, block hold-out, work per frame and why the winner won. `deadline`
     (`time.perf_counter()`'s; default `CHOICE_BUDGET_S` from now): a kind that would not be
     scored by then is not tried (the first kind is scored whatever the budget); `started`: when
     the budget began (the report's budget and time spent count from it; default now).
-    `not_built`: kinds left out and why (listed in the report)."""
+    `not_built`: kinds left out and why (listed in the report); `cost_budget_s`: the work per
+    frame a kind may take to be chosen (the daemon's: it refuses a model over it)."""
     t_start = time.perf_counter() if started is None else started
     end = t_start + CHOICE_BUDGET_S if deadline is None else deadline
     several = len(names) >= 2
@@ -573,6 +576,7 @@ def choose_kind(
                 max_folds=max_folds,
                 seed=seed,
                 deadline=end if scores else math.inf,  # the first kind is always scored
+                cost_budget_s=cost_budget_s,
             )
         except OverBudget as exc:
             not_tried[kind.name] = f"not within the time budget: {exc}"
@@ -589,8 +593,13 @@ def choose_kind(
             sc.seconds,
         )
         scores.append(sc)
-    best, why = pick_kind(scores, several, unit=unit)
-    by_block, _ = pick_kind(scores, several, key="block_et", unit=unit) if scores else (best, "")
+    budget_us = cost_budget_s * 1e6
+    best, why = pick_kind(scores, several, unit=unit, budget_us=budget_us)
+    by_block, _ = (
+        pick_kind(scores, several, key="block_et", unit=unit, budget_us=budget_us)
+        if scores
+        else (best, "")
+    )
     folds = fold_count(len(names), max_folds)
     method = (
         f"{'leave-one-test-out' if len(names) <= max_folds else f'{max_folds}-fold over tests'}"
@@ -618,7 +627,7 @@ def choose_kind(
         " the seconds a fold may take; the twin as fitted",
         "optimistic": not several,
         "budget_s": end - t_start,
-        "budget_us": COST_BUDGET_S * 1e6,
+        "budget_us": cost_budget_s * 1e6,
         "kinds": [
             {
                 "kind": s.name,
@@ -642,7 +651,11 @@ def choose_kind(
 
 
 def pick_kind(
-    scores: list[KindScore], several: bool, key: str = "et", unit: str = "segment"
+    scores: list[KindScore],
+    several: bool,
+    key: str = "et",
+    unit: str = "segment",
+    budget_us: float = COST_BUDGET_S * 1e6,
 ) -> tuple[KindScore, str]:
     """The kind of the lowest Et (`key`: the other-test estimate, or "block_et") among those
     within the loop's budget (of all, where none is), and why it won; `unit`: what a single
@@ -652,10 +665,10 @@ def pick_kind(
         raise ValueError("no kind of model could be scored")
     pool = [s for s in scored if s.in_budget] or scored
     best = min(pool, key=lambda s: getattr(s, key))
-    return best, _why(best, scored, "test" if several else unit)
+    return best, _why(best, scored, "test" if several else unit, budget_us)
 
 
-def _why(best: KindScore, scored: list[KindScore], unit: str) -> str:
+def _why(best: KindScore, scored: list[KindScore], unit: str, budget_us: float) -> str:
     where = f"on the {unit}s left out"
     others = sorted((s for s in scored if s is not best), key=lambda s: s.et)
     text = f"the lowest Et {where} ({best.et:.4f})"
@@ -663,7 +676,7 @@ def _why(best: KindScore, scored: list[KindScore], unit: str) -> str:
     over = [s for s in others if not s.in_budget and s.et < best.et]
     if not best.in_budget:
         return text + " of kinds all over the loop's budget (the daemon refuses it)"
-    text += f" of the kinds within the {COST_BUDGET_S * 1e6:.0f} us work per frame"
+    text += f" of the kinds within the {budget_us:.0f} us work per frame"
     if in_budget:
         text += f"; next {in_budget[0].name} {in_budget[0].et:.4f}"
     if over:
