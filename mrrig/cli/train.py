@@ -57,6 +57,7 @@ from mrrig.offline.training.crossval import (
 )
 from mrrig.offline.training.gru import DEFAULT_HIDDEN as GRU_HIDDEN
 from mrrig.offline.training.kinds import (
+    ENSEMBLE_MEMBERS,
     GREYBOX,
     GRU,
     SEARCH_SHARE,
@@ -250,6 +251,25 @@ def format_validate(v: dict[str, Any] | None) -> list[str]:
     return lines
 
 
+def _format_starts(st: dict[str, Any] | None, unit: str) -> list[str]:
+    """The forward network's starts: the one kept, or their mean (`average_starts`)."""
+    if not st:
+        return []
+    seeds = ", ".join(map(str, st["init_seeds"]))
+    if st.get("averaged"):
+        return [
+            f"  the mean of {len(st['init_seeds'])} starts (initial weights and rows seeds"
+            f" {seeds}; epochs {' / '.join(map(str, st['epochs']))}), one network of their"
+            " hidden layers side by side, as the kind choice's fold fits"
+        ]
+    return [
+        f"  kept start {st['kept'] + 1} of {len(st['init_seeds'])} (initial weights"
+        f" seeds {seeds}): on-line inverse command RMSE on the training rows "
+        + " / ".join(f"{e:.4f}" for e in st["training_rmse_a"])
+        + f" {unit}"
+    ]
+
+
 def format_report(r: dict[str, Any]) -> str:
     ni = r["network_inversion"]
     unit = r.get("command_unit", "A")
@@ -268,19 +288,14 @@ def format_report(r: dict[str, Any]) -> str:
             if r["history_samples"]
             else "none"
         ),
-        f"hidden neurons: {r.get('hidden', 30)}",
-        f"forward network: {r['epochs']} epochs ({r['stop_reason']}), {r['seconds']:.1f} s",
-        *(
-            [
-                f"  kept start {st['kept'] + 1} of {len(st['init_seeds'])} (initial weights"
-                f" seeds {', '.join(map(str, st['init_seeds']))}): on-line inverse command RMSE"
-                " on the training rows "
-                + " / ".join(f"{e:.4f}" for e in st["training_rmse_a"])
-                + f" {unit}"
-            ]
-            if (st := r.get("starts"))
-            else []
+        f"hidden neurons: {r.get('hidden', 30)}"
+        + (
+            f" per start ({r['hidden'] * len(st['init_seeds'])} in the averaged network)"
+            if (st := r.get("starts") or {}).get("averaged")
+            else ""
         ),
+        f"forward network: {r['epochs']} epochs ({r['stop_reason']}), {r['seconds']:.1f} s",
+        *_format_starts(r.get("starts"), unit),
         f"forward Et on the {r['n_val']} held-out samples ({r['split']['kind']}):"
         f" {r['forward']['et']:.4f}"
         f" (RMSE {r['forward']['rmse_n']:.2f} N)"
@@ -446,7 +461,9 @@ def _parser(cfg: TrainConfig) -> argparse.ArgumentParser:
         type=COUNT,
         default=t.restarts,
         help="forward-network starts from different initial weights; the one with the best "
-        "on-line inverse on the training rows is kept (default %(default)s)",
+        "on-line inverse on the training rows is kept (default %(default)s); with --features "
+        f"auto on several tests, {ENSEMBLE_MEMBERS} of them (at most) are averaged into one "
+        "network instead, as each fold fit of the kind choice averages as many",
     )
     ap.add_argument(
         "--n-train",
@@ -634,6 +651,10 @@ def main(argv: list[str] | None = None) -> int:
             args, series, excluded, tests, test_names, columns, units, format_other_tests
         )
     search = kinds_report = cv = None
+    # where several tests are given, the MLP kinds' fold fits (stopped on whole tests) and the
+    # final model average as many fits (`training.ensemble`): ENSEMBLE_MEMBERS, at most --restarts
+    several = mode == "auto" and len(test_names) >= 2
+    members = min(args.restarts, ENSEMBLE_MEMBERS) if several else 1
     if mode == "auto":
         started = time.perf_counter()
         deadline = started + args.budget_s
@@ -652,6 +673,7 @@ def main(argv: list[str] | None = None) -> int:
             max_epochs=args.epochs,
             holdout_fraction=args.holdout_fraction,
             i_max=i_max,
+            members=members,
         )
         best, kinds_report = choose_kind(
             series,
@@ -690,11 +712,12 @@ def main(argv: list[str] | None = None) -> int:
             supervised=args.supervised,
             history_samples=history_samples,
             history_signals=history_signals,
-            restarts=args.restarts,
+            restarts=members if members > 1 else args.restarts,
             split=args.split,
             holdout_fraction=args.holdout_fraction,
             history_stride=history_stride,
             hidden=hidden,
+            average_starts=members > 1,  # as each fold fit of the kind choice averaged
         )
     except ModelError as exc:  # the data gave a network no file could hold
         raise DataError(f"{files}: training gave no usable model: {exc}") from None

@@ -31,6 +31,7 @@ from mrrig.offline.training.data import (
     stretch_bounds,
     stretches,
 )
+from mrrig.offline.training.ensemble import average_mlps
 from mrrig.offline.training.features import (
     COIL_LAG_TAU_S,
     CURRENT_COLUMN,
@@ -145,23 +146,24 @@ FOLD_STOP_ROWS = 2000  # a fold's early-stopping rows at most, drawn at random
 MIN_STOP_STRETCHES = 4  # fewer: the fold fit stops on its time blocks instead
 
 
-def stretch_split(stretch: np.ndarray, every: int = STOP_EVERY) -> Split:
+def stretch_split(stretch: np.ndarray, every: int = STOP_EVERY, first: int = 0) -> Split:
     """A cross-validation fold's split (`kinds.mlp_kind`'s fold fit): early stopping on whole
     stretches (the tests of a matrix, the segments of one test) that are not trained on,
-    every `every`-th from the first, so that training stops where the fit no longer holds on
-    other tests, not on the next block of the same ones; every row of the other stretches is
-    a training row (nothing is held out: the fold's left-out tests are its hold-out). Fewer
-    than `MIN_STOP_STRETCHES` stretches (too few to keep one out and still train on several):
-    `block_split`."""
+    every `every`-th from the `first`-th (an ensemble's members stop on different ones, so
+    that every test is trained on by most of them), so that training stops where the fit no
+    longer holds on other tests, not on the next block of the same ones; every row of the
+    other stretches is a training row (nothing is held out: the fold's left-out tests are its
+    hold-out). Fewer than `MIN_STOP_STRETCHES` stretches (too few to keep one out and still
+    train on several): `block_split`."""
     ids = np.unique(stretch)
     if ids.size < MIN_STOP_STRETCHES:
         return block_split(stretch)
     rows = np.arange(stretch.size)
-    stop_ids = ids[::every]
+    stop_ids = ids[first % every :: every]
     stop = rows[np.isin(stretch, stop_ids)]
     rule = (
         f"every row of {ids.size - stop_ids.size} of {ids.size} stretches; early stopping on"
-        f" the other {stop_ids.size} (every {every}th), whole"
+        f" the other {stop_ids.size} (every {every}th from stretch {first % every}), whole"
     )
     return Split(rows, rows[:0], rule, "stretches", stop)
 
@@ -178,8 +180,8 @@ def make_split(
         return block_split(stretch, holdout_fraction)
     if kind == "random":
         return split_samples(stretch.size, n_train, n_val, seed)
-    if kind == "stretches":
-        return stretch_split(stretch)
+    if kind == "stretches":  # the seed picks which stretches stop (`stretch_split`'s first)
+        return stretch_split(stretch, STOP_EVERY, seed)
     raise ValueError(f"unknown split {kind!r} ({', '.join(SPLITS)})")
 
 
@@ -448,6 +450,7 @@ def train_and_validate(
     history_stride: int = 1,
     hidden: int = DEFAULT_HIDDEN,
     max_fit_rows: int = FIT_ROWS,
+    average_starts: bool = False,
 ) -> tuple[MLP, MLP | None, dict[str, Any]]:
     """Forward network, supervised inverse (optional) and the validation report, one split.
 
@@ -462,6 +465,9 @@ def train_and_validate(
     kept. A good force fit does not make a good inverse: with a few current levels in the
     data, a network can fit the force well and still wiggle between the levels, so that
     another current gives the same force. The validation rows play no part in the choice.
+    With `average_starts` the starts are not chosen among but averaged into one network
+    (`ensemble.average_mlps`; start k also draws its rows with seed + k), as `mrrig train`'s
+    kind choice averages its fold fits, and its continuity chosen on it.
     For large data the continuity is chosen on up to `ONLINE_CHOICE_ROWS` training rows in
     blocks, and the on-line inverse runs in blocks side by side (`online_inversion`).
     """
@@ -486,13 +492,13 @@ def train_and_validate(
         hidden=hidden,
         max_fit_rows=max_fit_rows,
     )
-    starts = []
+    starts, reports = [], []
     for k in range(restarts):
         fwd_k, report_k = train_forward(
             series,
             n_train,
             n_val,
-            seed,
+            seed + k if average_starts else seed,
             progress,
             current_input,
             lag_tau_s,
@@ -502,6 +508,10 @@ def train_and_validate(
             init_seed=seed + k,
             **fwd_opts,
         )
+        if average_starts:
+            starts.append(fwd_k)
+            reports.append(report_k)
+            continue
         mu_k, i_k, scores_k = choose_continuity(
             fwd_k, X, y, stretch, i_max, sp.train, block=block, max_rows=max_rows
         )
@@ -512,12 +522,25 @@ def train_and_validate(
             restarts,
             starts[-1][0],
         )
-    _, kept, fwd, report, mu, i_online, scores = min(starts, key=lambda st: (st[0], st[1]))
-    report["starts"] = {
-        "init_seeds": [seed + k for k in range(restarts)],
-        "training_rmse_a": [st[0] for st in starts],
-        "kept": kept,
-    }
+    if average_starts:
+        fwd, report = average_mlps(starts), reports[0]
+        mu, i_online, scores = choose_continuity(
+            fwd, X, y, stretch, i_max, sp.train, block=block, max_rows=max_rows
+        )
+        report["seconds"] = sum(r["seconds"] for r in reports)
+        report["starts"] = {
+            "init_seeds": [seed + k for k in range(restarts)],
+            "averaged": True,
+            "epochs": [r["epochs"] for r in reports],
+            "stop_reasons": [r["stop_reason"] for r in reports],
+        }
+    else:
+        _, kept, fwd, report, mu, i_online, scores = min(starts, key=lambda st: (st[0], st[1]))
+        report["starts"] = {
+            "init_seeds": [seed + k for k in range(restarts)],
+            "training_rmse_a": [st[0] for st in starts],
+            "kept": kept,
+        }
     sup = None
     if supervised:
         sup, report["supervised_training"] = train_supervised(

@@ -8,10 +8,11 @@ tests beyond); on one test, its segments dealt by character (amplitude, frequenc
 level) into groups, each left out in turn with its neighbours kept out of training (a test of
 `crossval.MIN_RUNS` runs or more, a characterization matrix: its runs). Each fold
 is fitted on the rest by the kind's fold fit: the final model's procedure cut down to fit the
-time budget (an MLP: `fold_rows` LM rows, at most `FOLD_EPOCHS` epochs, one start; a GRU: the
-seconds a fold may take). Beside it, each kind's block hold-out (the fold fit on the training
-blocks, scored on the last part of each run) is printed, the optimistic alternative, and the
-kind it would have chosen. The choice (search and folds) runs within `budget_s`
+time budget (an MLP: `fold_rows` LM rows, at most `FOLD_EPOCHS` epochs, one start, or where
+`mrrig train` is given several tests the mean of `ENSEMBLE_MEMBERS` starts, as its final
+model; a GRU: the seconds a fold may take). Beside it, each kind's block hold-out (the fold
+fit on the training blocks, scored on the last part of each run) is printed, the optimistic
+alternative, and the kind it would have chosen. The choice (search and folds) runs within `budget_s`
 (`CHOICE_BUDGET_S` by default): a kind whose folds would not end within what is left (projected
 from its first folds, or from the least a fold of it needs: `GRU_MIN_FOLD_S`,
 `TWIN_MIN_FOLD_S`) is not tried, with why; the first kind is scored whatever the budget.
@@ -51,6 +52,7 @@ from mrrig.offline.training.crossval import (
     one_test_unit,
 )
 from mrrig.offline.training.data import run_ids, sample_period, stretch_bounds, stretches
+from mrrig.offline.training.ensemble import average_mlps
 from mrrig.offline.training.features import COIL_LAG_TAU_S, feature_rows, features
 from mrrig.offline.training.fit import HOLDOUT_FRACTION, STOP_EVERY, block_split, train_forward
 from mrrig.offline.training.greybox import HIDDEN as GREYBOX_HIDDEN
@@ -83,6 +85,10 @@ TWIN_MAX_EVALUATIONS = 60
 # tests left out still), so that all kinds are scored within the budget on a matrix (38 tests:
 # the first kind's leave-one-test-out takes half of it)
 LATER_MAX_FOLDS = 6
+# an MLP kind's members where several tests are given (`mlp_kind`; `mrrig train` averages as
+# many starts): on Labcontrol's 38 tests the other-test Et of the history MLP's fold fit was
+# 0.0524 with one, 0.0491 with two, 0.0479 with three (three take half again the time of two)
+ENSEMBLE_MEMBERS = 2
 
 
 @dataclass(frozen=True)
@@ -100,6 +106,7 @@ class ModelKind:
     fold_fit: Callable[[Series, float], Any] | None = None
     min_fold_s: float = 0.0
     max_folds: int | None = None  # at most so many folds over tests (k-fold beyond)
+    members: int = 1  # fits averaged (an MLP kind's, `mlp_kind`)
     # the fit whose block hold-out figure is printed (it keeps that block out); default fit_fold
     block_fit: Callable[[Series, float], Any] | None = None
 
@@ -125,8 +132,14 @@ def mlp_kind(
     max_epochs: int,
     holdout_fraction: float,
     i_max: float,
+    members: int = 1,
 ) -> ModelKind:
-    """An MLP of the structure `cand` (`select.Candidate`), trained as `mrrig train` does."""
+    """An MLP of the structure `cand` (`select.Candidate`), trained as `mrrig train` does:
+    the mean of `members` fits (`ensemble.average_mlps`, one network the daemon inverts),
+    member k from seed + k (its initial weights, its rows and, in a fold, the tests it stops
+    on), as the final model averages as many starts."""
+    if members < 1:
+        raise ValueError(f"an MLP kind needs at least one member, got {members}")
     feat = dict(
         current_input=cand.current_input,
         lag_tau_s=cand.lag_tau_s,
@@ -136,30 +149,36 @@ def mlp_kind(
     )
 
     def fit_mlp(series: Series) -> Any:
-        model, _ = train_forward(
-            series,
-            seed=seed,
-            max_epochs=max_epochs,
-            split="blocks",
-            holdout_fraction=holdout_fraction,
-            hidden=cand.hidden,
-            **feat,
-        )
-        return model
+        fits = [
+            train_forward(
+                series,
+                seed=seed + k,
+                max_epochs=max_epochs,
+                split="blocks",
+                holdout_fraction=holdout_fraction,
+                hidden=cand.hidden,
+                **feat,
+            )[0]
+            for k in range(members)
+        ]
+        return average_mlps(fits)
 
     def cut_down(series: Series, split: str) -> Any:
-        model, _ = train_forward(
-            series,
-            seed=seed,
-            max_epochs=min(max_epochs, FOLD_EPOCHS),
-            split=split,
-            holdout_fraction=holdout_fraction,
-            hidden=cand.hidden,
-            max_fit_rows=fold_rows(cand),
-            rows_per_weight=0,
-            **feat,
-        )
-        return model
+        fits = [
+            train_forward(
+                series,
+                seed=seed + k,
+                max_epochs=min(max_epochs, FOLD_EPOCHS),
+                split=split,
+                holdout_fraction=holdout_fraction,
+                hidden=cand.hidden,
+                max_fit_rows=fold_rows(cand),
+                rows_per_weight=0,
+                **feat,
+            )[0]
+            for k in range(members)
+        ]
+        return average_mlps(fits)
 
     def fold_mlp(series: Series, _seconds: float) -> Any:
         """A fold: early-stopped on whole tests (segments) of the fold's own training data
@@ -182,12 +201,13 @@ def mlp_kind(
         lambda m: _network_controller(m, i_max, ahead),
         fold_mlp,
         block_fit=block_mlp,
+        members=members,
     )
 
 
 def fold_rows(cand: Candidate) -> int:
-    """An MLP fold fit's LM rows: the same work (`FOLD_WORK`) whatever its size, within
-    `FOLD_ROWS` and `FOLD_MAX_ROWS`."""
+    """An MLP fold fit's LM rows (each member's): the same work (`FOLD_WORK`) whatever its
+    size, within `FOLD_ROWS` and `FOLD_MAX_ROWS`."""
     return equal_work_rows(cand, FOLD_WORK, FOLD_ROWS, FOLD_MAX_ROWS)
 
 
@@ -591,11 +611,18 @@ def choose_kind(
         + (" with its neighbours not trained on" if unit == "segment" else "")
         + "; each kind fitted on the rest (optimistic still: the same test)"
     )
+    members = max((k.members for k in kinds), default=1)
     report = {
         "method": method,
         "estimate": "other tests" if several else f"{unit}s of different character",
         "fold_fit": f"MLPs {FOLD_ROWS}-{FOLD_MAX_ROWS} LM rows (the same work whatever the"
-        f" size), <= {FOLD_EPOCHS} epochs, one start, early-stopped on every {STOP_EVERY}th"
+        f" size, each member's), <= {FOLD_EPOCHS} epochs,"
+        + (
+            f" the mean of {members} starts, each its own rows and stopping tests,"
+            if members > 1
+            else " one start,"
+        )
+        + f" early-stopped on every {STOP_EVERY}th"
         " test (segment) of the fold's training data; the GRU"
         " the seconds a fold may take; the twin as fitted",
         "optimistic": not several,
@@ -667,13 +694,15 @@ def model_kinds(
     max_epochs: int,
     holdout_fraction: float,
     i_max: float,
+    members: int = 1,
 ) -> tuple[list[ModelKind], dict[str, Candidate], dict[str, str]]:
     """The kinds to choose among, the MLP structures of the two MLP kinds, and the kinds left
     out with why: the static and history MLPs of the structure search (`search`; the one it
     found better first: the first kind is scored whatever the budget, and by leaving each
     test out; every later kind by at most `LATER_MAX_FOLDS` folds over tests), the twin, the
     grey-box (its first stage the twin's fits, remembered) and the GRU (the slowest to fit:
-    last, so that the budget cuts it first)."""
+    last, so that the budget cuts it first). Each MLP kind averages `members` fits
+    (`mlp_kind`), as the final model averages as many starts."""
     cands = best_candidates(search)
     kinds, left_out = [], {}
     for name in sorted((STATIC_MLP, HISTORY_MLP), key=lambda n: _search_et(search, n)):
@@ -686,6 +715,7 @@ def model_kinds(
                 max_epochs=max_epochs,
                 holdout_fraction=holdout_fraction,
                 i_max=i_max,
+                members=members,
             )
             kinds.append(replace(kind, max_folds=LATER_MAX_FOLDS) if kinds else kind)
         else:
