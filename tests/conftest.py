@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import collections
 import contextlib
 import fcntl
 import json
@@ -9,6 +10,7 @@ import os
 import signal
 import subprocess
 import sys
+import tempfile
 import threading
 import time
 from collections.abc import Callable, Iterator
@@ -20,6 +22,7 @@ import pytest
 
 from mrrig.offline.datasets import Series, dataset_b
 from mrrig.rigio.canbus.bus import find_free_port, start_bridge, stop_bridge
+from tests import rig_chain
 
 REPO = Path(__file__).resolve().parents[1]
 # a valid RigSensors message's signals (a machine at rest, actuator on, no fault)
@@ -106,6 +109,8 @@ class _Machine:
     from being starved by the other worker's stream of shared holders."""
 
     held: str | None = None  # "shared" or "alone" while this worker holds the machine
+    # seconds this worker waited for the machine and held it, by how: the run's summary
+    seconds: collections.Counter[str] = collections.Counter()
 
     @classmethod
     @contextlib.contextmanager
@@ -120,17 +125,22 @@ class _Machine:
             open(MACHINE_LOCKS / "machine.turnstile", "a") as turnstile,
             open(MACHINE_LOCKS / "machine.lock", "a") as machine,
         ):
+            how = "alone" if alone else "shared"
+            t0 = time.monotonic()
             fcntl.flock(turnstile, fcntl.LOCK_EX)
             try:
                 fcntl.flock(machine, fcntl.LOCK_EX if alone else fcntl.LOCK_SH)
             finally:
                 fcntl.flock(turnstile, fcntl.LOCK_UN)
-            cls.held = "alone" if alone else "shared"
+            t1 = time.monotonic()
+            cls.seconds[f"waited to hold it {how}"] += t1 - t0
+            cls.held = how
             try:
                 yield
             finally:
                 cls.held = None
                 fcntl.flock(machine, fcntl.LOCK_UN)
+                cls.seconds[f"held it {how}"] += time.monotonic() - t1
 
 
 def _shared_base(tmp_path_factory: pytest.TempPathFactory) -> Path:
@@ -232,6 +242,48 @@ def _process_modules_run_alone(
         yield
 
 
+def pytest_configure(config: pytest.Config) -> None:
+    """The controller of a parallel run names the file its workers write their module kinds to
+    (tests/rig_chain.py), before it starts them."""
+    if config.getvalue("dist") == "loadfile" and not hasattr(config, "workerinput"):
+        fd, path = tempfile.mkstemp(prefix="mrrig-rig-chain-", suffix=".json")
+        os.close(fd)
+        os.environ[rig_chain.KINDS_ENV] = path
+        config.add_cleanup(lambda: Path(path).unlink(missing_ok=True))
+
+
+def pytest_xdist_make_scheduler(config: pytest.Config, log: Any) -> Any:
+    """Under `--dist loadfile` (the default addopts): tests/rig_chain.py's order."""
+    if config.getvalue("dist") != "loadfile":
+        return None
+    return rig_chain.RigChainScheduling(config, log)
+
+
+def pytest_sessionfinish(session: pytest.Session) -> None:
+    """A worker hands its seconds with the machine to the controller (xdist's workeroutput)."""
+    workeroutput = getattr(session.config, "workeroutput", None)
+    if workeroutput is not None:
+        workeroutput["machine_seconds"] = dict(_Machine.seconds)
+
+
+def pytest_testnodedown(node: Any, error: Any) -> None:
+    """The controller keeps each worker's seconds with the machine."""
+    seconds = getattr(node, "workeroutput", {}).get("machine_seconds")
+    if seconds is not None:
+        _WORKER_SECONDS[node.gateway.id] = seconds
+
+
+_WORKER_SECONDS: dict[str, dict[str, float]] = {}
+
+
+def pytest_terminal_summary(terminalreporter: Any) -> None:
+    """Where the run's time went on the machine: per worker, how long it held the machine alone
+    (the process modules: they run one at a time) or shared, and how long it waited for it."""
+    for worker, seconds in sorted(_WORKER_SECONDS.items()):
+        parts = ", ".join(f"{how} {s:.0f} s" for how, s in sorted(seconds.items()))
+        terminalreporter.write_line(f"machine, {worker}: {parts or 'not held'}")
+
+
 def pytest_addoption(parser: pytest.Parser) -> None:
     parser.addoption(
         "--all",
@@ -240,12 +292,26 @@ def pytest_addoption(parser: pytest.Parser) -> None:
     )
 
 
+def _kind_of_module(module: Any, rigs: set[Any]) -> str:
+    """What a module needs of the machine: the rigs alone, a CPU beside them, or a shared hold."""
+    if module in rigs:
+        return rig_chain.RIGS
+    if module.__name__.rsplit(".", 1)[-1] in BESIDE_RIGS and os.geteuid() == 0:
+        return rig_chain.BESIDE  # (not root: it cannot set SCHED_IDLE back, and holds shared)
+    return rig_chain.SHARED
+
+
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
-    """A test on the bridge or with processes of its own is a process test; the default run
+    """A test on the bridge or with processes of its own is a process test; what each module
+    needs of the machine is written down for the scheduler (tests/rig_chain.py); the default run
     leaves the process and long tests out (`--all`, or a -m expression, chooses otherwise)."""
     for item in items:
         if {"bridge", "procs"} & set(item.fixturenames):
             item.add_marker(pytest.mark.process)
+    rigs = {item.module for item in items if item.get_closest_marker("process") is not None}
+    rig_chain.write_kinds(
+        {item.nodeid.split("::", 1)[0]: _kind_of_module(item.module, rigs) for item in items}
+    )
     if config.getoption("--all") or config.getoption("markexpr"):
         return
     kept, left_out = [], []
