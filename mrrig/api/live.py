@@ -8,7 +8,7 @@ import logging
 import math
 import time
 import weakref
-from collections.abc import Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, TextIO
@@ -330,11 +330,27 @@ class Rig:
         armed the rig under a lease this client never got: the rig is disarmed (`disarm`) and
         the arm asked again, up to ARM_TRIES times in all (on CI, three rigs on a 2-core
         machine, a plan step was aborted on "arm: daemon did not answer")."""
+        return self._ask_until_answered("arm", ARM_TRIES, before_again=self.disarm)
+
+    def disarm(self) -> dict[str, Any]:
+        """Disarm: commands become SAFE 0 A. Returns the daemon's reply. A disarm the daemon
+        did not answer in time (its control plane overloaded: "daemon did not answer", "busy",
+        or no reply at all) is asked again, up to DISARM_TRIES times: it only makes the rig
+        safer, and a plan that gave up after one such answer aborted a step whose rig then
+        disarmed a second later (three rigs on a 2-core machine)."""
+        return self._ask_until_answered("disarm", DISARM_TRIES)
+
+    def _ask_until_answered(
+        self, cmd: str, tries: int, before_again: Callable[[], object] | None = None
+    ) -> dict[str, Any]:
+        """`cmd`'s reply, asked up to `tries` times while the daemon did not answer it in time
+        (a ClientError, or its "daemon did not answer" or "busy"), `before_again` called
+        between; any other refusal is a RigError at once, the last ClientError raised."""
         from mrrig.rigio.client import ClientError
 
-        for tries_left in range(ARM_TRIES - 1, -1, -1):
+        for tries_left in range(tries - 1, -1, -1):
             try:
-                reply = self.ask({"cmd": "arm"})
+                reply = self.ask({"cmd": cmd})
             except ClientError as exc:
                 if not tries_left:
                     raise
@@ -343,34 +359,12 @@ class Rig:
                 error = str(reply.get("error") or "")
                 if reply.get("ok") or not tries_left or not _unanswered(error):
                     break
-            log.warning("rig %r: arm unanswered (%s): disarmed, and asked again", self.name, error)
-            self.disarm()
+            again = "disarmed, and asked again" if before_again else "asking again"
+            log.warning("rig %r: %s unanswered (%s): %s", self.name, cmd, error, again)
+            if before_again is not None:
+                before_again()
         if not reply.get("ok"):
-            raise RigError(f"rig {self.name!r}: arm: {reply.get('error')}")
-        return reply
-
-    def disarm(self) -> dict[str, Any]:
-        """Disarm: commands become SAFE 0 A. Returns the daemon's reply. A disarm the daemon
-        did not answer in time (its control plane overloaded: "daemon did not answer", "busy",
-        or no reply at all) is asked again, up to DISARM_TRIES times: it only makes the rig
-        safer, and a plan that gave up after one such answer aborted a step whose rig then
-        disarmed a second later (three rigs on a 2-core machine)."""
-        from mrrig.rigio.client import ClientError
-
-        for tries_left in range(DISARM_TRIES - 1, -1, -1):
-            try:
-                reply = self.ask({"cmd": "disarm"})
-            except ClientError as exc:
-                if not tries_left:
-                    raise
-                log.warning("rig %r: disarm unanswered (%s): asking again", self.name, exc)
-                continue
-            error = str(reply.get("error") or "")
-            if reply.get("ok") or not tries_left or not _unanswered(error):
-                break
-            log.warning("rig %r: disarm unanswered (%s): asking again", self.name, error)
-        if not reply.get("ok"):
-            raise RigError(f"rig {self.name!r}: disarm: {reply.get('error')}")
+            raise RigError(f"rig {self.name!r}: {cmd}: {reply.get('error')}")
         return reply
 
     def reset(self) -> dict[str, Any]:
