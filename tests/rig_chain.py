@@ -11,6 +11,7 @@ of a 1747 s run. Here:
   module that holds the machine shared) in the file that $MRRIG_RIG_CHAIN names, which the
   controller sets before it starts them (xdist's own xdist_group tag does not reach the node
   ids under pytest 9);
+- FIRST's modules go out before any other (a long session training);
 - both workers take the shared modules first (they run side by side, and not beside a rig);
   then the first worker takes the rig modules one after another while the second takes the
   modules beside the rigs, then helps with the rig modules (they take the machine's lock in
@@ -32,6 +33,9 @@ SHARED = "shared"
 ORDER_FIRST = (SHARED, RIGS, BESIDE)
 ORDER_OTHERS = (SHARED, BESIDE, RIGS)
 KINDS_ENV = "MRRIG_RIG_CHAIN"
+# handed out before anything else: a module whose session fixture trains long (under a shared
+# hold) trains it while the shared modules run, not in the rig chain
+FIRST = ("tests/test_session_models.py",)
 
 
 def write_kinds(kinds: dict[str, str]) -> None:
@@ -58,7 +62,10 @@ class RigChainScheduling(LoadFileScheduling):
 
     def _assign_work_unit(self, node) -> None:
         order = ORDER_FIRST if node is self.nodes[0] else ORDER_OTHERS
-        scope = next(s for kind in order for s in self.workqueue if self.kind_of(s) == kind)
+        scope = next(
+            (s for s in FIRST if s in self.workqueue),
+            next(s for kind in order for s in self.workqueue if self.kind_of(s) == kind),
+        )
         work_unit = self.workqueue.pop(scope)
         self.assigned_work.setdefault(node, {})[scope] = work_unit
         collection = self.registered_collections[node]
