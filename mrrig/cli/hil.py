@@ -316,7 +316,8 @@ def _live(
             daemon_args += ["--hil-law", scenario.law, "--summary-json", str(work / "daemon.json")]
             if args.compensation is not None:
                 daemon_args += ["--hil-compensation", args.compensation]
-            sim_args = ("--measure-echo", "--stats", str(work / "sim.json"))
+            # its stats, not --measure-echo: its own frames echoed would load the bridge
+            sim_args = ("--stats", str(work / "sim.json"))
             rig_name, args.zenoh_config = stack.enter_context(
                 simulated_rig(
                     args.config,
