@@ -12,6 +12,7 @@ from mrrig.hil.metrics import (
     AFTER_STALL_S,
     StallWindow,
     merged_windows,
+    too_fast,
     tracking,
     tracking_apart_from_windows,
 )
@@ -80,3 +81,17 @@ def test_measured_windows_sets_each_process_s_stalls_on_the_run_s_clock() -> Non
     assert starts_ends == pytest.approx([4.0, 4.0, 5.0, 5.01, 7.0, 7.004])
     # a daemon whose stalls were not measured, a simulator without --measure-echo
     assert measured_windows({"clock_t0_s": 100.0}, {"clock_t0_s": 98.0}, 3.0) == []
+
+
+def test_too_fast_names_where_a_stroke_asks_more_speed_than_the_actuator_has() -> None:
+    """A 2 Hz stroke whose peak speed is 1.2 m/s, against a 1 m/s actuator."""
+    t = np.arange(500) * DT
+    x_c = 1.2 / (2 * np.pi * 2.0) * np.sin(2 * np.pi * 2.0 * (t + 0.125))  # 1.2 m/s peak
+    fast = too_fast(x_c, DT, 1.0)
+    assert fast is not None and fast.peak_m_s == pytest.approx(1.2, rel=1e-3)
+    # at a zero crossing of the stroke, within a frame (the samples' speeds there tie)
+    assert min(abs(fast.peak_t_s - p) for p in (0.125, 0.375, 0.625, 0.875)) <= DT
+    # |cos| > 1 / 1.2 on 2 arccos(1/1.2) / pi of each half period: the frames over 1 m/s
+    share = 2 * np.arccos(1 / 1.2) / np.pi
+    assert fast.frames == pytest.approx(share * t.size, abs=4)
+    assert too_fast(x_c, DT, 1.25) is None

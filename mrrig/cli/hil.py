@@ -45,7 +45,7 @@ from mrrig.cli_args import HelpFormatter, positive
 from mrrig.errors import MrrigError
 from mrrig.hil.laws import LAWS
 from mrrig.hil.measured_stalls import counted
-from mrrig.hil.metrics import AFTER_STALL_S, StallApart, WindowsApart
+from mrrig.hil.metrics import AFTER_STALL_S, StallApart, WindowsApart, too_fast
 from mrrig.hil.playback import ActuatorLimits, infeasibility
 from mrrig.hil.reference import (
     SIM_PLANT_PRESET,
@@ -274,6 +274,19 @@ def _measured_line(s: WindowsApart, windows: list) -> str:
     )
 
 
+def _too_fast_line(args: argparse.Namespace, scenario: Scenario, reference) -> str | None:
+    """Where the reference's stroke asks more speed than the simulated actuator has."""
+    limit = _sim_limits(args).velocity_m_s
+    fast = too_fast(reference.stroke_m, scenario.period_s, limit)
+    if fast is None:
+        return None
+    return (
+        f"  the reference's stroke asks up to {fast.peak_m_s:.2f} m/s (at {fast.peak_t_s:.2f} s; "
+        f"{fast.frames} frames past the actuator's {limit:g} m/s): the piston falls behind "
+        "there, whatever the compensation"
+    )
+
+
 def _sim_limits(args: argparse.Namespace) -> ActuatorLimits:
     """What the simulated rig's actuator plays: the tighter of the daemon config's `[hil]`
     limits and the simulator's stroke and servo flow limit (its config's `[actuator]`,
@@ -355,6 +368,8 @@ def _live(
                     *measured_apart(result.samples, **measured, period_s=scenario.period_s)
                 )
             )
+        if args.sim and (fast := _too_fast_line(args, scenario, reference)) is not None:
+            print(fast)
     for name, e in result.errors.items():
         hil_rms, ref_rms = result.figures[name]
         print(

@@ -206,3 +206,22 @@ def tracking_apart_from_windows(
         peak_window=next((w for w, h in zip(merged, inside, strict=True) if h[peak]), None),
         kept_peak_t_s=float(t_s[kept_peak]),
     )
+
+
+@dataclass(frozen=True)
+class TooFast:
+    frames: int  # frames whose stroke velocity is beyond the limit
+    peak_m_s: float  # the largest |velocity| asked
+    peak_t_s: float  # and when (from the first frame)
+
+
+def too_fast(x_c: np.ndarray, period_s: float, limit_m_s: float) -> TooFast | None:
+    """Where a commanded stroke (one sample per frame) asks a velocity (central differences)
+    beyond an actuator's `limit_m_s`, which no compensation can give: the piston falls behind
+    there. None where it never does."""
+    v = np.abs(np.gradient(np.asarray(x_c, float), period_s))
+    over = int(np.count_nonzero(v > limit_m_s))
+    if not over:
+        return None
+    k = int(np.argmax(v))
+    return TooFast(over, float(v[k]), k * period_s)
