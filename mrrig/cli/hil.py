@@ -363,11 +363,11 @@ def _live(
         print(f"J1 {t.j1_ms:.2f} ms   J2 {t.j2_pct:.2f} %   J3 {t.j3_pct:.2f} %")
         print(_stall_line(result.apart))
         if len(measured) == 2 and result.samples is not None:
-            print(
-                _measured_line(
-                    *measured_apart(result.samples, **measured, period_s=scenario.period_s)
-                )
-            )
+            try:
+                apart = measured_apart(result.samples, **measured, period_s=scenario.period_s)
+                print(_measured_line(*apart))
+            except ValueError as exc:  # every frame in a window
+                print(f"  apart from the measured stall windows: {exc}")
         if args.sim and (fast := _too_fast_line(args, scenario, reference)) is not None:
             print(fast)
     for name, e in result.errors.items():
