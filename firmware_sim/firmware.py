@@ -34,8 +34,10 @@ Choices the contract leaves open, made here:
 - STREAM (contract 1.1): entering it, the piston stays where it is until the first setpoint;
   then it follows the latest valid ActuatorSetpoint (`Actuator.follow`, one place), clamped
   to the STREAM command's envelope and the stroke (FaultCode 3 while the latest is clamped).
-  A late setpoint (the same rule as a late command) is dropped, counted (`late_setpoints`)
-  and does not feed the setpoint watchdog. No valid setpoint for more than 20 ms (from the
+  A late setpoint (the same rule as a late command) is dropped, counted (`late_setpoints`),
+  its time and echo listed (`late_setpoint_times`, the first `MAX_LATE_LISTED`: what a HIL
+  run's tracking error may set aside as a measured stall) and does not feed the setpoint
+  watchdog. No valid setpoint for more than 20 ms (from the
   last one, or from entering STREAM): HOLD where it is (FaultCode 7); a valid setpoint within
   500 ms of the last one resumes the stream; else, at 500 ms, it ramps to rest (FaultCode 7
   stays). A repeated STREAM command (the daemon's every 100 ms) does not restart a stream
@@ -75,6 +77,7 @@ logger = logging.getLogger(__name__)
 WATCHDOG_TIMEOUT_S = 0.020
 RECOVERY_COMMANDS = 5
 ACTUATOR_TIMEOUT_S = 0.5
+MAX_LATE_LISTED = 10000  # late setpoints listed with their time (all of them counted)
 PLANT_PRESET = "rig-current"
 HEATING_STEP_K = 0.01  # the plant's parameters are updated when the temperature moved this much
 
@@ -416,6 +419,7 @@ class Firmware:
         self._stream_ended = False  # ramped to rest: a repeated STREAM does not restart it
         self._setpoint_clamped = False  # FaultCode 3
         self.late_setpoints = 0
+        self.late_setpoint_times: list[tuple[float, int]] = []  # (t_s, echo), the first ones
         self.clamped_setpoints = 0
         # bad command frames within the budget window
         self._bad_times: deque[float] = deque()
@@ -562,6 +566,8 @@ class Firmware:
             return
         if self.is_late(echo, t_s):
             self.late_setpoints += 1
+            if len(self.late_setpoint_times) < MAX_LATE_LISTED:
+                self.late_setpoint_times.append((t_s, echo))
             logger.debug("late setpoint echoing %d at t=%.4f s: dropped", echo, t_s)
             return
         self._last_setpoint_s = t_s

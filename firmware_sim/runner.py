@@ -265,6 +265,10 @@ class RunStats:
             # ActuatorSetpoints dropped as late, and those clamped to the envelope (STREAM)
             "late_setpoints": firmware.late_setpoints,
             "clamped_setpoints": firmware.clamped_setpoints,
+            # the dropped ones' times (the run's clock, as stall_windows) and echoes
+            "late_setpoint_times": [
+                {"t_s": round(t, 6), "echo": e} for t, e in firmware.late_setpoint_times
+            ],
             "applied_active_age_us": _percentiles(self.applied_active_age_us),
             "armed_motion": [
                 {k: round(v, 6) if math.isfinite(v) else None for k, v in m._asdict().items()}

@@ -173,14 +173,18 @@ def test_a_late_setpoint_is_dropped_and_counted():
     rig.stream([0.002])
     rig.run(1)
     older = rig.sensors[-2].counter
+    first_s = rig.t_s + ANSWER_DELAY_S
     assert rig.setpoint(0.009, echo=older).ok  # valid frame, answering the frame before
     assert rig.fw.actuator.stream_setpoint_m == pytest.approx(0.002)
     assert rig.fw.late_setpoints == 1
     # on time by its echo but after the next frame was due: late too
     rig.run(1)
+    latest, second_s = rig.sensors[-1].counter, rig.t_s + 1.5 * T
     assert rig.setpoint(0.009, delay_s=1.5 * T).ok
     assert rig.fw.actuator.stream_setpoint_m == pytest.approx(0.002)
     assert rig.fw.late_setpoints == 2
+    # each dropped one listed with its time and echo: a HIL run's measured stalls
+    assert rig.fw.late_setpoint_times == [(first_s, older), (second_s, latest)]
 
 
 def test_late_setpoints_alone_do_not_feed_the_setpoint_watchdog():

@@ -20,13 +20,16 @@ from typing import Any
 import numpy as np
 
 from mrrig.errors import MrrigError
+from mrrig.hil.measured_stalls import measured_windows
 from mrrig.hil.metrics import (
     ResponseError,
     StallApart,
     Tracking,
+    WindowsApart,
     response_error,
     tracking,
     tracking_apart_from_stalls,
+    tracking_apart_from_windows,
 )
 from mrrig.hil.playback import ActuatorLimits, infeasibility
 from mrrig.hil.reference import DaemonCommand, ReferenceRun
@@ -169,6 +172,22 @@ def stall_apart(samples: np.ndarray, period_s: float) -> StallApart:
     rows, _k = _streamed(samples)
     t = rows["t"] - rows["t"][0]
     return tracking_apart_from_stalls(rows["hil_x_c"], rows["x"], t, rows["latency_us"], period_s)
+
+
+def measured_apart(
+    samples: np.ndarray,
+    sim_stats: dict[str, Any],
+    daemon_summary: dict[str, Any],
+    period_s: float,
+) -> tuple[WindowsApart, list]:
+    """J2 and J3 of a simulated run's streamed samples apart from the stalls the actuator,
+    the simulator and the kernel measured (`mrrig.hil.measured_stalls`), on the run's clock
+    (from its first streamed frame); and those windows, unmerged."""
+    rows, _k = _streamed(samples)
+    t0 = float(rows["t"][0])
+    windows = measured_windows(sim_stats, daemon_summary, t0)
+    t = rows["t"] - t0
+    return tracking_apart_from_windows(rows["hil_x_c"], rows["x"], t, windows, period_s), windows
 
 
 def run_hil(

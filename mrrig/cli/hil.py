@@ -34,13 +34,18 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import json
+import logging
+import shutil
+import tempfile
 from pathlib import Path
 
-from mrrig.api.hil import daemon_command
+from mrrig.api.hil import daemon_command, measured_apart
 from mrrig.cli_args import HelpFormatter, positive
 from mrrig.errors import MrrigError
 from mrrig.hil.laws import LAWS
-from mrrig.hil.metrics import AFTER_STALL_S, StallApart
+from mrrig.hil.measured_stalls import counted
+from mrrig.hil.metrics import AFTER_STALL_S, StallApart, WindowsApart, too_fast
 from mrrig.hil.playback import ActuatorLimits, infeasibility
 from mrrig.hil.reference import (
     SIM_PLANT_PRESET,
@@ -51,6 +56,8 @@ from mrrig.hil.reference import (
     run_reference,
 )
 from mrrig.hil.scenario import Scenario, load_scenario
+
+log = logging.getLogger(__name__)
 
 
 def _title(path: Path, s: Scenario, law: str, command: DaemonCommand | None = None) -> str:
@@ -246,6 +253,40 @@ def _stall_line(s: StallApart) -> str:
     )
 
 
+def _read_measured(work: Path, into: dict[str, dict]) -> None:
+    """The stopped simulator's stats and daemon's summary (`work`), where both were written."""
+    try:
+        into["sim_stats"] = json.loads((work / "sim.json").read_text())
+        into["daemon_summary"] = json.loads((work / "daemon.json").read_text())
+    except (OSError, ValueError) as exc:
+        log.warning("the run's measured stalls are not known (%s): no J3 apart from them", exc)
+        into.clear()
+
+
+def _measured_line(s: WindowsApart, windows: list) -> str:
+    """J2 and J3 apart from the stalls the actuator, the simulator and the kernel measured."""
+    where = f"inside {s.peak_window}" if s.peak_window else "no measured stall there"
+    return (
+        f"  apart from {s.excluded} frames in or within {AFTER_STALL_S * 1e3:g} ms after "
+        f"{len(s.windows)} measured stall windows ({counted(windows)}): J2 {s.j2_pct:.2f} %   "
+        f"J3 {s.j3_pct:.2f} % (at {s.kept_peak_t_s:.2f} s); the largest error at "
+        f"{s.peak_t_s:.2f} s, {where}"
+    )
+
+
+def _too_fast_line(args: argparse.Namespace, scenario: Scenario, reference) -> str | None:
+    """Where the reference's stroke asks more speed than the simulated actuator has."""
+    limit = _sim_limits(args).velocity_m_s
+    fast = too_fast(reference.stroke_m, scenario.period_s, limit)
+    if fast is None:
+        return None
+    return (
+        f"  the reference's stroke asks up to {fast.peak_m_s:.2f} m/s (at {fast.peak_t_s:.2f} s; "
+        f"{fast.frames} frames past the actuator's {limit:g} m/s): the piston falls behind "
+        "there, whatever the compensation"
+    )
+
+
 def _sim_limits(args: argparse.Namespace) -> ActuatorLimits:
     """What the simulated rig's actuator plays: the tighter of the daemon config's `[hil]`
     limits and the simulator's stroke and servo flow limit (its config's `[actuator]`,
@@ -277,17 +318,27 @@ def _live(
         raise MrrigError(f"{args.scenario}: {problem}: it does not fit the rig")
     where = "the simulated rig" if args.sim else f"rig {args.rig}"
     print(_title(args.scenario, scenario, scenario.law, command) + f"; on {where}", flush=True)
+    measured: dict[str, dict] = {}  # the simulator's stats and the daemon's summary, once stopped
     with contextlib.ExitStack() as stack:
         rig_name = args.rig
         if args.sim:
+            work = Path(tempfile.mkdtemp(prefix="mrrig-hil-"))
+            stack.callback(shutil.rmtree, work, True)  # last: after the files are read
+            stack.callback(_read_measured, work, measured)  # once the processes stopped
             daemon_args = ["--hil", str(args.scenario), "--hil-duration", repr(scenario.duration_s)]
-            daemon_args += ["--hil-law", scenario.law]
+            daemon_args += ["--hil-law", scenario.law, "--summary-json", str(work / "daemon.json")]
             if args.compensation is not None:
                 daemon_args += ["--hil-compensation", args.compensation]
+            # its stats, not --measure-echo: its own frames echoed would load the bridge
+            sim_args = ("--stats", str(work / "sim.json"))
             rig_name, args.zenoh_config = stack.enter_context(
                 simulated_rig(
-                    args.config, args.sim_config, args.zenoh_config, daemon_args=tuple(daemon_args)
-                )
+                    args.config,
+                    args.sim_config,
+                    args.zenoh_config,
+                    daemon_args=tuple(daemon_args),
+                    sim_args=sim_args,
+                )  # fmt: skip
             )
         elif args.zenoh_config is None:
             from mrrig.rigio.client import DEFAULT_CONFIG
@@ -311,6 +362,14 @@ def _live(
     if t is not None:
         print(f"J1 {t.j1_ms:.2f} ms   J2 {t.j2_pct:.2f} %   J3 {t.j3_pct:.2f} %")
         print(_stall_line(result.apart))
+        if len(measured) == 2 and result.samples is not None:
+            try:
+                apart = measured_apart(result.samples, **measured, period_s=scenario.period_s)
+                print(_measured_line(*apart))
+            except ValueError as exc:  # every frame in a window
+                print(f"  apart from the measured stall windows: {exc}")
+        if args.sim and (fast := _too_fast_line(args, scenario, reference)) is not None:
+            print(fast)
     for name, e in result.errors.items():
         hil_rms, ref_rms = result.figures[name]
         print(

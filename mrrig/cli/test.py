@@ -86,12 +86,13 @@ def simulated_rig(
     zenoh_config: Path | None,
     adaptation: str | None = None,
     daemon_args: tuple[str, ...] = (),
+    sim_args: tuple[str, ...] = (),
 ) -> Iterator[tuple[str, Path]]:
     """The CAN bridge, firmware_sim and a daemon (`config`, on the bridge's channel, no
     recording, `adaptation` "on"/"off" over the config's, `daemon_args` added to its `mrrig
-    run`), as `mrrig demo` starts them; yields the rig's name and the client's Zenoh config
-    once it answers. `zenoh_config`: the client's (the daemon then on its config's); None:
-    both on a free port of 127.0.0.1."""
+    run`, `sim_args` to the simulator's), as `mrrig demo` starts them; yields the rig's name
+    and the client's Zenoh config once it answers. `zenoh_config`: the client's (the daemon
+    then on its config's); None: both on a free port of 127.0.0.1."""
     from mrrig.cli.demo import _stop, ensure_sim_model
     from mrrig.config import load_config
     from mrrig.rigio.canbus.bus import find_free_port, start_bridge, stop_bridge
@@ -117,7 +118,7 @@ def simulated_rig(
         # writes the reports and then stops them
         sim = subprocess.Popen(
             [sys.executable, "-m", "firmware_sim", "--config", str(sim_config), "-c", channel]
-            + ["--rig-config", str(config)],  # the daemon's [can]: its rig profile
+            + ["--rig-config", str(config), *sim_args],  # the daemon's [can]: its rig profile
             start_new_session=True,
         )
         procs.append((sim, "firmware_sim"))

@@ -127,3 +127,101 @@ def tracking_apart_from_stalls(
         peak_t_s=float(np.asarray(t_s, float)[peak]),
         peak_after_stall=bool(excluded[peak]),
     )
+
+
+@dataclass(frozen=True)
+class StallWindow:
+    """A stall that something measured (`kind`: the actuator's "setpoint dropped", the
+    simulator's "simulator" or "transport" window, the daemon's "kernel" stall), on the run's
+    clock (the times of the frames it is set beside)."""
+
+    kind: str
+    start_s: float
+    end_s: float
+
+    def __str__(self) -> str:
+        return f"{self.kind} [{self.start_s:.3f}, {self.end_s:.3f}] s"
+
+
+@dataclass(frozen=True)
+class WindowsApart:
+    windows: tuple[StallWindow, ...]  # the measured ones, merged where they touch
+    excluded: int  # frames inside one or within AFTER_STALL_S after its end
+    j2_pct: float  # J2 and J3 over the frames left
+    j3_pct: float
+    peak_t_s: float  # where the whole run's largest |x_m - x_c| is
+    peak_window: StallWindow | None  # the window that explains it; None: none does
+    kept_peak_t_s: float  # where the largest error of the frames left is
+
+
+def merged_windows(windows: list[StallWindow], join_s: float) -> tuple[StallWindow, ...]:
+    """Windows that overlap or lie within `join_s` of each other as one (their kinds joined
+    with "+", each once): one stall may delay a frame, then drop its setpoint."""
+    out: list[StallWindow] = []
+    for w in sorted(windows, key=lambda w: w.start_s):
+        if out and w.start_s <= out[-1].end_s + join_s:
+            last = out[-1]
+            kinds = last.kind.split("+")
+            kind = last.kind if w.kind in kinds else f"{last.kind}+{w.kind}"
+            out[-1] = StallWindow(kind, last.start_s, max(last.end_s, w.end_s))
+        else:
+            out.append(w)
+    return tuple(out)
+
+
+def tracking_apart_from_windows(
+    x_c: np.ndarray,
+    x_m: np.ndarray,
+    t_s: np.ndarray,
+    windows: list[StallWindow],
+    period_s: float,
+) -> WindowsApart:
+    """J2 and J3 over the frames (times `t_s`, the windows' clock) that no measured stall
+    window explains: a frame inside a window or within `AFTER_STALL_S` after its end (the
+    servo's settling) is set aside, nothing else. A dropped setpoint's window is the instant
+    the firmware dropped it: the piston went on to the last one it took."""
+    x_c, x_m, t_s = np.asarray(x_c, float), np.asarray(x_m, float), np.asarray(t_s, float)
+    if not x_c.shape == x_m.shape == t_s.shape:
+        raise ValueError(f"x_c, x_m, t_s: one shape, got {x_c.shape}, {x_m.shape}, {t_s.shape}")
+    merged = merged_windows(windows, period_s)
+    excluded = np.zeros(t_s.size, dtype=bool)
+    inside: list[np.ndarray] = []
+    for w in merged:
+        here = (t_s >= w.start_s) & (t_s <= w.end_s + AFTER_STALL_S)
+        inside.append(here)
+        excluded |= here
+    error = np.abs(x_m - x_c)
+    peak = int(np.argmax(error))
+    if excluded.all():
+        raise ValueError("every frame lies in a measured stall window: nothing left to judge")
+    kept = np.where(excluded, -np.inf, error)
+    kept_peak = int(np.argmax(kept))
+    left = (x_m - x_c)[~excluded]
+    return WindowsApart(
+        windows=merged,
+        excluded=int(excluded.sum()),
+        j2_pct=100.0 * float(np.std(left) / np.std(x_c)),
+        j3_pct=100.0 * float(error[kept_peak] / np.max(np.abs(x_c))),
+        peak_t_s=float(t_s[peak]),
+        peak_window=next((w for w, h in zip(merged, inside, strict=True) if h[peak]), None),
+        kept_peak_t_s=float(t_s[kept_peak]),
+    )
+
+
+@dataclass(frozen=True)
+class TooFast:
+    frames: int  # frames whose stroke velocity is beyond the limit
+    peak_m_s: float  # the largest |velocity| asked
+    peak_t_s: float  # and when (from the first frame)
+
+
+def too_fast(x_c: np.ndarray, period_s: float, limit_m_s: float) -> TooFast | None:
+    """Where a commanded stroke (one sample per frame) asks a velocity (central differences)
+    beyond an actuator's `limit_m_s`, which no compensation can give: the piston falls behind
+    there. None where it never does."""
+    v = np.abs(np.gradient(np.asarray(x_c, float), period_s))
+    over = int(np.count_nonzero(v > limit_m_s))
+    if not over:
+        return None
+    k = int(np.argmax(v))
+    return TooFast(over, float(v[k]), k * period_s)
