@@ -190,7 +190,6 @@ BESIDE_RIGS = frozenset(
         "test_greybox",
         "test_choice_by_other_tests",
         "test_beside_rigs",
-        "test_identify",
         "test_rnn_training",
     }
 )
