@@ -56,6 +56,12 @@ class ControlRequests:
         d = self._d
         sup = d.supervisor
         if c.cmd == "arm":
+            if d.controller.follows_reference and math.isnan(d.reference.current_at(d.now())):
+                raise RequestError(
+                    f"arm: controller {d.controller.name} commands the force reference's own"
+                    f" current: a bouc_wen or paper_case reference has one, {d.reference.kind}"
+                    " has none (set_profile first)"
+                )
             ok, msg, events = sup.arm(d.now())
             if not ok:
                 raise RequestError(msg)

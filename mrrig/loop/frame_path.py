@@ -205,6 +205,8 @@ class FramePath:
             if sup.active:
                 events += self._detect(t, f_meas, f_des, xd)
             if sup.active:
+                if self.controller.follows_reference:  # the ideal controller: the reference's
+                    self.controller.follow(self.reference.current_at(t + self.period_s))
                 i = self.controller.command_one(x, xd, xdd, f_meas, f_des, f_next)
                 events += sup.finite(t, f"the {self.controller.name} controller's command", i)
                 if sup.active:

@@ -48,6 +48,11 @@ class ForceReference(abc.ABC):
         it reached at its last `force` instant; any other's forecast is its force."""
         return self.force(t_s, x_m, xd_m_s)
 
+    def current_at(self, t_s: float) -> float:
+        """The current a reference damper is driven with over the period that ends at t_s
+        (what the `reference_current` controller commands); NaN: a source without one."""
+        return math.nan
+
     # whether the force depends on the path of the motion (a reference damper): the daemon
     # then moves the source on by `force` on the motion as estimated at each instant, once its
     # frame has come, and that force is the instant's desired force (what it records and
@@ -193,6 +198,9 @@ class BoucWenReference(ForceReference):
 
     def _current(self, t_s: float) -> float:
         return max(0.0, self.current_a + self.current_amp_a * math.sin(self.w * t_s))
+
+    def current_at(self, t_s: float) -> float:
+        return self._current(t_s)
 
     def _periods(self, t_s: float, since_s: float) -> int:
         return round((t_s - since_s) / self.dt_s)
