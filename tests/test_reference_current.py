@@ -61,3 +61,53 @@ def test_arming_the_ideal_controller_on_a_reference_without_a_current_is_refused
     d.requests.apply(prep.prepare(parse_request(profile)))
     d.requests.apply(prep.prepare(parse_request(b'{"cmd": "arm"}')))
     assert d.supervisor.state is RigState.ARMED
+
+
+def _moved(reference, seconds: float, t0: float = 0.0) -> float:
+    """The reference damper moved along a 1 Hz, 1 cm sine for `seconds`; the end time."""
+    k = round(seconds / DT_S)
+    for j in range(1, k + 1):
+        t = t0 + j * DT_S
+        w = 2 * np.pi
+        reference.force(t, 0.01 * np.sin(w * t), 0.01 * w * np.cos(w * t))
+    return t0 + k * DT_S
+
+
+def test_a_reference_damper_keeps_its_motion_state_over_arm_controller_and_profile(tmp_path):
+    """The damper under test moves all along, and its internal displacement y sits near the
+    stroke's centre; a reference damper restarted at rest where it is armed (y = x) asked for
+    k0 (x - y) more, decaying over (c0 + c1) / k0 (about 14 s): on the simulated rig the
+    ideal controller's Et on case 1, k=1 was 0.0614 (lockstep, 12 s after 2 s), 0.0099 with
+    y where the motion put it. An arm, a set_controller and a set_profile of the same damper
+    keep y (and z); one after a source without a damper starts at rest."""
+    from mrrig.loop.daemon import Daemon, build_controller, build_reference
+    from mrrig.rigio.control import Preparer, parse_request
+
+    config = rig_config(
+        tmp_path,
+        "unused",
+        None,
+        reference={"kind": "paper_case", "case": 1, "current_scale": 0.5, "preset": "rig-current"},
+    )
+    d = Daemon(load_config(config, {"controller": {"name": "reference_current"}}))
+    prep = Preparer(d, build_controller, build_reference)
+
+    def apply(text: str) -> None:
+        d.requests.apply(prep.prepare(parse_request(text.encode())))
+
+    t = _moved(d.reference, 3.25)  # x = 0.01 m, y far from it
+    z, y, _u = d.reference._damper.state
+    assert abs(0.01 - y) > 2e-3
+    d.t0 = d.now() + d.t0 - t  # the daemon's clock at the motion's end
+    d.last_x = 0.01
+    profile = '{"cmd": "set_profile", "kind": "paper_case", "case": 4, "current_scale": 0.5}'
+    for request in ('{"cmd": "set_controller", "name": "reference_current"}', profile):
+        apply(request)
+        assert d.reference._damper.state[:2] == (z, y), request
+    apply('{"cmd": "arm"}')
+    assert d.reference._damper.state[:2] == (z, y)
+    assert d.reference._t0 >= t  # the case restarts at the arm
+    apply('{"cmd": "disarm"}')
+    apply('{"cmd": "set_profile", "kind": "constant"}')
+    apply(profile)  # after a source without a damper: at rest at x
+    assert d.reference._damper.state[:2] == (0.0, 0.01)

@@ -72,7 +72,7 @@ class ControlRequests:
                 d.actuator_at_arm = d.actuator
                 d.controller.reset(1)
                 d.detectors.reset()
-                d.reset_reference(d.now(), d.last_x)
+                d.restart_reference(d.now(), d.last_x)
                 d.sensors.armed(time.perf_counter())  # frames must come while armed
             d._emit(events)
             if not c.remote:  # in process: the daemon ends with its client
@@ -106,7 +106,7 @@ class ControlRequests:
             d.envelope = controller_envelope(c.controller)
             d.controller = c.controller
             d.controller.reset(1)
-            d.reset_reference(d.now(), d.last_x)  # its desired forces ahead, if any
+            d.restart_reference(d.now(), d.last_x)  # its desired forces ahead, if any
             d.cfg = replace(d.cfg, controller=c.controller_section)
             d.in_force = c.in_force or d.in_force
             d._send_status(force=True)
@@ -120,7 +120,7 @@ class ControlRequests:
             d._send_status(force=True)
             return {"hil": d.hil.status()}
         if c.cmd == "set_profile":
-            d.reset_reference(d.now(), d.last_x, c.reference)
+            d.restart_reference(d.now(), d.last_x, c.reference)
             d.cfg = replace(d.cfg, reference=c.reference_section)
             d._send_status(force=True)
             return {"reference": d.reference.kind}

@@ -312,6 +312,14 @@ class FramePath:
         self.reference.reset(t, x)
         self._targets = []
 
+    def restart_reference(self, t: float, x: float, reference: ref.ForceReference | None = None):
+        """`reset_reference` for an arm or a new reference while the motion goes on: a
+        reference damper keeps the state the estimated motion has put it in (that of the one
+        it replaces, where that is the same damper), as the damper under test does."""
+        state = self.reference.motion_state()
+        self.reset_reference(t, x, reference)
+        self.reference.resume(state)
+
     def _targets_now(self, t: float, x: float, xd: float, xdd: float) -> tuple[float, float]:
         """This frame's desired force and the next frame's: computed after the previous
         frames' commands (`_prepare_next`) where they were, else now, the next one at the
