@@ -26,7 +26,7 @@ from mrrig.offline.metrics import error_norm
 from mrrig.plans.criteria import Criteria, failures, measure
 from mrrig.plans.plan import MAX_PLAN_BYTES, MAX_STEPS, PlanError, load_plan
 from mrrig.plans.report import Identity, write_html, write_junit
-from mrrig.plans.runner import StepResult
+from mrrig.plans.runner import StepResult, floor_ratio, table
 from mrrig.rigio.run_identity import file_sha256
 from tests.conftest import REPO, OutputWatch, rig_config, start, stop, zenoh_configs
 from tests.live_rig import live_rig
@@ -198,6 +198,58 @@ def test_a_compare_et_that_is_not_an_et_is_a_plan_error(tmp_path):
         with pytest.raises(PlanError) as err:
             load_plan(path)
         assert f"step 2 (impossible Et).compare_et.paper: {shown} is not an Et" in str(err.value)
+
+
+FLOOR = '\nfloor_of = "constant current"'
+
+
+@pytest.mark.parametrize(
+    ("floor_of", "error"),
+    [
+        ("no such step", "no other step of the plan has this name"),
+        ("impossible Et", "no other step of the plan has this name"),  # itself
+    ],
+)
+def test_a_floor_names_another_step_of_the_plan(tmp_path, floor_of, error):
+    path = write(tmp_path, PLAN.format(d1=1) + f'floor_of = "{floor_of}"\n')
+    with pytest.raises(PlanError) as err:
+        load_plan(path)
+    assert str(err.value) == f"{path}: step 2 (impossible Et).floor_of: {floor_of!r}: {error}"
+
+
+def test_a_floor_of_a_floor_is_a_plan_error(tmp_path):
+    text = (
+        PLAN.format(d1=1).replace(
+            "peak_current_a_max = 0.6 }", 'peak_current_a_max = 0.6 }\nfloor_of = "impossible Et"'
+        )
+        + FLOOR
+    )
+    path = write(tmp_path, text)
+    with pytest.raises(PlanError) as err:
+        load_plan(path)
+    assert str(err.value) == (
+        f"{path}: step 1 (constant current).floor_of: 'impossible Et': that step is itself a"
+        " floor (of 'constant current')"
+    )
+
+
+def test_the_table_prints_each_steps_floor_and_their_ratio(tmp_path):
+    """Issue 43, item 4: the paper's cases, each beside its ideal controller's Et (a step
+    whose `floor_of` names it), and their ratio."""
+    plan = load_plan(write(tmp_path, PLAN.format(d1=1) + FLOOR))
+    assert plan.steps[1].floor_of == "constant current"
+    s = synthetic()
+    n = measure(s, 0.2)
+    results = [
+        StepResult(plan.steps[0], "passed", numbers=dataclasses.replace(n, et=0.0130)),
+        StepResult(plan.steps[1], "failed", numbers=dataclasses.replace(n, et=0.0100)),
+    ]
+    first, second = table(results).splitlines()[2:]
+    assert first.endswith("-  floor 0.0100 (step 2), Et/floor 1.30"), first
+    assert "floor" not in second
+    aborted = [results[0], StepResult(plan.steps[1], "aborted", ["a fault"])]
+    assert table(aborted).splitlines()[2].endswith("floor nan (step 2), Et/floor nan")
+    assert math.isnan(floor_ratio(results[0], aborted[1]))
 
 
 def _many_steps(tmp_path, n: int, padding: int = 0):

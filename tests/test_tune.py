@@ -94,13 +94,20 @@ def test_paper_case_reference_gives_the_papers_desired_force_for_the_cases_motio
 
 def test_the_paper_validation_plan_parses_with_the_seven_cases_and_their_figures():
     plan = load_plan(PAPER_PLAN)
-    assert len(plan.steps) == 7
-    assert [s.reference.kind for s in plan.steps] == ["paper_case"] * 7
-    assert [s.reference.case for s in plan.steps] == list(range(1, 8))
-    assert all(set(s.compare_et) == {"paper", "bench"} for s in plan.steps)
-    assert all(s.criteria.et_max == 0.010 for s in plan.steps)
+    assert len(plan.steps) == 14
+    cases, floors = plan.steps[:7], plan.steps[7:]
+    assert [s.reference.kind for s in plan.steps] == ["paper_case"] * 14
+    assert [s.reference.case for s in plan.steps] == list(range(1, 8)) * 2
+    assert all(set(s.compare_et) == {"paper", "bench"} for s in cases)
+    assert all(s.criteria.et_max == 0.010 for s in cases)
     # never tuned on: the tuning profile is not a validation case
-    assert all(s.controller is None for s in plan.steps)
+    assert all(s.controller is None for s in cases)
+    # then each case's floor: the same step with the case's own current as the command
+    assert [s.floor_of for s in floors] == [s.name for s in cases]
+    for case, floor in zip(cases, floors, strict=True):
+        assert floor.controller.name == "reference_current"
+        assert (floor.actuator, floor.reference) == (case.actuator, case.reference)
+        assert (floor.duration_s, floor.settle_s) == (case.duration_s, case.settle_s)
 
 
 def test_a_figure_beside_et_must_be_a_number_and_is_printed_in_the_table(tmp_path):

@@ -56,6 +56,12 @@ class ControlRequests:
         d = self._d
         sup = d.supervisor
         if c.cmd == "arm":
+            if d.controller.follows_reference and math.isnan(d.reference.current_at(d.now())):
+                raise RequestError(
+                    f"arm: controller {d.controller.name} commands the force reference's own"
+                    f" current: a bouc_wen or paper_case reference has one, {d.reference.kind}"
+                    " has none (set_profile first)"
+                )
             ok, msg, events = sup.arm(d.now())
             if not ok:
                 raise RequestError(msg)
@@ -66,7 +72,7 @@ class ControlRequests:
                 d.actuator_at_arm = d.actuator
                 d.controller.reset(1)
                 d.detectors.reset()
-                d.reset_reference(d.now(), d.last_x)
+                d.restart_reference(d.now(), d.last_x)
                 d.sensors.armed(time.perf_counter())  # frames must come while armed
             d._emit(events)
             if not c.remote:  # in process: the daemon ends with its client
@@ -100,7 +106,7 @@ class ControlRequests:
             d.envelope = controller_envelope(c.controller)
             d.controller = c.controller
             d.controller.reset(1)
-            d.reset_reference(d.now(), d.last_x)  # its desired forces ahead, if any
+            d.restart_reference(d.now(), d.last_x)  # its desired forces ahead, if any
             d.cfg = replace(d.cfg, controller=c.controller_section)
             d.in_force = c.in_force or d.in_force
             d._send_status(force=True)
@@ -114,7 +120,7 @@ class ControlRequests:
             d._send_status(force=True)
             return {"hil": d.hil.status()}
         if c.cmd == "set_profile":
-            d.reset_reference(d.now(), d.last_x, c.reference)
+            d.restart_reference(d.now(), d.last_x, c.reference)
             d.cfg = replace(d.cfg, reference=c.reference_section)
             d._send_status(force=True)
             return {"reference": d.reference.kind}

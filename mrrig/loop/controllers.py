@@ -116,6 +116,8 @@ class Controller(abc.ABC):
     needs_model = False
     # whether `command_one` uses the desired force one period ahead (`f_des_next`)
     wants_next_target = False
+    # whether it commands the force reference's own current (`follow`, before each command)
+    follows_reference = False
 
     @classmethod
     def build(cls, s: ControllerSettings) -> Controller:
@@ -298,6 +300,32 @@ class ConstantCurrent(Controller):
 
     def command(self, s: ControlInput) -> np.ndarray:
         return np.full(np.shape(s.f_des), self.current)
+
+
+@register
+class ReferenceCurrent(Controller):
+    """The ideal controller of a reference damper: its own current, open loop (the floor)."""
+
+    # The current a `bouc_wen` or `paper_case` reference damper is driven with over the
+    # period the command acts on (`ForceReference.current_at`, given by the daemon's frame
+    # before each command: `follow`): the plant then makes the desired force but for the
+    # measurement chain (the estimate's motion, the load cell, the bus and the coil). Its Et
+    # is the floor a plan prints beside another controller's (a step's `floor_of`). A
+    # reference without a current of its own gives NaN: the daemon refuses to arm on one.
+    name = "reference_current"
+    controller_id = 6  # an open-loop current: the DBC's CONSTANT_CURRENT
+    follows_reference = True
+
+    def reset(self, batch: int = 1) -> None:
+        super().reset(batch)
+        self._current = math.nan
+
+    def follow(self, current_a: float) -> None:
+        """The reference damper's current over the coming period."""
+        self._current = current_a
+
+    def command(self, s: ControlInput) -> np.ndarray:
+        return np.full(np.shape(s.f_des), min(max(self._current, 0.0), self.i_max))
 
 
 @register

@@ -205,6 +205,8 @@ class FramePath:
             if sup.active:
                 events += self._detect(t, f_meas, f_des, xd)
             if sup.active:
+                if self.controller.follows_reference:  # the ideal controller: the reference's
+                    self.controller.follow(self.reference.current_at(t + self.period_s))
                 i = self.controller.command_one(x, xd, xdd, f_meas, f_des, f_next)
                 events += sup.finite(t, f"the {self.controller.name} controller's command", i)
                 if sup.active:
@@ -309,6 +311,14 @@ class FramePath:
             self.reference = reference
         self.reference.reset(t, x)
         self._targets = []
+
+    def restart_reference(self, t: float, x: float, reference: ref.ForceReference | None = None):
+        """`reset_reference` for an arm or a new reference while the motion goes on: a
+        reference damper keeps the state the estimated motion has put it in (that of the one
+        it replaces, where that is the same damper), as the damper under test does."""
+        state = self.reference.motion_state()
+        self.reset_reference(t, x, reference)
+        self.reference.resume(state)
 
     def _targets_now(self, t: float, x: float, xd: float, xdd: float) -> tuple[float, float]:
         """This frame's desired force and the next frame's: computed after the previous

@@ -48,6 +48,20 @@ class ForceReference(abc.ABC):
         it reached at its last `force` instant; any other's forecast is its force."""
         return self.force(t_s, x_m, xd_m_s)
 
+    def motion_state(self) -> tuple | None:
+        """What the measured motion has put the source in (a reference damper's hysteresis
+        state), for `resume`; None: a source of time alone, or a state that is not finite."""
+        return None
+
+    def resume(self, state: tuple | None) -> None:  # noqa: B027 - most sources keep none
+        """After `reset`: take the state `motion_state` gave (of this source before, or of
+        the one it replaces), where it is one of the same damper's."""
+
+    def current_at(self, t_s: float) -> float:
+        """The current a reference damper is driven with over the period that ends at t_s
+        (what the `reference_current` controller commands); NaN: a source without one."""
+        return math.nan
+
     # whether the force depends on the path of the motion (a reference damper): the daemon
     # then moves the source on by `force` on the motion as estimated at each instant, once its
     # frame has come, and that force is the instant's desired force (what it records and
@@ -193,6 +207,29 @@ class BoucWenReference(ForceReference):
 
     def _current(self, t_s: float) -> float:
         return max(0.0, self.current_a + self.current_amp_a * math.sin(self.w * t_s))
+
+    def current_at(self, t_s: float) -> float:
+        return self._current(t_s)
+
+    def motion_state(self) -> tuple | None:
+        z, y, _u = self._damper.state
+        if not (math.isfinite(z) and math.isfinite(y)):
+            return None
+        return (self._params, self._offset_n, z, y, self._t, self._motion)
+
+    def resume(self, state: tuple | None) -> None:
+        # the damper's z and y as the motion left them (its coil as `reset` put it): the
+        # damper under test moved all along too, and its internal displacement y relaxes
+        # toward the stroke's centre over (c0 + c1) / k0 (about 14 s at 0.75 A); one started
+        # at rest where it is armed (y = x) asks for k0 (x - y) more, a force no current gives
+        if state is None or state[:2] != (self._params, self._offset_n):
+            return
+        _params, _offset, z, y, t, motion = state
+        d = self._damper
+        u = d.state[2]
+        d.set_state((z, y, u), *motion)
+        self._t, self._motion, self._ahead = t, motion, None
+        self._f = bouc_wen_force(z, y, u, *motion, self._params) + self._offset_n
 
     def _periods(self, t_s: float, since_s: float) -> int:
         return round((t_s - since_s) / self.dt_s)

@@ -74,6 +74,10 @@ class Step:
     # figures printed beside the step's Et, by source (e.g. the paper's for the same case)
     compare_et: dict[str, float] = field(default_factory=dict)
     hil: HilStepSection | None = None
+    # the step (by name) whose Et this step's is the floor of: e.g. the same case with the
+    # `reference_current` controller (the reference damper's own current); the table prints
+    # it beside that step's Et, with their ratio
+    floor_of: str | None = None
 
     def check(self) -> None:
         _one_line("name", self.name)
@@ -186,6 +190,7 @@ def load_plan(path: str | Path) -> Plan:
         )
     parsed = tuple(_step(i, raw, source) for i, raw in enumerate(steps, start=1))
     _check_hil_steps(parsed, source)
+    _check_floors(parsed, source)
     return Plan(
         name=header.name,
         path=path,
@@ -236,6 +241,24 @@ def _step(index: int, raw: Any, source: str) -> Step:
                 " step has no `hil`)"
             )
     return replace(step, given=given)
+
+
+def _check_floors(steps: tuple[Step, ...], source: str) -> None:
+    """A step's `floor_of` names one other step of the plan, which is no floor itself."""
+    by_name: dict[str, list[Step]] = {}
+    for step in steps:
+        by_name.setdefault(step.name, []).append(step)
+    for index, step in enumerate(steps, start=1):
+        name = step.floor_of
+        if name is None:
+            continue
+        where = f"{source}: step {index} ({step.name}).floor_of: {name!r}"
+        named = by_name.get(name, [])
+        if len(named) != 1 or named[0] is step:
+            what = "no other step" if not named or named[0] is step else "several steps"
+            raise PlanError(f"{where}: {what} of the plan has this name")
+        if named[0].floor_of is not None:
+            raise PlanError(f"{where}: that step is itself a floor (of {named[0].floor_of!r})")
 
 
 def _check_hil_steps(steps: tuple[Step, ...], source: str) -> None:

@@ -383,12 +383,14 @@ def _step_line(index: int, count: int, r: StepResult) -> str:
 
 def table(results: list[StepResult]) -> str:
     """The console table at the end: one row per step; `against`: the share of its desired
-    forces that oppose the motion (no current of a semi-active damper gives them)."""
+    forces that oppose the motion (no current of a semi-active damper gives them); after a
+    step that has a floor (a step's `floor_of` names it), the floor's Et and Et/floor."""
     head = (
         f"{'#':>2}  {'step':<24} {'verdict':<8} {'Et':>8} {'I peak A':>8} {'lat p99 us':>10}"
         f" {'T max':>7} {'against':>7} faults"
     )
     rows = [head, "-" * len(head)]
+    floors = {r.step.floor_of: (i, r) for i, r in enumerate(results, start=1) if r.step.floor_of}
     for i, r in enumerate(results, start=1):
         n = r.numbers
         nums = (
@@ -398,12 +400,28 @@ def table(results: list[StepResult]) -> str:
             else f"{'-':>8} {'-':>8} {'-':>10} {'-':>7} {'-':>7}"
         )
         beside = ", ".join(f"{k} {v:.4f}" for k, v in r.step.compare_et.items())
+        floor = floors.get(r.step.name)
         rows.append(
             f"{i:>2}  {r.step.name[:24]:<24} {r.verdict:<8} {nums} {','.join(r.faults) or '-'}"
             + (f"  (Et {beside})" if beside else "")
+            + (_floor_text(r, *floor) if floor else "")
         )
     hil = law_tables([(r.step.name, r.hil) for r in results if r.hil is not None])
     return "\n".join(rows + ([""] if hil else []) + hil)
+
+
+def floor_ratio(result: StepResult, floor: StepResult) -> float:
+    """A step's Et over its floor's (the floor step's Et: e.g. the reference damper's own
+    current through the same chain); NaN where either has no Et."""
+    if result.numbers is None or floor.numbers is None:
+        return math.nan
+    et, et_floor = result.numbers.et, floor.numbers.et
+    return et / et_floor if et_floor > 0 else math.nan
+
+
+def _floor_text(r: StepResult, index: int, floor: StepResult) -> str:
+    et = floor.numbers.et if floor.numbers is not None else math.nan
+    return f"  floor {et:.4f} (step {index}), Et/floor {floor_ratio(r, floor):.2f}"
 
 
 def overall(results: list[StepResult]) -> str:
