@@ -21,7 +21,7 @@ from mrrig.config import load_config
 from mrrig.loop.daemon import ACTUATOR_PERIOD_S, Daemon
 from mrrig.pycan import can
 from mrrig.rigio.canbus.profile import contract_profile
-from tests.conftest import REPO
+from tests.conftest import REPO, rig_config
 
 _channels = itertools.count()
 
@@ -32,6 +32,16 @@ class LockstepRun:
     x_true: np.ndarray  # the actuator's displacement (m) and velocity (m/s) at each frame
     xd_true: np.ndarray
     f_true: np.ndarray  # the damper's force before the load cell's noise (N)
+
+
+def lockstep_config(tmp_path: Path, model: Path | None = None, **sections) -> Path:
+    """A daemon config for a lockstep replay (`run_lockstep`): a virtual bus, armed at start
+    with no settling, and room for this VM's stalls in the frame age (a frame's age is wall
+    time, the lockstep's clock simulated: a replay, not a timing test)."""
+    loop = {"realtime": False, "arm_on_start": True, "arm_settle_s": 0.0, "max_frame_age_s": 1.0}
+    return rig_config(
+        tmp_path, "unused", model, bus={"interface": "virtual"}, loop=loop, **sections
+    )
 
 
 def run_lockstep(

@@ -21,7 +21,8 @@ from mrrig.loop.inversion import ScalarInverter
 from mrrig.loop.mlp import MLP
 from mrrig.pycan import can
 from mrrig.rigio.canbus.profile import contract_profile
-from tests.conftest import REPO, rig_config
+from tests.conftest import REPO
+from tests.lockstep_rig import lockstep_config
 
 TOL = 1e-12
 COLUMNS = ("x_est", "xd", "xdd", "f_des", "f_model", "i_cmd", "state", "outside")
@@ -98,12 +99,9 @@ def _replay(config, numerics: str, frames) -> tuple[Daemon, np.ndarray]:
 
 
 def test_the_compiled_path_equals_the_python_path_over_a_recorded_run(tmp_path, sim_model):
-    config = rig_config(
+    config = lockstep_config(
         tmp_path,
-        "unused",
-        sim_model,
-        bus={"interface": "virtual"},
-        loop={"realtime": False, "arm_on_start": True, "arm_settle_s": 0.0, "max_frame_age_s": 1.0},
+        model=sim_model,
     )
     frames = _record(config, 3.0)
     python, p = _replay(config, "python", frames)

@@ -28,7 +28,7 @@ from mrrig.plans.hil_step import step_scenario
 from mrrig.plans.plan import PlanError, load_plan
 from mrrig.typed_config import ConfigError
 from tests.conftest import REPO, rig_config
-from tests.lockstep_rig import run_lockstep
+from tests.lockstep_rig import lockstep_config, run_lockstep
 
 DT = 0.002
 LIMITS = ActuatorLimits(0.04, 1.0, 200.0)
@@ -268,13 +268,8 @@ def test_a_playback_streams_through_the_simulated_servo_and_is_judged(tmp_path):
         'kind = "playback"\nlaw = "passive-hard"\n[playback]\nfile = "stroke.csv"\n'
         "[damper]\ni_max_a = 1.0\n"
     )
-    config = rig_config(
+    config = lockstep_config(
         tmp_path,
-        "unused",
-        None,
-        bus={"interface": "virtual"},
-        # room for this VM's stalls in the frame age: a lockstep replay, not a timing test
-        loop={"realtime": False, "arm_on_start": True, "arm_settle_s": 0.0, "max_frame_age_s": 1.0},
         controller={"name": "constant", "current_a": 0.0},
         hil={"scenario": str(scenario_file)},
     )

@@ -25,20 +25,15 @@ from mrrig.offline.review import read_recording
 from mrrig.offline.rrd_scan import open_rrd
 from mrrig.rigio.recording import FIELD_ENTITIES
 from tests.conftest import REPO, rig_config
-from tests.lockstep_rig import run_lockstep
+from tests.lockstep_rig import lockstep_config, run_lockstep
 from tests.test_recording import write_recording
 
 MODEL_FIELDS = ("hil_z_body", "hil_v_body", "hil_z_wheel", "hil_v_wheel")
 
 
 def _daemon_run(tmp_path, scenario: str, seconds: float):
-    config = rig_config(
+    config = lockstep_config(
         tmp_path,
-        "unused",
-        None,
-        bus={"interface": "virtual"},
-        # room for this VM's stalls in the frame age: a lockstep replay, not a timing test
-        loop={"realtime": False, "arm_on_start": True, "arm_settle_s": 0.0, "max_frame_age_s": 1.0},
         controller={"name": "constant", "current_a": 0.5},
         hil={"scenario": str(REPO / scenario), "duration_s": seconds},
     )

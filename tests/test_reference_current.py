@@ -11,7 +11,7 @@ from mrrig.loop.reference import PAPER_CASE_DT_S, paper_case_command
 from mrrig.loop.samples import RigState
 from mrrig.offline.metrics import error_norm
 from tests.conftest import rig_config
-from tests.lockstep_rig import run_lockstep
+from tests.lockstep_rig import lockstep_config, run_lockstep
 
 DT_S = 0.002
 
@@ -25,14 +25,8 @@ def test_the_ideal_controller_commands_the_cases_own_current_and_tracks_near_the
     (Et 0.0125-0.0216 a second over seconds 1-6: the reference damper starts at rest where
     it is armed, y = x, and its internal displacement y relaxes toward the plant's with
     (c0 + c1) / k0, about 14 s)."""
-    config = rig_config(
+    config = lockstep_config(
         tmp_path,
-        "unused",
-        None,
-        bus={"interface": "virtual"},
-        # a frame's age is wall time, the lockstep's clock simulated: a loaded machine's stall
-        # (18.8 ms, a stale_frame fault under pytest-xdist) is not this test's subject
-        loop={"realtime": False, "arm_on_start": True, "arm_settle_s": 0.0, "max_frame_age_s": 1.0},
         controller={"name": "reference_current"},
         reference={"kind": "paper_case", "case": 4, "current_scale": 0.5, "preset": "rig-current"},
     )
