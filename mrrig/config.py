@@ -116,6 +116,10 @@ class LoopSection:
     # the frame's numerics: "compiled" (numba: mrrig/loop/compiled.py; the Python path where
     # numba is missing) or "python" (the reference they are tested equal to)
     numerics: str = "compiled"
+    # the controller's work per frame the daemon's start-up check allows (mrrig.loop.model_fit
+    # `check_cost`): the spec's 300 us on the rig's machine; a software-emulated machine (CI's
+    # SocketCAN VM) runs the same work several times slower
+    work_budget_us: float = 300.0
 
     @property
     def frame_age_limit_s(self) -> float:
@@ -124,6 +128,11 @@ class LoopSection:
     def check(self) -> None:
         if not 0.0005 <= self.period_s <= 0.1:
             raise ValueError("period_s: must be in [0.0005, 0.1] s")
+        if not 10.0 <= self.work_budget_us <= self.period_s * 1e6:
+            raise ValueError(
+                f"work_budget_us: must be in [10, {self.period_s * 1e6:g}] us (at most one"
+                f" period), got {self.work_budget_us!r}"
+            )
         if not 0 < self.i_max_a <= 5.0:
             raise ValueError("i_max_a: must be in (0, 5] A")
         if not MIN_SLEW_A_PER_S <= self.max_current_slew_a_per_s <= MAX_SLEW_A_PER_S:

@@ -109,7 +109,12 @@ def build_controller(cfg: DaemonConfig, section=None, model: MLP | None = None) 
         controller, spare = (make_controller(c.name, settings) for _ in range(2))
     except ValueError as exc:
         raise ModelError(f"{c.model}: controller {c.name}: {exc}") from None
-    check_cost(spare, c.model if model is not None else f"controller {c.name}", dt)
+    check_cost(
+        spare,
+        c.model if model is not None else f"controller {c.name}",
+        dt,
+        cfg.loop.work_budget_us * 1e-6,
+    )
     if model is not None:  # a short closed loop on the model's own envelope (the spare's)
         x_half = 0.5 * (cfg.loop.x_range_m[1] - cfg.loop.x_range_m[0])
         checked = self_check(spare, model, c.model, dt, i_max, x_half)
