@@ -23,7 +23,7 @@ def test_budget_is_met_only_when_every_part_of_it_is() -> None:
 
 
 def test_bench_paper_counts_the_cases_at_or_below_each_reference() -> None:
-    from mrrig.offline.bench.paper import acceptance_lines
+    from mrrig.offline.bench.paper_report import acceptance_lines
 
     paper = [0.04, 0.04, 0.04, 0.13, 0.12, 0.20, 0.13]
     table = {
@@ -48,7 +48,7 @@ def test_bench_paper_counts_the_cases_at_or_below_each_reference() -> None:
 
 
 def test_bench_paper_continuity_sweep_lines_count_and_take_the_smallest_per_case() -> None:
-    from mrrig.offline.bench.paper import sweep_lines
+    from mrrig.offline.bench.paper_report import sweep_lines
 
     gradient = [0.05, 0.05, 0.05]
     sweep = {"mu 0": [0.04, 0.06, 0.05], "mu 1": [0.06, 0.03, 0.07]}
@@ -79,7 +79,7 @@ def test_bench_help_is_the_named_benchmarks_own(capsys) -> None:
 
 
 def test_bench_paper_prints_table_6_with_the_daemons_default_and_keeps_the_rest_for_detail():
-    from mrrig.offline.bench.paper import TABLE_ROWS, format_report, labels
+    from mrrig.offline.bench.paper_report import TABLE_ROWS, format_report, labels
 
     choice = {"feedback": {"feedback_tau_s": 0.0, "continuity": 0.03}, "open": {"continuity": 0.1}}
     names = [*TABLE_ROWS, "default_flow", "default_gradient", "network_inversion_root"]

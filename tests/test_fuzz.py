@@ -24,13 +24,9 @@ from hypothesis import strategies as st
 from hypothesis.stateful import RuleBasedStateMachine, invariant, rule
 
 from firmware_sim.runner import RunStats
-from mrrig.offline.bench.fuzz import (
-    Listener,
-    chain,
-    failures,
-    motion_beyond_limits,
-    signal_outcome,
-)
+from mrrig.offline.bench.fuzz import Listener, signal_outcome
+from mrrig.offline.bench.fuzz_inputs import chain
+from mrrig.offline.bench.fuzz_verdict import failures, motion_beyond_limits
 from mrrig.rigio.canbus import Codec, open_bus
 from mrrig.rigio.control import RequestError, parse_request
 from tests.rig_harness import ScriptedRig

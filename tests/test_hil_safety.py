@@ -242,7 +242,7 @@ def _set_hil_payloads() -> list[dict]:
     import json
     import random
 
-    from mrrig.offline.bench.fuzz import SET_HIL_VALUES, random_request
+    from mrrig.offline.bench.fuzz_inputs import SET_HIL_VALUES, random_request
 
     out = [{"cmd": "set_hil", name: v} for name, vs in SET_HIL_VALUES.items() for v in vs]
     rng = random.Random(41)

@@ -48,7 +48,6 @@ import collections
 import functools
 import json
 import logging
-import math
 import os
 import random
 import signal
@@ -67,6 +66,8 @@ from mrrig import json_text
 from mrrig.cli_args import HelpFormatter, output_file, positive
 from mrrig.config import load_config
 from mrrig.offline.bench import fuzz_faulty_bus, fuzz_lease, fuzz_observer
+from mrrig.offline.bench.fuzz_inputs import BASE_MOTION, CHAINS, chain, junk_frame, random_request
+from mrrig.offline.bench.fuzz_verdict import failures, motion_beyond_limits, report
 from mrrig.pycan import can
 from mrrig.rigio.canbus.bus import find_free_port, open_bus, start_bridge, stop_bridge
 from mrrig.rigio.canbus.codec import Codec
@@ -87,25 +88,15 @@ BURST_BAD_HZ = 50
 PHASE_S = 20.0
 ANSWER_WINDOW = 16  # genuine frames an ACTIVE command may answer (32 ms)
 REQUEST_TIMEOUT_S = 3.0
-# request sequences: a chain every SEQUENCE_EVERY_S while armed, of CHAIN_LENGTH requests
+# request sequences: a chain (fuzz_inputs.chain) every SEQUENCE_EVERY_S while armed, its requests
 # CHAIN_GAP_S apart (issue 32: six 4 mm steps took an armed rig from 15 mm to 39 mm)
 SEQUENCE_EVERY_S = 1.5
-CHAIN_LENGTH = 6
 CHAIN_GAP_S = 0.005
-AMPLITUDE_STEP_M = 0.004
-FREQUENCY_STEP_HZ = 0.5
-FORCE_STEP_N = 1500.0
 # signals: each ends the run SAFE or is ignored; a daemon still running this long after one
 # ignored it. One every SIGNAL_EVERY_MAX_S at most, each at least once in any run.
 SIGNALS = (signal.SIGHUP, signal.SIGUSR1, signal.SIGUSR2, signal.SIGQUIT, signal.SIGPIPE)
 SIGNAL_EXIT_S = 8.0
 SIGNAL_EVERY_MAX_S = 20.0
-# The armed motion's tolerances: the firmware's ramp (0.5 s) moves at most 0.16 mm and
-# 0.08 Hz a period; a change the daemon sends just before the SAFE command that ends a
-# stretch (a disarm and an actuator request taken between the same two frames) shows for up
-# to 3 periods
-MOTION_TOL_M = 0.0005
-FREQUENCY_TOL_HZ = 0.25
 DESIRED_FORCE_TOL_N = 0.01  # the DBC's resolution
 
 
@@ -272,146 +263,7 @@ class Holder:
             self.lease = None
 
 
-def random_json(rng: random.Random, depth: int = 0) -> Any:
-    kind = rng.randrange(9 if depth < 6 else 6)
-    if kind == 0:
-        return None
-    if kind == 1:
-        return rng.random() < 0.5
-    if kind == 2:
-        return rng.choice([0, -1, 1, 2**63, -(2**31), rng.randrange(-1000, 1000)])
-    if kind == 3:
-        return rng.choice([0.0, -0.0, 1e308, -1e308, 5e-324, rng.uniform(-1e4, 1e4)])
-    if kind == 4:
-        return "".join(chr(rng.randrange(1, 0x2FFF)) for _ in range(rng.randrange(12)))
-    if kind == 5:
-        return rng.choice(["sine", "csv", "stop", "heaviside", "../../etc/passwd", ""])
-    if kind in (6, 7):
-        return {
-            rng.choice(["kind", "path", "amplitude_n", "x", "name", "waveform", "zz"]): (
-                random_json(rng, depth + 1)
-            )
-            for _ in range(rng.randrange(4))
-        }
-    return [random_json(rng, depth + 1) for _ in range(rng.randrange(4))]
-
-
-COMMANDS = [
-    "arm", "disarm", "reset", "status", "set_profile", "set_controller", "actuator", "set_model",
-    "set_hil",
-]  # fmt: skip
-# set_hil's fields (a [hil] daemon's next runs): each refused in one line or a run the scenario
-# takes (tests/test_hil_safety.py sends every one to a daemon that runs a scenario; the bench's
-# runs none, and refuses each in one line)
-SET_HIL_VALUES: dict[str, tuple[Any, ...]] = {
-    "law": ("skyhook", "passive-hard", "clipped-optimal", "sky", "", 3, None, ["skyhook"]),
-    "compensation": ("none", "model", "magic", 1, None),
-    "duration_s": (
-        math.nan, math.inf, -1.0, 0.0, 0.001, 0.002, 2.0, 3600.0, 3600.0001, 1e308, "10", True,
-        None,
-    ),
-}  # fmt: skip
-
-
-def random_request(rng: random.Random) -> str | bytes:
-    """A request: mostly well-formed with random fields, some NaN, deep, huge or not JSON."""
-    r = rng.random()
-    if r < 0.05:
-        return "[" * rng.randrange(1, 3000) + "]" * rng.randrange(1, 3000)
-    if r < 0.08:
-        return bytes(rng.randrange(256) for _ in range(rng.randrange(1, 64)))
-    if r < 0.10:
-        return json.dumps({"cmd": "status", "pad": "x" * rng.randrange(2000, 200_000)})
-    req: dict[str, Any] = {"cmd": rng.choice(COMMANDS)}
-    if req["cmd"] == "set_profile":
-        req["kind"] = rng.choice(["constant", "sine", "noise", "csv", "bouc_wen", "zenoh"])
-        req["amplitude_n"] = rng.choice([0.0, 100.0, 1e308, -5.0, float("nan")])
-        req["freq_hz"] = rng.choice([1.0, 0.0, 1e9])
-    elif req["cmd"] == "set_controller":
-        req["name"] = rng.choice(["heaviside", "constant", "network_inversion", "nope"])
-        req["current_a"] = rng.choice([0.5, 1.9, 3.0, -1.0])
-    elif req["cmd"] == "set_hil":
-        for name, values in SET_HIL_VALUES.items():
-            if rng.random() < 0.6:
-                req[name] = rng.choice(values)
-    elif req["cmd"] == "actuator":
-        req["waveform"] = rng.choice(["sine", "random", "hold", "stop", "x"])
-        req["amplitude_m"] = rng.choice([0.01, 0.012, 0.04, 1.0])
-        req["frequency_hz"] = rng.choice([2.0, 3.0, 100.0])
-    for _ in range(rng.randrange(3)):
-        req[rng.choice(["path", "x", "kind", "name"])] = random_json(rng)
-    return json.dumps(req)  # NaN and Infinity as Python writes them
-
-
-def junk_frame(rng: random.Random, valid_sensors: bytes, bad_sensor: bool) -> can.Message:
-    """A frame the daemon must not answer: a broken RigSensors frame (`bad_sensor`), else a
-    29-bit or remote frame of any ID, or an 11-bit frame of no message of the DBC."""
-    if bad_sensor:
-        data = bytearray(valid_sensors)
-        if rng.random() < 0.5:
-            data[0] ^= 1 << rng.randrange(8)  # the CRC no longer fits
-        else:
-            data = data[: rng.randrange(8)]  # a wrong length
-        return can.Message(arbitration_id=0x110, is_extended_id=False, data=bytes(data))
-    kind = rng.randrange(3)
-    dlc = rng.randrange(9)
-    data = bytes(rng.randrange(256) for _ in range(dlc))
-    if kind == 0:
-        arb = rng.choice([0x110, 0x111, 0x210, 0x211, rng.randrange(1 << 29)])
-        return can.Message(arbitration_id=arb, is_extended_id=True, data=data)
-    if kind == 1:
-        arb = rng.choice([0x110, 0x111, rng.randrange(1 << 11)])
-        return can.Message(arbitration_id=arb, is_extended_id=False, is_remote_frame=True, dlc=dlc)
-    arb = rng.choice([i for i in (0x0, 0x100, 0x112, 0x212, 0x7FF) if i not in (0x210, 0x211)])
-    return can.Message(arbitration_id=arb, is_extended_id=False, data=data)
-
-
-def motion_beyond_limits(armed_motion: list[dict], step_m: float) -> list[dict]:
-    """The stretches of ACTIVE commands (the simulator's `armed_motion`) whose motion went
-    beyond the limits in force when the rig was armed: an amplitude more than `step_m`
-    (`control.armed_amplitude_step_m`) above the one in force at arming, or a frequency above
-    that one (the daemon takes no frequency change while armed)."""
-    return [
-        m
-        for m in armed_motion
-        if m["amplitude_max_m"] > m["amplitude_at_start_m"] + step_m + MOTION_TOL_M
-        or m["frequency_max_hz"] > m["frequency_at_start_hz"] + FREQUENCY_TOL_HZ
-    ]
-
-
-CHAINS = ("amplitude", "frequency", "set_profile", "force_ref")
-# what an actuator chain starts from, armed (issue 32's rig: 15 mm at 2 Hz)
-BASE_MOTION = {"cmd": "actuator", "waveform": "sine", "amplitude_m": 0.015, "frequency_hz": 2.0}
 SHOW_S = 0.6  # a chain's end held armed: the firmware's ramp (0.5 s) shows the motion
-
-
-def chain(kind: str, rng: random.Random) -> list:
-    """A chain of CHAIN_LENGTH changes, each a small step on from the one before: actuator
-    requests (amplitude or frequency) from BASE_MOTION, set_profile requests, or force_ref
-    values (rising past any range, to 1e300)."""
-    sign = 1 if rng.random() < 0.75 else -1  # mostly up: the unsafe way
-    steps = range(1, CHAIN_LENGTH + 1)
-    if kind == "amplitude":
-        a0 = BASE_MOTION["amplitude_m"]
-        return [
-            {**BASE_MOTION, "amplitude_m": round(max(a0 + sign * k * AMPLITUDE_STEP_M, 0.0), 5)}
-            for k in steps
-        ]
-    if kind == "frequency":
-        f0 = BASE_MOTION["frequency_hz"]
-        return [
-            {**BASE_MOTION, "frequency_hz": round(max(f0 + sign * k * FREQUENCY_STEP_HZ, 0.1), 3)}
-            for k in steps
-        ]
-    forces = [k * FORCE_STEP_N for k in steps]
-    if kind == "set_profile":
-        shape = rng.choice(["constant", "sine", "noise"])
-        field = "offset_n" if shape == "constant" else "amplitude_n"
-        return [
-            {"cmd": "set_profile", "kind": shape, field: sign * f if shape == "constant" else f}
-            for f in forces
-        ]
-    return [sign * 2.0 * f for f in forces] + [sign * 1e300]
 
 
 class Daemon:
@@ -772,28 +624,11 @@ def run(minutes: float, config: Path, sim_config: Path, seed: int, out: Path | N
     missing = fuzz_faulty_bus.runs_missing(recordings, Path(os.environ[CATALOG_ENV]))
     result["recordings"], result["runs_missing_from_catalog"] = len(recordings), missing
     result["observer_misuse"] = fuzz_observer.run(work, rng, minutes)
-    print(_report(result))
+    print(report(result))
     print(fuzz_observer.report(result["observer_misuse"]))
     if out is not None:
         out.write_text(json_text.dumps(result, indent=2))
     return 1 if failures(result, cfg.loop.i_max_a) else 0
-
-
-def failures(result: dict[str, Any], i_max_a: float) -> list[str]:
-    """The counts of `result` that are not 0, by name."""
-    names = [
-        "crashes", "commands_above_limit", "desired_force_out_of_range", "motion_beyond_limits",
-        "active_applied_to_stale", "active_applied_to_invalid", "active_answers_invalid",
-        "requests_unanswered",
-    ]  # fmt: skip
-    out = [n for n in names if result[n]]
-    out += [n for n in ("armed_without_lease", "faulty_bus_not_aborted") if result.get(n)]
-    out += [n for n in ("runs_missing_from_catalog",) if result.get(n)]
-    if result["max_commanded_current_a"] > i_max_a + 1e-4:
-        out.append("max_commanded_current_a")
-    if "observer_misuse" in result:
-        out += fuzz_observer.failures(result["observer_misuse"])
-    return out
 
 
 def _daemon_config(config: Path, cfg: Any, work: Path) -> tuple[Path, list[str]]:
@@ -817,55 +652,6 @@ def _daemon_config(config: Path, cfg: Any, work: Path) -> tuple[Path, list[str]]
     path = work / "daemon.toml"
     path.write_text(text.replace(old, f'"{zenoh_file}"'))
     return path, endpoints
-
-
-def _report(r: dict) -> str:
-    lat = r["answer_latency_p99_us"]
-    signals = ", ".join(f"{s['signal']} {s['outcome']}" for s in r["signals"])
-    age = r["applied_active_age_us_max"]
-    return "\n".join(
-        [
-            f"bench fuzz: {r['minutes']:g} min against a live rig (bridge, firmware_sim, daemon)",
-            f"  frames fuzzed {r['frames_fuzzed']}, requests {r['requests']} "
-            f"(burst {r['burst']['requests']}), commands seen {r['commands']}, "
-            f"re-arms {r['rearms']}, daemon starts {r['daemon_starts']}",
-            f"  request sequences {r['sequences']}",
-            f"  signals: {signals}",
-            f"  crashes {len(r['crashes'])} {r['crashes']}",
-            f"  commands above the limit {r['commands_above_limit']} "
-            f"(max commanded {r['max_commanded_current_a']:.4f} A), "
-            f"desired force outside loop.f_range_n {r['desired_force_out_of_range']}",
-            f"  motion beyond the limits in force at arming {r['motion_beyond_limits']} "
-            f"(of {r['armed_stretches']} armed stretches) {r['motion_beyond']}",
-            f"  ACTIVE commands the firmware applied to stale frames "
-            f"{r['active_applied_to_stale']}, to invalid frames "
-            f"{r['active_applied_to_invalid']} (frame age when applied: max "
-            f"{'n/a' if age is None else f'{age:.0f} us'}); late commands it dropped "
-            f"{r['late_commands_dropped']}; ACTIVE answers that reached the bus over the age "
-            f"limit {r['active_answers_stale_at_bus']}, to no genuine frame "
-            f"{r['active_answers_invalid']}",
-            f"  control requests unanswered {r['requests_unanswered']}",
-            f"  clients killed while armed {r['clients_killed']} (never armed"
-            f" {r['clients_never_armed']}): armed without a live lease beyond its timeout"
-            f" {r['armed_without_lease']}, left ARMED after a kill max"
-            f" {_seconds(r['left_armed_after_kill_s_max'])}",
-            f"  a client's step on a faulty bus (the simulator held up {fuzz_faulty_bus.STALL_S:g}"
-            f" s every {fuzz_faulty_bus.STALL_EVERY_S:g} s) {r['faulty_bus_episodes']} times"
-            f" (never armed {r['faulty_bus_never_armed']}, {r['faulty_bus_stalls']} stalls):"
-            f" aborted 'faulty bus' {r['faulty_bus_aborted']}, not aborted"
-            f" {r['faulty_bus_not_aborted']} {r['faulty_bus_not_aborted_how']}",
-            f"  runs missing from the catalog {len(r['runs_missing_from_catalog'])} of"
-            f" {r['recordings']} recordings {r['runs_missing_from_catalog'][:5]}",
-            f"  answer latency p99 as the firmware sees it: quiet {lat['quiet']:.0f} us, "
-            f"burst {lat['burst']:.0f} us, ratio {lat['ratio']:.2f} (target <= 1.5)",
-            f"  daemon: {r['daemon']}",
-            f"  faults: {dict(r['faults'])}",
-        ]
-    )
-
-
-def _seconds(value: float | None) -> str:
-    return "n/a" if value is None else f"{value:.2f} s"
 
 
 def main(argv: list[str] | None = None) -> int:
