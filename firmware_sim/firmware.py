@@ -68,7 +68,8 @@ from damper.plant_file import load_plant
 from firmware_sim.actuator import ServoActuator
 from firmware_sim.config import FaultSpec, SimConfig
 from firmware_sim.motion import Actuator, MotionStretch
-from mrrig.rigio.canbus.codec import EncodeError, MessageLayout, Packer, Parsed, frame_key
+from mrrig.rigio.canbus.codec import EncodeError, Packer, Parsed
+from mrrig.rigio.canbus.layout import MessageLayout, frame_key
 from mrrig.rigio.canbus.profile import RigProfile
 
 logger = logging.getLogger(__name__)

@@ -25,7 +25,7 @@ import numpy as np
 from firmware_sim.firmware import Firmware, Frame
 from mrrig.loop.realtime import make_realtime
 from mrrig.pycan import can
-from mrrig.rigio.canbus.codec import frame_key
+from mrrig.rigio.canbus.layout import frame_key
 
 logger = logging.getLogger(__name__)
 

@@ -18,7 +18,7 @@ from mrrig.config import load_config
 from mrrig.hil.reference import run_reference
 from mrrig.hil.scenario import load_scenario
 from mrrig.loop.daemon import Daemon
-from mrrig.rigio.canbus.codec import load_dbc
+from mrrig.rigio.canbus.layout import load_dbc
 from tests.conftest import REPO, rig_config
 
 SCENARIO = "configs/hil/quarter-car-laws.toml"  # the quarter-car plan's: 0-1 A

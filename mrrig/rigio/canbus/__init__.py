@@ -4,14 +4,13 @@ from mrrig.rigio.canbus.bus import BusError, find_free_port, open_bus, start_bri
 from mrrig.rigio.canbus.codec import (
     DEFAULT_DBC_PATH,
     Codec,
-    CodecError,
     EncodeError,
-    MessageLayout,
     MessageStats,
     Packer,
     Parsed,
     Parser,
 )
+from mrrig.rigio.canbus.layout import CodecError, MessageLayout
 
 __all__ = [
     "DEFAULT_DBC_PATH",

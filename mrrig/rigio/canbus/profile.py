@@ -31,12 +31,10 @@ from typing import NamedTuple
 import cantools
 
 from mrrig.errors import MrrigError
-from mrrig.rigio.canbus.codec import (
-    DEFAULT_DBC_PATH,
-    Codec,
+from mrrig.rigio.canbus.codec import DEFAULT_DBC_PATH, Codec, Packer
+from mrrig.rigio.canbus.layout import (
     CodecError,
     MessageLayout,
-    Packer,
     Rename,
     load_dbc,
     scaling_problem,

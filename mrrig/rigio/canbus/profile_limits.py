@@ -19,7 +19,8 @@ from typing import TYPE_CHECKING, NamedTuple
 
 from mrrig.config import ACTUATOR_AMPLITUDE_MAX_M, ACTUATOR_FREQUENCY_MAX_HZ
 from mrrig.loop.controllers import CONTROLLERS
-from mrrig.rigio.canbus.codec import Codec, SignalField
+from mrrig.rigio.canbus.codec import Codec
+from mrrig.rigio.canbus.layout import SignalField
 
 if TYPE_CHECKING:
     from mrrig.config import DaemonConfig
