@@ -13,7 +13,8 @@ import zenoh
 
 from mrrig.api import Rig
 from mrrig.api.live import DISARM_TRIES
-from mrrig.rigio.sidecar import NO_ANSWER, keys
+from mrrig.rigio.rig_topics import keys
+from mrrig.rigio.sidecar import NO_ANSWER
 from mrrig.rigio.zenoh_config import load_zenoh_config
 from tests.conftest import zenoh_configs
 

@@ -18,7 +18,7 @@ import zenoh
 
 from mrrig.rigio import fleet
 from mrrig.rigio.canbus.bus import find_free_port, start_bridge, stop_bridge
-from mrrig.rigio.sidecar import alive_token
+from mrrig.rigio.rig_topics import alive_token
 from tests.conftest import rig_config, stop, wait_until, write_json
 from tests.stall_proof import check_answers, windows
 from tests.test_lifecycle_errors import mrrig

@@ -19,7 +19,7 @@ from mrrig.api import HilRunError, Rig, run_hil
 from mrrig.config import load_config
 from mrrig.loop.daemon import Daemon
 from mrrig.loop.hil_loop import scenario_with
-from mrrig.rigio.sidecar import keys
+from mrrig.rigio.rig_topics import keys
 from mrrig.rigio.zenoh_config import load_zenoh_config
 from tests.conftest import REPO, rig_config, zenoh_configs
 

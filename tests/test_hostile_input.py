@@ -28,7 +28,7 @@ from mrrig.offline.review import ReviewError
 from mrrig.rigio.canbus.codec import Codec
 from mrrig.rigio.client import query
 from mrrig.rigio.ipc import LoopEnd, Msg, make_channel
-from mrrig.rigio.sidecar import keys
+from mrrig.rigio.rig_topics import keys
 from mrrig.typed_config import ConfigError
 from tests.conftest import REPO, rig_config, wait_until
 from tests.rig_harness import ScriptedRig
@@ -224,7 +224,7 @@ def _limited_sidecar(path: Path, fsize: int) -> tuple[subprocess.Popen, LoopEnd]
     disk as the writer sees it (EFBIG on write)."""
     fds = make_channel()
     loop = LoopEnd(*fds.loop_fds())
-    cmd = [sys.executable, "-m", "mrrig.rigio.sidecar", "--rig", RIG, "--zenoh-config", ""]
+    cmd = [sys.executable, "-m", "mrrig.rigio.sidecar_process", "--rig", RIG, "--zenoh-config", ""]
     cmd += ["--record", str(path), "--rx-fd", str(fds.sidecar_rx), "--tx-fd", str(fds.sidecar_tx)]
 
     def limit() -> None:

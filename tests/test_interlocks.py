@@ -24,7 +24,7 @@ from mrrig.loop.detectors import Detector, Detectors, DetectorSettings
 from mrrig.loop.safety import Fault
 from mrrig.loop.samples import RigState
 from mrrig.rigio.control import Pending
-from mrrig.rigio.sidecar import keys
+from mrrig.rigio.rig_topics import keys
 from mrrig.typed_config import ConfigError
 from tests.conftest import REPO, OutputWatch, rig_config
 from tests.rig_harness import ScriptedRig, write_config

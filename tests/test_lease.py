@@ -214,7 +214,7 @@ def test_a_plan_killed_mid_step_leaves_the_rig_disarmed_and_still(live, tmp_path
     lease lapses, the daemon faults `lease_lapsed` (SAFE) and stops the actuator."""
     from mrrig.api import Rig
     from mrrig.rigio.client import open_session
-    from mrrig.rigio.sidecar import keys
+    from mrrig.rigio.rig_topics import keys
 
     watch = ActuatorWatch(live.channel)
     proc = _mrrig_test(live, _plan(tmp_path, 60), tmp_path / "r.xml")

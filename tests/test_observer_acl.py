@@ -20,7 +20,8 @@ from mrrig.loop.samples import SAMPLE_DTYPE
 from mrrig.rigio import audit, certs, client
 from mrrig.rigio.canbus.bus import find_free_port
 from mrrig.rigio.ipc import LoopEnd, Msg, make_channel
-from mrrig.rigio.sidecar import alive_token, keys, start_sidecar
+from mrrig.rigio.rig_topics import alive_token, keys
+from mrrig.rigio.sidecar_process import start_sidecar
 from mrrig.rigio.zenoh_config import load_zenoh_config
 from tests.conftest import rig_config
 from tests.test_zenoh_security import _lab, _open, _status, _template

@@ -26,7 +26,7 @@ from mrrig.catalog.store import open_catalog
 from mrrig.loop.samples import SAMPLE_DTYPE, RigState
 from mrrig.rigio.ipc import LoopEnd, make_channel
 from mrrig.rigio.run_identity import file_sha256
-from mrrig.rigio.sidecar import start_sidecar
+from mrrig.rigio.sidecar_process import start_sidecar
 from tests.conftest import REPO
 from tests.rig_harness import ScriptedRig
 

@@ -28,7 +28,9 @@ from mrrig.rigio import client, force_stream
 from mrrig.rigio.canbus.bus import find_free_port
 from mrrig.rigio.ipc import LoopEnd, Msg, SidecarEnd, make_channel
 from mrrig.rigio.recording import Recorder
-from mrrig.rigio.sidecar import JSON, Sidecar, keys, start_sidecar
+from mrrig.rigio.rig_topics import JSON, keys
+from mrrig.rigio.sidecar import Sidecar
+from mrrig.rigio.sidecar_process import start_sidecar
 from mrrig.rigio.zenoh_config import INSECURE_WARNING, load_zenoh_config, local_config
 from tests.conftest import wait_until, zenoh_configs
 

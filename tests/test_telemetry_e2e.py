@@ -16,7 +16,7 @@ import zenoh
 from mrrig.cli.review import main as review_main
 from mrrig.offline.review import read_recording, verify_rrd
 from mrrig.rigio.lease import Lease
-from mrrig.rigio.sidecar import keys
+from mrrig.rigio.rig_topics import keys
 from mrrig.rigio.zenoh_config import local_config
 from tests.conftest import rig_config, zenoh_configs
 from tests.stall_proof import explain

@@ -14,7 +14,7 @@ import zenoh
 from mrrig.api import Telemetry
 from mrrig.loop.samples import SAMPLE_DTYPE
 from mrrig.rigio.canbus.bus import find_free_port
-from mrrig.rigio.sidecar import keys, telemetry_json
+from mrrig.rigio.rig_topics import keys, telemetry_json
 from mrrig.rigio.zenoh_config import local_config
 
 RIG = "utc1"

@@ -17,7 +17,8 @@ from cryptography.x509.oid import NameOID
 from mrrig.rigio import audit, certs, client, fleet
 from mrrig.rigio.canbus.bus import find_free_port
 from mrrig.rigio.ipc import LoopEnd, Msg, make_channel
-from mrrig.rigio.sidecar import alive_token, keys, start_sidecar
+from mrrig.rigio.rig_topics import alive_token, keys
+from mrrig.rigio.sidecar_process import start_sidecar
 from mrrig.rigio.zenoh_config import (
     INSECURE_WARNING,
     TEMPLATE,

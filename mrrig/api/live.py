@@ -107,7 +107,7 @@ class Telemetry:
     `utc_start` is the UTC time of `t = 0` the daemon sends with each batch (its run's start)."""
 
     def __init__(self, session: zenoh.Session, rig: str, duration_s: float | None, quiet_s: float):
-        from mrrig.rigio.sidecar import keys
+        from mrrig.rigio.rig_topics import keys
 
         self._sub = session.declare_subscriber(keys(rig)["telemetry"])
         self._duration_s = duration_s

@@ -41,7 +41,7 @@ from mrrig.rigio import client
 from mrrig.rigio.canbus.bus import find_free_port, start_bridge, stop_bridge
 from mrrig.rigio.lease import Lease
 from mrrig.rigio.rearm import REARM_WINDOW_S, RearmLimit
-from mrrig.rigio.sidecar import keys
+from mrrig.rigio.rig_topics import keys
 from mrrig.rigio.zenoh_config import write_loopback_configs
 
 log = logging.getLogger(__name__)

@@ -167,7 +167,8 @@ class SidecarWatch:
     def _spawn(self, can_log: bool = True) -> tuple[Any, LoopEnd, ReplyWriter]:
         """Start the telemetry process and wait for it to be ready; `can_log` False: without
         the bus log (a restarted process would start the run's bus log over)."""
-        from mrrig.rigio.sidecar import is_duplicate_text, start_sidecar
+        from mrrig.rigio.rig_topics import is_duplicate_text
+        from mrrig.rigio.sidecar_process import start_sidecar
 
         cfg = self.cfg
         fds = make_channel()

@@ -21,7 +21,7 @@ import zenoh
 from mrrig.errors import MrrigError
 from mrrig.loop.samples import RigState
 from mrrig.rigio import audit
-from mrrig.rigio.sidecar import JSON, keys
+from mrrig.rigio.rig_topics import JSON, keys
 from mrrig.rigio.zenoh_config import load_zenoh_config, zenoh_error_text
 
 ZenohConfigLike = str | Path | zenoh.Config

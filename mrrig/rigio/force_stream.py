@@ -35,7 +35,7 @@ from mrrig.loop import profile_csv
 from mrrig.loop.safety import TRANSPORT_FAULTS
 from mrrig.rigio.client import ClientError, ZenohConfigLike, open_session, query
 from mrrig.rigio.lease import Lease
-from mrrig.rigio.sidecar import JSON, keys
+from mrrig.rigio.rig_topics import JSON, keys
 
 log = logging.getLogger(__name__)
 

@@ -89,7 +89,7 @@ def make_channel(pipe_bytes: int | None = 1 << 20) -> ChannelFds:
     """Create both pipes; try to enlarge them to `pipe_bytes` (None keeps the OS default).
 
     The fds are not inheritable: pass the sidecar's pair with `pass_fds` (see
-    `mrrig.rigio.sidecar.start_sidecar`).
+    `mrrig.rigio.sidecar_process.start_sidecar`).
     """
     to_sidecar_r, to_sidecar_w = os.pipe()
     to_loop_r, to_loop_w = os.pipe()

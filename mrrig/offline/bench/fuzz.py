@@ -72,8 +72,8 @@ from mrrig.pycan import can
 from mrrig.rigio.canbus.bus import find_free_port, open_bus, start_bridge, stop_bridge
 from mrrig.rigio.canbus.codec import Codec
 from mrrig.rigio.lease import Lease
+from mrrig.rigio.rig_topics import JSON, keys
 from mrrig.rigio.run_identity import CATALOG_ENV
-from mrrig.rigio.sidecar import JSON, keys
 from mrrig.rigio.zenoh_config import local_config
 
 log = logging.getLogger(__name__)

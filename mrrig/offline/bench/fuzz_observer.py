@@ -34,7 +34,8 @@ from mrrig.resources import shipped_dir
 from mrrig.rigio import certs
 from mrrig.rigio.canbus.bus import find_free_port
 from mrrig.rigio.ipc import LoopEnd, Msg, make_channel
-from mrrig.rigio.sidecar import alive_token, keys, start_sidecar
+from mrrig.rigio.rig_topics import alive_token, keys
+from mrrig.rigio.sidecar_process import start_sidecar
 from mrrig.rigio.zenoh_config import load_zenoh_config
 
 log = logging.getLogger(__name__)

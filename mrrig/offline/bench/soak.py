@@ -35,7 +35,7 @@ log = logging.getLogger(__name__)
 GROWTH_LIMIT_PCT = 5.0
 REVIEW_LIMIT_MB = 1024.0
 WARMUP_MAX_MIN = 2.0
-SIDECAR_MODULE = "mrrig.rigio.sidecar"
+SIDECAR_MODULE = "mrrig.rigio.sidecar_process"
 _MAX_RSS_RE = re.compile(r"Maximum resident set size \(kbytes\): (\d+)")
 _REARMS_RE = re.compile(r"re-armed the daemon (\d+) times")
 
