@@ -16,8 +16,8 @@ import time
 import numpy as np
 import pytest
 
-from mrrig.cli.train import format_kinds
 from mrrig.cli.train import main as train_main
+from mrrig.cli.train_report import format_kinds
 from mrrig.loop.controllers import ControllerSettings, make_controller
 from mrrig.offline.datasets import Series, dataset_b
 from mrrig.offline.training.crossval import (
@@ -28,7 +28,8 @@ from mrrig.offline.training.crossval import (
     leave_out_groups,
 )
 from mrrig.offline.training.fit import stretch_split
-from mrrig.offline.training.kinds import ModelKind, block_holdout, choose_kind, mlp_kind
+from mrrig.offline.training.kind_choice import choose_kind
+from mrrig.offline.training.kinds import ModelKind, block_holdout, mlp_kind
 from mrrig.offline.training.select import Candidate
 from tests.data_files import write_tidy
 

@@ -9,8 +9,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from mrrig.cli.train import format_other_tests
 from mrrig.cli.train import main as train_main
+from mrrig.cli.train_report import format_other_tests
 from mrrig.offline.datasets import DataError
 from mrrig.offline.evaluate import main as evaluate_main
 from mrrig.offline.metrics import error_norm

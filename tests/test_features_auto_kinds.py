@@ -17,16 +17,8 @@ from mrrig.cli.train import main as train_main
 from mrrig.loop.greybox import GreyBoxModel
 from mrrig.loop.model_fit import COST_BUDGET_S
 from mrrig.loop.twin_model import load_forward_model
-from mrrig.offline.training.kinds import (
-    GREYBOX,
-    GRU,
-    HISTORY_MLP,
-    KIND_NAMES,
-    STATIC_MLP,
-    TWIN,
-    KindScore,
-    pick_kind,
-)
+from mrrig.offline.training.kind_choice import KindScore, pick_kind
+from mrrig.offline.training.kinds import GREYBOX, GRU, HISTORY_MLP, KIND_NAMES, STATIC_MLP, TWIN
 
 LAB = Path(__file__).resolve().parents[2] / "shared" / "data" / "labcontrol-shaking-table"
 # one test at 0 V, one at 3.212 V, one at 0.8712 V

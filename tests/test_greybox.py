@@ -14,7 +14,7 @@ import pytest
 
 from damper.plant import BoucWenParams, simulate
 from damper.plant_file import Plant
-from mrrig.cli.train import format_kinds
+from mrrig.cli.train_report import format_kinds
 from mrrig.loop.controllers import ControllerSettings, TwinInversion, make_controller
 from mrrig.loop.greybox import (
     RESIDUAL_INPUTS,
@@ -29,14 +29,8 @@ from mrrig.offline.datasets import Series
 from mrrig.offline.evaluate import evaluate_stateful
 from mrrig.offline.identify.fit import Run
 from mrrig.offline.training.greybox import fit_residual, greybox_run_forces
-from mrrig.offline.training.kinds import (
-    GREYBOX,
-    TWIN,
-    choose_kind,
-    greybox_kind,
-    model_kinds,
-    twin_kind,
-)
+from mrrig.offline.training.kind_choice import choose_kind
+from mrrig.offline.training.kinds import GREYBOX, TWIN, greybox_kind, model_kinds, twin_kind
 from tests.data_files import write_tidy
 
 DT_S = 0.002
