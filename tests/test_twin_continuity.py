@@ -87,3 +87,17 @@ def test_a_twin_follows_the_motion_while_disarmed_and_arms_on_that_state(tmp_pat
     assert abs(twin.x - y) > 1e-3, "y where the motion put it, not at x"
     ctl.reset(1)  # an arm
     assert ctl.lanes[0] is twin and twin.damper.state == (z, y, u)
+
+
+def test_the_simulated_rigs_twin_config_runs_the_simulators_own_damper():
+    """configs/rig-twin.toml (the paper plan's daemon on the simulated rig) inverts the
+    simulator's damper itself: its plant file is firmware_sim's preset, in amperes."""
+    from mrrig.config import load_config
+    from mrrig.loop.twin_model import load_forward_model
+    from tests.conftest import REPO
+
+    cfg = load_config(REPO / "configs/rig-twin.toml")
+    model = load_forward_model(REPO / cfg.controller.model)
+    assert isinstance(model, TwinModel)
+    assert model.plant.params == PARAMS
+    assert (model.plant.offset_n, model.plant.command_unit) == (0.0, "A")
