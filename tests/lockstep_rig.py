@@ -32,6 +32,7 @@ class LockstepRun:
     x_true: np.ndarray  # the actuator's displacement (m) and velocity (m/s) at each frame
     xd_true: np.ndarray
     f_true: np.ndarray  # the damper's force before the load cell's noise (N)
+    daemon: Daemon | None = None  # the daemon as the run left it
 
 
 def lockstep_config(tmp_path: Path, model: Path | None = None, **sections) -> Path:
@@ -107,4 +108,4 @@ def run_lockstep(
         rig_end.shutdown()
     samples = np.concatenate(daemon.batches.handed_over())
     x, xd, f = np.array(truth).T
-    return LockstepRun(samples, x, xd, f)
+    return LockstepRun(samples, x, xd, f, daemon)

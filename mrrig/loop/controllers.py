@@ -173,6 +173,10 @@ class Controller(abc.ABC):
         returned (the loop's slew limit moved it): a controller that carries the command
         held (the coil's lag, a twin's or a GRU's state) carries this one."""
 
+    def follow_motion(self, x: float, xd: float) -> None:  # noqa: B027 - most keep no state
+        """A disarmed frame's estimated motion (the rig holds the coil at 0 A): a controller
+        whose model carries the damper's state (a twin's) moves it on, to arm on it."""
+
     def prepare_one(  # noqa: B027
         self, x: float, xd: float, xdd: float, f_des: float, f_des_next: float | None = None
     ) -> None:
@@ -741,22 +745,18 @@ class TwinInversion(Controller):
     name = "network_inversion"
     controller_id = 1
     needs_model = True
-    # network inversion's settings, as this solve has them: exact, the root itself
+    # network inversion's settings, as this solve has them: exact (the continuity: the pull
+    # toward the present lagged current, `TwinTracker.solve`)
     method = "exact"
-    continuity = 0.0
 
     @classmethod
     def build(cls, s: ControllerSettings) -> Controller:
         if s.method != "exact":
             raise ValueError(f"method {s.method!r}: a twin forward model is solved exactly")
-        if s.continuity != 0.0:
-            raise ValueError(
-                f"continuity {s.continuity:g}: a twin forward model is solved for its root (0)"
-            )
         if s.adaptation is not None:
             raise ValueError("adaptation: not with a twin forward model (its force is eq. 30)")
         assert isinstance(s.model, TwinModel)
-        return cls(s.i_max, s.model, s.dt_s, s.feedback_tau_s, s.ahead)
+        return cls(s.i_max, s.model, s.dt_s, s.feedback_tau_s, s.ahead, s.continuity)
 
     def __init__(
         self,
@@ -765,10 +765,12 @@ class TwinInversion(Controller):
         dt_s: float = 0.002,
         feedback_tau_s: float | None = None,
         ahead: bool = False,
+        continuity: float = 0.0,
     ) -> None:
         super().__init__(i_max)
         if feedback_tau_s is not None and not feedback_tau_s >= 0:
             raise ValueError(f"feedback_tau_s must be >= 0, got {feedback_tau_s}")
+        self.continuity = continuity
         self.model = model
         self.dt_s = dt_s
         self.feedback_tau_s = feedback_tau_s
@@ -777,9 +779,21 @@ class TwinInversion(Controller):
         self.reset(1)
 
     def reset(self, batch: int = 1) -> None:
+        """A new run: the load-cell residual starts again; the twins keep the state the motion
+        gave them (`follow_motion` while disarmed: the damper is the one that moved), where
+        the lanes are as many; a twin not yet moved starts at rest at its first frame."""
         super().reset(batch)
-        self.lanes = [self.model.tracker(self.dt_s, self.i_max) for _ in range(batch)]
+        lanes = getattr(self, "lanes", [])
+        if len(lanes) != batch:
+            self.lanes = [
+                self.model.tracker(self.dt_s, self.i_max, self.continuity) for _ in range(batch)
+            ]
         self._residual = [0.0] * batch
+
+    def follow_motion(self, x: float, xd: float) -> None:
+        for twin in self.lanes:
+            twin.command = 0.0  # the rig's SAFE answers: the coil off
+            twin.advance(float(x), float(xd))
 
     def command_sent(self, current_a: float) -> None:
         self.lanes[0].command = current_a  # the command held until the next frame
@@ -890,8 +904,10 @@ class GruInversion(TwinInversion):
         ahead: bool = False,
         continuity: float = 0.0,
     ) -> None:
-        self.continuity = continuity
-        super().__init__(i_max, model, dt_s, feedback_tau_s, ahead)
+        super().__init__(i_max, model, dt_s, feedback_tau_s, ahead, continuity)
+
+    def follow_motion(self, x: float, xd: float) -> None:
+        """Nothing: the GRU's hidden state starts at its run's first frame, as it was trained."""
 
     def reset(self, batch: int = 1) -> None:
         Controller.reset(self, batch)

@@ -213,6 +213,8 @@ class FramePath:
                     i_cmd = self._slew_limit(i)
                 if self.hil is not None:  # a law's current; the scenario's current range
                     i_cmd = self.hil.command(i_cmd, self.cfg.loop.i_max_a)
+            else:  # disarmed: a model that carries the damper's state follows the motion
+                self.controller.follow_motion(x, xd)
         except Exception as exc:  # noqa: BLE001 - a bug must not leave a frame unanswered
             log.exception("cycle failed")
             events += sup.trip(t, Fault.INTERNAL_ERROR, f"{type(exc).__name__}: {exc}")

@@ -71,8 +71,8 @@ class GreyBoxModel(TwinModel):
     def meta(self) -> dict[str, Any]:
         return {**super().meta, "kind": "bouc-wen-greybox"}
 
-    def tracker(self, dt_s: float, i_max: float) -> GreyBoxTracker:
-        return GreyBoxTracker(self, dt_s, i_max)
+    def tracker(self, dt_s: float, i_max: float, continuity: float = 0.0) -> GreyBoxTracker:
+        return GreyBoxTracker(self, dt_s, i_max, continuity)
 
     def to_doc(self) -> dict[str, Any]:
         assert self.residual is not None
@@ -158,8 +158,10 @@ def force_and_du(
 class GreyBoxTracker(TwinTracker):
     """One damper's grey-box model, carried frame to frame and inverted (module docstring)."""
 
-    def __init__(self, model: GreyBoxModel, dt_s: float, i_max: float) -> None:
-        super().__init__(model, dt_s, i_max)
+    def __init__(
+        self, model: GreyBoxModel, dt_s: float, i_max: float, continuity: float = 0.0
+    ) -> None:
+        super().__init__(model, dt_s, i_max, continuity)
         self.model = model
         self.damper = BoucWenDamper(model.plant.params, model.substep_s)
 
@@ -192,6 +194,9 @@ class GreyBoxTracker(TwinTracker):
         lag = self.lag
         lo, hi = u - lag * u, u + lag * (self.i_max - u)
         u1 = solve_u(self.model, z, y, x, xd, target_n, lo, hi, u)
+        if self._pull > 0.0:  # the continuity, as `TwinTracker.solve`'s
+            g = float(force_and_du(self.model, z, y, u1, x, xd)[1][0])
+            u1 += (u - u1) / (1.0 + g * g / self._pull)
         v = u + (u1 - u) / lag  # eq. 36 inverted: u reaches u1 one period on
         self.command = min(max(v, 0.0), self.i_max)
         return self.command

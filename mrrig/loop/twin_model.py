@@ -8,7 +8,9 @@ own integrator (`damper.plant.BoucWenDamper`, the simulator's sub-step). The com
 solved for the instant it acts on: the state is stepped one period further on the predicted
 motion (a copy of the integration, the previous command held), and at that state eq. 30 is a
 ratio of a quadratic to a linear function of u (eqs 32-35 are affine in u), so u is the root
-of a quadratic, solved exactly. The command reaches u through eq. 36's first-order filter:
+of a quadratic, solved exactly (with a continuity mu > 0, pulled toward the present u as network
+inversion's regularised solve is: `TwinTracker.solve`). The command reaches u through eq. 36's
+first-order filter:
 over one period u moves the share `1 - exp(-eta T)` of the way to the command, so the rig's
 range [0, i_max] of commands is a range of u one period on; a force out of it gets the end
 of that range closest to it. The command is the one that takes u to the root in one period.
@@ -34,6 +36,11 @@ from mrrig.loop.mlp import MLP, ModelError
 # the simulator's RK4 sub-step (configs/sim.toml damper.substep_s): the twin integrates as the
 # plant it was fitted for does
 SUBSTEP_S = 1e-4
+# The continuity's scales (network inversion's regularised solve, mrrig/loop/inversion.py,
+# standardises by the training data's spreads; a twin has none): the command's step in units of
+# a uniform command's spread over the rig's range, i_max / sqrt(12), the force's error in 1 kN
+# (the order of the simulated matrix's force spread, 949 N)
+CONTINUITY_FORCE_N = 1000.0
 
 
 @dataclass(frozen=True)
@@ -66,9 +73,9 @@ class TwinModel:
             "lag_tau_s": 1.0 / self.plant.params.eta,
         }
 
-    def tracker(self, dt_s: float, i_max: float) -> TwinTracker:
+    def tracker(self, dt_s: float, i_max: float, continuity: float = 0.0) -> TwinTracker:
         """The model carried frame to frame and inverted (`TwinTracker`)."""
-        return TwinTracker(self, dt_s, i_max)
+        return TwinTracker(self, dt_s, i_max, continuity)
 
 
 def forward_model_from_text(text: str, path: str | Path) -> MLP | TwinModel | GRUModel:
@@ -156,10 +163,25 @@ def force_root(
     return lo if f_lo <= f_hi else hi
 
 
+def force_slope(k: tuple, z: float, y: float, x: float, xd: float, u: float) -> float:
+    """d(eq. 30)/du at the state (z, y), the motion (x, xd) and u (N per command unit)."""
+    c0a, c0b, k0, c1a, c1b, _k1, _x0, aa, ab = k[:9]
+    p = aa * z + c0a * xd + k0 * (x - y)
+    q = ab * z + c0b * xd
+    c1, d = c1a + c1b * u, c0a + c1a + (c0b + c1b) * u
+    return (c1b * (p + q * u) + c1 * q) / d - c1 * (p + q * u) * (c0b + c1b) / (d * d)
+
+
 class TwinTracker:
     """One damper's twin, carried frame to frame and inverted (module docstring)."""
 
-    def __init__(self, model: TwinModel, dt_s: float, i_max: float) -> None:
+    def __init__(
+        self, model: TwinModel, dt_s: float, i_max: float, continuity: float = 0.0
+    ) -> None:
+        if not continuity >= 0:
+            raise ValueError(f"continuity must be >= 0, got {continuity}")
+        # mu over the squared scales (`CONTINUITY_FORCE_N`, i_max / sqrt(12)): (N/A)^2
+        self._pull = continuity * CONTINUITY_FORCE_N**2 * 12.0 / i_max**2
         params = model.plant.params
         self._k = astuple(params)
         self.offset_n = model.plant.offset_n
@@ -209,6 +231,11 @@ class TwinTracker:
         # eq. 36: the commands 0 and i_max take u to these one period on
         lo, hi = u - lag * u, u + lag * (self.i_max - u)
         u1 = force_root(self._k, z, y, x, xd, target_n - self.offset_n, lo, hi, u)
+        if self._pull > 0.0:
+            # min (f(u1) - target)^2 + pull (u1 - u)^2: from the root, the step of the
+            # linearised problem (inversion.py's closed form), toward u: inside [lo, hi]
+            g = force_slope(self._k, z, y, x, xd, u1)
+            u1 += (u - u1) / (1.0 + g * g / self._pull)
         v = u + (u1 - u) / lag  # eq. 36 inverted: u reaches u1 one period on
         self.command = min(max(v, 0.0), self.i_max)
         return self.command
