@@ -15,7 +15,7 @@ import pytest
 from damper.plant import BoucWenParams, simulate
 from damper.plant_file import Plant
 from mrrig.cli.train_report import format_kinds
-from mrrig.loop.controllers import ControllerSettings, TwinInversion, make_controller
+from mrrig.loop.controllers import ControllerSettings, make_controller
 from mrrig.loop.greybox import (
     RESIDUAL_INPUTS,
     GreyBoxModel,
@@ -24,6 +24,7 @@ from mrrig.loop.greybox import (
     twin_force_du,
 )
 from mrrig.loop.mlp import MLP, ModelError
+from mrrig.loop.state_inversion import TwinInversion
 from mrrig.loop.twin_model import load_forward_model
 from mrrig.offline.datasets import Series
 from mrrig.offline.evaluate import evaluate_stateful

@@ -20,10 +20,11 @@ import pytest
 
 from mrrig.config import load_config
 from mrrig.loop.build import build_controller
-from mrrig.loop.controllers import ControllerSettings, GruInversion, make_controller
+from mrrig.loop.controllers import ControllerSettings, make_controller
 from mrrig.loop.gru import GRUModel, GruTracker, affine_solve
 from mrrig.loop.mlp import ModelError
 from mrrig.loop.model_fit import COST_BUDGET_S, frame_cost_s
+from mrrig.loop.state_inversion import GruInversion
 from mrrig.loop.twin_model import load_forward_model
 from mrrig.offline.datasets import dataset_b
 from mrrig.offline.training import measured_series

@@ -25,9 +25,10 @@ from damper.plant_file import Plant, load_plant, save_plant
 from mrrig.config import load_config
 from mrrig.loop.adaptation import AdaptationSettings
 from mrrig.loop.build import build_controller
-from mrrig.loop.controllers import ControllerSettings, TwinInversion, make_controller
+from mrrig.loop.controllers import ControllerSettings, make_controller
 from mrrig.loop.mlp import ModelError
 from mrrig.loop.model_fit import COST_BUDGET_S, frame_cost_s
+from mrrig.loop.state_inversion import TwinInversion
 from mrrig.loop.twin_model import SUBSTEP_S, TwinModel, TwinTracker, load_forward_model
 from mrrig.offline.review import read_recording
 from tests.conftest import REPO, _toml, rig_config, zenoh_configs

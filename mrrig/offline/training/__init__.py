@@ -7,7 +7,7 @@ subsample, restarts), `select` (the structure chosen by blocked cross-validation
 (forward Et, inverse-current RMSE per sample and on-line, on any rows).
 """
 
-from mrrig.loop.controllers import HISTORY_SIGNALS
+from mrrig.loop.controller_base import HISTORY_SIGNALS
 from mrrig.offline.training.data import (
     KALMAN_WARMUP_S,
     concatenate,

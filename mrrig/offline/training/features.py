@@ -15,7 +15,7 @@ from collections.abc import Sequence
 import numpy as np
 from scipy import optimize, signal
 
-from mrrig.loop.controllers import HISTORY_SIGNALS
+from mrrig.loop.controller_base import HISTORY_SIGNALS
 from mrrig.offline.datasets import Series
 from mrrig.offline.training.data import run_ids, sample_period, stretch_bounds, stretches
 
