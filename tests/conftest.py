@@ -95,6 +95,46 @@ def sim_gru(tmp_path_factory) -> Path:
     return path
 
 
+DYKE = REPO.parent / "shared" / "data" / "dyke-mr-damper-ransim-u.csv"
+
+
+def _mrrig_ok(*args: str, timeout_s: float = 900) -> str:
+    """`mrrig ARGS` in a process of its own: its output, which must end with exit code 0."""
+    proc = subprocess.run(
+        [sys.executable, "-m", "mrrig", *args],
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+        timeout=timeout_s,
+    )
+    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
+    return proc.stdout + proc.stderr
+
+
+@pytest.fixture(scope="session")
+def dyke_twin_path(tmp_path_factory) -> tuple[Path, Path]:
+    """(twin, forward model in A) of the Dyke file, as the README's commands make them, once per
+    run under the machine's shared hold (about 40 s of fits and training: the twin path's
+    process test, tests/test_twin_path.py, held the machine alone meanwhile; tests/
+    test_session_models.py asks for them first, while the shared modules run). `mrrig identify`
+    gives the twin; `mrrig train` on the same measured data (not on the twin) the forward model,
+    whose command in V `mrrig identify --map-model` maps to the rig's A."""
+    from filelock import FileLock
+
+    root = _shared_base(tmp_path_factory)
+    twin, fwd_v, fwd = (root / f"dyke-{name}.json" for name in ("twin", "fwd-v", "fwd"))
+    with _Machine.hold(root, alone=False), FileLock(f"{fwd}.lock"):
+        if not fwd.is_file():
+            # one start: the path needs a twin, not the starts' better estimate (its time kept)
+            _mrrig_ok("-q", "identify", str(DYKE), "--out", str(twin), "--starts", "1")
+            # no history inputs: they would count samples of 3004.8 Hz (the daemon refuses such
+            # a model)
+            train = ("--features", "manual", "--history", "0", "--no-supervised")
+            _mrrig_ok("-q", "train", str(DYKE), "--out", str(fwd_v), *train)
+            _mrrig_ok("-q", "identify", "--map-model", str(fwd_v), "--out", str(fwd))
+    return twin, fwd
+
+
 # the two file locks every test run on this machine shares ($MRRIG_TEST_MACHINE to move them)
 MACHINE_LOCKS = Path(os.environ.get("MRRIG_TEST_MACHINE", "/tmp/mrrig-test-machine"))
 
@@ -111,6 +151,8 @@ class _Machine:
     held: str | None = None  # "shared" or "alone" while this worker holds the machine
     # seconds this worker waited for the machine and held it, by how: the run's summary
     seconds: collections.Counter[str] = collections.Counter()
+    # seconds each process module held the machine alone (the rig chain's links): the summary
+    alone_by_module: collections.Counter[str] = collections.Counter()
 
     @classmethod
     @contextlib.contextmanager
@@ -191,6 +233,7 @@ BESIDE_RIGS = frozenset(
         "test_choice_by_other_tests",
         "test_beside_rigs",
         "test_rnn_training",
+        "test_gru",  # its rig test is test_gru_tracking's
     }
 )
 
@@ -239,8 +282,12 @@ def _process_modules_run_alone(
                 finally:
                     _Machine.held = None
                 return
+    held_before = _Machine.seconds["held it alone"]
     with _Machine.hold(_shared_base(tmp_path_factory), alone=process):
         yield
+    if process:
+        held = _Machine.seconds["held it alone"] - held_before
+        _Machine.alone_by_module[request.module.__name__.rsplit(".", 1)[-1]] += held
 
 
 def pytest_configure(config: pytest.Config) -> None:
@@ -265,16 +312,23 @@ def pytest_sessionfinish(session: pytest.Session) -> None:
     workeroutput = getattr(session.config, "workeroutput", None)
     if workeroutput is not None:
         workeroutput["machine_seconds"] = dict(_Machine.seconds)
+        workeroutput["alone_by_module"] = dict(_Machine.alone_by_module)
+    elif _Machine.seconds:  # a run without workers (-n 0): its own seconds
+        _WORKER_SECONDS["main"] = dict(_Machine.seconds)
+        _ALONE_BY_MODULE.update(_Machine.alone_by_module)
 
 
 def pytest_testnodedown(node: Any, error: Any) -> None:
     """The controller keeps each worker's seconds with the machine."""
-    seconds = getattr(node, "workeroutput", {}).get("machine_seconds")
+    output = getattr(node, "workeroutput", {})
+    seconds = output.get("machine_seconds")
     if seconds is not None:
         _WORKER_SECONDS[node.gateway.id] = seconds
+    _ALONE_BY_MODULE.update(output.get("alone_by_module", {}))
 
 
 _WORKER_SECONDS: dict[str, dict[str, float]] = {}
+_ALONE_BY_MODULE: collections.Counter[str] = collections.Counter()
 
 
 def pytest_terminal_summary(terminalreporter: Any) -> None:
@@ -283,6 +337,13 @@ def pytest_terminal_summary(terminalreporter: Any) -> None:
     for worker, seconds in sorted(_WORKER_SECONDS.items()):
         parts = ", ".join(f"{how} {s:.0f} s" for how, s in sorted(seconds.items()))
         terminalreporter.write_line(f"machine, {worker}: {parts or 'not held'}")
+    if _ALONE_BY_MODULE:
+        chain = sum(_ALONE_BY_MODULE.values())
+        longest = ", ".join(f"{m} {s:.0f} s" for m, s in _ALONE_BY_MODULE.most_common(10))
+        terminalreporter.write_line(
+            f"rig chain: {len(_ALONE_BY_MODULE)} process modules held the machine alone "
+            f"{chain:.0f} s; the longest: {longest}"
+        )
 
 
 def pytest_addoption(parser: pytest.Parser) -> None:

@@ -33,7 +33,7 @@ def test_growth_is_the_last_sample_against_the_first_after_the_warm_up() -> None
 @pytest.mark.process
 def test_a_short_soak_prints_the_sidecar_growth_and_the_review_peaks(tmp_path: Path) -> None:
     proc = subprocess.run(
-        [sys.executable, "-m", "mrrig", "bench", "soak", "--minutes", "0.75",
+        [sys.executable, "-m", "mrrig", "bench", "soak", "--minutes", "0.5",
          "--sample-s", "1", "--work", str(tmp_path)],
         cwd=REPO, capture_output=True, text=True, timeout=600, check=False,
     )  # fmt: skip

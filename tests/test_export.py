@@ -1,6 +1,7 @@
 """`mrrig export`: a recording as Parquet, CSV and MDF4, read back by pyarrow, pandas and
 asammdf with the recording's values, units and sample count and an absolute UTC time; `mrrig
-review` and the training/evaluate loader read the Parquet and MDF4 files back."""
+review` and the training/evaluate loader read the Parquet and MDF4 files back (on a synthetic
+recording; a real run's export: tests/test_export_of_a_rig_run.py)."""
 
 from __future__ import annotations
 
@@ -16,15 +17,14 @@ import pandas as pd
 import pyarrow as pa
 import pyarrow.parquet as pq
 import pytest
-from asammdf import MDF
 
 from mrrig.export import COLUMNS, META_KEY, UTC_COLUMN, read_any
 from mrrig.loop.samples import SAMPLE_DTYPE
 from mrrig.loop.summary import summarize
 from mrrig.offline.review import read_recording
 from mrrig.offline.training.data import load_file
-from tests.conftest import REPO, rig_config, start, stop
-from tests.test_lifecycle_errors import NO_MODEL, one_error_line
+from tests.conftest import REPO
+from tests.test_lifecycle_errors import one_error_line
 from tests.test_recording import run_events, synthetic_run, write_recording
 
 UNITS = {
@@ -62,27 +62,6 @@ def export(rrd: Path, fmt: str) -> Path:
 
 
 @pytest.fixture(scope="module")
-def real_run(tmp_path_factory) -> tuple[Path, object]:
-    """A 3 s armed run of the daemon against firmware_sim, recorded, and its read-back."""
-    from mrrig.rigio.canbus.bus import find_free_port, start_bridge, stop_bridge
-
-    tmp = tmp_path_factory.mktemp("export")
-    port = find_free_port()
-    bridge = start_bridge(port)
-    channel = f"ws://127.0.0.1:{port}/"
-    sim = start(["-m", "firmware_sim", "--config", "configs/sim.toml", "-c", channel])
-    try:
-        cfg = rig_config(tmp, channel, None, **NO_MODEL)
-        rrd = tmp / "rig1-run.rrd"
-        proc = mrrig("run", "--config", str(cfg), "--duration", "3", "--arm", "--record", str(rrd))
-        assert proc.returncode == 0, proc.stdout + proc.stderr
-    finally:
-        stop(sim)
-        stop_bridge(bridge)
-    return rrd, read_recording(rrd)
-
-
-@pytest.fixture(scope="module")
 def synthetic(tmp_path_factory) -> tuple[Path, object]:
     """A recording without run identity, its name holding the recorder's UTC start."""
     path = tmp_path_factory.mktemp("export_syn") / "rig1-20260101T120000Z.rrd"
@@ -103,67 +82,6 @@ def _started(rec) -> dt.datetime:
 def _utc_ns(t0: dt.datetime, t: np.ndarray) -> np.ndarray:
     base = int(t0.timestamp()) * 1_000_000_000 + t0.microsecond * 1000
     return base + np.round(t * 1e9).astype(np.int64)
-
-
-@pytest.mark.process
-def test_parquet_reads_back_with_pyarrow_with_the_values_units_and_utc(real_run):
-    rrd, rec = real_run
-    assert rec.samples.size > 1000 and rec.identity  # 3 s at 500 Hz, with its identity
-    table = pq.read_table(export(rrd, "parquet"))
-    assert table.num_rows == rec.samples.size
-    assert table.column_names == [UTC_COLUMN] + [c.name for c in COLUMNS]
-    for c in COLUMNS:
-        assert _same(table.column(c.name).to_numpy(), rec.samples[c.field]), c.name
-        meta = table.schema.field(c.name).metadata
-        assert meta[b"unit"].decode() == c.unit and meta[b"field"].decode() == c.field
-    for name, unit in UNITS.items():
-        assert table.schema.field(name).metadata[b"unit"].decode() == unit
-    utc = table.column(UTC_COLUMN).cast("int64").to_numpy()
-    assert np.array_equal(utc, _utc_ns(_started(rec), rec.samples["t"]))
-    meta = json.loads(table.schema.metadata[META_KEY.encode()])
-    assert meta["utc_source"] == "run identity started_utc"
-    assert meta["identity"]["run_id"] == rec.identity["run_id"]
-    assert meta["summary"]["frames"] == rec.summary["frames"]
-
-
-@pytest.mark.process
-def test_mf4_reads_back_with_asammdf_with_the_values_units_and_utc(real_run):
-    rrd, rec = real_run
-    mdf = MDF(export(rrd, "mf4"))
-    try:
-        assert mdf.header.start_time.astimezone(dt.UTC) == _started(rec)
-        for c in COLUMNS[1:]:
-            sig = mdf.get(c.name)
-            assert sig.samples.size == rec.samples.size, c.name
-            assert _same(sig.samples, rec.samples[c.field]), c.name
-            assert sig.unit == c.unit and sig.comment == c.description, c.name
-            assert _same(sig.timestamps, rec.samples["t"]), c.name
-        for name, unit in UNITS.items():
-            if name != "t_s":
-                assert mdf.get(name).unit == unit
-        assert mdf.groups[0].channels[0].name == "t_s"
-        utc = mdf.get("utc_unix_s").samples
-        expected = _utc_ns(_started(rec), rec.samples["t"]) / 1e9
-        assert np.abs(utc - expected).max() < 1e-6  # float64 Unix seconds: to a microsecond
-    finally:
-        mdf.close()
-
-
-@pytest.mark.process
-def test_review_of_the_parquet_and_mf4_gives_the_metrics_of_the_rrd(real_run):
-    rrd, _ = real_run
-    metrics = {}
-    for path in (rrd, rrd.with_suffix(".parquet"), rrd.with_suffix(".mf4")):
-        if not path.exists():
-            export(rrd, path.suffix[1:])
-        out = path.with_suffix(path.suffix + ".json")
-        proc = mrrig("review", str(path), "--json", str(out))
-        assert proc.returncode == 0, proc.stdout + proc.stderr
-        metrics[path.suffix] = json.loads(out.read_text())
-    assert metrics[".rrd"]["frames"] > 1000
-    assert "et" in metrics[".rrd"]
-    assert metrics[".parquet"] == metrics[".rrd"]
-    assert metrics[".mf4"] == metrics[".rrd"]
 
 
 def test_csv_has_unit_named_columns_a_commented_preamble_and_the_values(synthetic, tmp_path):

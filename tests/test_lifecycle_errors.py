@@ -1,6 +1,7 @@
 """Errors of the set-up a rig's operator meets (a bus that is not there, a port in use, no
-daemon, a telemetry process that cannot start): each is one `error:` line with what to do,
-exit code 2, no traceback and no Rust source path; a closed pipe ends quietly."""
+daemon, a telemetry process that cannot start: tests/test_telemetry_start_failure.py, a process
+module): each is one `error:` line with what to do, exit code 2, no traceback and no Rust
+source path; a closed pipe ends quietly. No rig runs here: the machine is held shared."""
 
 from __future__ import annotations
 
@@ -14,7 +15,6 @@ import pytest
 from mrrig.rigio.canbus.bus import find_free_port
 from tests.conftest import REPO, rig_config, zenoh_configs
 
-pytestmark = pytest.mark.process
 NO_MODEL = {"controller": {"name": "constant", "current_a": 0.5}}
 
 
@@ -77,30 +77,6 @@ def test_status_without_a_daemon(tmp_path):
     _, client, _ = zenoh_configs(tmp_path)
     line = one_error_line(mrrig("status", "--zenoh-config", str(client), "--timeout", "1"))
     assert "is the daemon running?" in line
-
-
-def test_a_telemetry_process_that_cannot_start_stops_the_daemon(tmp_path, bridge):
-    zcfg, _, _ = zenoh_configs(tmp_path)
-    with socket.socket() as taken:
-        taken.bind(("127.0.0.1", 0))
-        taken.listen()
-        zcfg.write_text(
-            f'{{mode: "peer", listen: {{endpoints: ["tcp/127.0.0.1:{taken.getsockname()[1]}"]}},'
-            " scouting: {multicast: {enabled: false}}}"
-        )
-        cfg = rig_config(
-            tmp_path,
-            bridge,
-            None,
-            telemetry={"enabled": True, "zenoh_config": str(zcfg)},
-            **NO_MODEL,
-        )
-        proc = mrrig("run", "--config", str(cfg), "--duration", "30", "--no-record")
-    line = one_error_line(proc)
-    assert "telemetry process could not start" in line and "Address already in use" in line
-    assert "telemetry.enabled = false" in line
-    assert "loop running" not in proc.stderr  # its loop never ran unobserved
-    assert "frames" not in proc.stdout  # no run, so no summary
 
 
 def test_a_closed_pipe_is_quiet_and_the_figure_is_still_written(tmp_path):

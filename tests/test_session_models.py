@@ -3,9 +3,12 @@ the simulator's force on a matrix it was not trained on.
 
 It is also the first module the scheduler hands out (tests/rig_chain.py `FIRST`): the GRU's
 training (100-180 s here) then runs while the workers run the shared modules, not between two
-rig modules, where the rig chain waited for it."""
+rig modules, where the rig chain waited for it. So do the Dyke twin and its forward model in A
+(conftest's `dyke_twin_path`, the models of the twin path's process test)."""
 
 from __future__ import annotations
+
+import json
 
 import pytest
 
@@ -32,3 +35,9 @@ def test_the_session_gru_predicts_a_matrix_between_its_training_conditions(sim_g
     et = error_norm(measured, predicted)
     print(f"the session GRU's forward Et on the in-between matrix: {et:.4f}")
     assert et <= BOUND
+
+
+def test_the_dyke_twin_paths_forward_model_takes_the_rigs_amperes(dyke_twin_path):
+    twin, fwd = dyke_twin_path
+    assert json.loads(fwd.read_text())["meta"]["command_unit"] == "A"
+    assert twin.is_file()

@@ -4,18 +4,15 @@ daemon inverts (mrrig/loop/twin_model.py, network inversion with a plant file as
 The twin's state is carried frame to frame as the plant integrates it, the command solved
 exactly for a reachable force and clamped to the rig's range for an unreachable one, a twin in
 volts refused on a rig in amperes unless mapped (`mrrig identify --map-model`), and the
-daemon, inverting the twin that firmware_sim runs, tracks its force."""
+daemon, inverting the twin that firmware_sim runs, tracks its force
+(tests/test_twin_inversion_tracking.py, a process module)."""
 
 from __future__ import annotations
 
-import json
 import math
-import re
 import subprocess
 import sys
-import tomllib
 from dataclasses import replace
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -30,16 +27,10 @@ from mrrig.loop.mlp import ModelError
 from mrrig.loop.model_fit import COST_BUDGET_S, frame_cost_s
 from mrrig.loop.state_inversion import TwinInversion
 from mrrig.loop.twin_model import SUBSTEP_S, TwinModel, TwinTracker, load_forward_model
-from mrrig.offline.review import read_recording
-from tests.conftest import REPO, _toml, rig_config, zenoh_configs
+from tests.conftest import REPO, rig_config
 from tests.rig_harness import ScriptedRig
-from tests.stall_proof import explain, tracking, windows
 
 DT_S = 0.002
-# the process test's answered Et at most: measured 0.0164 over its 20 s here (load 0.4 on 2
-# cores); the network inversion of a model trained on the measured data, on the Dyke twin,
-# 0.0203 (tests/test_twin_path.py)
-BOUND = 0.025
 I_MAX_A = 2.0
 PLANT = Plant(BoucWenParams.preset("paper-volt"), offset_n=12.5, command_unit="A")
 
@@ -197,54 +188,3 @@ def test_set_model_takes_a_twin_in_amperes_and_refuses_one_in_volts_with_one_lin
         for _ in range(3):
             cmd = rig.exchange()
         assert cmd["Mode"] == 1 and 0.0 <= cmd["CurrentSetpoint"] <= I_MAX_A  # ACTIVE
-
-
-@pytest.mark.process
-@pytest.mark.long
-def test_the_daemon_inverting_the_twin_that_firmware_sim_runs_tracks_its_force(tmp_path):
-    """firmware_sim runs a twin (configs/sim-dyke-twin.toml with a plant file of the paper's
-    parameters, in A); the daemon inverts the same plant file (configs/dyke-twin.toml, the
-    reference the twin's own force for 0.8 +- 0.5 A: reachable)."""
-    twin = tmp_path / "twin.json"
-    save_plant(PLANT, twin)
-    zdaemon, zclient, _ = zenoh_configs(tmp_path)
-    rig = tomllib.loads((REPO / "configs/dyke-twin.toml").read_text())
-    rig["rig"]["name"] = "twin-inversion-test"
-    rig["controller"]["model"] = str(twin)
-    rig["reference"]["preset"] = str(twin)
-    rig["telemetry"].update(enabled=True, zenoh_config=str(zdaemon))
-    rig["recording"].update(enabled=True, directory=str(tmp_path / "rec"))
-    (tmp_path / "rig.toml").write_text(_toml(rig))
-    sim = (REPO / "configs/sim-dyke-twin.toml").read_text()
-    sim = sim.replace('file = "models/dyke-twin.json"', f'file = "{twin}"')
-    assert str(twin) in sim
-    (tmp_path / "sim.toml").write_text(sim)
-    proc = subprocess.run(
-        [sys.executable, "-m", "mrrig", "demo"]
-        + ["--config", str(tmp_path / "rig.toml"), "--sim-config", str(tmp_path / "sim.toml")]
-        + ["--model", str(twin), "--zenoh-config", str(zclient), "--duration", "20"],
-        cwd=REPO,
-        capture_output=True,
-        text=True,
-        timeout=300,
-    )
-    out = proc.stdout + proc.stderr
-    m = re.search(r"--summary-json (\S+)", out)
-    assert m, out[-3000:]
-    summary = json.loads(Path(m[1]).read_text())
-    stats = json.loads((Path(m[1]).parent / "sim-stats.json").read_text())
-    work = summary["latency_split_us"]["work"]
-    print(
-        f"answered Et {summary['et_answered']:.4f}, faults {len(summary['faults'])},"
-        f" work p99 {work['p99']:.0f} us"
-    )
-    print(
-        f"simulator: {stats['answers']} answers, {stats['answers_on_time']} on time,"
-        f" {stats['late_commands']} late (not applied)"
-    )
-    (rrd,) = (tmp_path / "rec").glob("*.rrd")
-    samples = read_recording(rrd).samples
-    assert summary["controller"] == "network_inversion"
-    # the demo's daemon is not up for all of the simulator's frames: rules 2 and 3 alone
-    explained = explain(stats, summary["faults"], summary["clock_t0_s"], summary["kernel_stalls"])
-    tracking(samples, windows(stats), explained, summary["clock_t0_s"], BOUND)

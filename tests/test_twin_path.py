@@ -9,42 +9,23 @@ from __future__ import annotations
 
 import json
 import re
-import subprocess
-import sys
 import tomllib
 from pathlib import Path
 
 import pytest
 
-from tests.conftest import REPO, _toml, zenoh_configs
+from tests.conftest import REPO, _mrrig_ok, _toml, zenoh_configs
 from tests.stall_proof import explain
 
-DYKE = REPO.parent / "shared" / "data" / "dyke-mr-damper-ransim-u.csv"
 DURATION_S = 20.0
-
-
-def _mrrig(*args: str, timeout_s: float = 900) -> str:
-    proc = subprocess.run(
-        [sys.executable, "-m", "mrrig", *args],
-        cwd=REPO,
-        capture_output=True,
-        text=True,
-        timeout=timeout_s,
-    )
-    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
-    return proc.stdout + proc.stderr
 
 
 @pytest.mark.process
 @pytest.mark.long
-def test_the_dyke_twin_tracked_by_a_model_of_the_measured_data_et_at_most_0_03(tmp_path):
-    twin, fwd_v, fwd = tmp_path / "dyke-twin.json", tmp_path / "fwd-v.json", tmp_path / "fwd.json"
-    # one start: the path needs a twin, not the starts' better estimate (its time kept)
-    _mrrig("-q", "identify", str(DYKE), "--out", str(twin), "--starts", "1")
-    # no history inputs: they would count samples of 3004.8 Hz (the daemon refuses such a model)
-    train = ("--features", "manual", "--history", "0", "--no-supervised")
-    _mrrig("-q", "train", str(DYKE), "--out", str(fwd_v), *train)
-    _mrrig("-q", "identify", "--map-model", str(fwd_v), "--out", str(fwd))
+def test_the_dyke_twin_tracked_by_a_model_of_the_measured_data_et_at_most_0_03(
+    tmp_path, dyke_twin_path
+):
+    twin, fwd = dyke_twin_path  # conftest's: `mrrig identify`, `train`, `identify --map-model`
     assert json.loads(fwd.read_text())["meta"]["command_unit"] == "A"
 
     zdaemon, zclient, _ = zenoh_configs(tmp_path)
@@ -59,7 +40,7 @@ def test_the_dyke_twin_tracked_by_a_model_of_the_measured_data_et_at_most_0_03(t
     sim = sim.replace('file = "models/dyke-twin.json"', f'file = "{twin}"')
     assert str(twin) in sim
     (tmp_path / "sim.toml").write_text(sim)
-    out = _mrrig(
+    out = _mrrig_ok(
         "demo",
         *("--config", str(tmp_path / "rig.toml"), "--sim-config", str(tmp_path / "sim.toml")),
         *("--model", str(fwd), "--zenoh-config", str(zclient), "--duration", str(DURATION_S)),
