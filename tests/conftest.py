@@ -233,7 +233,6 @@ BESIDE_RIGS = frozenset(
         "test_choice_by_other_tests",
         "test_beside_rigs",
         "test_rnn_training",
-        "test_gru",  # its rig test is test_gru_tracking's
     }
 )
 

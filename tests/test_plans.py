@@ -882,7 +882,7 @@ def _sidecar_of(config: str) -> int:
     (sidecar,) = [
         pid
         for pid, (cmd, ppid) in procs.items()
-        if ppid in daemons and b"mrrig.rigio.sidecar" in cmd
+        if ppid in daemons and b"mrrig.rigio.sidecar_process" in cmd
     ]
     return sidecar
 
