@@ -24,9 +24,11 @@ summary), so their times are comparable on one machine.
 
 from __future__ import annotations
 
+import json
 import re
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -79,6 +81,15 @@ class Proof:
     explained: list[tuple[dict, Window]]  # each fault and the window that explains it
     et: float | None  # over the armed frames outside the windows
     armed_frames: int  # outside the windows
+
+
+def demo_files(out: str) -> tuple[dict[str, Any], dict[str, Any]]:
+    """The daemon's summary and its simulator's stats of a `mrrig demo` run, from the files its
+    log names (`--summary-json`, and `sim-stats.json` beside it in its work folder)."""
+    m = re.search(r"--summary-json (\S+)", out)
+    assert m, out[-3000:]
+    summary = json.loads(Path(m[1]).read_text())
+    return summary, json.loads((Path(m[1]).parent / "sim-stats.json").read_text())
 
 
 def windows(sim_stats: Mapping[str, Any]) -> list[Window]:

@@ -15,7 +15,7 @@ import pytest
 
 from mrrig.cli.demo import RearmLimit
 from tests.conftest import REPO, OutputWatch, rig_config, stall, zenoh_configs
-from tests.stall_proof import explain
+from tests.stall_proof import demo_files, explain
 
 STALL_S = 0.1  # the simulator stopped this long: 50 periods without a sensor frame
 DURATION_S = 6.0
@@ -99,10 +99,7 @@ def _demo_with_a_stall(
 def _explain_faults(out: str) -> None:
     """Every fault of the demo's daemon lies inside a stall its simulator measured (the demo
     leaves both processes' files in its work folder, named in its log)."""
-    m = re.search(r"--summary-json (\S+)", out)
-    assert m, out
-    summary = json.loads(Path(m[1]).read_text())
-    stats = json.loads((Path(m[1]).parent / "sim-stats.json").read_text())
+    summary, stats = demo_files(out)
     assert explain(stats, summary["faults"], summary["clock_t0_s"], summary["kernel_stalls"])
 
 

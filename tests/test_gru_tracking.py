@@ -4,17 +4,14 @@ the machine shared)."""
 
 from __future__ import annotations
 
-import json
-import re
 import subprocess
 import sys
 import tomllib
-from pathlib import Path
 
 import pytest
 
 from tests.conftest import REPO, _toml, zenoh_configs
-from tests.stall_proof import explain
+from tests.stall_proof import demo_files, explain
 
 # the process test's answered Et at most: the demo with this model measured 0.0095 over 20 s
 # here (the network's 0.0087-0.0088), margin for a loaded machine
@@ -44,10 +41,7 @@ def test_the_daemon_inverting_a_gru_tracks_the_simulators_force(tmp_path, sim_gr
         timeout=300,
     )
     out = proc.stdout + proc.stderr
-    m = re.search(r"--summary-json (\S+)", out)
-    assert m, out[-3000:]
-    summary = json.loads(Path(m[1]).read_text())
-    stats = json.loads((Path(m[1]).parent / "sim-stats.json").read_text())
+    summary, stats = demo_files(out)
     work = summary["latency_split_us"]["work"]
     print(
         f"answered Et {summary['et_answered']:.4f}, faults {len(summary['faults'])},"

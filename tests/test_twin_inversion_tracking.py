@@ -3,19 +3,16 @@ twin's inversion numerics are tests/test_twin_inversion.py's, which hold the mac
 
 from __future__ import annotations
 
-import json
-import re
 import subprocess
 import sys
 import tomllib
-from pathlib import Path
 
 import pytest
 
 from damper.plant_file import save_plant
 from mrrig.offline.review import read_recording
 from tests.conftest import REPO, _toml, zenoh_configs
-from tests.stall_proof import explain, tracking, windows
+from tests.stall_proof import demo_files, explain, tracking, windows
 from tests.test_twin_inversion import PLANT
 
 # the test's answered Et at most: measured 0.0164 over its 20 s here (load 0.4 on 2
@@ -54,10 +51,7 @@ def test_the_daemon_inverting_the_twin_that_firmware_sim_runs_tracks_its_force(t
         timeout=300,
     )
     out = proc.stdout + proc.stderr
-    m = re.search(r"--summary-json (\S+)", out)
-    assert m, out[-3000:]
-    summary = json.loads(Path(m[1]).read_text())
-    stats = json.loads((Path(m[1]).parent / "sim-stats.json").read_text())
+    summary, stats = demo_files(out)
     work = summary["latency_split_us"]["work"]
     print(
         f"answered Et {summary['et_answered']:.4f}, faults {len(summary['faults'])},"

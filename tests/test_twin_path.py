@@ -8,14 +8,12 @@ a current profile (configs/dyke-twin.toml, configs/sim-dyke-twin.toml)."""
 from __future__ import annotations
 
 import json
-import re
 import tomllib
-from pathlib import Path
 
 import pytest
 
 from tests.conftest import REPO, _mrrig_ok, _toml, zenoh_configs
-from tests.stall_proof import explain
+from tests.stall_proof import demo_files, explain
 
 DURATION_S = 20.0
 
@@ -46,10 +44,7 @@ def test_the_dyke_twin_tracked_by_a_model_of_the_measured_data_et_at_most_0_03(
         *("--model", str(fwd), "--zenoh-config", str(zclient), "--duration", str(DURATION_S)),
         timeout_s=300,
     )
-    m = re.search(r"--summary-json (\S+)", out)
-    assert m, out[-3000:]
-    summary = json.loads(Path(m[1]).read_text())
-    stats = json.loads((Path(m[1]).parent / "sim-stats.json").read_text())
+    summary, stats = demo_files(out)
     print(f"answered Et {summary['et_answered']:.4f}, faults {len(summary['faults'])}")
     explain(stats, summary["faults"], summary["clock_t0_s"], summary["kernel_stalls"])
     assert summary["et_answered"] <= 0.03
